@@ -1,0 +1,43 @@
+"""Conversions between the engineering units users read and the SI units used inside.
+
+Config files, the CLI and reports speak mm/min, N/µm, (m/min)/mm, rpm, N·min/mm;
+everything between them is SI (m, s, N, kg, rad).
+"""
+
+MM_PER_MIN = 1e-3 / 60.0
+"""1 mm/min in m/s."""
+
+N_PER_UM = 1e6
+"""1 N/µm in N/m."""
+
+M_PER_MIN_PER_MM = 1000.0 / 60.0
+"""1 (m/min)/mm position-loop gain in 1/s (DIGEST: ≈ 16.67 1/s)."""
+
+N_MIN_PER_MM = 60.0 / 1e-3
+"""1 N·min/mm viscous coefficient in N·s/m."""
+
+MIN_PER_MM = 60.0 / 1e-3
+"""1 min/mm (friction model constant k_tanh) in s/m."""
+
+RPM = 2.0 * 3.141592653589793 / 60.0
+"""1 rpm in rad/s."""
+
+
+def mm_per_min_to_m_per_s(feed_mm_min: float) -> float:
+    """Feed in mm/min → velocity in m/s."""
+    return feed_mm_min * MM_PER_MIN
+
+
+def m_per_s_to_mm_per_min(velocity_m_s: float) -> float:
+    """Velocity in m/s → feed in mm/min."""
+    return velocity_m_s / MM_PER_MIN
+
+
+def kv_to_per_second(kv_m_min_per_mm: float) -> float:
+    """Position-loop gain (m/min)/mm → 1/s."""
+    return kv_m_min_per_mm * M_PER_MIN_PER_MM
+
+
+def kv_to_m_min_per_mm(kv_per_s: float) -> float:
+    """Position-loop gain 1/s → (m/min)/mm."""
+    return kv_per_s / M_PER_MIN_PER_MM
