@@ -1,0 +1,206 @@
+"""The bench: reads a run config, reaches the drive (simulated or real), runs a plan.
+
+This is the composition root: the one place that knows both the host side (drivers,
+daq, experiments) and, when ``bench.simulated = true``, starts the simulated drive on
+the same bus. Everything else stays in its room.
+"""
+
+from __future__ import annotations
+
+import json
+from contextlib import ExitStack
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from feedbench.config import ConfigError, Field, one_of, positive, read_toml, validate_table
+from feedbench.daq.catalog import Catalog
+from feedbench.daq.clock import LockstepClock, RealtimeClock
+from feedbench.daq.recorder import Recorder
+from feedbench.drivers.canbus import open_network
+from feedbench.drivers.cia402 import Cia402Drive
+from feedbench.experiments import chirp, friction_sweep
+from feedbench.experiments.limits import Limits
+from feedbench.experiments.plan import Plan
+from feedbench.experiments.runner import CHANNELS, UNITS, Observer, ProgressPrinter, Runner
+from feedbench.units import kv_to_per_second
+
+EXPERIMENTS = {m.NAME: m for m in (friction_sweep, chirp)}
+
+GAINS_SCHEMA = {
+    "K_p_Ns_m": Field(float, None, "velocity-loop gain (N·s/m)", positive),
+    "T_i_ms": Field(float, None, "velocity-loop integral time (ms)", positive),
+    "K_v_m_min_mm": Field(float, None, "position-loop gain ((m/min)/mm)", positive),
+}
+
+BENCH_SCHEMA = {
+    "simulated": Field(bool, True, "start the simulated drive on the same bus"),
+    "interface": Field(str, "virtual", "python-can interface (virtual, socketcan, socketcand…)"),
+    "channel": Field(str, "feedbench", "python-can channel (e.g. can0)"),
+    "bitrate": Field(int, 1_000_000, "CAN bitrate (bit/s)", positive),
+    "node_id": Field(int, 1, "CANopen node id of the drive", positive),
+    "cycle_ms": Field(float, 1.0, "bus cycle: SYNC period (ms)", positive),
+    "clock": Field(str, "lockstep", "lockstep (simulation) or realtime (hardware)",
+                   one_of("lockstep", "realtime")),
+    "timeout_s": Field(float, 1.0, "how long a cycle may wait for its TPDOs (s)", positive),
+    "eds": Field(str, "", "EDS file of the drive (empty: the packaged simulated drive's)"),
+    "output_dir": Field(str, "runs", "where recordings and the catalog go"),
+    "gains": Field(dict, {}, "servo gains written to the drive by SDO before the run"),
+    "world": Field(dict, {}, "simulated world (simulated = true only); never read by the host"),
+}
+
+RUN_SCHEMA = {
+    "bench": Field(dict, {}, "how to reach the drive"),
+    "limits": Field(dict, {}, "limits watched during the run"),
+    "experiment": Field(dict, None, "the experiment plan"),
+}
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """A validated run config: bench table, limits, experiment plan."""
+
+    bench: dict[str, Any]
+    limits: Limits
+    plan: Plan
+    raw: dict[str, Any]
+
+
+def parse_run_config(raw: Mapping[str, Any]) -> RunConfig:
+    """Validate a whole run config (already parsed TOML); raises `ConfigError`."""
+    top = validate_table(raw, RUN_SCHEMA, "config")
+    if top["experiment"] is None:
+        raise ConfigError("config.experiment: required table [experiment] is missing")
+    bench = validate_table(top["bench"], BENCH_SCHEMA, "bench")
+    validate_table(bench["gains"], GAINS_SCHEMA, "bench.gains")
+    limits = Limits.from_config(top["limits"])
+    kind = top["experiment"].get("type")
+    if kind not in EXPERIMENTS:
+        raise ConfigError(f"experiment.type: must be one of {', '.join(EXPERIMENTS)} (got {kind!r})")
+    plan = EXPERIMENTS[kind].build_plan(top["experiment"], bench["cycle_ms"] * 1e-3)
+    _check_excitation_fits(plan, limits)
+    return RunConfig(bench, limits, plan, dict(raw))
+
+
+def _check_excitation_fits(plan: Plan, limits: Limits) -> None:
+    """An excitation above the force limit is a config error, caught before anything moves."""
+    peak = float(abs(plan.concatenated("force_offset")).max(initial=0.0))
+    if peak > limits.force:
+        raise ConfigError(
+            f"experiment.amplitude_N: {peak:g} N exceeds the force limit limits.force_N "
+            f"({limits.force:g} N)"
+        )
+    limits.check_excitation(plan.concatenated("force_offset"),
+                            plan.concatenated("velocity_offset"))
+
+
+def load_run_config(path: str | Path) -> RunConfig:
+    """Read and validate a TOML run config file."""
+    return parse_run_config(read_toml(path))
+
+
+def host_config(raw: Mapping[str, Any]) -> dict[str, Any]:
+    """The config as the host may record it: the simulated world's truth removed."""
+    out = json.loads(json.dumps(raw))
+    out.get("bench", {}).pop("world", None)
+    return out
+
+
+def _packaged_eds() -> str:
+    from feedbench.sim_backends.eds import packaged_eds_path
+
+    return str(packaged_eds_path())
+
+
+def _gains_si(table: Mapping[str, Any]) -> dict[str, float]:
+    g = validate_table(table, GAINS_SCHEMA, "bench.gains")
+    out = {}
+    if g["K_p_Ns_m"] is not None:
+        out["K_p"] = g["K_p_Ns_m"]
+    if g["T_i_ms"] is not None:
+        out["T_i"] = g["T_i_ms"] * 1e-3
+    if g["K_v_m_min_mm"] is not None:
+        out["K_v"] = kv_to_per_second(g["K_v_m_min_mm"])
+    return out
+
+
+class Bench:
+    """An open bench: the CAN network, the drive driver, the clock (and the simulated peer).
+
+    Use as a context manager; `run(config)` executes one plan and returns its record.
+    """
+
+    def __init__(self, bench: Mapping[str, Any]) -> None:
+        self.config = dict(bench)
+        self._stack = ExitStack()
+        self.simulated_drive = None
+        self.network = None
+        self.drive: Cia402Drive | None = None
+        self.clock = None
+
+    def __enter__(self) -> Bench:
+        cfg = self.config
+        cycle_s = cfg["cycle_ms"] * 1e-3
+        try:
+            if cfg["simulated"]:
+                self._start_simulated_peer(cycle_s)
+            self.network = open_network(cfg["interface"], cfg["channel"], cfg["bitrate"])
+            self._stack.callback(self.network.disconnect)
+            eds = cfg["eds"] or _packaged_eds()
+            self.drive = Cia402Drive(self.network, cfg["node_id"], eds)
+            self.drive.configure()
+            gains = _gains_si(cfg["gains"])
+            if gains:
+                self.drive.write_gains(**gains)
+            if cfg["clock"] == "lockstep":
+                self.clock = LockstepClock(self.network, [self.drive], timeout_s=cfg["timeout_s"])
+            else:
+                self.clock = RealtimeClock(self.network, [self.drive], period_s=cycle_s)
+        except BaseException:
+            self._stack.close()
+            raise
+        return self
+
+    def _start_simulated_peer(self, cycle_s: float) -> None:
+        from feedbench.sim_backends.bench import start_simulated_axis
+        from feedbench.sim_backends.world import build_axis
+
+        cfg = self.config
+        simulator = build_axis(cfg["world"], cycle_s)
+        self.simulated_drive = start_simulated_axis(
+            cfg["interface"], cfg["channel"], cfg["node_id"], simulator
+        )
+        self._stack.callback(self.simulated_drive.close)
+
+    def __exit__(self, *exc) -> None:
+        self._stack.close()
+
+    def run(self, config: RunConfig, catalog: Catalog, output_dir: Path,
+            observers: Sequence[Observer] = (), progress: bool = True) -> dict:
+        """Execute `config.plan`; returns the catalog row as a dict."""
+        runner = Runner(self.drive, self.clock, config.limits,
+                        observers=[*observers, *([ProgressPrinter()] if progress else [])])
+        start = runner.read_position()
+        runner.absolute_targets(config.plan, start)
+        run_id = catalog.new_run_id(config.plan.experiment)
+        path = output_dir / f"{run_id}.h5"
+        metadata = {"experiment": config.plan.experiment, "run_id": run_id,
+                    "config": host_config(config.raw),
+                    "cycle_s": config.plan.cycle_s}
+        catalog.add(run_id, config.plan.experiment, str(path), config.plan.params)
+        recorder = Recorder(path, CHANNELS, UNITS, metadata)
+        self.last_runner = runner
+        outcome = runner.run(config.plan, recorder, start)
+        catalog.finish(run_id, outcome.status, outcome.reason, recorder.n_samples)
+        return {"id": run_id, "file": str(path), "status": outcome.status,
+                "reason": outcome.reason}
+
+
+def run_config(config: RunConfig, observers: Sequence[Observer] = (),
+               progress: bool = True) -> dict:
+    """Open the bench of `config`, run its plan, close the bench."""
+    output_dir = Path(config.bench["output_dir"])
+    output_dir.mkdir(parents=True, exist_ok=True)
+    catalog = Catalog(output_dir / "catalog.sqlite")
+    with Bench(config.bench) as bench:
+        return bench.run(config, catalog, output_dir, observers, progress)

@@ -1,0 +1,146 @@
+"""The `feedbench` command: run, runs, analyze, demo.
+
+Errors the user can fix (a config key, a limit, an unknown run) print one line
+``feedbench: error: …`` and exit with status 2, before anything moves.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+from feedbench.config import ConfigError
+from feedbench.experiments.limits import LimitError
+
+USER_ERRORS = (ConfigError, LimitError, KeyError, FileNotFoundError)
+
+
+def _print_json(data: dict) -> None:
+    print(json.dumps(data, indent=2, default=float))
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """Validate a config, run it, print the run's id, file and status."""
+    from feedbench.bench import load_run_config, run_config
+
+    config = load_run_config(args.config)
+    row = run_config(config, progress=not args.json)
+    if args.json:
+        _print_json(row)
+    else:
+        print(f"{row['id']}  {row['status']}  {row['file']}"
+              + (f"  ({row['reason']})" if row["reason"] else ""))
+    return 0 if row["status"] == "complete" else 1
+
+
+def cmd_runs(args: argparse.Namespace) -> int:
+    """List the run catalog."""
+    from feedbench.daq.catalog import Catalog
+
+    rows = Catalog(Path(args.dir) / "catalog.sqlite").list()
+    if args.json:
+        _print_json({"runs": [vars(r) for r in rows]})
+        return 0
+    for r in rows:
+        print(f"{r.id:<42s} {r.status:<9s} {r.n_samples or 0:>8d}  {r.file}"
+              + (f"  ({r.reason})" if r.reason else ""))
+    if not rows:
+        print(f"no runs in {args.dir}")
+    return 0
+
+
+def analyze_file(path: str | Path) -> dict:
+    """Open a recording and run its experiment's analysis step."""
+    from feedbench.bench import EXPERIMENTS
+    from feedbench.daq.recording import open_recording
+
+    recording = open_recording(path)
+    if recording.experiment not in EXPERIMENTS:
+        raise ConfigError(f"{path}: no analysis for experiment {recording.experiment!r}")
+    result = EXPERIMENTS[recording.experiment].analyze_recording(recording)
+    result["run"] = {"file": str(path), "status": recording.status, "reason": recording.reason,
+                     "n_samples": recording.n_samples, "n_gaps": recording.n_gaps}
+    return result
+
+
+def resolve_run(run: str, directory: str) -> str:
+    """A recording path from a file path or a run id (or unique id prefix) in the catalog."""
+    if Path(run).is_file():
+        return run
+    from feedbench.daq.catalog import Catalog
+
+    return Catalog(Path(directory) / "catalog.sqlite").get(run).file
+
+
+def cmd_analyze(args: argparse.Namespace) -> int:
+    """Analyse one recorded run."""
+    result = analyze_file(resolve_run(args.run, args.dir))
+    if args.json:
+        _print_json(result)
+    else:
+        from feedbench.demo import describe_analysis
+
+        print(describe_analysis(result))
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Friction sweep + chirp on the simulated bench, identified vs true values."""
+    from feedbench.demo import describe_demo, run_demo
+
+    t0 = time.monotonic()
+    result = run_demo(Path(args.dir), quiet=args.json)
+    result["elapsed_s"] = time.monotonic() - t0
+    if args.json:
+        _print_json(result)
+    else:
+        print(describe_demo(result))
+    return 0 if all(r["status"] == "complete" for r in result["runs"]) else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of every sub-command."""
+    parser = argparse.ArgumentParser(prog="feedbench", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    run = sub.add_parser("run", help="run an experiment config (TOML)")
+    run.add_argument("config")
+    run.add_argument("--json", action="store_true", help="print the run record as JSON")
+    run.set_defaults(func=cmd_run)
+
+    runs = sub.add_parser("runs", help="list the run catalog")
+    runs.add_argument("--dir", default="runs", help="output directory holding catalog.sqlite")
+    runs.add_argument("--json", action="store_true")
+    runs.set_defaults(func=cmd_runs)
+
+    analyze = sub.add_parser("analyze", help="analyse a recorded run (id, id prefix or .h5)")
+    analyze.add_argument("run")
+    analyze.add_argument("--dir", default="runs")
+    analyze.add_argument("--json", action="store_true")
+    analyze.set_defaults(func=cmd_analyze)
+
+    demo = sub.add_parser("demo", help="friction sweep + chirp on the simulated bench")
+    demo.add_argument("--dir", default="runs/demo")
+    demo.add_argument("--json", action="store_true")
+    demo.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `feedbench` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except USER_ERRORS as exc:
+        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"feedbench: error: {message}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,139 @@
+"""Chirp injection into the drive (Ch. 3.5.1, Fig. 3.18).
+
+A linear or logarithmic chirp is added to the force (torque) offset 0x60B2 or the velocity
+offset 0x60B1 while the axis holds position or moves at a feed, repeated and averaged.
+Moving keeps friction in its sliding regime so only its viscous part acts (Ch. 5.3.2);
+repetitions alternate direction to stay within the travel.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
+from feedbench.analysis.frf import estimate_frf
+from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
+from feedbench.experiments.signals import chirp, ramp_to_feed, integrate_velocity
+from feedbench.models.axis import CSP
+from feedbench.units import MM_PER_MIN
+
+NAME = "chirp"
+
+SCHEMA = {
+    "type": Field(str, NAME, "experiment family"),
+    "inject": Field(str, "force", "where the chirp is added: force or velocity offset",
+                    one_of("force", "velocity")),
+    "amplitude_N": Field(float, 20.0, "chirp amplitude for inject = force (N)", positive),
+    "amplitude_mm_min": Field(float, 60.0, "chirp amplitude for inject = velocity (mm/min)",
+                              positive),
+    "f_start_Hz": Field(float, 10.0, "start frequency (Hz)", positive),
+    "f_stop_Hz": Field(float, 200.0, "stop frequency (Hz)", positive),
+    "duration_s": Field(float, 4.0, "duration of one sweep (s)", positive),
+    "repetitions": Field(int, 4, "number of sweeps averaged", positive),
+    "sweep": Field(str, "linear", "linear or logarithmic", one_of("linear", "logarithmic")),
+    "feed_mm_min": Field(float, 500.0, "axis feed during the sweeps (mm/min); 0 holds position",
+                         non_negative),
+    "settle_s": Field(float, 0.5, "time at feed before each sweep (s)", positive),
+    "accel_m_s2": Field(float, 1.0, "acceleration of the ramps (m/s²)", positive),
+}
+
+
+def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
+    p = validate_table(params, SCHEMA, "experiment")
+    nyquist = 0.5 / cycle_s
+    if p["f_stop_Hz"] >= nyquist:
+        raise ConfigError(
+            f"experiment.f_stop_Hz: must be below the bus Nyquist frequency {nyquist:g} Hz "
+            f"(got {p['f_stop_Hz']:g})"
+        )
+    if p["f_start_Hz"] >= p["f_stop_Hz"]:
+        raise ConfigError(
+            f"experiment.f_start_Hz: must be below f_stop_Hz ({p['f_stop_Hz']:g} Hz)"
+        )
+    return p
+
+
+def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
+    """Settle, sweep, stop — `repetitions` times, alternating direction when moving."""
+    p = _validated(params, cycle_s)
+    if p["inject"] == "force":
+        sweep = chirp(p["amplitude_N"], p["f_start_Hz"], p["f_stop_Hz"], p["duration_s"],
+                      cycle_s, p["sweep"])
+    else:
+        sweep = chirp(p["amplitude_mm_min"] * MM_PER_MIN, p["f_start_Hz"], p["f_stop_Hz"],
+                      p["duration_s"], cycle_s, p["sweep"])
+    n_settle = int(round(p["settle_s"] / cycle_s))
+    segments: list[Segment] = []
+    x = 0.0
+    for rep in range(p["repetitions"]):
+        feed = (1.0 if rep % 2 == 0 else -1.0) * p["feed_mm_min"] * MM_PER_MIN
+        up = ramp_to_feed(0.0, feed, p["accel_m_s2"], cycle_s) if feed else np.zeros(0)
+        cruise = np.full(n_settle + len(sweep), feed)
+        down = ramp_to_feed(feed, 0.0, p["accel_m_s2"], cycle_s) if feed else np.zeros(0)
+        path = integrate_velocity(np.concatenate([up, cruise, down]), x, cycle_s)
+        a, b = len(up), len(up) + n_settle
+        c = b + len(sweep)
+        offset = {"force_offset" if p["inject"] == "force" else "velocity_offset": sweep}
+        info = {"repetition": rep, "feed_mm_min": feed / MM_PER_MIN}
+        segments += [
+            Segment(f"accelerate sweep {rep + 1}", "move", path[:a], info=info),
+            Segment(f"settle sweep {rep + 1}", "settle", path[a:b], info=info),
+            Segment(f"sweep {rep + 1}", "excite", path[b:c], info=info, **offset),
+            Segment(f"stop sweep {rep + 1}", "move", path[c:], info=info),
+        ]
+        x = float(path[-1])
+    return Plan(NAME, CSP, [s for s in segments if s.n_cycles], p, cycle_s)
+
+
+def excited_signals(recording, windows: list[Window]) -> tuple[np.ndarray, np.ndarray]:
+    """Motor force (N) and motor velocity (m/s) of every sweep, each made zero-mean, joined."""
+    force = recording.channels["force"]
+    velocity = recording.channels["velocity"]
+    f = [force[w.start:w.stop] - force[w.start:w.stop].mean() for w in windows]
+    v = [velocity[w.start:w.stop] - velocity[w.start:w.stop].mean() for w in windows]
+    return np.concatenate(f), np.concatenate(v)
+
+
+def _refined_extremum(f: np.ndarray, magnitude_db: np.ndarray, k: int) -> float:
+    """Frequency of the extremum at bin k, refined by a parabola through three bins (Hz)."""
+    if k <= 0 or k >= len(f) - 1:
+        return float(f[k])
+    a, b, c = magnitude_db[k - 1 : k + 2]
+    shift = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) != 0 else 0.0
+    return float(f[k] + shift * (f[1] - f[0]))
+
+
+def mobility_extrema(f: np.ndarray, H: np.ndarray, band: tuple[float, float]) -> tuple[float, float]:
+    """Anti-resonance and resonance (Hz) of a servo mobility in `band`.
+
+    The resonance f_r is the largest |H| in the band (Eq. 4.14); the anti-resonance f_t is
+    the smallest |H| below it (the motor-locked tip mode, Eq. 4.13).
+    """
+    db = 20 * np.log10(np.abs(H))
+    inside = np.flatnonzero((f >= band[0]) & (f <= band[1]))
+    k_r = inside[np.argmax(db[inside])]
+    below = inside[inside < k_r]
+    k_t = below[np.argmin(db[below])]
+    return _refined_extremum(f, db, k_t), _refined_extremum(f, db, k_r)
+
+
+def analyze_recording(recording, nperseg: int = 2048, band: tuple[float, float] = (20.0, 150.0)) -> dict:
+    """Servo mobility motor force → motor velocity (H1, Welch), its extrema and coherence."""
+    windows = recorded_windows(recording, "excite")
+    force, velocity = excited_signals(recording, windows)
+    fs = 1.0 / float(recording.metadata["cycle_s"])
+    est = estimate_frf(force, velocity, fs, nperseg=nperseg)
+    f_t, f_r = mobility_extrema(est.f, est.H1, band)
+    inside = (est.f >= band[0]) & (est.f <= band[1])
+    return {
+        "experiment": NAME,
+        "antiresonance_hz": f_t,
+        "resonance_hz": f_r,
+        f"min_coherence_{band[0]:g}_{band[1]:g}hz": float(est.coherence[inside].min()),
+        "n_sweeps": len(windows),
+        "warnings": list(est.warnings),
+        "frf": {"f_hz": est.f[inside].tolist(), "H1_abs": np.abs(est.H1[inside]).tolist(),
+                "coherence": est.coherence[inside].tolist()},
+    }

@@ -1,0 +1,103 @@
+"""Friction sweep (Ch. 5.3.2, Fig. 5.11): constant-feed runs in both directions.
+
+At each feed the axis accelerates, settles, and holds the feed over a measure window;
+the mean motor force over that window is the friction force at that velocity, and the
+points of each direction are fitted with Andersson's law, Eq. (5.2).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from feedbench.analysis.friction import FrictionFit, fit_andersson_directional
+from feedbench.config import Field, one_of, positive, validate_table
+from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
+from feedbench.experiments.signals import constant_feed_move
+from feedbench.models.axis import CSP
+from feedbench.units import MM_PER_MIN
+
+NAME = "friction_sweep"
+
+SCHEMA = {
+    "type": Field(str, NAME, "experiment family"),
+    "feeds_mm_min": Field(
+        list,
+        [25.0, 50.0, 75.0, 100.0, 150.0, 200.0, 300.0, 400.0, 500.0, 700.0, 900.0, 1200.0, 1500.0],
+        "feeds to measure at (mm/min)",
+        positive,
+    ),
+    "directions": Field(
+        list, ["positive", "negative"], "directions to measure", one_of("positive", "negative")
+    ),
+    "settle_s": Field(float, 0.3, "time at feed before measuring (s)", positive),
+    "measure_s": Field(float, 0.5, "measure window at each feed (s)", positive),
+    "accel_m_s2": Field(float, 1.0, "acceleration of the ramps (m/s²)", positive),
+}
+
+SIGNS = {"positive": 1.0, "negative": -1.0}
+
+
+def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
+    """Back-and-forth constant-feed moves, one pair per feed (measured where asked)."""
+    p = validate_table(params, SCHEMA, "experiment")
+    segments: list[Segment] = []
+    x = 0.0
+    for feed_mm_min in p["feeds_mm_min"]:
+        for direction in ("positive", "negative"):
+            feed = SIGNS[direction] * feed_mm_min * MM_PER_MIN
+            path, cruise_start, cruise_stop = constant_feed_move(
+                x, feed, p["accel_m_s2"], p["settle_s"] + p["measure_s"], cycle_s
+            )
+            settle_stop = cruise_start + int(round(p["settle_s"] / cycle_s))
+            measured = direction in p["directions"]
+            info = {"feed_mm_min": SIGNS[direction] * feed_mm_min}
+            label = f"{direction} {feed_mm_min:g} mm/min"
+            segments += [
+                Segment(f"accelerate {label}", "move", path[:cruise_start], info=info),
+                Segment(f"settle {label}", "settle", path[cruise_start:settle_stop], info=info),
+                Segment(
+                    f"measure {label}", "measure" if measured else "move",
+                    path[settle_stop:cruise_stop], info=info,
+                ),
+                Segment(f"stop {label}", "move", path[cruise_stop:], info=info),
+            ]
+            x = float(path[-1])
+    return Plan(NAME, CSP, segments, p, cycle_s)
+
+
+def friction_points(
+    velocity: np.ndarray, force: np.ndarray, windows: list[Window]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean velocity (m/s) and mean motor force (N) over each measure window."""
+    v = np.array([velocity[w.start:w.stop].mean() for w in windows])
+    f = np.array([force[w.start:w.stop].mean() for w in windows])
+    return v, f
+
+
+def _fit_summary(fit: FrictionFit) -> dict:
+    p, s = fit.params, fit.std
+    return {
+        "identified": {"F_c": p.F_c, "F_s": p.F_s, "v_s": p.v_s, "sigma": p.sigma},
+        "std": {"F_c": s.F_c, "F_s": s.F_s, "v_s": s.v_s, "sigma": s.sigma},
+        "rms_N": fit.rms,
+        "r_squared": fit.r_squared,
+        "n_points": fit.n_points,
+    }
+
+
+def analyze_recording(recording) -> dict:
+    """Friction points of every measure window and the Andersson fit per direction (5.2).
+
+    Returns SI values: velocities (m/s), forces (N), F_c, F_s (N), v_s (m/s), σ (N·s/m).
+    """
+    windows = recorded_windows(recording, "measure")
+    v, f = friction_points(recording.channels["velocity"], recording.channels["force"], windows)
+    fit = fit_andersson_directional(v, f)
+    return {
+        "experiment": NAME,
+        "points": {"velocity_m_s": v.tolist(), "force_N": f.tolist()},
+        "positive": _fit_summary(fit.positive),
+        "negative": _fit_summary(fit.negative),
+    }

@@ -1,0 +1,94 @@
+"""Experiment plans: per-cycle setpoints computed before anything moves.
+
+A plan is a list of segments. Each segment carries, for every bus cycle, the target
+position relative to where the axis stands when the run starts (m), and optional force
+and velocity offsets (N, m/s) where excitation is injected (0x60B2 / 0x60B1). Because the
+whole trajectory exists before the run, the runner checks every limit on it first.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A labelled stretch of cycles; `kind` tells analysis what it is for.
+
+    kinds: ``move`` (ramps), ``settle`` (wait for steady state), ``measure`` (the window
+    analysis averages), ``excite`` (excitation on).
+    """
+
+    label: str
+    kind: str
+    target_position: np.ndarray
+    force_offset: np.ndarray | None = None
+    velocity_offset: np.ndarray | None = None
+    info: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def n_cycles(self) -> int:
+        """Number of bus cycles in the segment."""
+        return len(self.target_position)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What the runner executes: segments in order, in one CiA 402 mode of operation."""
+
+    experiment: str
+    mode: int
+    segments: list[Segment]
+    params: dict[str, Any]
+    cycle_s: float
+
+    @property
+    def n_cycles(self) -> int:
+        """Total number of bus cycles."""
+        return sum(s.n_cycles for s in self.segments)
+
+    @property
+    def duration_s(self) -> float:
+        """Planned duration in seconds of bench time."""
+        return self.n_cycles * self.cycle_s
+
+    def concatenated(self, name: str) -> np.ndarray:
+        """One per-cycle array over the whole plan (zeros where a segment has none)."""
+        parts = []
+        for s in self.segments:
+            value = getattr(s, name)
+            parts.append(np.zeros(s.n_cycles) if value is None else value)
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+
+@dataclass(frozen=True)
+class Window:
+    """Sample indices [start, stop) of one recorded segment, with the segment's info."""
+
+    start: int
+    stop: int
+    label: str
+    kind: str
+    info: dict[str, Any]
+
+
+def recorded_windows(recording, kind: str) -> list[Window]:
+    """The recorded segments of one `kind` (``measure``, ``excite``…) as sample windows.
+
+    `recording` is a `feedbench.daq.recording.Recording`; segment events carry JSON text
+    with ``label``, ``kind`` and the segment's info (written by the runner).
+    """
+    windows = []
+    for seg in recording.segments("segment"):
+        meta = json.loads(seg.label)
+        if meta.get("kind") != kind:
+            continue
+        rows = np.flatnonzero(recording.mask(seg))
+        if len(rows):
+            info = {k: v for k, v in meta.items() if k not in ("label", "kind")}
+            windows.append(Window(int(rows[0]), int(rows[-1]) + 1, meta["label"], kind, info))
+    return windows

@@ -1,0 +1,264 @@
+"""The runner: executes a plan cycle by cycle, watches limits, stops safely.
+
+Before anything moves the runner reads where the axis stands, turns the plan's relative
+trajectory into absolute targets and checks every limit on it. During the run it checks
+the measured position, velocity and force every cycle, watches the drive's fault state
+and the bus; a trip, a fault, a bus timeout or a stop request (Ctrl-C, the live window's
+Stop button) ramps the setpoint down, removes the excitation, disables the drive through
+the controlword sequence and closes the recording as aborted with the reason. Every
+sample up to the stop stays on disk.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import threading
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Iterator, Protocol, Sequence
+
+import numpy as np
+
+from feedbench.experiments.limits import Limits
+from feedbench.experiments.plan import Plan, Segment
+
+CHANNELS = ("x_ref", "position", "velocity", "force", "force_offset", "velocity_offset",
+            "statusword")
+UNITS = {"x_ref": "m", "position": "m", "velocity": "m/s", "force": "N", "force_offset": "N",
+         "velocity_offset": "m/s", "statusword": ""}
+
+ENABLE_TIMEOUT_CYCLES = 200
+DISABLE_TIMEOUT_CYCLES = 50
+BLOCK_CYCLES = 50
+"""Cycles per block handed to observers (live plot, progress); the recorder gets every row."""
+
+
+class RunAborted(RuntimeError):
+    """Raised inside the cycle loop to leave it; carries the reason recorded in the file."""
+
+
+class Observer(Protocol):
+    """What watches a run (progress printer, live stream): called from the cycle loop."""
+
+    def on_start(self, plan: Plan, channels: Sequence[str]) -> None: ...
+
+    def on_segment(self, index: int, segment: Segment, cycle: int) -> None: ...
+
+    def on_block(self, cycles: np.ndarray, block: np.ndarray) -> None: ...
+
+    def on_stop(self, status: str, reason: str) -> None: ...
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """How a run ended."""
+
+    status: str
+    reason: str
+    n_cycles: int
+    start_position: float
+
+
+class Runner:
+    """Runs plans on one CiA 402 drive driven by a bench clock.
+
+    `drive` is a `feedbench.drivers.cia402.Cia402Drive`, `clock` a `LockstepClock` or
+    `RealtimeClock` from `feedbench.daq.clock`; `stop_accel` (m/s²) is the deceleration of
+    the safe stop.
+    """
+
+    def __init__(self, drive, clock, limits: Limits, stop_accel: float = 2.0,
+                 observers: Sequence[Observer] = ()) -> None:
+        self.drive = drive
+        self.clock = clock
+        self.limits = limits
+        self.stop_accel = stop_accel
+        self.observers = list(observers)
+        self._stop_reason: str | None = None
+        self._block = np.zeros((BLOCK_CYCLES, len(CHANNELS)))
+        self._block_cycles = np.zeros(BLOCK_CYCLES, dtype=np.int64)
+        self._block_fill = 0
+
+    def request_stop(self, reason: str = "stop requested") -> None:
+        """Ask for a safe stop at the next cycle (thread-safe: one attribute write)."""
+        self._stop_reason = reason
+
+    def read_position(self) -> float:
+        """Run one cycle with the drive as it is and return the measured position (m)."""
+        self.clock.tick()
+        return self.drive.actual.position
+
+    def absolute_targets(self, plan: Plan, start: float) -> np.ndarray:
+        """The plan's targets shifted to the start position, checked against the limits."""
+        targets = start + plan.concatenated("target_position")
+        self.limits.check_trajectory(np.concatenate([[start], targets]), plan.cycle_s)
+        self.limits.check_excitation(
+            plan.concatenated("force_offset"), plan.concatenated("velocity_offset")
+        )
+        return targets
+
+    def run(self, plan: Plan, recorder, start: float) -> RunOutcome:
+        """Enable, execute every segment, disable; the recorder is closed with the status."""
+        targets = self.absolute_targets(plan, start)
+        force_offsets = plan.concatenated("force_offset")
+        velocity_offsets = plan.concatenated("velocity_offset")
+        for obs in self.observers:
+            obs.on_start(plan, CHANNELS)
+        status, reason = "complete", ""
+        last_target = start
+        i = 0
+        with self._interrupts_request_stop():
+            try:
+                self._enable(plan.mode, start, recorder)
+                for index, segment in enumerate(plan.segments):
+                    recorder.event(self._next_cycle(), "segment", _segment_text(segment))
+                    for obs in self.observers:
+                        obs.on_segment(index, segment, self._next_cycle())
+                    for _ in range(segment.n_cycles):
+                        self._cycle(recorder, targets[i], force_offsets[i], velocity_offsets[i])
+                        last_target = targets[i]
+                        i += 1
+            except RunAborted as exc:
+                status, reason = "aborted", str(exc)
+            except Exception as exc:  # bus timeout, driver error: still stop safely
+                status, reason = "aborted", f"{type(exc).__name__}: {exc}"
+            if status == "aborted":
+                recorder.event(self._next_cycle(), "abort", reason)
+                velocity = (targets[i] - targets[i - 1]) / plan.cycle_s if 0 < i < len(targets) else 0.0
+                self._safe_stop(recorder, last_target, velocity, plan.cycle_s)
+            else:
+                self._disable(recorder, last_target)
+        self._flush_block()
+        recorder.close(status, reason)
+        for obs in self.observers:
+            obs.on_stop(status, reason)
+        return RunOutcome(status, reason, i, start)
+
+    def _next_cycle(self) -> int:
+        return self.clock.cycle + 1
+
+    def _cycle(self, recorder, target: float, force_offset: float, velocity_offset: float,
+               watch: bool = True) -> None:
+        """One bus cycle: setpoints out, SYNC, actual values in, limits, record."""
+        drive = self.drive
+        drive.set_targets(position=target, force_offset=force_offset,
+                          velocity_offset=velocity_offset)
+        cycle = self.clock.tick()
+        a = drive.actual
+        row = (target, a.position, a.velocity, a.force, force_offset, velocity_offset,
+               a.statusword)
+        recorder.append(cycle, row)
+        self._to_block(cycle, row)
+        if not watch:
+            return
+        if self._stop_reason is not None:
+            raise RunAborted(self._stop_reason)
+        if drive.fault:
+            raise RunAborted(f"drive fault (EMCY 0x{drive.emcy_code or 0:04X})")
+        trip = self.limits.violation(a.position, a.velocity, a.force)
+        if trip:
+            raise RunAborted(f"limit tripped: {trip}")
+
+    def _to_block(self, cycle: int, row: tuple) -> None:
+        self._block[self._block_fill] = row
+        self._block_cycles[self._block_fill] = cycle
+        self._block_fill += 1
+        if self._block_fill == BLOCK_CYCLES:
+            self._flush_block()
+
+    def _flush_block(self) -> None:
+        if self._block_fill and self.observers:
+            cycles = self._block_cycles[: self._block_fill].copy()
+            block = self._block[: self._block_fill].copy()
+            for obs in self.observers:
+                obs.on_block(cycles, block)
+        self._block_fill = 0
+
+    def _enable(self, mode: int, hold: float, recorder) -> None:
+        """Walk the CiA 402 state machine to operation enabled, one controlword per cycle."""
+        recorder.event(self._next_cycle(), "segment", _segment_text(None, "enable"))
+        self.drive.set_mode(mode)
+        for _ in range(ENABLE_TIMEOUT_CYCLES):
+            if self.drive.enable_step():
+                return
+            self._cycle(recorder, hold, 0.0, 0.0, watch=False)
+        raise RunAborted(f"drive did not reach operation enabled (state {self.drive.state})")
+
+    def _safe_stop(self, recorder, x: float, velocity: float, dt: float) -> None:
+        """Ramp the commanded velocity to zero at `stop_accel`, excitation off, disable."""
+        try:
+            steps = int(np.ceil(abs(velocity) / (self.stop_accel * dt)))
+            for v in np.linspace(velocity, 0.0, steps + 1)[1:]:
+                x += v * dt
+                self._cycle(recorder, x, 0.0, 0.0, watch=False)
+            self._disable(recorder, x)
+        except Exception as exc:  # the bus may be gone: record why the ramp ended early
+            recorder.event(self._next_cycle(), "fault", f"safe stop incomplete: {exc}")
+
+    def _disable(self, recorder, hold: float) -> None:
+        """Controlword sequence back to switch-on-disabled, one step per cycle."""
+        recorder.event(self._next_cycle(), "segment", _segment_text(None, "disable"))
+        for _ in range(DISABLE_TIMEOUT_CYCLES):
+            if self.drive.disable_step():
+                return
+            self._cycle(recorder, hold, 0.0, 0.0, watch=False)
+
+    @contextmanager
+    def _interrupts_request_stop(self) -> Iterator[None]:
+        """While running, Ctrl-C (SIGINT) and SIGTERM ask for a safe stop instead of killing."""
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+        handler = lambda signum, frame: self.request_stop(  # noqa: E731
+            f"interrupted by {signal.Signals(signum).name}")
+        previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            yield
+        finally:
+            for s, h in previous.items():
+                signal.signal(s, h)
+
+
+def _segment_text(segment: Segment | None, label: str = "") -> str:
+    """Event text of a segment start: JSON with label, kind and the segment's info."""
+    if segment is None:
+        return json.dumps({"label": label, "kind": label})
+    return json.dumps({"label": segment.label, "kind": segment.kind, **segment.info})
+
+
+class ProgressPrinter:
+    """Prints one line per wall second to stderr: segment, percent done, bench time left."""
+
+    def __init__(self, stream=sys.stderr, every_s: float = 1.0) -> None:
+        self.stream = stream
+        self.every_s = every_s
+        self._label = ""
+        self._done = 0
+        self._total = 1
+        self._cycle_s = 1e-3
+        self._last = 0.0
+
+    def on_start(self, plan: Plan, channels: Sequence[str]) -> None:
+        self._total = max(plan.n_cycles, 1)
+        self._cycle_s = plan.cycle_s
+        self._last = time.monotonic()
+        print(f"{plan.experiment}: {plan.n_cycles} cycles ({plan.duration_s:.1f} s bench time)",
+              file=self.stream)
+
+    def on_segment(self, index: int, segment: Segment, cycle: int) -> None:
+        self._label = segment.label
+
+    def on_block(self, cycles: np.ndarray, block: np.ndarray) -> None:
+        self._done += len(cycles)
+        now = time.monotonic()
+        if now - self._last >= self.every_s:
+            self._last = now
+            left = max(self._total - self._done, 0) * self._cycle_s
+            pct = 100.0 * min(self._done / self._total, 1.0)
+            print(f"  {pct:5.1f} %  {self._label:<32s} {left:6.1f} s left", file=self.stream)
+
+    def on_stop(self, status: str, reason: str) -> None:
+        print(f"  {status}{': ' + reason if reason else ''}", file=self.stream)

@@ -1,0 +1,58 @@
+"""Bad input: one clear line naming the field and the reason, exit status 2, no traceback."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from feedbench.bench import parse_run_config
+from feedbench.config import ConfigError
+from feedbench.demo import example_config
+
+BAD_CASES = {
+    "unknown key": ("[experiment]\ntype = 'friction_sweep'\nfeeds = [100]\n",
+                    "experiment.feeds: unknown key"),
+    "wrong type": ("[experiment]\ntype = 'friction_sweep'\nsettle_s = 'long'\n",
+                   "experiment.settle_s: must be a number"),
+    "negative feed": ("[experiment]\ntype = 'friction_sweep'\nfeeds_mm_min = [100, -50]\n",
+                      "experiment.feeds_mm_min[1]: must be > 0 (got -50)"),
+    "excitation above force limit": (
+        "[limits]\nforce_N = 500.0\nexcitation_N = 5000.0\n"
+        "[experiment]\ntype = 'chirp'\namplitude_N = 800.0\n",
+        "experiment.amplitude_N: 800 N exceeds the force limit limits.force_N (500 N)"),
+    "bad bench type": ("[bench]\nnode_id = 'one'\n[experiment]\ntype = 'chirp'\n",
+                       "bench.node_id: must be a integer"),
+    "unknown experiment": ("[experiment]\ntype = 'dance'\n", "experiment.type: must be one of"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CASES))
+def test_bad_config_prints_one_line_and_exits_2(tmp_path: Path, case: str) -> None:
+    text, expected = BAD_CASES[case]
+    config = tmp_path / "bad.toml"
+    config.write_text(text + f"[bench]\noutput_dir = '{tmp_path}'\n" if "[bench]" not in text
+                      else text)
+    proc = subprocess.run([sys.executable, "-m", "feedbench.cli", "run", str(config)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("feedbench: error: ")
+    assert expected in lines[0]
+    assert "Traceback" not in proc.stderr
+    assert not list(tmp_path.glob("*.h5")), "nothing may be recorded (nothing moved)"
+
+
+def test_examples_validate() -> None:
+    for name in ("friction_sweep", "chirp"):
+        config = parse_run_config(example_config(name))
+        assert config.plan.n_cycles > 1000
+
+
+def test_chirp_above_nyquist_rejected() -> None:
+    raw = {"experiment": {"type": "chirp", "f_stop_Hz": 600.0}}
+    with pytest.raises(ConfigError, match="experiment.f_stop_Hz: must be below the bus Nyquist"):
+        parse_run_config(raw)
