@@ -1,0 +1,166 @@
+"""The recording file format (HDF5) and its reader.
+
+Layout written by `feedbench.daq.recorder.Recorder`:
+
+- `/cycle` (int64): the bus cycle counter of every sample.
+- `/data/<channel>` (float64, SI units in the dataset attribute `units`): one row per sample.
+- `/events` (compound cycle int64, kind str, text str): segment boundaries, faults, gaps.
+- root attributes: `status` (`running` / `complete` / `aborted`), `reason`, `started_at`,
+  `stopped_at` (ISO 8601 UTC), `experiment`, `channels` (JSON list, the column order),
+  `config` and `versions` (JSON), `n_samples`, `n_gaps`, and every other metadata key as JSON.
+
+The reader opens files in SWMR read mode, so it reads a file that is still being written
+(live replay) and a file whose writer crashed (status stays `running`, data up to the last
+flushed chunk).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+CYCLE = "cycle"
+DATA = "data"
+EVENTS = "events"
+EVENT_DTYPE = np.dtype(
+    [("cycle", np.int64), ("kind", h5py.string_dtype()), ("text", h5py.string_dtype())]
+)
+RESERVED_ATTRS = frozenset(
+    {
+        "status", "reason", "started_at", "stopped_at", "experiment", "channels",
+        "config", "versions", "n_samples", "n_gaps",
+    }
+)
+
+
+def utc_now_iso() -> str:
+    """Current time as ISO 8601 UTC text, e.g. `2026-11-22T00:15:03.123456+00:00`."""
+    return datetime.now(timezone.utc).isoformat()
+
+
+def to_json(value: Any) -> str:
+    """JSON text of `value`; numpy scalars/arrays become lists/numbers, anything else its str."""
+    return json.dumps(value, default=_json_fallback, sort_keys=True)
+
+
+def _json_fallback(value: Any) -> Any:
+    if isinstance(value, (np.generic, np.ndarray)):
+        return value.tolist()
+    return str(value)
+
+
+@dataclass(frozen=True)
+class Event:
+    """One event marker: the cycle it belongs to, its kind and free text."""
+
+    cycle: int
+    kind: str
+    text: str
+
+
+@dataclass(frozen=True)
+class Segment:
+    """Cycles [start, stop) between one event of a kind and the next, labelled by its text."""
+
+    label: str
+    start: int
+    stop: int
+
+
+@dataclass(frozen=True)
+class Recording:
+    """One recording read into memory; arrays are read-only."""
+
+    path: Path
+    cycle: np.ndarray
+    channels: dict[str, np.ndarray]
+    units: dict[str, str]
+    status: str
+    reason: str
+    started_at: str
+    stopped_at: str
+    experiment: str
+    config: dict[str, Any]
+    versions: dict[str, str | None]
+    events: list[Event]
+    n_gaps: int
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_samples(self) -> int:
+        """Number of samples in the file."""
+        return len(self.cycle)
+
+    def segments(self, kind: str = "segment") -> list[Segment]:
+        """Cycle ranges from each `kind` event to the next one (the last one to the end)."""
+        marks = [event for event in self.events if event.kind == kind]
+        end = int(self.cycle.max()) + 1 if self.n_samples else 0
+        stops = [mark.cycle for mark in marks[1:]] + [end]
+        return [
+            Segment(mark.text, mark.cycle, max(stop, mark.cycle))
+            for mark, stop in zip(marks, stops)
+        ]
+
+    def mask(self, segment: Segment) -> np.ndarray:
+        """Boolean row mask of the samples whose cycle lies in `segment`."""
+        return (self.cycle >= segment.start) & (self.cycle < segment.stop)
+
+
+def open_recording(path: str | Path) -> Recording:
+    """Read a recording (complete, aborted, still being written or left by a crashed writer)."""
+    path = Path(path)
+    with h5py.File(path, "r", libver="latest", swmr=True) as file:
+        attrs = dict(file.attrs)
+        names = json.loads(attrs["channels"])
+        rows = _complete_rows(file, names)
+        cycle = _read_only(file[CYCLE][:rows])
+        return Recording(
+            path=path,
+            cycle=cycle,
+            channels={name: _read_only(file[DATA][name][:rows]) for name in names},
+            units={name: str(file[DATA][name].attrs["units"]) for name in names},
+            status=str(attrs["status"]),
+            reason=str(attrs["reason"]),
+            started_at=str(attrs["started_at"]),
+            stopped_at=str(attrs["stopped_at"]),
+            experiment=str(attrs["experiment"]),
+            config=json.loads(attrs["config"]),
+            versions=json.loads(attrs["versions"]),
+            events=_read_events(file[EVENTS]),
+            n_gaps=missing_cycles(cycle),
+            metadata={
+                key: json.loads(value) for key, value in attrs.items() if key not in RESERVED_ATTRS
+            },
+        )
+
+
+def missing_cycles(cycle: np.ndarray) -> int:
+    """Number of cycles skipped by a counter that should advance by exactly 1."""
+    steps = np.diff(cycle)
+    return int(np.sum(steps[steps > 1] - 1))
+
+
+def _complete_rows(file: h5py.File, names: list[str]) -> int:
+    """Rows present in every dataset (a crash between two resizes leaves them unequal)."""
+    return min([len(file[CYCLE])] + [len(file[DATA][name]) for name in names])
+
+
+def _read_events(dataset: h5py.Dataset) -> list[Event]:
+    return [
+        Event(int(cycle), _text(kind), _text(text)) for cycle, kind, text in dataset[:]
+    ]
+
+
+def _text(value: bytes | str) -> str:
+    return value.decode() if isinstance(value, bytes) else value
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    array.setflags(write=False)
+    return array

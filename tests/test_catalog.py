@@ -1,0 +1,102 @@
+"""Run catalog: ids, add/finish, list order, lookup by unique prefix, concurrent readers."""
+
+from __future__ import annotations
+
+import re
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from feedbench.daq.catalog import Catalog, RunLookupError, RunRow
+
+
+def test_ids_are_unique_and_formatted_when_created_in_the_same_second(tmp_path: Path) -> None:
+    catalog = Catalog(tmp_path / "runs.sqlite")
+    ids = [catalog.new_run_id("friction sweep") for _ in range(12)]
+    assert len(set(ids)) == 12
+    for run_id in ids:
+        assert re.fullmatch(r"\d{8}-\d{6}-friction_sweep-\d+", run_id)
+    same_second = [run_id for run_id in ids if run_id[:15] == ids[0][:15]]
+    assert [int(run_id.rsplit("-", 1)[1]) for run_id in same_second] == list(
+        range(1, len(same_second) + 1)
+    )
+    assert Catalog(tmp_path / "runs.sqlite").new_run_id("friction sweep") not in ids
+
+
+def test_add_finish_list_get(tmp_path: Path) -> None:
+    catalog = Catalog(tmp_path / "runs.sqlite")
+    first = catalog.new_run_id("friction_sweep")
+    catalog.add(first, "friction_sweep", tmp_path / "a.h5", {"feed_mm_min": np.float64(100.0)})
+    second = catalog.new_run_id("frf")
+    catalog.add(second, "frf", tmp_path / "b.h5", {"amplitude_N": 50, "f_max_Hz": [1.0, 500.0]})
+
+    running = catalog.get(first)
+    assert (running.status, running.stopped_at, running.n_samples) == ("running", None, None)
+    assert running.started_at.endswith("+00:00")
+
+    catalog.finish(first, "complete", "", 25_003)
+    catalog.finish(second, "aborted", "limit: position", 1_234)
+
+    assert catalog.get(first) == RunRow(
+        id=first,
+        experiment="friction_sweep",
+        started_at=running.started_at,
+        stopped_at=catalog.get(first).stopped_at,
+        status="complete",
+        reason="",
+        file=str(tmp_path / "a.h5"),
+        n_samples=25_003,
+        params={"feed_mm_min": 100.0},
+    )
+    rows = catalog.list()
+    assert [row.id for row in rows] == [second, first]
+    assert [row.status for row in rows] == ["aborted", "complete"]
+    assert rows[0].reason == "limit: position"
+    assert rows[0].params == {"amplitude_N": 50, "f_max_Hz": [1.0, 500.0]}
+    assert [row.id for row in catalog.list(limit=1)] == [second]
+    assert catalog.get(first.split("friction")[0] + "fric").id == first
+    assert catalog.get(second.rsplit("-", 1)[0]).id == second
+
+
+def test_prefix_lookup_errors_name_the_id(tmp_path: Path) -> None:
+    catalog = Catalog(tmp_path / "runs.sqlite")
+    first = catalog.new_run_id("frf")
+    second = catalog.new_run_id("frf")
+    stamp = first[:8]
+
+    with pytest.raises(RunLookupError, match="ambiguous") as ambiguous:
+        catalog.get(stamp)
+    assert first in str(ambiguous.value) and second in str(ambiguous.value)
+    assert isinstance(ambiguous.value, KeyError)
+
+    with pytest.raises(KeyError, match="no run id starts with '19990101'"):
+        catalog.get("19990101")
+    with pytest.raises(KeyError, match="no run with id 'missing'"):
+        catalog.finish("missing", "complete", "", 0)
+    assert catalog.get(first).id == first
+
+
+def test_underscore_in_prefix_is_not_a_wildcard(tmp_path: Path) -> None:
+    catalog = Catalog(tmp_path / "runs.sqlite")
+    run_id = catalog.new_run_id("a_b")
+    catalog.new_run_id("axb")
+    assert catalog.get(run_id[:-2]).id == run_id
+
+
+def test_reader_sees_committed_rows_while_writer_runs(tmp_path: Path) -> None:
+    path = tmp_path / "runs.sqlite"
+    writer = Catalog(path)
+    run_id = writer.new_run_id("frf")
+    writer.add(run_id, "frf", "x.h5", {})
+    with sqlite3.connect(path) as reader:
+        assert reader.execute("PRAGMA journal_mode").fetchone() == ("wal",)
+        reader.execute("BEGIN")
+        assert reader.execute("SELECT status FROM runs").fetchall() == [("running",)]
+        writer.finish(run_id, "complete", "", 10)
+        assert reader.execute("SELECT status FROM runs").fetchall() == [("running",)]
+        reader.execute("COMMIT")
+        assert reader.execute("SELECT status, n_samples FROM runs").fetchall() == [
+            ("complete", 10)
+        ]
