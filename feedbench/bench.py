@@ -22,7 +22,9 @@ from feedbench.drivers.cia402 import Cia402Drive
 from feedbench.experiments import chirp, friction_sweep
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan
-from feedbench.experiments.runner import CHANNELS, UNITS, Observer, ProgressPrinter, Runner
+from feedbench.experiments.runner import (
+    CHANNELS, UNITS, Observer, ProgressPrinter, Runner, StopRequest,
+)
 from feedbench.units import kv_to_per_second
 
 EXPERIMENTS = {m.NAME: m for m in (friction_sweep, chirp)}
@@ -176,9 +178,14 @@ class Bench:
         self._stack.close()
 
     def run(self, config: RunConfig, catalog: Catalog, output_dir: Path,
-            observers: Sequence[Observer] = (), progress: bool = True) -> dict:
-        """Execute `config.plan`; returns the catalog row as a dict."""
-        runner = Runner(self.drive, self.clock, config.limits,
+            observers: Sequence[Observer] = (), progress: bool = True,
+            stop: StopRequest | None = None) -> dict:
+        """Execute `config.plan`; returns the catalog row as a dict.
+
+        `observers` see the data stream (live window); `stop` lets another thread ask for a
+        safe stop.
+        """
+        runner = Runner(self.drive, self.clock, config.limits, stop=stop,
                         observers=[*observers, *([ProgressPrinter()] if progress else [])])
         start = runner.read_position()
         runner.absolute_targets(config.plan, start)
@@ -189,7 +196,6 @@ class Bench:
                     "cycle_s": config.plan.cycle_s}
         catalog.add(run_id, config.plan.experiment, str(path), config.plan.params)
         recorder = Recorder(path, CHANNELS, UNITS, metadata)
-        self.last_runner = runner
         outcome = runner.run(config.plan, recorder, start)
         catalog.finish(run_id, outcome.status, outcome.reason, recorder.n_samples)
         return {"id": run_id, "file": str(path), "status": outcome.status,
@@ -197,10 +203,10 @@ class Bench:
 
 
 def run_config(config: RunConfig, observers: Sequence[Observer] = (),
-               progress: bool = True) -> dict:
-    """Open the bench of `config`, run its plan, close the bench."""
+               progress: bool = True, stop: StopRequest | None = None) -> dict:
+    """Open the bench of `config`, run its plan, close the bench; returns the run record."""
     output_dir = Path(config.bench["output_dir"])
     output_dir.mkdir(parents=True, exist_ok=True)
     catalog = Catalog(output_dir / "catalog.sqlite")
     with Bench(config.bench) as bench:
-        return bench.run(config, catalog, output_dir, observers, progress)
+        return bench.run(config, catalog, output_dir, observers, progress, stop)

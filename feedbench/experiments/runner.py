@@ -36,6 +36,22 @@ BLOCK_CYCLES = 50
 """Cycles per block handed to observers (live plot, progress); the recorder gets every row."""
 
 
+class StopRequest:
+    """A safe-stop request shared with whoever may ask for one (Ctrl-C, a Stop button).
+
+    `request` only writes an attribute, so any thread may call it; the runner checks
+    `reason` once per cycle.
+    """
+
+    def __init__(self) -> None:
+        self.reason: str | None = None
+
+    def request(self, reason: str = "stop requested") -> None:
+        """Ask the runner to ramp down and stop at its next cycle."""
+        if self.reason is None:
+            self.reason = reason
+
+
 class RunAborted(RuntimeError):
     """Raised inside the cycle loop to leave it; carries the reason recorded in the file."""
 
@@ -71,20 +87,16 @@ class Runner:
     """
 
     def __init__(self, drive, clock, limits: Limits, stop_accel: float = 2.0,
-                 observers: Sequence[Observer] = ()) -> None:
+                 observers: Sequence[Observer] = (), stop: StopRequest | None = None) -> None:
         self.drive = drive
         self.clock = clock
         self.limits = limits
         self.stop_accel = stop_accel
         self.observers = list(observers)
-        self._stop_reason: str | None = None
+        self.stop = stop or StopRequest()
         self._block = np.zeros((BLOCK_CYCLES, len(CHANNELS)))
         self._block_cycles = np.zeros(BLOCK_CYCLES, dtype=np.int64)
         self._block_fill = 0
-
-    def request_stop(self, reason: str = "stop requested") -> None:
-        """Ask for a safe stop at the next cycle (thread-safe: one attribute write)."""
-        self._stop_reason = reason
 
     def read_position(self) -> float:
         """Run one cycle with the drive as it is and return the measured position (m)."""
@@ -154,8 +166,8 @@ class Runner:
         self._to_block(cycle, row)
         if not watch:
             return
-        if self._stop_reason is not None:
-            raise RunAborted(self._stop_reason)
+        if self.stop.reason is not None:
+            raise RunAborted(self.stop.reason)
         if drive.fault:
             raise RunAborted(f"drive fault (EMCY 0x{drive.emcy_code or 0:04X})")
         trip = self.limits.violation(a.position, a.velocity, a.force)
@@ -212,8 +224,9 @@ class Runner:
         if threading.current_thread() is not threading.main_thread():
             yield
             return
-        handler = lambda signum, frame: self.request_stop(  # noqa: E731
-            f"interrupted by {signal.Signals(signum).name}")
+        def handler(signum: int, frame: object) -> None:
+            self.stop.request(f"interrupted by {signal.Signals(signum).name}")
+
         previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
             yield
