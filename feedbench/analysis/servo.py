@@ -25,7 +25,7 @@ def laplace(frequency: ArrayLike) -> ComplexArray:
 
 def velocity_pi(frequency: ArrayLike, K_p: float, T_i: float) -> ComplexArray:
     """Velocity PI K_p (1 + 1/(T_i jω)) in N/(m/s), Eqs. (4.20, 4.21); T_i = inf gives P only."""
-    return K_p * (1.0 + 1.0 / (T_i * laplace(frequency)))
+    return K_p * (1.0 + (1.0 / T_i) / laplace(frequency))
 
 
 def open_loop_mobility(
