@@ -31,7 +31,7 @@ SCHEMA = {
     "directions": Field(
         list, ["positive", "negative"], "directions to measure", one_of("positive", "negative")
     ),
-    "settle_s": Field(float, 0.3, "time at feed before measuring (s)", positive),
+    "settle_s": Field(float, 1.0, "time at feed before measuring (s)", positive),
     "measure_s": Field(float, 0.5, "measure window at each feed (s)", positive),
     "accel_m_s2": Field(float, 1.0, "acceleration of the ramps (m/s²)", positive),
 }

@@ -39,7 +39,7 @@ WORLD_SCHEMA = {
     "force_limit_N": Field(float, 2000.0, "drive force saturation (N)", positive),
     "f_velocity_Hz": Field(float, 8000.0, "velocity-loop rate (Hz)", positive),
     "f_position_Hz": Field(float, 1000.0, "position-loop rate (Hz)", positive),
-    "bandwidth_Hz": Field(float, 40.0, "drive's factory tuning bandwidth, Eqs. (4.2, 4.8, 4.12)",
+    "bandwidth_Hz": Field(float, 60.0, "drive's factory tuning bandwidth, Eqs. (4.2, 4.8, 4.12)",
                           positive),
     "friction": Field(dict, {}, "Andersson friction per direction, Eq. (5.2)"),
 }
