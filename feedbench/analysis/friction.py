@@ -154,8 +154,8 @@ def fit_andersson(
 
     v: feeds of one sign (m/s); F: steady-state mean motor force per feed (N).
     A negative sweep is fitted on |v|, |F|. k_tanh (s/m) is held fixed; δ is held at
-    `delta` unless `fit_delta`. Bounds: 0 < F_c ≤ F_s, v_s > 0, σ ≥ 0 (F_s is
-    parametrised as F_c + ΔF with ΔF ≥ 0; least_squares' 'trf' keeps iterates strictly
+    `delta` unless `fit_delta`. Bounds: 0 < F_c ≤ F_s, v_s ≥ 1e-9 max|v|, σ ≥ 0 (F_s
+    is parametrised as F_c + ΔF with ΔF ≥ 0; least_squares' 'trf' keeps iterates strictly
     inside the bounds). Initial guesses: a line through the fastest third of the points
     (F_c, σ) and the excess over that line at the slow end (F_s, v_s).
     """
@@ -174,7 +174,7 @@ def fit_andersson(
     jacobian = np.zeros((5, 5 if fit_delta else 4))
     jacobian[[0, 1, 1, 2, 3], [0, 0, 1, 2, 3]] = 1.0
     x0 = [coulomb, static - coulomb, v_s, sigma]
-    lower = [0.0, 0.0, 0.0, 0.0]
+    lower = [0.0, 0.0, 1e-9 * v_scale, 0.0]
     x_scale = [f_scale, f_scale, v_scale, f_scale / v_scale]
     if fit_delta:
         jacobian[4, 4] = 1.0
