@@ -20,7 +20,12 @@ def _open_loop() -> dict[str, np.ndarray]:
     system = servo.lumped_state_space(*MATRICES, force_dofs=[1, 0], outputs=[(1, 0), (0, 0)])
     h = servo.state_space_frf(system, FREQUENCY)
     delay = np.exp(-TAU_OL * servo.laplace(FREQUENCY))
-    return {"tip_tip": h[:, 0, 0], "tip_mot": h[:, 0, 1] * delay, "mot_tip": h[:, 1, 0], "mot_mot": h[:, 1, 1] * delay}
+    return {
+        "tip_tip": h[:, 0, 0],
+        "tip_mot": h[:, 0, 1] * delay,
+        "mot_tip": h[:, 1, 0],
+        "mot_mot": h[:, 1, 1] * delay,
+    }
 
 
 OPEN = _open_loop()
@@ -31,7 +36,8 @@ def _closed_tip_truth(K_p: float, T_i: float, K_v: float) -> np.ndarray:
     s = servo.laplace(FREQUENCY)[:, None, None]
     mass, damping, stiffness = MATRICES
     controller = K_p * (1 + 1 / (T_i * s)) * (K_v + s) * np.exp(-TAU_OL * s)
-    dynamic = mass * s**2 + damping * s + stiffness + controller * np.array([[1.0, 0.0], [0.0, 0.0]])
+    on_motor = np.array([[1.0, 0.0], [0.0, 0.0]])
+    dynamic = mass * s**2 + damping * s + stiffness + controller * on_motor
     return np.linalg.inv(dynamic)[:, 1, 1]
 
 
@@ -56,22 +62,27 @@ def test_lower_lft_solves_the_interconnection():
     system[:6, 6:] = -g[:, 2:]
     system[6:, 3:6], system[6:, 6:] = -k, np.eye(2)
     rhs = np.vstack([g[:, :2], np.zeros((2, 2))])
-    truth = np.linalg.solve(system, rhs)[:3]
-    np.testing.assert_allclose(lft.lower_lft(g[None], k[None])[0], truth, rtol=1e-12)
-    np.testing.assert_allclose(lft.lft_control_signal(g[None], k[None])[0], np.linalg.solve(system, rhs)[6:], rtol=1e-12)
+    solution = np.linalg.solve(system, rhs)
+    np.testing.assert_allclose(lft.lower_lft(g[None], k[None])[0], solution[:3], rtol=1e-12)
+    control_signal = lft.lft_control_signal(g[None], k[None])[0]
+    np.testing.assert_allclose(control_signal, solution[6:], rtol=1e-12)
 
 
 @pytest.mark.parametrize("name", ["low", "optimum", "high"])
 def test_tool_tip_compliance_eq_4_23(name):
     """Eq. (4.23) with K of Eq. (4.24) equals a direct solve of the closed-loop two-mass system."""
-    predicted = lft.tool_tip_compliance(OPEN["tip_tip"], OPEN["tip_mot"], OPEN["mot_tip"], OPEN["mot_mot"], _feedback(name))
+    predicted = lft.tool_tip_compliance(
+        OPEN["tip_tip"], OPEN["tip_mot"], OPEN["mot_tip"], OPEN["mot_mot"], _feedback(name)
+    )
     np.testing.assert_allclose(predicted, _closed_tip(name), rtol=1e-9)
 
 
 def test_approach_2_noise_free_is_exact():
     """Eq. (4.26) from "low" and "high", then Eq. (4.23) for "optimum": exact without noise."""
     terms = lft.estimate_tip_terms(
-        [_closed_tip("low"), _closed_tip("high")], [_feedback("low"), _feedback("high")], OPEN["mot_mot"]
+        [_closed_tip("low"), _closed_tip("high")],
+        [_feedback("low"), _feedback("high")],
+        OPEN["mot_mot"],
     )
     np.testing.assert_allclose(terms.direct, OPEN["tip_tip"], rtol=1e-8)
     np.testing.assert_allclose(terms.cross_product, OPEN["tip_mot"] * OPEN["mot_tip"], rtol=1e-8)
@@ -93,7 +104,8 @@ def test_approach_2_with_noise_predicts_a_third_setting_within_3_percent():
         [_feedback("low"), _feedback("high")],
         OPEN["mot_mot"],
     )
-    error = np.abs(lft.predict_tip_compliance(terms, OPEN["mot_mot"], _feedback("optimum")) / _closed_tip("optimum") - 1)
+    predicted = lft.predict_tip_compliance(terms, OPEN["mot_mot"], _feedback("optimum"))
+    error = np.abs(predicted / _closed_tip("optimum") - 1)
     assert np.max(error[NEAR_MODE]) < 0.03
 
 
@@ -107,7 +119,9 @@ def test_approach_2_least_squares_with_three_settings():
     assert 1e-4 < np.median(terms.residual) < 0.05
     middle = CascadeGains.standard(M_MOT + M_TIP, 40.0)
     truth = _closed_tip_truth(middle.K_p, middle.T_i, middle.K_v)
-    error = np.abs(lft.predict_tip_compliance(terms, OPEN["mot_mot"], lft.pppi_feedback(FREQUENCY, middle)) / truth - 1)
+    feedback = lft.pppi_feedback(FREQUENCY, middle)
+    predicted = lft.predict_tip_compliance(terms, OPEN["mot_mot"], feedback)
+    error = np.abs(predicted / truth - 1)
     assert np.median(error[NEAR_MODE]) < 0.03
 
 
@@ -132,4 +146,5 @@ def test_pppi_feedback_value():
     """K(jω) = −(jω + K_v) K_p (1 + 1/(T_i jω)) at 50 Hz, Eq. (4.24)."""
     g = TUNINGS["optimum"]
     s = 2j * np.pi * 50.0
-    assert lft.pppi_feedback([50.0], g)[0] == pytest.approx(-(s + g.K_v) * g.K_p * (1 + 1 / (g.T_i * s)), rel=1e-12)
+    expected = -(s + g.K_v) * g.K_p * (1 + 1 / (g.T_i * s))
+    assert lft.pppi_feedback([50.0], g)[0] == pytest.approx(expected, rel=1e-12)

@@ -24,8 +24,10 @@ def structure(k_m: float, k_s: float) -> np.ndarray:
     for i, j, k in ((0, 2, k_m), (1, 2, k_s), (2, 3, K_TIP)):
         stiffness[np.ix_([i, j], [i, j])] += k * np.array([[1.0, -1.0], [-1.0, 1.0]])
     damping = 2e-4 * stiffness + np.diag([0.0, 0.0, 2e4, 0.0])
-    outputs = [(2, servo.POSITION), (3, servo.ACCELERATION), (0, servo.VELOCITY), (1, servo.VELOCITY)]
-    system = servo.lumped_state_space(mass, damping, stiffness, force_dofs=[3, 0, 1], outputs=outputs)
+    outputs = [
+        (2, servo.POSITION), (3, servo.ACCELERATION), (0, servo.VELOCITY), (1, servo.VELOCITY),
+    ]
+    system = servo.lumped_state_space(mass, damping, stiffness, [3, 0, 1], outputs)
     return servo.state_space_frf(system, FREQUENCY)
 
 
@@ -41,7 +43,8 @@ def controller(**changes) -> ms.MasterSlaveController:
 def test_tustin_matches_scipy_bilinear_discretisation():
     """PI at the Tustin s = freqz of scipy's bilinear cont2discrete at 8 kHz, up to 3 kHz."""
     f = np.linspace(1.0, 3000.0, 500)
-    numerator, denominator, _ = signal.cont2discrete(([PI.K_p * PI.T_i, PI.K_p], [PI.T_i, 0.0]), 1 / 8000, method="bilinear")
+    continuous = ([PI.K_p * PI.T_i, PI.K_p], [PI.T_i, 0.0])
+    numerator, denominator, _ = signal.cont2discrete(continuous, 1 / 8000, method="bilinear")
     _, truth = signal.freqz(numerator.ravel(), denominator, worN=2 * np.pi * f / 8000)
     np.testing.assert_allclose(PI.response(ms.tustin_laplace(f, 8000.0)), truth, rtol=1e-9)
 
@@ -49,7 +52,9 @@ def test_tustin_matches_scipy_bilinear_discretisation():
 def test_controller_matrix_solves_the_block_diagram():
     """Eqs. (3.11–3.18) = a numerical solve of τ_m = A(ẋ_ref − φ̇_m + u), τ_s = B(ẋ_ref − φ̇_s − u),
     u = P(τ_p − K_Tm τ_m + K_Ts τ_s) for different PIs and weights 0.3 / 0.7."""
-    ctrl = controller(slave=ms.PIController(5e5, 0.02), preload=ms.PIController(7e-6, 0.01), K_Tm=0.3, K_Ts=0.7)
+    ctrl = controller(
+        slave=ms.PIController(5e5, 0.02), preload=ms.PIController(7e-6, 0.01), K_Tm=0.3, K_Ts=0.7
+    )
     k_vel = ms.velocity_controller_matrix(FREQUENCY, ctrl)
     s = ms.tustin_laplace(FREQUENCY, 8000.0)
     for index, s_i in enumerate(s):
@@ -57,7 +62,8 @@ def test_controller_matrix_solves_the_block_diagram():
         equations = np.array([[1, 0, -a], [0, 1, b], [p * ctrl.K_Tm, -p * ctrl.K_Ts, 1]])
         # right-hand sides for unit inputs ẋ_ref, τ_p, φ̇_m, φ̇_s
         rhs = np.array([[a, 0, -a, 0], [b, 0, 0, -b], [0, p, 0, 0]])
-        np.testing.assert_allclose(k_vel[index], np.linalg.solve(equations, rhs)[:2], rtol=1e-12, atol=1e-9)
+        truth = np.linalg.solve(equations, rhs)[:2]
+        np.testing.assert_allclose(k_vel[index], truth, rtol=1e-12, atol=1e-9)
 
 
 def test_controller_reduces_to_single_motor_pi_without_preload_controller():
@@ -65,7 +71,9 @@ def test_controller_reduces_to_single_motor_pi_without_preload_controller():
     k_vel = ms.velocity_controller_matrix(FREQUENCY, controller(preload=ms.PIController(0.0)))
     pi = PI.response(ms.tustin_laplace(FREQUENCY, 8000.0))
     zero = np.zeros_like(pi)
-    expected = np.stack([np.stack([pi, zero, -pi, zero], -1), np.stack([pi, zero, zero, -pi], -1)], -2)
+    master_row = np.stack([pi, zero, -pi, zero], -1)
+    slave_row = np.stack([pi, zero, zero, -pi], -1)
+    expected = np.stack([master_row, slave_row], -2)
     np.testing.assert_allclose(k_vel, expected, rtol=1e-14, atol=0)
 
 
@@ -85,9 +93,11 @@ def test_pseudo_open_loop_recovers_the_symmetric_structure():
     tau_m, tau_s = loop.torques[:, 0, 1], loop.torques[:, 1, 1]
     np.testing.assert_allclose(tau_m, tau_s, rtol=1e-9)
     for row in (0, 1):
-        np.testing.assert_allclose(ms.pseudo_open_loop(loop.outputs[:, row, 1], tau_m, tau_s), SYMMETRIC[:, row, 1], rtol=1e-9)
+        pseudo = ms.pseudo_open_loop(loop.outputs[:, row, 1], tau_m, tau_s)
+        np.testing.assert_allclose(pseudo, SYMMETRIC[:, row, 1], rtol=1e-9)
     phi_m = SYMMETRIC[:, 2, 1] * tau_m + SYMMETRIC[:, 2, 2] * tau_s
-    np.testing.assert_allclose(ms.pseudo_open_loop(phi_m, tau_m, tau_s), SYMMETRIC[:, 2, 1:].mean(axis=1), rtol=1e-9)
+    mean_mobility = SYMMETRIC[:, 2, 1:].mean(axis=1)
+    np.testing.assert_allclose(ms.pseudo_open_loop(phi_m, tau_m, tau_s), mean_mobility, rtol=1e-9)
 
 
 def test_two_controller_settings_decouple_an_asymmetric_drive():
@@ -114,7 +124,9 @@ def test_symmetric_velocity_loop_is_eq_4_21_with_both_motors():
     np.testing.assert_allclose(phi_m, predicted, rtol=1e-6)
 
 
-def _direct_closed_loop(h: np.ndarray, ctrl: ms.MasterSlaveController, k_v: float, delay: float) -> np.ndarray:
+def _direct_closed_loop(
+    h: np.ndarray, ctrl: ms.MasterSlaveController, k_v: float, delay: float
+) -> np.ndarray:
     """z per [F_tip, x_ref, τ_p] solving structure, both PIs, preload PI and position P at once.
 
     Unknowns [x_load, ẍ_tip, φ̇_m, φ̇_s, τ_m, τ_s, u, v] per frequency."""

@@ -11,7 +11,9 @@ from feedbench.models.axis import TwoMassAxis
 
 AXIS = TwoMassAxis(m_mot=24.9, m_tip=9.5, k=1.98e6, c=104.0)
 SIGMA, TAU_OL = 792.0, 0.75e-3
-MOBILITY = servo.with_delay(servo.chain_mobility([AXIS.m_mot, AXIS.m_tip], [AXIS.k], [AXIS.c], SIGMA), TAU_OL, 4)
+MOBILITY = servo.with_delay(
+    servo.chain_mobility([AXIS.m_mot, AXIS.m_tip], [AXIS.k], [AXIS.c], SIGMA), TAU_OL, 4
+)
 BAND = (0.5 * AXIS.f_t, 2.0 * AXIS.f_r)
 TUNINGS = bandwidth_tunings(AXIS)
 BOUNDS = rl.GainBounds(
@@ -37,7 +39,8 @@ def test_root_locus_satisfies_its_characteristic_equation():
     """Every root r of D + kN: |D(r) + k N(r)| ≪ |D(r)| + k|N(r)|; k = 0 gives the poles."""
     gains = np.geomspace(1.0, 1e5, 40)
     locus = rl.root_locus(MOBILITY.num, MOBILITY.den, np.r_[0.0, gains])
-    np.testing.assert_allclose(np.sort_complex(locus.roots[0]), np.sort_complex(np.roots(MOBILITY.den)), rtol=1e-9)
+    open_loop_poles = np.sort_complex(np.roots(MOBILITY.den))
+    np.testing.assert_allclose(np.sort_complex(locus.roots[0]), open_loop_poles, rtol=1e-9)
     r, k = locus.roots[1:], gains[:, None]
     d, n = np.polyval(MOBILITY.den, r), np.polyval(MOBILITY.num, r)
     assert np.max(np.abs(d + k * n) / (np.abs(d) + k * np.abs(n))) < 1e-8
@@ -93,7 +96,8 @@ def test_critical_damping_picks_the_least_damped_in_band_root():
     row = np.concatenate([roots, roots.conj()])
     unstable = row.copy()
     unstable[2] = -unstable[2].conjugate()
-    np.testing.assert_allclose(rl.critical_damping(np.stack([row, unstable]), (40.0, 200.0)), [0.2, -0.01])
+    damping = rl.critical_damping(np.stack([row, unstable]), (40.0, 200.0))
+    np.testing.assert_allclose(damping, [0.2, -0.01])
 
 
 def test_search_beats_the_high_and_the_rule_of_thumb_tunings():
@@ -112,7 +116,9 @@ def test_search_matches_a_brute_force_grid():
     t_i = TUNINGS["optimum"].T_i
     bounds = rl.GainBounds(K_p=BOUNDS.K_p, T_i=(t_i, t_i), K_v=BOUNDS.K_v)
     optimum = rl.maximise_critical_damping(MOBILITY, BAND, bounds)
-    k_p, k_v = np.meshgrid(np.geomspace(*BOUNDS.K_p, 1500), np.geomspace(*BOUNDS.K_v, 30), indexing="ij")
+    k_p, k_v = np.meshgrid(
+        np.geomspace(*BOUNDS.K_p, 1500), np.geomspace(*BOUNDS.K_v, 30), indexing="ij"
+    )
     grid_best = rl.critical_damping_of_gains(MOBILITY, k_p.ravel(), t_i, k_v.ravel(), BAND).max()
     assert optimum.damping == pytest.approx(grid_best, rel=0.02)
     assert optimum.gains.T_i == pytest.approx(t_i, rel=1e-12)

@@ -37,9 +37,8 @@ def test_mobility_from_closed_loop_predicts_another_tuning():
     within 1 % of the sampled loop over 1–300 Hz (the PI's Tustin warping, which changes
     with T_i, is the only error)."""
     measured, target = TUNINGS["optimum"], TUNINGS["high"]
-    mobility = servo.open_loop_mobility(
-        FREQUENCY, _sampled_closed_velocity_loop(measured.K_p, measured.T_i), measured.K_p, measured.T_i
-    )
+    closed = _sampled_closed_velocity_loop(measured.K_p, measured.T_i)
+    mobility = servo.open_loop_mobility(FREQUENCY, closed, measured.K_p, measured.T_i)
     predicted = servo.closed_velocity_loop(FREQUENCY, mobility, target.K_p, target.T_i)
     truth = _sampled_closed_velocity_loop(target.K_p, target.T_i)
     assert np.max(np.abs(predicted / truth - 1)) < 0.01
@@ -81,10 +80,13 @@ def test_compliance_integrates_mobility():
     """x/F = (ẋ/F)/(jω): a rigid mass m has mobility 1/(jωm) and compliance −1/(mω²)."""
     f = np.array([10.0, 50.0])
     mobility = 1 / (2j * np.pi * f * 30.0)
-    np.testing.assert_allclose(servo.mobility_to_compliance(f, mobility), -1 / (30.0 * (2 * np.pi * f) ** 2))
+    compliance = servo.mobility_to_compliance(f, mobility)
+    np.testing.assert_allclose(compliance, -1 / (30.0 * (2 * np.pi * f) ** 2))
 
 
-@pytest.mark.parametrize(("order", "f_max", "bound"), [(2, 200.0, 1e-3), (3, 300.0, 2e-4), (4, 500.0, 1e-4)])
+@pytest.mark.parametrize(
+    ("order", "f_max", "bound"), [(2, 200.0, 1e-3), (3, 300.0, 2e-4), (4, 500.0, 1e-4)]
+)
 def test_pade_error_bound(order, f_max, bound):
     """|P_d(jω) − e^{-jωτ}| for τ = 0.75 ms stays below `bound` up to `f_max`; |P_d| = 1."""
     f = np.linspace(0.0, f_max, 2001)
@@ -107,7 +109,10 @@ def test_chain_mobility_is_s_times_eq_4_15():
     mobility = servo.chain_mobility([M_MOT, M_TIP], [K], [C], SIGMA)
     numerator = np.array([M_TIP, C, K])
     denominator = np.array([
-        M_MOT * M_TIP, C * (M_MOT + M_TIP) + SIGMA * M_TIP, K * (M_MOT + M_TIP) + SIGMA * C, SIGMA * K,
+        M_MOT * M_TIP,
+        C * (M_MOT + M_TIP) + SIGMA * M_TIP,
+        K * (M_MOT + M_TIP) + SIGMA * C,
+        SIGMA * K,
     ])
     lead = denominator[0]
     np.testing.assert_allclose(mobility.num, numerator / lead, rtol=1e-9)
@@ -138,7 +143,8 @@ def test_three_dof_zeros_are_the_motor_locked_frequencies():
     k_locked = np.array([[p["k_1"] + p["k_2"], -p["k_2"]], [-p["k_2"], p["k_2"]]])
     mass_inv = np.diag([1 / p["M_2"], 1 / p["M_tip"]])
     f_locked = np.sqrt(np.sort(np.linalg.eigvals(mass_inv @ k_locked).real)) / (2 * np.pi)
-    response = np.abs(servo.state_space_frf(servo.three_dof_state_space(**p), np.r_[f_locked, 0.9 * f_locked]))
+    system = servo.three_dof_state_space(**p)
+    response = np.abs(servo.state_space_frf(system, np.r_[f_locked, 0.9 * f_locked]))
     assert np.all(response[:2, 0, 0] < 1e-7 * response[2:, 0, 0])
 
 

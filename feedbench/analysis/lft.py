@@ -49,17 +49,24 @@ def lft_control_signal(plant: ArrayLike, controller: ArrayLike) -> ComplexArray:
     return _closed_loop_gain(g22, k) @ g21
 
 
-def pppi_feedback(frequency: ArrayLike, gains: CascadeGains, position_delay: float = 0.0) -> ComplexArray:
+def pppi_feedback(
+    frequency: ArrayLike, gains: CascadeGains, position_delay: float = 0.0
+) -> ComplexArray:
     """P-PI cascade as a feedback F_mot = K x_mot, K = −(jω + K_v e^{-jωτ}) K_p (1 + 1/(T_i jω)).
 
     Eq. (4.24); `position_delay` τ (s) adds the position loop's sampling delay (0 as printed).
     """
     s = laplace(frequency)
-    return -(s + gains.K_v * np.exp(-position_delay * s)) * velocity_pi(frequency, gains.K_p, gains.T_i)
+    position_error_gain = s + gains.K_v * np.exp(-position_delay * s)
+    return -position_error_gain * velocity_pi(frequency, gains.K_p, gains.T_i)
 
 
 def tool_tip_compliance(
-    tip_tip: ArrayLike, tip_mot: ArrayLike, mot_tip: ArrayLike, mot_mot: ArrayLike, controller: ArrayLike
+    tip_tip: ArrayLike,
+    tip_mot: ArrayLike,
+    mot_tip: ArrayLike,
+    mot_mot: ArrayLike,
+    controller: ArrayLike,
 ) -> ComplexArray:
     """Closed-loop x_tip/F_tip from the open-loop compliances and K, Eq. (4.23).
 
@@ -86,7 +93,8 @@ def predict_tip_by_transmissibility(
     k = np.asarray(controller, dtype=complex)
     g = np.asarray(mot_mot, dtype=complex)
     tip_mot = g * np.asarray(transmissibility, dtype=complex)
-    return np.asarray(tip_closed_k0, dtype=complex) + tip_mot * k / (1.0 - g * k) * np.asarray(mot_tip_k0)
+    feedback = tip_mot * k / (1.0 - g * k) * np.asarray(mot_tip_k0)
+    return np.asarray(tip_closed_k0, dtype=complex) + feedback
 
 
 @dataclass(frozen=True)
@@ -102,7 +110,9 @@ class TipTerms:
     residual: NDArray[np.float64]
 
 
-def estimate_tip_terms(tip_closed: ArrayLike, controllers: ArrayLike, mot_mot: ArrayLike) -> TipTerms:
+def estimate_tip_terms(
+    tip_closed: ArrayLike, controllers: ArrayLike, mot_mot: ArrayLike
+) -> TipTerms:
     """Approach #2, Eq. (4.26): solve for the direct term and the cross product frequency by
     frequency from n ≥ 2 tool-tip compliances measured under controllers K_1…K_n.
 
@@ -119,7 +129,9 @@ def estimate_tip_terms(tip_closed: ArrayLike, controllers: ArrayLike, mot_mot: A
     return TipTerms(direct=solution[:, 0, 0], cross_product=solution[:, 1, 0], residual=residual)
 
 
-def predict_tip_compliance(terms: TipTerms, mot_mot: ArrayLike, controller: ArrayLike) -> ComplexArray:
+def predict_tip_compliance(
+    terms: TipTerms, mot_mot: ArrayLike, controller: ArrayLike
+) -> ComplexArray:
     """x_tip/F_tip under a new controller K from identified terms, Eq. (4.23)."""
     k = np.asarray(controller, dtype=complex)
     return terms.direct + terms.cross_product * k / (1.0 - np.asarray(mot_mot) * k)

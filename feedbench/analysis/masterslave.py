@@ -55,7 +55,9 @@ def tustin_laplace(frequency: ArrayLike, sample_rate: float) -> ComplexArray:
     return 2j * sample_rate * np.tan(np.pi * f / sample_rate)
 
 
-def velocity_controller_matrix(frequency: ArrayLike, controller: MasterSlaveController) -> ComplexArray:
+def velocity_controller_matrix(
+    frequency: ArrayLike, controller: MasterSlaveController
+) -> ComplexArray:
     """K_vel: [τ_m, τ_s] per [ẋ_ref, τ_p, φ̇_m, φ̇_s], shape (n_freq, 2, 4), Eqs. (3.11–3.18).
 
     Solves the loop τ_m = PI_master (ẋ_ref − φ̇_m + u), τ_s = PI_slave (ẋ_ref − φ̇_s − u) with
@@ -98,7 +100,9 @@ class VelocityLoop:
     torques: ComplexArray
 
 
-def velocity_loop(frequency: ArrayLike, structure: ArrayLike, controller: MasterSlaveController) -> VelocityLoop:
+def velocity_loop(
+    frequency: ArrayLike, structure: ArrayLike, controller: MasterSlaveController
+) -> VelocityLoop:
     """F_l(G, K_vel), Eq. (3.19), and the motor torques it commands (see `velocity_loop_plant`)."""
     plant = velocity_loop_plant(structure)
     k_vel = velocity_controller_matrix(frequency, controller)
@@ -106,7 +110,11 @@ def velocity_loop(frequency: ArrayLike, structure: ArrayLike, controller: Master
 
 
 def position_loop(
-    frequency: ArrayLike, velocity_outputs: ArrayLike, load_index: int, K_v: float, delay: float = 2e-3
+    frequency: ArrayLike,
+    velocity_outputs: ArrayLike,
+    load_index: int,
+    K_v: float,
+    delay: float = 2e-3,
 ) -> ComplexArray:
     """F_l(R, K_pos), Eq. (3.20): outputs z per w' = [F_tip, x_ref, τ_p].
 
@@ -143,7 +151,9 @@ class MotorResponses:
     condition: NDArray[np.float64]
 
 
-def decouple_motor_responses(outputs: ArrayLike, tau_m: ArrayLike, tau_s: ArrayLike) -> MotorResponses:
+def decouple_motor_responses(
+    outputs: ArrayLike, tau_m: ArrayLike, tau_s: ArrayLike
+) -> MotorResponses:
     """G = X U^-1, Eqs. (3.22–3.23), from n ≥ 2 measurements under different velocity PIs.
 
     Arrays of shape (n, n_freq): the output O and the two torques per excitation in each

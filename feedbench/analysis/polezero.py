@@ -9,10 +9,10 @@ logarithm (log-magnitude and phase error) finishes it.
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 from scipy import optimize, signal
 
-from feedbench.analysis.servo import ComplexArray, laplace, with_delay
+from feedbench.analysis.servo import ComplexArray, RealArray, laplace, with_delay
 
 INITIAL_DAMPING = 0.05
 """Starting damping ratio for every picked resonance and anti-resonance."""
@@ -34,7 +34,7 @@ class VibratoryMode:
         poles = s**2 + 2 * self.pole_damping * w_p * s + w_p**2
         return (w_p / w_z) ** 2 * zeros / poles
 
-    def polynomials(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def polynomials(self) -> tuple[RealArray, RealArray]:
         """Numerator and denominator coefficients of `factor` (highest power first)."""
         w_p, w_z = 2 * np.pi * self.pole_frequency, 2 * np.pi * self.zero_frequency
         scale = (w_p / w_z) ** 2
@@ -66,7 +66,8 @@ class PoleZeroModel:
         numerator, denominator = np.array([1.0]), np.array([self.m_total, self.sigma])
         for mode in self.modes:
             mode_num, mode_den = mode.polynomials()
-            numerator, denominator = np.polymul(numerator, mode_num), np.polymul(denominator, mode_den)
+            numerator = np.polymul(numerator, mode_num)
+            denominator = np.polymul(denominator, mode_den)
         return with_delay(signal.TransferFunction(numerator, denominator), self.delay, pade_order)
 
 
@@ -78,20 +79,23 @@ class PoleZeroFit:
     rms_log_error: float
 
 
-def _pack(model: PoleZeroModel) -> NDArray[np.float64]:
+def _pack(model: PoleZeroModel) -> RealArray:
     modes = [
-        np.log([m.pole_frequency, m.pole_damping, m.zero_frequency, m.zero_damping]) for m in model.modes
+        np.log([m.pole_frequency, m.pole_damping, m.zero_frequency, m.zero_damping])
+        for m in model.modes
     ]
     return np.concatenate([[np.log(model.m_total), model.sigma, model.delay], *modes])
 
 
-def _unpack(x: NDArray[np.float64]) -> PoleZeroModel:
+def _unpack(x: RealArray) -> PoleZeroModel:
     mode_values = np.exp(x[3:]).reshape(-1, 4)
     modes = tuple(VibratoryMode(*map(float, row)) for row in mode_values)
-    return PoleZeroModel(m_total=float(np.exp(x[0])), sigma=float(x[1]), delay=float(x[2]), modes=modes)
+    return PoleZeroModel(
+        m_total=float(np.exp(x[0])), sigma=float(x[1]), delay=float(x[2]), modes=modes
+    )
 
 
-def _rigid_body_guess(frequency: NDArray[np.float64], mobility: ComplexArray) -> tuple[float, float]:
+def _rigid_body_guess(frequency: RealArray, mobility: ComplexArray) -> tuple[float, float]:
     """m_total and σ from 1/H ≈ σ + jω m over the lowest tenth of the band (at least 5 points)."""
     low = slice(0, max(5, frequency.size // 10))
     impedance = 1.0 / mobility[low]
@@ -100,7 +104,7 @@ def _rigid_body_guess(frequency: NDArray[np.float64], mobility: ComplexArray) ->
     return mass, max(float(np.mean(impedance.real)), 0.0)
 
 
-def _pick(log_magnitude: NDArray[np.float64], frequency: NDArray[np.float64], count: int) -> NDArray[np.float64]:
+def _pick(log_magnitude: RealArray, frequency: RealArray, count: int) -> RealArray:
     """Frequencies of the `count` most prominent peaks of a curve, ascending."""
     peaks, properties = signal.find_peaks(log_magnitude, prominence=0.0)
     if peaks.size < count:
@@ -118,26 +122,27 @@ def initial_model(frequency: ArrayLike, mobility: ArrayLike, n_modes: int) -> Po
     log_vibratory = np.log(np.abs(h * (mass * laplace(f) + sigma)))
     poles, zeros = _pick(log_vibratory, f, n_modes), _pick(-log_vibratory, f, n_modes)
     modes = tuple(
-        VibratoryMode(float(p), INITIAL_DAMPING, float(z), INITIAL_DAMPING) for p, z in zip(poles, zeros)
+        VibratoryMode(float(p), INITIAL_DAMPING, float(z), INITIAL_DAMPING)
+        for p, z in zip(poles, zeros)
     )
     return PoleZeroModel(m_total=mass, sigma=sigma, delay=0.0, modes=modes)
 
 
-def _bounds(n_modes: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _bounds(n_modes: int) -> tuple[RealArray, RealArray]:
     per_mode_low, per_mode_high = [-np.inf, np.log(1e-4)] * 2, [np.inf, 0.0] * 2
     low = np.array([-np.inf, 0.0, 0.0, *per_mode_low * n_modes])
     high = np.array([np.inf, np.inf, np.inf, *per_mode_high * n_modes])
     return low, high
 
 
-def _delay_from_phase(frequency: NDArray[np.float64], ratio: ComplexArray) -> float:
+def _delay_from_phase(frequency: RealArray, ratio: ComplexArray) -> float:
     """Pure delay τ fitting the unwrapped phase of `ratio` as −ωτ (least squares through 0)."""
     omega = 2 * np.pi * frequency
     phase = np.unwrap(np.angle(ratio))
     return max(float(-np.sum(omega * phase) / np.sum(omega**2)), 0.0)
 
 
-def _stack(error: ComplexArray) -> NDArray[np.float64]:
+def _stack(error: ComplexArray) -> RealArray:
     return np.concatenate([error.real, error.imag])
 
 
@@ -154,7 +159,7 @@ def fit_pole_zero(
     start = initial if initial is not None else initial_model(f, h, n_modes)
     bounds = _bounds(len(start.modes))
 
-    def log_error(x: NDArray[np.float64]) -> ComplexArray:
+    def log_error(x: RealArray) -> ComplexArray:
         return np.log(_unpack(x).mobility(f) / h)
 
     magnitude = optimize.least_squares(

@@ -69,7 +69,9 @@ def match_branches(roots: ArrayLike) -> ComplexArray:
     return matched
 
 
-def velocity_loop_characteristic(mobility: signal.TransferFunction, K_p: ArrayLike, T_i: ArrayLike) -> Coefficients:
+def velocity_loop_characteristic(
+    mobility: signal.TransferFunction, K_p: ArrayLike, T_i: ArrayLike
+) -> Coefficients:
     """T_i s D(s) + K_p (T_i s + 1) N(s): the denominator of Eq. (4.21) for the model N/D."""
     n, d = mobility.num, mobility.den
     return _combine([
@@ -94,7 +96,9 @@ def cascade_characteristic(
     K_p, T_i, K_v broadcast against each other (one polynomial per gain set).
     """
     n, d = mobility.num, mobility.den
-    p_num, p_den = ([1.0], [1.0]) if position_delay == 0 else _pade(position_delay, pade_order)
+    no_delay = signal.TransferFunction(1.0, 1.0)
+    pade = pade_delay(position_delay, pade_order) if position_delay > 0 else no_delay
+    p_num, p_den = pade.num, pade.den
     k_p, t_i, k_v = np.broadcast_arrays(*(np.asarray(g, dtype=float) for g in (K_p, T_i, K_v)))
     s_p_den_n = np.polymul([1.0, 0.0], np.polymul(p_den, n))
     p_num_n = np.polymul(p_num, n)
@@ -107,15 +111,11 @@ def cascade_characteristic(
     ])
 
 
-def _pade(delay: float, order: int) -> tuple[Coefficients, Coefficients]:
-    pade = pade_delay(delay, order)
-    return pade.num, pade.den
-
-
 def velocity_gain_locus(mobility: signal.TransferFunction, T_i: float, K_p: ArrayLike) -> RootLocus:
     """Closed velocity-loop roots as K_p (N·s/m) varies at fixed T_i (s)."""
     k_p = np.asarray(K_p, dtype=float)
-    return RootLocus(gains=k_p, roots=polynomial_roots(velocity_loop_characteristic(mobility, k_p, T_i)))
+    characteristic = velocity_loop_characteristic(mobility, k_p, T_i)
+    return RootLocus(gains=k_p, roots=polynomial_roots(characteristic))
 
 
 def position_gain_locus(
@@ -134,9 +134,10 @@ def position_gain_locus(
 
 
 def damping_ratios(roots: ArrayLike) -> NDArray[np.float64]:
-    """ζ = −Re(s)/|s| of each root."""
+    """ζ = −Re(s)/|s| of each root; 0 for a root at the origin (marginally stable)."""
     r = np.asarray(roots, dtype=complex)
-    return -r.real / np.abs(r)
+    magnitude = np.abs(r)
+    return np.divide(-r.real, magnitude, out=np.zeros(r.shape), where=magnitude > 0)
 
 
 def critical_damping(roots: ArrayLike, band: tuple[float, float]) -> NDArray[np.float64]:

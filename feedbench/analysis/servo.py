@@ -12,7 +12,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import signal
 
 ComplexArray = NDArray[np.complex128]
-StateSpace = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
+RealArray = NDArray[np.float64]
+StateSpace = tuple[RealArray, RealArray, RealArray, RealArray]
 
 POSITION, VELOCITY, ACCELERATION = 0, 1, 2
 """Derivative order of an output in `lumped_state_space`."""
@@ -56,8 +57,8 @@ def closed_position_loop(
     K_v in 1/s; `delay` τ_cl in s, twice the position-loop period (default: 1 kHz loop).
     """
     s = laplace(frequency)
-    velocity = K_v * np.asarray(closed_velocity, dtype=complex)
-    return velocity / (s + velocity) * np.exp(-delay * s)
+    forward = K_v * np.asarray(closed_velocity, dtype=complex)
+    return forward / (s + forward) * np.exp(-delay * s)
 
 
 def mobility_to_compliance(frequency: ArrayLike, mobility: ArrayLike) -> ComplexArray:
@@ -78,7 +79,9 @@ def pade_delay(delay: float, order: int) -> signal.TransferFunction:
     return signal.TransferFunction(alternating[::-1], a[::-1])
 
 
-def with_delay(system: signal.TransferFunction, delay: float, order: int) -> signal.TransferFunction:
+def with_delay(
+    system: signal.TransferFunction, delay: float, order: int
+) -> signal.TransferFunction:
     """system(s)·P_d(s): a rational model of a delayed system for root loci, Eq. (4.16)."""
     pade = pade_delay(delay, order)
     return signal.TransferFunction(

@@ -29,7 +29,9 @@ def optimum_bandwidth(axis: TwoMassAxis) -> float:
     return OPTIMUM_FRACTION_OF_F_T * axis.f_t
 
 
-def bandwidth_tunings(axis: TwoMassAxis, low: float = 15.0, high: float = 87.0) -> dict[str, CascadeGains]:
+def bandwidth_tunings(
+    axis: TwoMassAxis, low: float = 15.0, high: float = 87.0
+) -> dict[str, CascadeGains]:
     """The three tunings of Ch. 4.2.3: "low", "high" (bandwidths in Hz) and "optimum" (0.8 f_t)."""
     mass = total_mass(axis)
     bandwidths = {"low": low, "high": high, "optimum": optimum_bandwidth(axis)}
