@@ -1,7 +1,7 @@
 """Root locus of a 12th-order velocity loop at 2000 gains: batched companion eigenvalues
 (`feedbench.analysis.rootlocus.root_locus`) against python-control's `root_locus_map` and a
-per-gain `numpy.roots` loop, measured in the same run; the roots are matched gain by gain
-(Hungarian assignment) and compared.
+per-gain `numpy.roots` loop, measured in the same run (interleaved rounds, best of each);
+the roots are matched gain by gain (Hungarian assignment) and compared.
 
 The loop: K_p (1 + 1/(T_i s)) times a pole–zero mobility (Eq. 4.27) with three modes and a
 4th-order Padé delay (Eq. 4.16): 1 + 7 + 4 = 12 poles.
@@ -37,13 +37,19 @@ def loop_polynomials() -> tuple[np.ndarray, np.ndarray]:
     return np.polymul([T_I, 1.0], mobility.num), np.polymul([T_I, 0.0], mobility.den)
 
 
-def best_of(repeats: int, job: Callable[[], np.ndarray]) -> tuple[float, np.ndarray]:
-    times, result = [], None
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = job()
-        times.append(time.perf_counter() - start)
-    return min(times), result
+def interleaved_best(
+    jobs: dict[str, Callable[[], np.ndarray]],
+) -> dict[str, tuple[float, np.ndarray]]:
+    """Best time and last result of each job; rounds alternate the jobs so that load from other
+    processes hits them alike."""
+    times: dict[str, list[float]] = {name: [] for name in jobs}
+    results: dict[str, np.ndarray] = {}
+    for _ in range(REPEATS):
+        for name, job in jobs.items():
+            start = time.perf_counter()
+            results[name] = job()
+            times[name].append(time.perf_counter() - start)
+    return {name: (min(times[name]), results[name]) for name in jobs}
 
 
 def per_gain_numpy_roots(numerator: np.ndarray, denominator: np.ndarray) -> np.ndarray:
@@ -63,9 +69,12 @@ def matched_errors(ours: np.ndarray, theirs: np.ndarray) -> np.ndarray:
 def run() -> dict[str, float]:
     numerator, denominator = loop_polynomials()
     system = control.tf(numerator, denominator)
-    batched_s, ours = best_of(REPEATS, lambda: root_locus(numerator, denominator, GAINS).roots)
-    control_s, theirs = best_of(REPEATS, lambda: control.root_locus_map(system, gains=GAINS).loci)
-    numpy_s, _ = best_of(REPEATS, lambda: per_gain_numpy_roots(numerator, denominator))
+    timed = interleaved_best({
+        "batched": lambda: root_locus(numerator, denominator, GAINS).roots,
+        "control": lambda: control.root_locus_map(system, gains=GAINS).loci,
+        "numpy": lambda: per_gain_numpy_roots(numerator, denominator),
+    })
+    (batched_s, ours), (control_s, theirs), (numpy_s, _) = timed.values()
     errors = matched_errors(ours, theirs)
     figures = {
         "rootlocus_batched_ms": batched_s * 1e3,
