@@ -6,6 +6,7 @@ from scipy import signal
 
 from feedbench.analysis import servo
 from feedbench.analysis.polezero import PoleZeroModel, VibratoryMode, fit_pole_zero
+from feedbench.models.axis import TwoMassAxis
 
 TRUTH = PoleZeroModel(
     m_total=34.4,
@@ -18,11 +19,11 @@ FREQUENCY = np.linspace(5.0, 300.0, 600)
 
 
 def test_two_mass_mobility_is_a_pole_zero_product():
-    """Eq. (4.15)·s (σ = 0) = Eq. (4.27) with ω_z = √(k/M_tip) (f_t), ω_p = f_r, one mode."""
-    m_mot, m_tip, k, c = 24.9, 9.5, 1.98e6, 0.0
-    f_t, f_r = np.sqrt(k / m_tip) / (2 * np.pi), np.sqrt(k * (1 / m_mot + 1 / m_tip)) / (2 * np.pi)
-    model = PoleZeroModel(m_mot + m_tip, 0.0, 0.0, (VibratoryMode(f_r, 0.0, f_t, 0.0),))
-    two_mass = servo.chain_mobility([m_mot, m_tip], [k], [c])
+    """Eq. (4.15)·s (σ = 0) = Eq. (4.27) with one mode: zero at f_t (4.13), pole at f_r (4.14)."""
+    axis = TwoMassAxis(m_mot=24.9, m_tip=9.5, k=1.98e6, c=0.0)
+    mode = VibratoryMode(axis.f_r, 0.0, axis.f_t, 0.0)
+    model = PoleZeroModel(axis.m_mot + axis.m_tip, 0.0, 0.0, (mode,))
+    two_mass = servo.chain_mobility([axis.m_mot, axis.m_tip], [axis.k], [axis.c])
     _, truth = signal.freqresp(two_mass, 2 * np.pi * FREQUENCY)
     np.testing.assert_allclose(model.mobility(FREQUENCY), truth, rtol=1e-8)
 
