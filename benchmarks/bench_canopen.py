@@ -1,0 +1,154 @@
+"""Lockstep bus cycles per second: the full stack against the bare python-can + canopen loop.
+
+Both loops move the same frames per cycle over python-can's `virtual` bus in one process:
+host → 3 RPDOs + SYNC, device → 2 TPDOs, host waits for the last TPDO. The bare loop has
+only canopen Networks with raw subscriptions on both sides; the full loop is
+`Cia402Drive` + `LockstepClock` on the host and `SimulatedCia402Drive` (state machine,
+AxisSimulator physics) on the device. Both wait for the last TPDO on the same primitive
+(`CycleSignal`), so the ratio is the cost of driver, simulated drive and physics alone. Rounds alternate between the two so that load from
+other processes hits both alike; the figures are medians over the rounds. CPU time per
+cycle (all threads of the process, `time.process_time`) is reported beside the rates: it
+is less sensitive to other processes than the wall-clock rate.
+"""
+
+from __future__ import annotations
+
+import itertools
+import statistics
+import struct
+import time
+from typing import NamedTuple
+
+import canopen
+
+from feedbench.daq.clock import LockstepClock
+from feedbench.drivers.canbus import connect, open_bus, open_network
+from feedbench.drivers.cia402 import Cia402Drive, CycleSignal
+from feedbench.models.axis import CSV
+from feedbench.sim_backends.bench import start_simulated_axis
+from feedbench.sim_backends.eds import packaged_eds_path
+
+NODE_ID = 1
+N_CYCLES = 500
+ROUNDS = 20
+RPDO_PAYLOADS = ((0x200 + NODE_ID, bytes(7)), (0x300 + NODE_ID, bytes(8)),
+                 (0x400 + NODE_ID, bytes(8)))
+TPDO_COB_IDS = (0x180 + NODE_ID, 0x280 + NODE_ID)
+_channels = itertools.count()
+
+
+def _channel(kind: str) -> str:
+    return f"bench-canopen-{kind}-{next(_channels)}"
+
+
+class Timing(NamedTuple):
+    cycles_per_s: float
+    cpu_us_per_cycle: float
+
+
+def _timed(n_cycles: int, cycle) -> Timing:
+    wall, cpu = time.perf_counter(), time.process_time()
+    for _ in range(n_cycles):
+        cycle()
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    return Timing(n_cycles / wall, cpu / n_cycles * 1e6)
+
+
+def bare_lockstep_cycles_per_s(n_cycles: int = N_CYCLES) -> float:
+    """Cycles/s of the bare loop: canopen Networks, raw frames, no drive logic, no physics."""
+    return _bare_loop(n_cycles).cycles_per_s
+
+
+def driver_sim_physics_cycles_per_s(n_cycles: int = N_CYCLES) -> float:
+    """Cycles/s of the full loop in CSV: set_targets, tick, actual, with the physics stepping."""
+    return _full_loop(n_cycles).cycles_per_s
+
+
+def _bare_loop(n_cycles: int) -> Timing:
+    channel = _channel("bare")
+    host = connect(canopen.Network(open_bus("virtual", channel)))
+    device = connect(canopen.Network(open_bus("virtual", channel)))
+    answered = CycleSignal()
+    received: dict[int, bytearray] = {}
+    count = [0]
+
+    def on_rpdo(can_id: int, data: bytearray, timestamp: float) -> None:
+        received[can_id] = data
+
+    def on_sync(can_id: int, data: bytearray, timestamp: float) -> None:
+        count[0] += 1
+        device.send_message(TPDO_COB_IDS[0], struct.pack("<HiH", 0x1237, count[0], count[0] & 0xFFFF))
+        device.send_message(TPDO_COB_IDS[1], struct.pack("<ii", count[0], count[0]))
+
+    def on_last_tpdo(can_id: int, data: bytearray, timestamp: float) -> None:
+        answered.set()
+
+    for cob_id, _ in RPDO_PAYLOADS:
+        device.subscribe(cob_id, on_rpdo)
+    device.subscribe(0x80, on_sync)
+    host.subscribe(TPDO_COB_IDS[-1], on_last_tpdo)
+    def cycle() -> None:
+        for cob_id, payload in RPDO_PAYLOADS:
+            host.send_message(cob_id, payload)
+        host.send_message(0x80, b"")
+        if not answered.wait(1.0):
+            raise RuntimeError("bare loop: TPDO missing")
+
+    try:
+        return _timed(n_cycles, cycle)
+    finally:
+        host.disconnect()
+        device.disconnect()
+
+
+def _full_loop(n_cycles: int) -> Timing:
+    channel = _channel("full")
+    simulated = start_simulated_axis("virtual", channel, NODE_ID)
+    network = open_network("virtual", channel)
+    try:
+        drive = Cia402Drive(network, NODE_ID, packaged_eds_path())
+        drive.configure()
+        clock = LockstepClock(network, [drive])
+        drive.set_mode(CSV)
+        drive.enable(clock.tick)
+
+        def cycle() -> None:
+            drive.set_targets(velocity=0.01, velocity_offset=0.0, force_offset=0.0)
+            clock.tick()
+            drive.actual
+
+        return _timed(n_cycles, cycle)
+    finally:
+        network.disconnect()
+        simulated.close()
+
+
+def run() -> dict[str, float]:
+    _full_loop(10)  # compile the physics, import everything: not part of any round
+    rounds = [(_bare_loop(N_CYCLES), _full_loop(N_CYCLES)) for _ in range(ROUNDS)]
+    bare = [b for b, _ in rounds]
+    full = [f for _, f in rounds]
+    figures = {
+        "bare_canopen_cycles_per_s": statistics.median(b.cycles_per_s for b in bare),
+        "driver_sim_physics_cycles_per_s": statistics.median(f.cycles_per_s for f in full),
+        "bare_canopen_cpu_us_per_cycle": statistics.median(b.cpu_us_per_cycle for b in bare),
+        "driver_sim_physics_cpu_us_per_cycle": statistics.median(f.cpu_us_per_cycle
+                                                                 for f in full),
+    }
+    figures["driver_sim_physics_over_bare"] = (figures["driver_sim_physics_cycles_per_s"]
+                                               / figures["bare_canopen_cycles_per_s"])
+    paired = sorted(f.cycles_per_s / b.cycles_per_s for b, f in rounds)
+    print(f"bare python-can + canopen lockstep loop (SYNC, 3 RPDO, 2 TPDO): "
+          f"{figures['bare_canopen_cycles_per_s']:7.0f} cycles/s, "
+          f"{figures['bare_canopen_cpu_us_per_cycle']:5.0f} us CPU/cycle (baseline)")
+    print(f"Cia402Drive + LockstepClock + SimulatedCia402Drive + physics:   "
+          f"{figures['driver_sim_physics_cycles_per_s']:7.0f} cycles/s, "
+          f"{figures['driver_sim_physics_cpu_us_per_cycle']:5.0f} us CPU/cycle")
+    print(f"full loop / bare loop: {figures['driver_sim_physics_over_bare']:.2f} "
+          f"(medians of {ROUNDS} alternating rounds of {N_CYCLES} cycles; target >= 0.8; "
+          f"per-round ratios {paired[0]:.2f}..{paired[-1]:.2f})")
+    return figures
+
+
+if __name__ == "__main__":
+    run()

@@ -1,0 +1,173 @@
+"""The bench clock: one tick = one bus cycle (RPDOs out, SYNC, the cycle's TPDOs in).
+
+`LockstepClock` (simulation): the simulated drives step their physics on the SYNC, so
+virtual time advances exactly one cycle per tick, as fast as the bus allows; a missing
+answer is an error (`BusTimeout`). `RealtimeClock` (hardware): SYNC at the cycle period on
+`time.perf_counter` (sleep, then a short spin), lateness of each SYNC recorded as jitter;
+a cycle whose TPDOs miss their slot is counted in `missed` and the run goes on.
+
+Every tick returns the first drive's cycle counter (0x2020, 16 bit), unwrapped to a
+monotonic integer; `gaps` counts ticks where a drive's counter did not advance by exactly
+one (a SYNC the drive processed without the host seeing its TPDOs, or a lost SYNC).
+"""
+
+from __future__ import annotations
+
+import time
+from array import array
+from typing import Protocol, Sequence
+
+import canopen
+import numpy as np
+
+SYNC_COB_ID = 0x80
+COUNTER_MODULO = 0x10000
+SPIN_S = 0.5e-3
+"""The real-time loop sleeps until this long before the SYNC slot, then spins."""
+RESPONSE_SHARE = 0.9
+"""The real-time loop waits for TPDOs during this share of the cycle period."""
+
+
+class BusTimeout(RuntimeError):
+    """A drive's TPDOs of a cycle did not arrive in time."""
+
+
+class CycleDrive(Protocol):
+    """What the clock needs of a drive (`feedbench.drivers.cia402.Cia402Drive`)."""
+
+    node: canopen.RemoteNode
+
+    @property
+    def device_cycle(self) -> int: ...
+
+    def arm_cycle(self) -> None: ...
+
+    def transmit(self) -> None: ...
+
+    def wait_cycle(self, timeout_s: float) -> bool: ...
+
+
+class _BenchClock:
+    """Shared part: SYNC, per-drive unwrapped cycle counters, gap count."""
+
+    def __init__(self, network: canopen.Network, drives: Sequence[CycleDrive]) -> None:
+        if not drives:
+            raise ValueError("the clock needs at least one drive")
+        self.network = network
+        self.drives = list(drives)
+        self.cycles = [0] * len(self.drives)
+        """Unwrapped device cycle counter per drive, after the last tick."""
+        self.gaps = 0
+        self.gap_cycles: list[int] = []
+        """First drive's unwrapped cycle at each tick with a gap (any drive)."""
+        self._last_raw: list[int | None] = [None] * len(self.drives)
+
+    @property
+    def cycle(self) -> int:
+        """The first drive's unwrapped cycle counter after the last tick (0 before any)."""
+        return self.cycles[0]
+
+    def _start_cycle(self) -> None:
+        for drive in self.drives:
+            drive.arm_cycle()
+            drive.transmit()
+        self.network.send_message(SYNC_COB_ID, b"")
+
+    def _count_cycles(self) -> int:
+        """Unwrap each drive's 16-bit counter; count the ticks where one skipped or stalled."""
+        gap = False
+        for i, drive in enumerate(self.drives):
+            raw = drive.device_cycle
+            last = self._last_raw[i]
+            if last is None:
+                self.cycles[i] = raw
+            else:
+                step = (raw - last) % COUNTER_MODULO
+                self.cycles[i] += step
+                gap = gap or step != 1
+            self._last_raw[i] = raw
+        if gap:
+            self.gaps += 1
+            self.gap_cycles.append(self.cycles[0])
+        return self.cycles[0]
+
+
+class LockstepClock(_BenchClock):
+    """Simulation clock: each tick sends SYNC and waits for every drive's TPDOs of it."""
+
+    def __init__(self, network: canopen.Network, drives: Sequence[CycleDrive],
+                 timeout_s: float = 0.5) -> None:
+        super().__init__(network, drives)
+        self.timeout_s = timeout_s
+
+    def tick(self) -> int:
+        """One bus cycle; returns the unwrapped device cycle counter (BusTimeout if silent)."""
+        self._start_cycle()
+        for drive in self.drives:
+            if not drive.wait_cycle(self.timeout_s):
+                raise BusTimeout(f"node {drive.node.id}: no TPDOs {self.timeout_s} s after "
+                                 f"SYNC (after device cycle {self.cycle})")
+        return self._count_cycles()
+
+
+class RealtimeClock(_BenchClock):
+    """Hardware clock: SYNC every `period_s` on the wall clock, jitter recorded.
+
+    `timeout_s`: BusTimeout when no complete TPDO set arrived for this long.
+    """
+
+    def __init__(self, network: canopen.Network, drives: Sequence[CycleDrive],
+                 period_s: float, timeout_s: float = 0.5) -> None:
+        super().__init__(network, drives)
+        self.period_s = period_s
+        self.timeout_s = timeout_s
+        self.missed = 0
+        """Ticks whose TPDOs did not arrive within their slot."""
+        self.overruns = 0
+        """SYNC slots skipped because a tick started after its slot had passed."""
+        self._lateness = array("d")
+        self._next_sync: float | None = None
+        self._last_answer = time.perf_counter()
+
+    def tick(self) -> int:
+        """Wait for the next SYNC slot, run the cycle, return the unwrapped device cycle."""
+        now = time.perf_counter()
+        if self._next_sync is None:
+            self._next_sync = self._last_answer = now
+        elif now > self._next_sync + self.period_s:
+            skipped = int((now - self._next_sync) // self.period_s)
+            self.overruns += skipped
+            self._next_sync += skipped * self.period_s
+        slot = self._next_sync
+        _sleep_until(slot)
+        self._start_cycle()
+        sent = time.perf_counter()
+        self._lateness.append(sent - slot)
+        self._next_sync = slot + self.period_s
+        answer_by = slot + RESPONSE_SHARE * self.period_s
+        if all(drive.wait_cycle(max(0.0, answer_by - time.perf_counter()))
+               for drive in self.drives):
+            self._last_answer = sent
+            return self._count_cycles()
+        self.missed += 1
+        if sent - self._last_answer > self.timeout_s:
+            raise BusTimeout(f"no complete TPDO set for {sent - self._last_answer:.3f} s")
+        return self.cycle
+
+    def jitter_stats(self) -> dict[str, float]:
+        """Lateness of the SYNCs behind their slots (µs): mean, max, std; n SYNCs sent."""
+        late = np.frombuffer(self._lateness, dtype=float) * 1e6
+        if late.size == 0:
+            return {"n": 0, "mean_us": float("nan"), "max_us": float("nan"),
+                    "std_us": float("nan")}
+        return {"n": int(late.size), "mean_us": float(late.mean()), "max_us": float(late.max()),
+                "std_us": float(late.std())}
+
+
+def _sleep_until(deadline: float) -> None:
+    """Sleep until SPIN_S before `deadline`, then spin (yielding the GIL) until it."""
+    remaining = deadline - time.perf_counter()
+    if remaining > SPIN_S:
+        time.sleep(remaining - SPIN_S)
+    while time.perf_counter() < deadline:
+        time.sleep(0)

@@ -1,0 +1,397 @@
+"""A simulated CiA 402 servo drive: a canopen LocalNode whose world is an `AxisSimulator`.
+
+The node is protocol-true: NMT (boot-up, pre-operational / operational, resets), SDO server
+on the object dictionary of `cia402.eds`, heartbeat producer (0x1017), EMCY on faults,
+PDOs mapped by SDO. canopen's LocalNode does nothing automatic for PDOs, so this class
+is the SYNC consumer. Lockstep virtual time: each SYNC
+  1. counts the cycle (0x2020),
+  2. applies the latest RPDO data (NMT operational only; every transmission type is applied
+     at the SYNC, which is what CiA 301 prescribes for the synchronous ones),
+  3. advances the CiA 402 state machine on the controlword,
+  4. steps the physics one bus cycle (`AxisSimulator.step_cycle`, servo loops inside),
+  5. publishes the actual values and sends the synchronous TPDOs (types 0–240; the
+     asynchronous types 254/255 have no event source here and are not sent).
+The host sees the simulated world only through these frames and SDO.
+
+Drive behaviour (CiA 402): quick-stop option code 2 (ramp down at 0x6085 in velocity
+control, then switch on disabled once |v| < 0x606D); following-error fault in CSP
+(|0x607A − 0x6064| > 0x6065) with EMCY 0x8611; any EMCY code written to 0x2030 faults the
+drive at the next SYNC; fault reset on the rising edge of controlword bit 7. Faults go
+straight to FAULT (the reaction, "disable drive", takes no time).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import operator
+import struct
+from pathlib import Path
+from typing import Callable
+
+import can
+import canopen
+from canopen.sdo import SdoAbortedError
+
+from feedbench.drivers.canbus import connect, pdo_codec
+from feedbench.models.axis import CSP, CSV, MODES, AxisSimulator, CascadeGains
+from feedbench.sim_backends import eds
+
+SWITCH_ON_DISABLED = "SWITCH ON DISABLED"
+READY = "READY TO SWITCH ON"
+SWITCHED_ON = "SWITCHED ON"
+OPERATION_ENABLED = "OPERATION ENABLED"
+QUICK_STOP_ACTIVE = "QUICK STOP ACTIVE"
+FAULT = "FAULT"
+
+STATUSWORD = {  # state bits incl. bit 4 voltage enabled, bit 5 quick stop (1 = not active)
+    SWITCH_ON_DISABLED: 0x0040,
+    READY: 0x0031,
+    SWITCHED_ON: 0x0033,
+    OPERATION_ENABLED: 0x0037,
+    QUICK_STOP_ACTIVE: 0x0017,
+    FAULT: 0x0008,
+}
+SW_REMOTE = 0x0200
+SW_FOLLOWS_COMMAND = 0x1000
+SW_FOLLOWING_ERROR = 0x2000
+
+# controlword commands (CiA 402), decoded by `command_of`
+DISABLE_VOLTAGE, QUICK_STOP, SHUTDOWN, SWITCH_ON, ENABLE_OPERATION = range(5)
+CW_FAULT_RESET = 0x0080
+
+TRANSITIONS = {  # (state, command) -> next state; absent pairs leave the state unchanged
+    (READY, DISABLE_VOLTAGE): SWITCH_ON_DISABLED,  # 7
+    (SWITCHED_ON, DISABLE_VOLTAGE): SWITCH_ON_DISABLED,  # 10
+    (OPERATION_ENABLED, DISABLE_VOLTAGE): SWITCH_ON_DISABLED,  # 9
+    (QUICK_STOP_ACTIVE, DISABLE_VOLTAGE): SWITCH_ON_DISABLED,  # 12
+    (READY, QUICK_STOP): SWITCH_ON_DISABLED,  # 7
+    (SWITCHED_ON, QUICK_STOP): SWITCH_ON_DISABLED,  # 10
+    (OPERATION_ENABLED, QUICK_STOP): QUICK_STOP_ACTIVE,  # 11
+    (SWITCH_ON_DISABLED, SHUTDOWN): READY,  # 2
+    (SWITCHED_ON, SHUTDOWN): READY,  # 6
+    (OPERATION_ENABLED, SHUTDOWN): READY,  # 8
+    (READY, SWITCH_ON): SWITCHED_ON,  # 3
+    (OPERATION_ENABLED, SWITCH_ON): SWITCHED_ON,  # 5 (disable operation)
+    (READY, ENABLE_OPERATION): OPERATION_ENABLED,  # 3 + 4
+    (SWITCHED_ON, ENABLE_OPERATION): OPERATION_ENABLED,  # 4
+}
+POWERED = (OPERATION_ENABLED, QUICK_STOP_ACTIVE)
+
+EMCY_FOLLOWING_ERROR = 0x8611
+EMCY_PDO_LENGTH = 0x8210
+ERROR_REGISTER_GENERIC = 0x01
+FOLLOWING_ERROR_OFF = 0xFFFFFFFF
+
+ABORT_NO_OBJECT = 0x06020000
+ABORT_NOT_MAPPABLE = 0x06040041
+ABORT_PDO_LENGTH = 0x06040042
+ABORT_VALUE_RANGE = 0x06090030
+GAIN_OBJECTS = (0x2001, 0x2002, 0x2003)
+FORCE_LIMIT_OBJECT = 0x2004
+RATED_FORCE_OBJECT = 0x6076
+INT16_MAX = 0x7FFF
+INT32_MAX = 0x7FFFFFFF
+
+
+def command_of(controlword: int) -> int:
+    """The CiA 402 command coded in controlword bits 0–3 (bit 7 is handled as an edge)."""
+    if not controlword & 0x02:
+        return DISABLE_VOLTAGE
+    if not controlword & 0x04:
+        return QUICK_STOP
+    if not controlword & 0x01:
+        return SHUTDOWN
+    return ENABLE_OPERATION if controlword & 0x08 else SWITCH_ON
+
+
+def _int32_wrapped(value: float) -> int:
+    """A position in increments as an encoder reports it: INTEGER32, wrapping."""
+    return (round(value) + 0x80000000 & 0xFFFFFFFF) - 0x80000000
+
+
+def _fetcher(indices: tuple[int, ...]) -> Callable[[dict], tuple]:
+    """values → the tuple of `indices` (itemgetter returns a bare value for one index)."""
+    if len(indices) == 1:
+        return lambda values: (values[indices[0]],)
+    return operator.itemgetter(*indices)
+
+
+def _saturated(value: float, limit: int) -> int:
+    """`value` rounded to an integer within ±limit (an object's range)."""
+    if -limit <= value <= limit:
+        return round(value)
+    return limit if value > 0 else -limit
+
+
+def _compile_physics(simulator: AxisSimulator) -> None:
+    """Step a copy once: numba compiles on the first call (seconds), not on the first SYNC."""
+    copy.deepcopy(simulator).step_cycle(CSV, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+class SimulatedCia402Drive:
+    """A CiA 402 drive on `bus` (the drive owns it: `close()` shuts it down).
+
+    `simulator` is the axis behind the drive; `tip_force` (N) is the external force the
+    simulated world applies to the tool tip during the next cycles.
+    """
+
+    def __init__(self, bus: can.BusABC, node_id: int, simulator: AxisSimulator,
+                 eds_path: Path | str | None = None) -> None:
+        self.simulator = simulator
+        self.tip_force = 0.0
+        self._received: dict[int, int] = {}
+        self.node = canopen.LocalNode(node_id, eds.load(node_id, eds_path))
+        self.network = canopen.Network(bus)
+        self.network.add_node(self.node)
+        self.node.add_read_callback(self._on_sdo_read)
+        self.node.add_write_callback(self._on_sdo_write)
+        self.network.subscribe(0x80, self._on_sync)
+        self.network.subscribe(0, self._on_nmt)
+        _compile_physics(simulator)
+        connect(self.network)
+        self._boot(application=True)
+
+    # -- boot, NMT, close ----------------------------------------------------------------
+
+    def _boot(self, application: bool) -> None:
+        """Power-on / NMT reset: object values back to defaults, boot-up, pre-operational."""
+        store = self.node.data_store
+        for index in [i for i in store if application or i < 0x2000]:
+            del store[index]
+        if application:
+            self._reset_application()
+        self._load_pdo_maps()
+        self.node.nmt.state = "INITIALISING"  # sends the boot-up message
+        self.node.nmt.state = "PRE-OPERATIONAL"  # starts the heartbeat producer (0x1017)
+        self._operational = False
+
+    def _reset_application(self) -> None:
+        od = self.node.object_dictionary
+        sim = self.simulator
+        self.values: dict[int, int | float] = {
+            index: od[index].default for index in od
+            if index >= 0x2000 and isinstance(od[index], canopen.objectdictionary.ODVariable)
+        }
+        self.values.update({0x1001: 0, 0x1006: round(sim.timing.cycle * 1e6),
+                            FORCE_LIMIT_OBJECT: sim.force_limit})
+        self.values.update(zip(GAIN_OBJECTS, (sim.gains.K_p, sim.gains.T_i, sim.gains.K_v)))
+        self.state = SWITCH_ON_DISABLED
+        self._previous_controlword = 0
+        self._following_error = False
+        self._stop_velocity = 0.0
+        self._count = 0
+        self._newton_per_mille = self.values[RATED_FORCE_OBJECT] * 1e-6  # N per ‰ (0x6076: mN)
+        sim.enabled = False
+        self.values[0x6041] = self._statusword()
+
+    def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """Runs after canopen's NmtSlave has applied the command."""
+        command, node_id = data[0], data[1]
+        if node_id not in (0, self.node.id):
+            return
+        if self.node.nmt.state == "INITIALISING":  # reset node (0x81) / communication (0x82)
+            self._boot(application=command == 0x81)
+        elif self._pdo_dirty:
+            self._load_pdo_maps()
+        self._operational = self.node.nmt.state == "OPERATIONAL"
+
+    def close(self) -> None:
+        """Stop the heartbeat, the receive thread and the bus."""
+        self.node.nmt.stop_heartbeat()
+        self.network.disconnect()
+
+    def __enter__(self) -> SimulatedCia402Drive:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- SDO -----------------------------------------------------------------------------
+
+    def _on_sdo_read(self, index: int, subindex: int, od: object) -> int | float | None:
+        """Live process values; None lets canopen answer from its store / EDS default."""
+        return self.values.get(index) if subindex == 0 else None
+
+    def _on_sdo_write(self, index: int, subindex: int, od: canopen.objectdictionary.ODVariable,
+                      data: bytes) -> None:
+        """Validate and apply an SDO download (raise SdoAbortedError to refuse it)."""
+        if 0x1400 <= index < 0x1C00:
+            if 0x1600 <= index < 0x1800 or 0x1A00 <= index:
+                self._check_mapping(index, subindex, od.decode_raw(data))
+            self._pdo_dirty = True
+        elif subindex == 0 and index in self.values:
+            self._apply_parameter(index, od.decode_raw(data))
+
+    def _apply_parameter(self, index: int, value: int | float) -> None:
+        if index in GAIN_OBJECTS:
+            gains = dict(zip(GAIN_OBJECTS, (self.simulator.gains.K_p, self.simulator.gains.T_i,
+                                            self.simulator.gains.K_v)))
+            gains[index] = value
+            try:
+                self.simulator.set_gains(CascadeGains(*(gains[i] for i in GAIN_OBJECTS)))
+            except ValueError:
+                raise SdoAbortedError(ABORT_VALUE_RANGE) from None
+        elif index in (FORCE_LIMIT_OBJECT, RATED_FORCE_OBJECT) and not value > 0:
+            raise SdoAbortedError(ABORT_VALUE_RANGE)
+        if index == FORCE_LIMIT_OBJECT:
+            self.simulator.force_limit = value
+        self.values[index] = value
+        self._newton_per_mille = self.values[RATED_FORCE_OBJECT] * 1e-6
+
+    def _check_mapping(self, index: int, subindex: int, value: int) -> None:
+        """CiA 301 checks of a mapping entry (sub 1–8) or of the number of entries (sub 0)."""
+        receive = index < 0x1800
+        if subindex == 0:
+            bits = sum(self.node.sdo[index][sub].raw & 0xFF for sub in range(1, value + 1))
+            if value > 8 or bits > 64:
+                raise SdoAbortedError(ABORT_PDO_LENGTH)
+            return
+        if value == 0:
+            return
+        mapped, sub, bits = value >> 16, value >> 8 & 0xFF, value & 0xFF
+        od = self.node.object_dictionary.get_variable(mapped, sub)
+        if od is None:
+            raise SdoAbortedError(ABORT_NO_OBJECT)
+        allowed = od.writable if receive else od.readable
+        if not (od.pdo_mappable and allowed and bits == len(od)):
+            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+
+    def _load_pdo_maps(self) -> None:
+        """Reload the PDO maps from the SDO store (canopen keeps them apart, STACKS.md).
+
+        RPDO frames are decoded by `_on_rpdo` on reception instead of canopen's
+        `PdoMap.on_message` (a Condition and notify_all per frame).
+        """
+        self.node.rpdo.read(from_od=False)
+        self.node.tpdo.read(from_od=False)
+        receive = [m for m in self.node.rpdo.map.values() if m.enabled]
+        for pdo_map in receive:
+            self.network.unsubscribe(pdo_map.cob_id, pdo_map.on_message)
+            self.network.subscribe(pdo_map.cob_id, self._on_rpdo)
+        self._rpdo_codecs = {m.cob_id: pdo_codec(m) for m in receive}
+        self._received.clear()
+        self._tpdos = [(m.cob_id, m.trans_type, codec.layout.pack, _fetcher(codec.indices))
+                       for m in self.node.tpdo.map.values() if m.enabled and m.map
+                       and m.trans_type <= 240 for codec in (pdo_codec(m),)]
+        self._pdo_dirty = False
+
+    # -- the cycle -----------------------------------------------------------------------
+
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """One bus cycle: RPDOs in, state machine, physics, actual values, TPDOs out."""
+        self._count += 1
+        values = self.values
+        values[0x2020] = self._count & 0xFFFF
+        if self._pdo_dirty:
+            self._load_pdo_maps()
+        values.update(self._received)  # the RPDO data received since the last SYNC
+        self._received.clear()
+        self._advance_state_machine(values[0x6040])
+        self._step_physics()
+        self._publish_actual_values()
+        if self._operational:
+            self._send_tpdos()
+
+    def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """Keep an RPDO's values until the SYNC (NMT operational only; EMCY 0x8210 on a
+        length that does not match the mapping)."""
+        if not self._operational:
+            return
+        codec = self._rpdo_codecs[can_id]
+        try:
+            self._received.update(zip(codec.indices, codec.layout.unpack(data)))
+        except struct.error:
+            self.node.emcy.send(EMCY_PDO_LENGTH, ERROR_REGISTER_GENERIC)
+
+    def _advance_state_machine(self, controlword: int) -> None:
+        values = self.values
+        fault_reset = controlword & ~self._previous_controlword & CW_FAULT_RESET
+        self._previous_controlword = controlword
+        if self.state == FAULT:
+            if fault_reset:
+                self._reset_fault()
+        elif values[0x2030]:
+            self._fault(values[0x2030])
+            values[0x2030] = 0
+        else:
+            state = TRANSITIONS.get((self.state, command_of(controlword)), self.state)
+            if state != self.state:
+                self._enter(state)
+        mode = values[0x6060]
+        if mode in MODES:
+            values[0x6061] = mode
+
+    def _enter(self, state: str) -> None:
+        if state == QUICK_STOP_ACTIVE and self.state != QUICK_STOP_ACTIVE:
+            self._stop_velocity = self.simulator.velocity
+        self.state = state
+        powered = state in POWERED
+        if self.simulator.enabled != powered:
+            self.simulator.enabled = powered
+
+    def _fault(self, code: int) -> None:
+        self._enter(FAULT)
+        self.values[0x603F] = code
+        self.values[0x1001] = ERROR_REGISTER_GENERIC
+        self.node.emcy.send(code, ERROR_REGISTER_GENERIC)
+
+    def _reset_fault(self) -> None:
+        self._enter(SWITCH_ON_DISABLED)
+        self.values[0x603F] = 0
+        self.values[0x1001] = 0
+        self._following_error = False
+        self.node.emcy.reset()
+
+    def _step_physics(self) -> None:
+        """One bus cycle of the axis with the setpoints of the current state (SI units)."""
+        v = self.values
+        per_mille = self._newton_per_mille
+        if self.state == QUICK_STOP_ACTIVE:
+            self._step_quick_stop()
+            return
+        self.simulator.step_cycle(
+            v[0x6061], v[0x607A] * 1e-9, v[0x60FF] * 1e-9, v[0x6071] * per_mille,
+            v[0x60B1] * 1e-9, v[0x60B2] * per_mille + v[0x2011] * 1e-3, self.tip_force)
+
+    def _step_quick_stop(self) -> None:
+        """Quick-stop ramp (0x6085) in velocity control; switch on disabled when stopped."""
+        v = self.values
+        sim = self.simulator
+        ramp = v[0x6085] * 1e-9 * sim.timing.cycle
+        self._stop_velocity = math.copysign(max(0.0, abs(self._stop_velocity) - ramp),
+                                            self._stop_velocity)
+        sim.step_cycle(CSV, 0.0, self._stop_velocity, 0.0, 0.0, 0.0, self.tip_force)
+        if self._stop_velocity == 0.0 and abs(sim.velocity) * 1e9 < v[0x606D]:
+            self._enter(SWITCH_ON_DISABLED)
+
+    def _publish_actual_values(self) -> None:
+        v = self.values
+        sim = self.simulator
+        force = sim.force
+        v[0x6064] = position = _int32_wrapped(sim.position * 1e9)
+        v[0x606C] = _saturated(sim.velocity * 1e9, INT32_MAX)
+        v[0x2010] = _saturated(force * 1e3, INT32_MAX)
+        v[0x6077] = _saturated(force / self._newton_per_mille, INT16_MAX)
+        v[0x60F4] = error = v[0x607A] - position
+        if (self.state == OPERATION_ENABLED and v[0x6061] == CSP
+                and v[0x6065] != FOLLOWING_ERROR_OFF and abs(error) > v[0x6065]):
+            self._following_error = True
+            self._fault(EMCY_FOLLOWING_ERROR)
+        v[0x6041] = self._statusword()
+
+    def _statusword(self) -> int:
+        word = STATUSWORD[self.state] | SW_REMOTE
+        if self.state == OPERATION_ENABLED:
+            word |= SW_FOLLOWS_COMMAND
+        if self._following_error:
+            word |= SW_FOLLOWING_ERROR
+        return word
+
+    def _send_tpdos(self) -> None:
+        values = self.values
+        send = self.network.send_message
+        count = self._count
+        for cob_id, trans_type, pack, fetch in self._tpdos:
+            if trans_type <= 1 or count % trans_type == 0:
+                send(cob_id, pack(*fetch(values)))
