@@ -1,0 +1,204 @@
+"""The live window, headless (Qt offscreen), on simulated bench runs and a replay.
+
+Each run goes through the real drivers over a virtual CAN bus to the simulated drive in a
+worker thread, exactly as ``feedbench run CONFIG --live``. Set FEEDBENCH_SCREENSHOT_DIR to
+keep the screenshot for the README (docs/img/live_window.png).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+import uuid
+
+import numpy as np
+import pytest
+
+from feedbench.bench import parse_run_config
+from feedbench.daq.recording import open_recording
+from feedbench.demo import example_config
+from feedbench.drivers.cia402 import decode_state
+from feedbench.gui.live_window import STOP_REASON, bench_session, qt_app, replay_session
+from feedbench.units import MM_PER_MIN
+
+pytestmark = pytest.mark.timeout(120)
+
+
+@pytest.fixture(scope="module")
+def app():
+    return qt_app()
+
+
+def config(name: str, directory, **experiment):
+    raw = example_config(name)
+    raw["bench"].update(output_dir=str(directory), channel=f"fb-live-{uuid.uuid4().hex[:8]}")
+    raw["experiment"].update(experiment)
+    return parse_run_config(raw)
+
+
+def pump(app, session, until=lambda state: False, timeout_s: float = 90.0) -> list[int]:
+    """Run the Qt loop until the worker ends (or `until(state)`); the progress bar values."""
+    progress, deadline = [], time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        app.processEvents()
+        progress.append(session.window.progress.value())
+        if not session.worker.alive or until(session.window.stream.state()):
+            break
+        time.sleep(0.005)
+    for _ in range(3):
+        session.window.refresh()
+        app.processEvents()
+    progress.append(session.window.progress.value())
+    return progress
+
+
+def finish(app, session) -> dict:
+    session.worker.join(60)
+    app.processEvents()
+    session.window.close()
+    assert session.worker.error is None
+    return session.worker.result
+
+
+@pytest.fixture(scope="module")
+def chirp_run(app, tmp_path_factory):
+    """A 2-sweep chirp watched live; a screenshot is taken during the second sweep."""
+    directory = tmp_path_factory.mktemp("live")
+    session = bench_session(config("chirp", directory, repetitions=2, duration_s=1.5,
+                                   settle_s=0.3), span_s=2.0, progress=False)
+    session.start()
+    progress = pump(app, session, until=lambda s: s.segment_index >= 6 and s.kind == "excite")
+    shot = directory / "live_window.png"
+    pump(app, session, until=lambda s: s.fraction > 0.85)
+    assert session.window.grab().save(str(shot))
+    progress += pump(app, session)
+    row = finish(app, session)
+    if os.environ.get("FEEDBENCH_SCREENSHOT_DIR"):
+        shutil.copy(shot, os.path.join(os.environ["FEEDBENCH_SCREENSHOT_DIR"], shot.name))
+    return session, row, progress, shot
+
+
+def test_traces_show_the_recorded_samples(chirp_run):
+    session, row, _, _ = chirp_run
+    recording = open_recording(row["file"])
+    window = session.window
+    assert row["status"] == "complete" and recording.n_gaps == 0
+    assert window.stream.n_received == recording.n_samples
+    assert window.frames >= 10 and window.paints >= 10
+    x, y = window.traces.curves["position"].getData()
+    shown = int(round(-x[0] / recording.metadata["cycle_s"])) + 1
+    assert x[-1] == pytest.approx(0.0, abs=0.01) and -x[0] == pytest.approx(2.0, abs=0.01)
+    tail = recording.channels["position"][-shown:] * 1e3
+    assert (y.min(), y.max()) == (pytest.approx(tail.min(), abs=1e-9),
+                                  pytest.approx(tail.max(), abs=1e-9))
+    _, force = window.traces.curves["force"].getData()
+    assert np.max(np.abs(force)) == pytest.approx(
+        np.max(np.abs(recording.channels["force"][-shown:])), abs=1e-9)
+
+
+def test_limit_lines_are_the_configured_limits(chirp_run):
+    session, *_ = chirp_run
+    lines = dict(zip([g.title for g, _ in session.window.traces.groups],
+                     session.window.traces.lines))
+    assert lines["positions"] == (-250.0, 250.0)
+    assert lines["forces / torques"] == (-1500.0, 1500.0)
+
+
+def test_progress_advances_to_the_end_and_the_header_says_complete(chirp_run):
+    session, _, progress, _ = chirp_run
+    assert all(b >= a for a, b in zip(progress, progress[1:]))
+    assert len(set(progress)) >= 5 and progress[-1] == 1000
+    assert "complete" in session.window.state_label.text()
+    assert not session.window.stop_button.isEnabled()
+
+
+def test_the_mobility_builds_up_sweep_by_sweep(chirp_run):
+    session, *_ = chirp_run
+    result = session.window.result
+    assert result.version == 2
+    assert session.window.result_plots.summary.text().startswith(
+        "<b>servo mobility of the sweeps so far</b>: 2 sweeps averaged")
+    f, log_H = session.window.result_plots.curves[0]["H1"].getData()
+    view = result.view().panels[0].curves[0]
+    assert f[0] >= 20.0 and f[-1] <= 150.0
+    np.testing.assert_allclose(10**log_H, view.y, rtol=1e-12)
+
+
+def test_screenshot_during_the_run_is_a_full_window_image(chirp_run):
+    _, _, _, shot = chirp_run
+    from PySide6.QtGui import QImage
+
+    image = QImage(str(shot))
+    assert (image.width(), image.height()) == (1280, 800)
+    pixels = {image.pixel(x, y) for x in range(0, 1280, 37) for y in range(0, 800, 23)}
+    assert len(pixels) > 20
+
+
+@pytest.fixture(scope="module")
+def stopped_run(app, tmp_path_factory):
+    """A friction sweep stopped with the Stop button at 40 %."""
+    directory = tmp_path_factory.mktemp("stop")
+    session = bench_session(config("friction_sweep", directory, feeds_mm_min=[100, 200, 400, 800],
+                                   settle_s=0.3, measure_s=0.3), progress=False)
+    session.start()
+    pump(app, session, until=lambda s: s.fraction > 0.4)
+    session.window.stop_button.click()
+    button_after_click = session.window.stop_button.isEnabled()
+    progress = pump(app, session)
+    row = finish(app, session)
+    return session, row, progress, button_after_click
+
+
+def test_stop_button_stops_safely_and_marks_the_file_aborted(stopped_run):
+    session, row, progress, button_after_click = stopped_run
+    recording = open_recording(row["file"])
+    assert not button_after_click
+    assert (row["status"], row["reason"]) == ("aborted", STOP_REASON)
+    assert (recording.status, recording.reason) == ("aborted", STOP_REASON)
+    assert recording.n_gaps == 0 and recording.n_samples == session.window.stream.n_received
+    abort = [e for e in recording.events if e.kind == "abort"]
+    assert [e.text for e in abort] == [STOP_REASON]
+    after = recording.cycle >= abort[0].cycle
+    assert np.all(recording.channels["force_offset"][after] == 0.0)
+    assert abs(recording.channels["velocity"][-1]) < 5 * MM_PER_MIN
+    assert decode_state(int(recording.channels["statusword"][-1])) != "OPERATION ENABLED"
+    assert 400 < progress[-1] < 1000
+    assert "aborted: " + STOP_REASON in session.window.state_label.text()
+
+
+@pytest.mark.xfail(strict=True, reason="the runner gives the drive 50 cycles to disable "
+                   "(DISABLE_TIMEOUT_CYCLES); the simulated quick stop needs ~700 at standstill")
+def test_stop_button_leaves_the_drive_switched_off(stopped_run):
+    _, row, _, _ = stopped_run
+    statusword = open_recording(row["file"]).channels["statusword"][-1]
+    assert decode_state(int(statusword)) == "SWITCH ON DISABLED"
+
+
+def test_closing_the_window_does_not_stop_the_run(app, tmp_path):
+    session = bench_session(config("chirp", tmp_path, repetitions=1, duration_s=1.0, settle_s=0.3),
+                            progress=False)
+    session.start()
+    pump(app, session, until=lambda s: s.fraction > 0.2)
+    assert session.worker.alive
+    session.window.close()
+    row = finish(app, session)
+    recording = open_recording(row["file"])
+    assert row["status"] == "complete" and recording.status == "complete"
+    assert recording.n_gaps == 0 and recording.n_samples == session.window.stream.n_received
+
+
+def test_replay_shows_the_recording_in_the_same_window(app, chirp_run):
+    live, row, _, _ = chirp_run
+    session = replay_session(row["file"], speed=0.0, span_s=2.0)
+    session.start()
+    pump(app, session)
+    assert finish(app, session) == "complete"
+    assert "replay" in session.window.windowTitle()
+    assert session.window.stream.n_received == open_recording(row["file"]).n_samples
+    for name in ("position", "force"):
+        np.testing.assert_array_equal(session.window.traces.curves[name].getData()[1],
+                                      live.window.traces.curves[name].getData()[1])
+    replayed, original = session.window.result.view(), live.window.result.view()
+    np.testing.assert_array_equal(replayed.panels[0].curves[0].y, original.panels[0].curves[0].y)
+    assert replayed.summary == original.summary
