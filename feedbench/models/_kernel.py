@@ -1,0 +1,290 @@
+"""Compiled per-substep loop of the simulated feed drive (numba, cached on disk).
+
+The numerical scheme is explained in `feedbench.models.axis`. The persistent state lives
+in flat float64 arrays whose layouts are fixed by the index constants below, so one call
+of `run_cycles` advances many bus cycles without returning to Python. Inside a cycle the
+state is held in scalars and tuples: helpers on the per-substep path take and return
+values, never arrays, which keeps numba from reference-counting arrays in the inner loop.
+The friction law, Eq. (5.2), is defined once, in `friction_force`;
+`feedbench.models.friction` evaluates it through `friction_forces`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+CSP, CSV, CST = 8, 9, 10
+"""CiA 402 modes of operation: cyclic synchronous position / velocity / torque (force)."""
+
+# columns of a friction table (rows: 0 for v >= 0, 1 for v < 0); 1/v_s saves a division
+F_C, F_S, INVERSE_V_S, SIGMA, K_TANH, DELTA = range(6)
+
+# entries of the parameter vector
+P_K_P, P_INVERSE_T_I, P_K_V, P_FORCE_LIMIT, P_CYCLE, P_POSITION_TICKS, P_VELOCITY_TICKS, \
+    P_PHYSICS_STEPS, P_FEEDFORWARD = range(9)
+PARAMETER_COUNT = 9
+
+# entries of the state vector
+S_X_MOT, S_V_MOT, S_X_TIP, S_V_TIP, S_FORCE, S_INTEGRAL, S_PREVIOUS_ERROR, \
+    S_PREVIOUS_TARGET, S_HAS_PREVIOUS_TARGET, S_DELAY_INDEX, \
+    S_FRICTION_VELOCITY, S_FRICTION_FORCE, S_NEWTON_GAIN = range(13)
+STATE_SIZE = 13
+
+# columns of the per-cycle input and output tables
+I_TARGET_POSITION, I_TARGET_VELOCITY, I_TARGET_FORCE, I_VELOCITY_OFFSET, \
+    I_FORCE_OFFSET, I_TIP_FORCE = range(6)
+INPUT_COLUMNS = 6
+O_POSITION, O_VELOCITY, O_FORCE, O_TIP_POSITION, O_TIP_VELOCITY = range(5)
+OUTPUT_COLUMNS = 5
+
+NEWTON_TOLERANCE = 1e-9
+"""Stop the implicit friction solve after a Newton update below this (m/s); the returned
+velocity is the updated one, whose error is of the order of the update squared."""
+NEWTON_MAX_ITERATIONS = 60
+"""Enough for pure bisection of the bracket down to 1e-18 of its width."""
+TANH_SATURATION = 19.1
+"""Above this |argument| tanh is exactly ±1 in double precision."""
+
+_JIT = {"cache": True, "error_model": "numpy"}  # numpy: no ZeroDivisionError checks
+_HOT = {**_JIT, "inline": "always"}  # per-substep helpers: merged into their caller
+
+
+@njit(**_HOT)
+def tanh(x: float) -> float:
+    """tanh through one exp: (1 − e)/(1 + e), e = exp(−2|x|); absolute error ≈ 1e-16.
+
+    Hand-written because libm's tanh costs about three exp calls and runs every substep.
+    """
+    if abs(x) > TANH_SATURATION:
+        return math.copysign(1.0, x)
+    e = math.exp(-2.0 * abs(x))
+    return math.copysign((1.0 - e) / (1.0 + e), x)
+
+
+@njit(**_JIT)
+def friction_side(table: np.ndarray, row: int) -> tuple:
+    """One row of a friction table as a tuple (F_c, F_s, 1/v_s, σ, k_tanh, δ)."""
+    return (table[row, F_C], table[row, F_S], table[row, INVERSE_V_S], table[row, SIGMA],
+            table[row, K_TANH], table[row, DELTA])
+
+
+@njit(**_HOT)
+def friction_force(v: float, positive: tuple, negative: tuple) -> tuple[float, float]:
+    """Andersson friction force F (N) and its slope dF/dv (N·s/m) at velocity v (m/s), Eq. (5.2).
+
+    F = [F_c + (F_s − F_c) exp(−(|v|/v_s)^δ)] tanh(k_tanh v) + σ v, with the `positive`
+    parameters for v >= 0 and the `negative` ones for v < 0 (tuples from `friction_side`).
+    """
+    f_c, f_s, inverse_v_s, sigma, k_tanh, delta = positive if v >= 0.0 else negative
+    speed = abs(v)
+    ratio = speed * inverse_v_s
+    if delta == 1.0:  # the thesis's δ: skip the power and its derivative
+        shape, shape_slope = ratio, inverse_v_s
+    else:
+        shape = ratio ** delta
+        shape_slope = delta * shape / speed if speed > 0.0 else 0.0
+    stribeck = (f_s - f_c) * math.exp(-shape) if f_s != f_c else 0.0
+    level = f_c + stribeck
+    t = tanh(k_tanh * v)
+    force = level * t + sigma * v
+    slope = level * k_tanh * (1.0 - t * t) - stribeck * shape_slope * abs(t) + sigma
+    return force, slope
+
+
+@njit(**_JIT)
+def friction_forces(v: np.ndarray, table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`friction_force` over a 1-D array of velocities: forces (N) and slopes (N·s/m)."""
+    positive, negative = friction_side(table, 0), friction_side(table, 1)
+    force = np.empty_like(v)
+    slope = np.empty_like(v)
+    for i in range(v.size):
+        force[i], slope[i] = friction_force(v[i], positive, negative)
+    return force, slope
+
+
+@njit(**_HOT)
+def implicit_motor_velocity(v_free: float, beta: float, linearisation: tuple,
+                            positive: tuple, negative: tuple) -> tuple:
+    """Motor velocity v (m/s) at the end of a substep with the friction taken at v itself.
+
+    Solves g(v) = v − v_free + β F(v) = 0 (backward Euler in the friction force), v_free being
+    the velocity without friction and β (m/(N·s)) the velocity gained per newton over the
+    substep. `linearisation` = (v, F(v), 1/g'(v)) from the last evaluation of the law, in
+    this or the previous substep: Newton starts with the step it predicts, so smooth motion
+    needs one evaluation. The root lies between 0 and v_free because F has the sign of v;
+    Newton steps that leave that bracket are replaced by bisection, so the solve cannot
+    diverge. Returns (v, new linearisation).
+    """
+    low, high = min(0.0, v_free), max(0.0, v_free)
+    last_v, last_force, gain = linearisation
+    v = min(max(last_v - (last_v - v_free + beta * last_force) * gain, low), high)
+    for _ in range(NEWTON_MAX_ITERATIONS):
+        force, slope = friction_force(v, positive, negative)
+        g = v - v_free + beta * force
+        if g > 0.0:
+            high = v
+        else:
+            low = v
+        g_slope = 1.0 + beta * slope
+        gain = 1.0 / g_slope if g_slope > 0.0 else 0.0
+        v_next = v - g * gain if gain > 0.0 else 0.5 * (low + high)
+        if not low <= v_next <= high:
+            v_next = 0.5 * (low + high)
+        if abs(v_next - v) <= NEWTON_TOLERANCE:
+            break
+        v = v_next
+    return v_next, (v, force, gain)
+
+
+def kernel_model(discrete: np.ndarray) -> np.ndarray:
+    """[A_d | B_d | B_d[:, 0] / B_d[1, 0]] (4 × 7) from [A_d | B_d] (4 × 6).
+
+    The last column maps the motor-velocity drop caused by friction over a substep to the
+    change of every state (saves a division per substep).
+    """
+    return np.hstack([discrete, discrete[:, 4:5] / discrete[S_V_MOT, 4]])
+
+
+@njit(**_JIT)
+def model_row(model: np.ndarray, i: int) -> tuple:
+    """Row i of the 4 × 7 kernel model as a tuple (passed by value in the inner loop)."""
+    return (model[i, 0], model[i, 1], model[i, 2], model[i, 3], model[i, 4], model[i, 5],
+            model[i, 6])
+
+
+@njit(**_JIT)
+def model_rows(model: np.ndarray) -> tuple:
+    """The 4 × 7 kernel model as a tuple of row tuples."""
+    return model_row(model, 0), model_row(model, 1), model_row(model, 2), model_row(model, 3)
+
+
+@njit(**_HOT)
+def linear_update(row: tuple, mechanics: tuple, motor_force: float, tip_force: float,
+                  friction_drop: float) -> float:
+    """One state of x⁺ = A_d x + B_d (F_mot, F_tip) minus the friction's share."""
+    return (row[0] * mechanics[0] + row[1] * mechanics[1] + row[2] * mechanics[2]
+            + row[3] * mechanics[3] + row[4] * motor_force + row[5] * tip_force
+            - row[6] * friction_drop)
+
+
+@njit(**_HOT)
+def physics_step(mechanics: tuple, linearisation: tuple, motor_force: float, tip_force: float,
+                 rows: tuple, positive: tuple, negative: tuple) -> tuple:
+    """Advance (x_mot, v_mot, x_tip, v_tip) over one physics substep; returns it and the
+    friction linearisation.
+
+    rows: `model_rows` of the exact zero-order-hold discretisation of the linear axis,
+    inputs (motor force, tip force). Friction enters as a motor force held over the substep
+    and evaluated at the end-of-substep motor velocity.
+    """
+    v_free = linear_update(rows[1], mechanics, motor_force, tip_force, 0.0)
+    v_mot, linearisation = implicit_motor_velocity(v_free, rows[1][4], linearisation,
+                                                   positive, negative)
+    drop = v_free - v_mot
+    return (linear_update(rows[0], mechanics, motor_force, tip_force, drop), v_mot,
+            linear_update(rows[2], mechanics, motor_force, tip_force, drop),
+            linear_update(rows[3], mechanics, motor_force, tip_force, drop)), linearisation
+
+
+@njit(**_HOT)
+def velocity_pi(error: float, previous_error: float, integral: float, params: tuple,
+                force_offset: float) -> tuple[float, float]:
+    """Velocity-loop force command (N) and new integral, Eq. (5.4) inner PI, Tustin.
+
+    params = (K_p, 1/T_i, force limit, period h). integral_k = integral_{k-1} +
+    h (e_k + e_{k-1}) / 2, F = K_p (e_k + integral_k / T_i) + force offset; the integral
+    is frozen while F exceeds the force limit in the direction the integration would push
+    it (conditional-integration anti-windup).
+    """
+    k_p, inverse_t_i, force_limit, period = params
+    increment = 0.5 * period * (error + previous_error)
+    force = k_p * (error + (integral + increment) * inverse_t_i) + force_offset
+    if abs(force) > force_limit and (force > 0.0) == (increment > 0.0):
+        return k_p * (error + integral * inverse_t_i) + force_offset, integral
+    return force, integral + increment
+
+
+@njit(**_JIT)
+def clear_controller(state: np.ndarray, delay_line: np.ndarray, keep_delay_line: bool) -> None:
+    """Forget the velocity-PI memory (and, unless kept, the delay line and the last target)."""
+    state[S_INTEGRAL] = 0.0
+    state[S_PREVIOUS_ERROR] = 0.0
+    if not keep_delay_line:
+        delay_line[:] = 0.0
+        state[S_FORCE] = 0.0
+        state[S_HAS_PREVIOUS_TARGET] = 0.0
+
+
+@njit(**_JIT)
+def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positive: tuple,
+                  negative: tuple, params: np.ndarray, mode: int, enabled: bool,
+                  inputs: np.ndarray) -> None:
+    """Advance one bus cycle: position ticks, velocity ticks inside them, physics substeps
+    inside those. The force command passes the delay line, then the force limit.
+
+    inputs: one row of the input table (target position m, target velocity m/s, target
+    force N, velocity offset m/s, force offset N, tip force N).
+    """
+    if not enabled:
+        clear_controller(state, delay_line, False)
+    elif mode == CST:
+        clear_controller(state, delay_line, True)
+    position_ticks, velocity_ticks = int(params[P_POSITION_TICKS]), int(params[P_VELOCITY_TICKS])
+    force_limit, cycle = params[P_FORCE_LIMIT], params[P_CYCLE]
+    pi_params = (params[P_K_P], params[P_INVERSE_T_I], force_limit,
+                 cycle / (position_ticks * velocity_ticks))
+    target, tip_force = inputs[I_TARGET_POSITION], inputs[I_TIP_FORCE]
+    start = state[S_PREVIOUS_TARGET] if state[S_HAS_PREVIOUS_TARGET] > 0.0 else target
+    feedforward = params[P_FEEDFORWARD] * (target - start) / cycle
+    v_command = inputs[I_TARGET_VELOCITY] + inputs[I_VELOCITY_OFFSET]
+    mechanics = (state[S_X_MOT], state[S_V_MOT], state[S_X_TIP], state[S_V_TIP])
+    linearisation = (state[S_FRICTION_VELOCITY], state[S_FRICTION_FORCE], state[S_NEWTON_GAIN])
+    integral, previous_error = state[S_INTEGRAL], state[S_PREVIOUS_ERROR]
+    index, applied = int(state[S_DELAY_INDEX]), state[S_FORCE]
+    for tick in range(position_ticks):
+        if mode == CSP:
+            reference = start + tick * (target - start) / position_ticks
+            v_command = (params[P_K_V] * (reference - mechanics[0]) + feedforward
+                         + inputs[I_VELOCITY_OFFSET])
+        for _ in range(velocity_ticks):
+            if not enabled:
+                command = 0.0
+            elif mode == CST:
+                command = inputs[I_TARGET_FORCE] + inputs[I_FORCE_OFFSET]
+            else:
+                error = v_command - mechanics[1]
+                command, integral = velocity_pi(error, previous_error, integral, pi_params,
+                                                inputs[I_FORCE_OFFSET])
+                previous_error = error
+            delay_line[index] = command
+            index = index + 1 if index + 1 < delay_line.size else 0
+            applied = min(max(delay_line[index], -force_limit), force_limit)
+            for _ in range(int(params[P_PHYSICS_STEPS])):
+                mechanics, linearisation = physics_step(mechanics, linearisation, applied,
+                                                        tip_force, rows, positive, negative)
+    state[S_X_MOT], state[S_V_MOT], state[S_X_TIP], state[S_V_TIP] = mechanics
+    state[S_FRICTION_VELOCITY], state[S_FRICTION_FORCE], state[S_NEWTON_GAIN] = linearisation
+    state[S_INTEGRAL], state[S_PREVIOUS_ERROR] = integral, previous_error
+    state[S_DELAY_INDEX], state[S_FORCE] = index, applied
+    state[S_PREVIOUS_TARGET] = target
+    state[S_HAS_PREVIOUS_TARGET] = 1.0 if enabled and mode == CSP else 0.0
+
+
+@njit(**_JIT)
+def run_cycles(state: np.ndarray, delay_line: np.ndarray, model: np.ndarray,
+               table: np.ndarray, params: np.ndarray, modes: np.ndarray, enabled: bool,
+               inputs: np.ndarray, outputs: np.ndarray) -> None:
+    """Advance len(modes) bus cycles; row k of `outputs` gets the state after cycle k."""
+    rows = model_rows(model)
+    positive, negative = friction_side(table, 0), friction_side(table, 1)
+    for k in range(modes.size):
+        advance_cycle(state, delay_line, rows, positive, negative, params, modes[k], enabled,
+                      inputs[k])
+        outputs[k, O_POSITION] = state[S_X_MOT]
+        outputs[k, O_VELOCITY] = state[S_V_MOT]
+        outputs[k, O_FORCE] = state[S_FORCE]
+        outputs[k, O_TIP_POSITION] = state[S_X_TIP]
+        outputs[k, O_TIP_VELOCITY] = state[S_V_TIP]
