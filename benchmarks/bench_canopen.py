@@ -5,15 +5,17 @@ host → 3 RPDOs + SYNC, device → 2 TPDOs, host waits for the last TPDO. The b
 only canopen Networks with raw subscriptions on both sides; the full loop is
 `Cia402Drive` + `LockstepClock` on the host and `SimulatedCia402Drive` (state machine,
 AxisSimulator physics) on the device. Both wait for the last TPDO on the same primitive
-(`CycleSignal`), so the ratio is the cost of driver, simulated drive and physics alone. Rounds alternate between the two so that load from
-other processes hits both alike; the figures are medians over the rounds. CPU time per
-cycle (all threads of the process, `time.process_time`) is reported beside the rates: it
-is less sensitive to other processes than the wall-clock rate.
+(`CycleSignal`), so the ratio is the cost of driver, simulated drive and physics alone.
+Rounds alternate between the two so that load from other processes hits both alike; the
+figures are medians over the rounds. CPU time per cycle (all threads of the process,
+`time.process_time`) is reported beside the rates, and the load average: on a busy
+machine the wall-clock ratio drifts towards the CPU ratio.
 """
 
 from __future__ import annotations
 
 import itertools
+import os
 import statistics
 import struct
 import time
@@ -77,7 +79,8 @@ def _bare_loop(n_cycles: int) -> Timing:
 
     def on_sync(can_id: int, data: bytearray, timestamp: float) -> None:
         count[0] += 1
-        device.send_message(TPDO_COB_IDS[0], struct.pack("<HiH", 0x1237, count[0], count[0] & 0xFFFF))
+        counter = count[0] & 0xFFFF
+        device.send_message(TPDO_COB_IDS[0], struct.pack("<HiH", 0x1237, count[0], counter))
         device.send_message(TPDO_COB_IDS[1], struct.pack("<ii", count[0], count[0]))
 
     def on_last_tpdo(can_id: int, data: bytearray, timestamp: float) -> None:
@@ -126,27 +129,27 @@ def _full_loop(n_cycles: int) -> Timing:
 def run() -> dict[str, float]:
     _full_loop(10)  # compile the physics, import everything: not part of any round
     rounds = [(_bare_loop(N_CYCLES), _full_loop(N_CYCLES)) for _ in range(ROUNDS)]
-    bare = [b for b, _ in rounds]
-    full = [f for _, f in rounds]
+    bare = Timing(*(statistics.median(column) for column in zip(*(b for b, _ in rounds))))
+    full = Timing(*(statistics.median(column) for column in zip(*(f for _, f in rounds))))
     figures = {
-        "bare_canopen_cycles_per_s": statistics.median(b.cycles_per_s for b in bare),
-        "driver_sim_physics_cycles_per_s": statistics.median(f.cycles_per_s for f in full),
-        "bare_canopen_cpu_us_per_cycle": statistics.median(b.cpu_us_per_cycle for b in bare),
-        "driver_sim_physics_cpu_us_per_cycle": statistics.median(f.cpu_us_per_cycle
-                                                                 for f in full),
+        "bare_canopen_cycles_per_s": bare.cycles_per_s,
+        "driver_sim_physics_cycles_per_s": full.cycles_per_s,
+        "driver_sim_physics_over_bare": full.cycles_per_s / bare.cycles_per_s,
+        "bare_canopen_cpu_us_per_cycle": bare.cpu_us_per_cycle,
+        "driver_sim_physics_cpu_us_per_cycle": full.cpu_us_per_cycle,
+        "driver_sim_physics_cpu_over_bare": bare.cpu_us_per_cycle / full.cpu_us_per_cycle,
     }
-    figures["driver_sim_physics_over_bare"] = (figures["driver_sim_physics_cycles_per_s"]
-                                               / figures["bare_canopen_cycles_per_s"])
     paired = sorted(f.cycles_per_s / b.cycles_per_s for b, f in rounds)
     print(f"bare python-can + canopen lockstep loop (SYNC, 3 RPDO, 2 TPDO): "
-          f"{figures['bare_canopen_cycles_per_s']:7.0f} cycles/s, "
-          f"{figures['bare_canopen_cpu_us_per_cycle']:5.0f} us CPU/cycle (baseline)")
+          f"{bare.cycles_per_s:7.0f} cycles/s, {bare.cpu_us_per_cycle:5.0f} us CPU/cycle "
+          f"(baseline)")
     print(f"Cia402Drive + LockstepClock + SimulatedCia402Drive + physics:   "
-          f"{figures['driver_sim_physics_cycles_per_s']:7.0f} cycles/s, "
-          f"{figures['driver_sim_physics_cpu_us_per_cycle']:5.0f} us CPU/cycle")
-    print(f"full loop / bare loop: {figures['driver_sim_physics_over_bare']:.2f} "
-          f"(medians of {ROUNDS} alternating rounds of {N_CYCLES} cycles; target >= 0.8; "
-          f"per-round ratios {paired[0]:.2f}..{paired[-1]:.2f})")
+          f"{full.cycles_per_s:7.0f} cycles/s, {full.cpu_us_per_cycle:5.0f} us CPU/cycle")
+    print(f"full / bare: {figures['driver_sim_physics_over_bare']:.2f} in cycles/s (target "
+          f">= 0.8; per-round {paired[0]:.2f}..{paired[-1]:.2f}), "
+          f"{figures['driver_sim_physics_cpu_over_bare']:.2f} in CPU per cycle; medians of "
+          f"{ROUNDS} alternating rounds of {N_CYCLES} cycles, load average "
+          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
     return figures
 
 

@@ -115,6 +115,8 @@ def test_unmapped_objects_are_errors_or_nan(can_channel):
     with loopback(can_channel, pdo_config=config) as bench:
         with pytest.raises(DriveError, match="0x60FF"):
             bench.drive.set_targets(velocity=0.01)
+        with pytest.raises(DriveError, match="0x607A: 3000000000 is out of"):
+            bench.drive.set_targets(position=3.0)  # beyond INTEGER32 nm (±2.147 m)
         enable(bench, CSP, position=0.0)
         actual = bench.run(2, position=1e-6)[-1]
     assert actual.cycle == 5 and actual.position > 0.0

@@ -16,6 +16,7 @@ from typing import Iterator
 import can
 import numpy as np
 import pytest
+from canopen.profiles.p402 import BaseNode402
 from canopen.sdo import SdoAbortedError
 
 from feedbench.daq.clock import LockstepClock
@@ -290,3 +291,41 @@ def test_device_refuses_unmappable_and_oversized_pdo_maps(can_channel):
         with pytest.raises(SdoAbortedError) as info:
             sdo[0x1603][0].raw = 3  # 96 bits > 64
         assert info.value.code == 0x06040042
+
+
+# -- interoperability: canopen's own CiA 402 master ---------------------------------------
+
+
+def test_canopen_basenode402_enables_the_simulated_drive(can_channel):
+    """canopen's p402 master (wall clock, periodic SYNC and RPDO threads) reaches operation
+    enabled on the simulated drive and reads its statusword and mode through the TPDOs."""
+    with loopback(can_channel, configure=False) as bench:
+        network = bench.drive.network
+        del network[NODE_ID]  # canopen's master instead of ours
+        node = BaseNode402(NODE_ID, str(eds.packaged_eds_path()))
+        node.TIMEOUT_SWITCH_STATE_FINAL = node.TIMEOUT_SWITCH_STATE_SINGLE = 5.0
+        network.add_node(node)
+        node.nmt.state = "PRE-OPERATIONAL"
+        node.tpdo.read()
+        node.rpdo.read()
+        node.tpdo[1].clear()
+        for index in (0x6041, 0x6061):
+            node.tpdo[1].add_variable(index)
+        node.tpdo[1].save()
+        node.setup_402_state_machine(read_pdos=False)
+        node.nmt.state = "OPERATIONAL"
+        node.rpdo[1]["Modes of operation"].raw = CSV
+        network.sync.start(2e-3)
+        node.rpdo[1].start(2e-3)
+        try:
+            node.state = "OPERATION ENABLED"
+            node.check_statusword()
+            enabled = node.statusword
+            node.state = "SWITCH ON DISABLED"
+            node.check_statusword()
+            disabled = node.statusword
+        finally:
+            node.rpdo[1].stop()
+            network.sync.stop()
+    assert enabled & 0x6F == 0x27 and node.tpdo_values[0x6061] == CSV
+    assert disabled & 0x4F == 0x40

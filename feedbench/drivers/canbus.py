@@ -62,7 +62,8 @@ def pdo_codec(pdo_map: PdoMap) -> PdoCodec:
     for var in pdo_map.map:
         fmt = ODVariable.STRUCT_TYPES[var.od.data_type].format.lstrip("<")
         if var.offset % 8 or var.length != 8 * struct.calcsize("<" + fmt):
-            raise ValueError(f"{pdo_map.name}: 0x{var.index:04X} is not byte-aligned at full length")
+            raise ValueError(f"{pdo_map.name}: 0x{var.index:04X} must be byte-aligned, "
+                             "at its full length")
         formats.append(fmt)
         offsets.append(var.offset // 8)
     return PdoCodec(struct.Struct("<" + "".join(formats)),

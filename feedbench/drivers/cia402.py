@@ -266,6 +266,7 @@ class Cia402Drive:
 
     @property
     def statusword(self) -> int:
+        """The latest statusword 0x6041 (TPDO)."""
         return self._raw[0x6041]
 
     @property
@@ -380,7 +381,10 @@ class Cia402Drive:
         except KeyError:
             raise DriveError(f"0x{index:04X} is not mapped in an RPDO of node "
                              f"{self.node.id}") from None
-        pack_into(payload, offset, value)
+        try:
+            pack_into(payload, offset, value)
+        except struct.error:
+            raise DriveError(f"0x{index:04X}: {value} is out of the object's range") from None
 
     def transmit(self) -> None:
         """Send every mapped RPDO once (they take effect at the next SYNC)."""

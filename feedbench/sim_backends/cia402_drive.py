@@ -23,6 +23,7 @@ straight to FAULT (the reaction, "disable drive", takes no time).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import operator
 import struct
@@ -34,7 +35,7 @@ import canopen
 from canopen.sdo import SdoAbortedError
 
 from feedbench.drivers.canbus import connect, pdo_codec
-from feedbench.models.axis import CSP, CSV, MODES, AxisSimulator, CascadeGains
+from feedbench.models.axis import CSP, CSV, MODES, AxisSimulator
 from feedbench.sim_backends import eds
 
 SWITCH_ON_DISABLED = "SWITCH ON DISABLED"
@@ -87,7 +88,7 @@ ABORT_NO_OBJECT = 0x06020000
 ABORT_NOT_MAPPABLE = 0x06040041
 ABORT_PDO_LENGTH = 0x06040042
 ABORT_VALUE_RANGE = 0x06090030
-GAIN_OBJECTS = (0x2001, 0x2002, 0x2003)
+GAIN_OBJECTS = {0x2001: "K_p", 0x2002: "T_i", 0x2003: "K_v"}  # → CascadeGains fields
 FORCE_LIMIT_OBJECT = 0x2004
 RATED_FORCE_OBJECT = 0x6076
 INT16_MAX = 0x7FFF
@@ -175,7 +176,8 @@ class SimulatedCia402Drive:
         }
         self.values.update({0x1001: 0, 0x1006: round(sim.timing.cycle * 1e6),
                             FORCE_LIMIT_OBJECT: sim.force_limit})
-        self.values.update(zip(GAIN_OBJECTS, (sim.gains.K_p, sim.gains.T_i, sim.gains.K_v)))
+        self.values.update({index: getattr(sim.gains, name)
+                            for index, name in GAIN_OBJECTS.items()})
         self.state = SWITCH_ON_DISABLED
         self._previous_controlword = 0
         self._following_error = False
@@ -225,13 +227,11 @@ class SimulatedCia402Drive:
 
     def _apply_parameter(self, index: int, value: int | float) -> None:
         if index in GAIN_OBJECTS:
-            gains = dict(zip(GAIN_OBJECTS, (self.simulator.gains.K_p, self.simulator.gains.T_i,
-                                            self.simulator.gains.K_v)))
-            gains[index] = value
             try:
-                self.simulator.set_gains(CascadeGains(*(gains[i] for i in GAIN_OBJECTS)))
-            except ValueError:
+                gains = dataclasses.replace(self.simulator.gains, **{GAIN_OBJECTS[index]: value})
+            except ValueError:  # CascadeGains refuses T_i <= 0, K_p < 0, K_v < 0
                 raise SdoAbortedError(ABORT_VALUE_RANGE) from None
+            self.simulator.set_gains(gains)
         elif index in (FORCE_LIMIT_OBJECT, RATED_FORCE_OBJECT) and not value > 0:
             raise SdoAbortedError(ABORT_VALUE_RANGE)
         if index == FORCE_LIMIT_OBJECT:
@@ -243,8 +243,8 @@ class SimulatedCia402Drive:
         """CiA 301 checks of a mapping entry (sub 1–8) or of the number of entries (sub 0)."""
         receive = index < 0x1800
         if subindex == 0:
-            bits = sum(self.node.sdo[index][sub].raw & 0xFF for sub in range(1, value + 1))
-            if value > 8 or bits > 64:
+            if value > 8 or sum(self.node.sdo[index][sub].raw & 0xFF
+                                for sub in range(1, value + 1)) > 64:
                 raise SdoAbortedError(ABORT_PDO_LENGTH)
             return
         if value == 0:
@@ -298,7 +298,9 @@ class SimulatedCia402Drive:
         length that does not match the mapping)."""
         if not self._operational:
             return
-        codec = self._rpdo_codecs[can_id]
+        codec = self._rpdo_codecs.get(can_id)  # None: a COB-ID of an earlier mapping
+        if codec is None:
+            return
         try:
             self._received.update(zip(codec.indices, codec.layout.unpack(data)))
         except struct.error:

@@ -58,8 +58,9 @@ class Entry:
     description: str = ""
 
 
-I16, I32, I8 = datatypes.INTEGER16, datatypes.INTEGER32, datatypes.INTEGER8
-U8, U16, U32, F32 = datatypes.UNSIGNED8, datatypes.UNSIGNED16, datatypes.UNSIGNED32, datatypes.REAL32
+I8, I16, I32 = datatypes.INTEGER8, datatypes.INTEGER16, datatypes.INTEGER32
+U8, U16, U32 = datatypes.UNSIGNED8, datatypes.UNSIGNED16, datatypes.UNSIGNED32
+F32 = datatypes.REAL32
 
 COMMUNICATION = (
     Entry(0x1000, "Device type", U32, "ro", default=DEVICE_TYPE),
