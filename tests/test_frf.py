@@ -57,7 +57,8 @@ def test_h1_h2_coherence_match_scipy_welch_and_csd(random_test):
             _, Pxy = scipy.signal.csd(x, out, fs, window, nperseg, noverlap)
             np.testing.assert_allclose(est.H1[channel], Pxy / Pxx, rtol=1e-9)
             np.testing.assert_allclose(est.H2[channel], Pyy / Pxy.conj(), rtol=1e-9)
-            np.testing.assert_allclose(est.coherence[channel], np.abs(Pxy) ** 2 / (Pxx * Pyy), rtol=1e-9)
+            coherence = np.abs(Pxy) ** 2 / (Pxx * Pyy)
+            np.testing.assert_allclose(est.coherence[channel], coherence, rtol=1e-9)
         assert est.n_averages == (x.size - noverlap) // (nperseg - noverlap)
 
 

@@ -42,7 +42,8 @@ def modal_filter(force, fs):
 def with_noise(H, level, seed):
     """Complex Gaussian noise of rms `level` × |H| on every line."""
     rng = np.random.default_rng(seed)
-    return H + level * np.abs(H) * (rng.standard_normal(H.shape) + 1j * rng.standard_normal(H.shape)) / np.sqrt(2)
+    unit = (rng.standard_normal(H.shape) + 1j * rng.standard_normal(H.shape)) / np.sqrt(2)
+    return H + level * np.abs(H) * unit
 
 
 def relative_errors(modes):
@@ -134,7 +135,8 @@ def test_hammer_quasi_frf_fit_with_exponential_window_removed():
         inside = (t >= 0.05 + 0.003 * i) & (t < 0.052 + 0.003 * i)
         forces[i, inside] = (500.0 + 20 * i) * np.sin(np.pi * (t[inside] - 0.05 - 0.003 * i) / 2e-3)
     responses = np.stack([modal_filter(force, fs) for force in forces])
-    responses += 0.005 * np.abs(responses).max() * np.random.default_rng(1).standard_normal(responses.shape)
+    noise = np.random.default_rng(1).standard_normal(responses.shape)
+    responses += 0.005 * np.abs(responses).max() * noise
     hammer = quasi_frf(forces, responses, fs, force_window_s=0.01, exp_decay=1.0)
     windowed = fit_modes(hammer.estimate.f, hammer.estimate.H1, BAND, 3)
     assert windowed.modes[0].zeta == pytest.approx(ZETA[0] + 1.0 / (2 * np.pi * F_N[0]), rel=0.05)

@@ -80,7 +80,8 @@ def test_steady_state_frf_points_match_the_receptance():
     for f, start, stop in steps:
         H = receptance(f)
         force[start:stop] = 50.0 * np.cos(2 * np.pi * f * t[start:stop] + 0.3)
-        response[start:stop] = 50.0 * abs(H) * np.cos(2 * np.pi * f * t[start:stop] + 0.3 + np.angle(H))
+        phase = 2 * np.pi * f * t[start:stop] + 0.3 + np.angle(H)
+        response[start:stop] = 50.0 * abs(H) * np.cos(phase)
         response[start:stop] += 0.01 * 50.0 * abs(H) * rng.standard_normal(stop - start)
     result = stepped_sine_frf(force, response, FS, steps, settle_cycles=1)
     np.testing.assert_allclose(result.H, receptance(frequencies), rtol=0.01)

@@ -195,7 +195,8 @@ def quasi_frf(
     used = tuple(c for c in checks if c.ok or not reject_flagged)
     if not used:
         raise ValueError(f"force: all {len(checks)} hits are flagged (double hit or overload)")
-    X, Y = _windowed_hit_spectra(forces, responses, used, fs, (pretrigger_s, force_window_s), exp_decay)
+    force_span = (pretrigger_s, force_window_s)
+    X, Y = _windowed_hit_spectra(forces, responses, used, fs, force_span, exp_decay)
     Sxx, Syy, Sxy = _averaged_spectra(X, Y[None])
     H1, H2, coherence = _frf_from_spectra(Sxx, Syy[0], Sxy[0])
     f = scipy.fft.rfftfreq(forces.shape[1], 1.0 / fs)
@@ -300,7 +301,8 @@ def _check_hit(index, force, fs, trigger_level, double_hit_level, force_range) -
     after_peak = pulse[peak_index:] < double_hit_level * abs(peak)
     pulse_end = peak_index + (int(np.argmax(after_peak)) if after_peak.any() else pulse.size)
     double_hit = bool(np.any(pulse[pulse_end:] >= double_hit_level * abs(peak)))
-    return HitCheck(index, trigger / fs, peak, double_hit, _is_overload(pulse, abs(peak), force_range))
+    overload = _is_overload(pulse, abs(peak), force_range)
+    return HitCheck(index, trigger / fs, peak, double_hit, overload)
 
 
 def _is_overload(pulse: np.ndarray, peak: float, force_range: float | None) -> bool:
@@ -312,12 +314,12 @@ def _is_overload(pulse: np.ndarray, peak: float, force_range: float | None) -> b
     return bool(np.max(edges[1::2] - edges[::2]) >= 3)
 
 
-def _windowed_hit_spectra(forces, responses, hits, fs, force_span, tau) -> tuple[np.ndarray, np.ndarray]:
+def _windowed_hit_spectra(forces, responses, hits, fs, force_span, tau):
     """rfft of each hit's force (force window) and response (exponential window)."""
     t = np.arange(forces.shape[1]) / fs
-    X = np.stack([scipy.fft.rfft(forces[h.index] * _force_window(t, h.trigger_time, *force_span)) for h in hits])
-    Y = np.stack([scipy.fft.rfft(responses[h.index] * _exponential_window(t, h.trigger_time, tau)) for h in hits])
-    return X, Y
+    X = [forces[h.index] * _force_window(t, h.trigger_time, *force_span) for h in hits]
+    Y = [responses[h.index] * _exponential_window(t, h.trigger_time, tau) for h in hits]
+    return scipy.fft.rfft(np.stack(X)), scipy.fft.rfft(np.stack(Y))
 
 
 def _force_window(t, trigger_time, pretrigger_s, force_window_s) -> np.ndarray:
@@ -359,10 +361,16 @@ def _averaged_spectra(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndar
     Conjugates X in place (it is not used afterwards) to spare a copy.
     """
     n = X.shape[0]
-    Sxx = (np.einsum("sf,sf->f", X.real, X.real) + np.einsum("sf,sf->f", X.imag, X.imag)) / n
-    Syy = (np.einsum("csf,csf->cf", Y.real, Y.real) + np.einsum("csf,csf->cf", Y.imag, Y.imag)) / n
+    Sxx = _summed_squares(X[None])[0] / n
+    Syy = _summed_squares(Y) / n
     Sxy = np.einsum("sf,csf->cf", np.conjugate(X, out=X), Y) / n
     return Sxx, Syy, Sxy
+
+
+def _summed_squares(Z: np.ndarray) -> np.ndarray:
+    """Σ_s |Z[c, s, f]|², reading re and im as one float array (half the passes of re² + im²)."""
+    pairs = np.einsum("csf,csf->cf", Z.view(float), Z.view(float))
+    return pairs[:, 0::2] + pairs[:, 1::2]
 
 
 def _density_scale(fs: float, win: np.ndarray) -> np.ndarray:

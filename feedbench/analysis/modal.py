@@ -26,7 +26,7 @@ Referred to any other output they are the "apparent" values m_k / (φ_d φ_o).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft
@@ -127,7 +127,8 @@ def fit_modes(
     """
     f_band, H_band, omega = _band_data(f, H, band)
     max_order = _checked_max_order(max_order, n_modes, f_band.size)
-    response = _continuous_response(omega) if lag_window is None else _lag_windowed_response(f_band, lag_window)
+    response = (_ContinuousPoles(omega) if lag_window is None
+                else _LagWindowedPoles(f_band, lag_window))
     scale = np.sqrt(np.mean(np.abs(H_band) ** 2, axis=1, keepdims=True))
     H_scaled = H_band / scale
     diagram = _stabilization(omega, H_scaled, n_modes, max_order, band)
@@ -149,7 +150,8 @@ def fit_modes(
         upper_residual=squeeze(coefficients[-2]),
         relative_error=float(np.linalg.norm(H_band - H_model) / np.linalg.norm(H_band)),
         stabilization=diagram,
-        warnings=_fit_warnings(modes, n_modes, band, f, coherence, driving_point, lag_window is not None),
+        warnings=_fit_warnings(modes, n_modes, band, f, coherence, driving_point,
+                               lag_corrected=lag_window is not None),
     )
 
 
@@ -167,7 +169,8 @@ def synthesize_receptance(
         np.zeros_like(jw),
     )
     with np.errstate(divide="ignore", invalid="ignore"):
-        return H + np.asarray(upper_residual)[..., None] + np.asarray(lower_residual)[..., None] / jw**2
+        lower = np.asarray(lower_residual)[..., None] / jw**2
+        return H + np.asarray(upper_residual)[..., None] + lower
 
 
 def remove_window_decay(modes: tuple[Mode, ...], decay_rate: float) -> tuple[Mode, ...]:
@@ -175,7 +178,9 @@ def remove_window_decay(modes: tuple[Mode, ...], decay_rate: float) -> tuple[Mod
 
     The window leaves residues unchanged when it starts at the impact (quasi_frf does).
     """
-    return tuple(_mode_from_pole(m.pole + decay_rate, m.residue, _driving_residue(m)) for m in modes)
+    return tuple(
+        _mode_from_pole(m.pole + decay_rate, m.residue, _driving_residue(m)) for m in modes
+    )
 
 
 def _band_data(f, H, band) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -183,7 +188,9 @@ def _band_data(f, H, band) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     H2d = np.atleast_2d(np.asarray(H))
     lo, hi = band
     if not (0.0 <= lo < hi) or H2d.ndim != 2 or H2d.shape[-1] != f.size:
-        raise ValueError(f"band, H: need 0 <= lo < hi and H with {f.size} lines, got {band}, {np.shape(H)}")
+        raise ValueError(
+            f"band, H: need 0 <= lo < hi and H with {f.size} lines, got {band}, {np.shape(H)}"
+        )
     inside = (f >= lo) & (f <= hi) & np.all(np.isfinite(H2d), axis=0)
     if inside.sum() < 8:
         raise ValueError(f"band: only {inside.sum()} finite frequency lines in {band} Hz")
@@ -213,7 +220,8 @@ def _normal_matrices(omega: np.ndarray, H: np.ndarray, order: int):
     lags = np.exp(1j * np.outer(np.arange(order + 1), (omega - omega_c) * dt))
     weights = np.vstack([np.ones_like(omega), -H, np.abs(H) ** 2])
     matrices = np.stack([
-        scipy.linalg.toeplitz(column, row) for column, row in zip(weights @ lags.T, weights @ lags.conj().T)
+        scipy.linalg.toeplitz(column, row)
+        for column, row in zip(weights @ lags.T, weights @ lags.conj().T)
     ])
     n_out = H.shape[0]
     return matrices[0], matrices[1:1 + n_out], matrices[1 + n_out:], omega_c, dt
@@ -231,7 +239,7 @@ def _stabilization(omega, H, n_modes, max_order, band) -> StabilizationDiagram:
         poles.append(current)
         stable.append(np.array([_is_stable(p, previous) for p in current], dtype=bool))
         previous = current
-    return StabilizationDiagram(np.concatenate(orders), np.concatenate(poles), np.concatenate(stable))
+    return StabilizationDiagram(*(np.concatenate(a) for a in (orders, poles, stable)))
 
 
 def _lscf_poles(R, S, T, n, omega_c, dt) -> np.ndarray:
@@ -282,34 +290,56 @@ def _by_frequency(poles: np.ndarray) -> np.ndarray:
     return poles[np.argsort(poles.imag)]
 
 
-def _continuous_response(omega: np.ndarray):
-    """Pole responses 1 / (jω − λ), one column per pole."""
-    return lambda poles: 1.0 / (1j * omega[:, None] - poles)
+class _ContinuousPoles:
+    """Pole responses 1/(jω − λ) (one column per pole) and their derivatives d/dλ."""
+
+    def __init__(self, omega: np.ndarray):
+        self.jw = 1j * omega[:, None]
+
+    def values(self, poles: np.ndarray) -> np.ndarray:
+        return 1.0 / (self.jw - poles)
+
+    def derivatives(self, poles: np.ndarray) -> np.ndarray:
+        return 1.0 / (self.jw - poles) ** 2
 
 
-def _lag_windowed_response(f: np.ndarray, lag_window: np.ndarray):
+class _LagWindowedPoles:
     """Pole responses as a Welch H1 sees them: DFT of v(τ)·e^{λτ}/fs at the bins of f.
 
     E[H1] = Σ_τ v(τ) h(τ) e^{−jωτ} when the input spectrum is smooth over the window's main
     lobe, v = frf.welch_lag_window; the bins are f/Δf with fs = nperseg·Δf.
     """
-    n = lag_window.size
-    df = f[1] - f[0]
-    bins = np.rint(f / df).astype(int)
-    if not np.allclose(bins * df, f, rtol=0.0, atol=1e-6 * df):
-        raise ValueError("lag_window: f must be the rfft bins k·fs/nperseg of the Welch estimate")
-    fs = n * df
-    tau = np.arange(n) / fs
-    weights = lag_window / fs
-    return lambda poles: scipy.fft.fft(weights[:, None] * np.exp(np.outer(tau, poles)), axis=0)[bins]
+
+    def __init__(self, f: np.ndarray, lag_window: np.ndarray):
+        df = f[1] - f[0]
+        self.bins = np.rint(f / df).astype(int)
+        if not np.allclose(self.bins * df, f, rtol=0.0, atol=1e-6 * df):
+            raise ValueError("lag_window: f must be the rfft bins k·fs/nperseg of the Welch H1")
+        fs = lag_window.size * df
+        self.tau = np.arange(lag_window.size) / fs
+        self.weights = lag_window / fs
+
+    def values(self, poles: np.ndarray) -> np.ndarray:
+        return self._dft(self.weights, poles)
+
+    def derivatives(self, poles: np.ndarray) -> np.ndarray:
+        return self._dft(self.weights * self.tau, poles)
+
+    def _dft(self, weights: np.ndarray, poles: np.ndarray) -> np.ndarray:
+        impulse_responses = weights[:, None] * np.exp(np.outer(self.tau, poles))
+        return scipy.fft.fft(impulse_responses, axis=0)[self.bins]
 
 
 def _design_matrix(omega: np.ndarray, poles: np.ndarray, response) -> np.ndarray:
     """Real-stacked basis: per mode Re r and Im r columns, then upper and lower residuals."""
-    p, p_conj = response(poles), response(poles.conj())
+    p, p_conj = response.values(poles), response.values(poles.conj())
     modal = np.stack([p + p_conj, 1j * (p - p_conj)], axis=-1).reshape(omega.size, -1)
     complex_basis = np.column_stack([modal, np.ones_like(omega), 1.0 / (1j * omega) ** 2])
-    return np.vstack([complex_basis.real, complex_basis.imag])
+    return _real_stacked(complex_basis)
+
+
+def _real_stacked(Z: np.ndarray) -> np.ndarray:
+    return np.vstack([Z.real, Z.imag])
 
 
 def _residues(omega, H, poles, response) -> tuple[np.ndarray, np.ndarray]:
@@ -319,31 +349,74 @@ def _residues(omega, H, poles, response) -> tuple[np.ndarray, np.ndarray]:
     and the model H.
     """
     A = _design_matrix(omega, poles, response)
-    norms = np.linalg.norm(A, axis=0)
-    rhs = np.vstack([H.real.T, H.imag.T])
-    solution = np.linalg.lstsq(A / norms, rhs, rcond=None)[0] / norms[:, None]
+    solution = _least_squares(A, _real_stacked(H.T))
     fitted = A @ solution
-    n = omega.size
-    return solution, (fitted[:n] + 1j * fitted[n:]).T
+    return solution, (fitted[:omega.size] + 1j * fitted[omega.size:]).T
+
+
+def _least_squares(A: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """min ‖A x − rhs‖ by the normal equations of A with unit-norm columns (cond stays small)."""
+    norms = np.linalg.norm(A, axis=0)
+    scaled = A / norms
+    try:
+        return np.linalg.solve(scaled.T @ scaled, scaled.T @ rhs) / norms[:, None]
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(scaled, rhs, rcond=None)[0] / norms[:, None]
+
+
+class _VariableProjection:
+    """Misfit model − H over the poles alone, residues re-solved linearly for every trial, and
+    Kaufman's Jacobian P⊥ (∂A/∂θ) c (Golub & Pereyra's variable projection)."""
+
+    def __init__(self, omega: np.ndarray, H: np.ndarray, response):
+        self.omega, self.H, self.response = omega, H, response
+
+    def misfit(self, poles: np.ndarray) -> np.ndarray:
+        difference = _residues(self.omega, self.H, poles, self.response)[1] - self.H
+        return np.concatenate([difference.real.ravel(), difference.imag.ravel()])
+
+    def jacobian(self, poles: np.ndarray) -> np.ndarray:
+        """∂ misfit / ∂(Re λ_k, Im λ_k), columns in that order per pole."""
+        A = _design_matrix(self.omega, poles, self.response)
+        c = _least_squares(A, _real_stacked(self.H.T))
+        dp, dp_conj = self.response.derivatives(poles), self.response.derivatives(poles.conj())
+        columns = []
+        for k in range(poles.size):
+            c_re, c_im = c[2 * k], c[2 * k + 1]
+            even, odd = dp[:, k] + dp_conj[:, k], 1j * (dp[:, k] - dp_conj[:, k])
+            d_sigma = np.outer(even, c_re) + np.outer(odd, c_im)
+            d_omega = np.outer(odd, c_re) - np.outer(even, c_im)
+            columns += [self._projected(A, d_sigma), self._projected(A, d_omega)]
+        return np.column_stack(columns)
+
+    def _projected(self, A: np.ndarray, derivative: np.ndarray) -> np.ndarray:
+        """P⊥ applied to (∂A/∂θ) c (n_f × outputs), flattened in the misfit's order."""
+        stacked = _real_stacked(derivative)
+        stacked = stacked - A @ _least_squares(A, stacked)
+        n = self.omega.size
+        return np.concatenate([stacked[:n].T.ravel(), stacked[n:].T.ravel()])
 
 
 def _refine_poles(omega, H, poles, response) -> np.ndarray:
-    """Nonlinear least squares on the poles (residues solved linearly inside: variable projection)."""
+    """Nonlinear least squares (Levenberg–Marquardt) on the poles by variable projection."""
     omega_ref = float(np.mean(omega))
+    problem = _VariableProjection(omega, H, response)
 
-    def misfit(x):
-        trial = (x[0::2] + 1j * x[1::2]) * omega_ref
-        difference = _residues(omega, H, trial, response)[1] - H
-        return np.concatenate([difference.real.ravel(), difference.imag.ravel()])
+    def to_poles(x: np.ndarray) -> np.ndarray:
+        return (x[0::2] + 1j * x[1::2]) * omega_ref
 
     x0 = np.column_stack([poles.real, poles.imag]).ravel() / omega_ref
-    solution = scipy.optimize.least_squares(misfit, x0, method="lm", x_scale="jac")
-    refined = (solution.x[0::2] + 1j * solution.x[1::2]) * omega_ref
+    solution = scipy.optimize.least_squares(
+        lambda x: problem.misfit(to_poles(x)), x0,
+        jac=lambda x: problem.jacobian(to_poles(x)) * omega_ref, method="lm", x_scale="jac",
+    )
+    refined = to_poles(solution.x)
     return _by_frequency(refined) if np.all(refined.real < 0) else poles
 
 
 def _mode(pole: complex, residue: np.ndarray, driving_point: int) -> Mode:
-    return _mode_from_pole(pole, np.asarray(residue), complex(np.atleast_1d(residue)[driving_point]))
+    driving_residue = complex(np.atleast_1d(residue)[driving_point])
+    return _mode_from_pole(pole, np.asarray(residue), driving_residue)
 
 
 def _mode_from_pole(pole: complex, residue: np.ndarray, driving_residue: complex) -> Mode:
@@ -363,7 +436,7 @@ def _driving_residue(mode: Mode) -> complex:
     return 1.0 / (2.0 * mode.pole.imag * mode.modal_mass)
 
 
-def _fit_warnings(modes, n_modes, band, f, coherence, driving_point, lag_corrected) -> tuple[str, ...]:
+def _fit_warnings(modes, n_modes, band, f, coherence, driving_point, lag_corrected):
     warnings = []
     if len(modes) < n_modes:
         warnings.append(
@@ -374,14 +447,17 @@ def _fit_warnings(modes, n_modes, band, f, coherence, driving_point, lag_correct
         return tuple(warnings)
     f = np.asarray(f, dtype=float)
     coh = np.atleast_2d(coherence)[driving_point]
-    remedy = ("corrected: the model was passed through the lag window" if lag_corrected
-              else "H1 is biased low there: refit with lag_window=FrfEstimate.lag_window or use a longer segment")
+    remedy = (
+        "corrected: the model was passed through the lag window" if lag_corrected
+        else "H1 is biased low there: refit with lag_window=FrfEstimate.lag_window "
+        "or use a longer segment"
+    )
     for mode in modes:
         bandwidth = 2.0 * mode.zeta * mode.f_n
         if leakage_suspected(f, coh, mode.f_n, bandwidth):
             warnings.append(
                 f"leakage: mode at {mode.f_n:.2f} Hz has a half-power bandwidth of "
-                f"{bandwidth / (f[1] - f[0]):.1f} frequency bins (< {LEAKAGE_BANDWIDTH_BINS:g}) and the "
-                f"coherence dips there; {remedy}"
+                f"{bandwidth / (f[1] - f[0]):.1f} frequency bins (< {LEAKAGE_BANDWIDTH_BINS:g}) "
+                f"and the coherence dips there; {remedy}"
             )
     return tuple(warnings)

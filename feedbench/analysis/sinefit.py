@@ -64,11 +64,15 @@ def fit_sine(signal: np.ndarray, fs: float, f: float, settle_cycles: float = 0.0
     """
     signal = np.asarray(signal, dtype=float)
     if f <= 0 or fs <= 0 or settle_cycles < 0:
-        raise ValueError(f"f, fs, settle_cycles: need f > 0, fs > 0, settle_cycles >= 0, got {f}, {fs}, {settle_cycles}")
+        raise ValueError(
+            f"f, fs, settle_cycles: need f > 0, fs > 0, settle_cycles >= 0, got {f}, {fs}, "
+            f"{settle_cycles}"
+        )
     first = int(np.ceil(settle_cycles * fs / f))
     if signal.size - first < 4:
         raise ValueError(
-            f"signal: {signal.size} samples leave {signal.size - first} after {settle_cycles} settle cycles"
+            f"signal: {signal.size} samples leave {signal.size - first} after "
+            f"{settle_cycles} settle cycles"
         )
     t = np.arange(first, signal.size) / fs
     kept = signal[first:]
@@ -77,7 +81,8 @@ def fit_sine(signal: np.ndarray, fs: float, f: float, settle_cycles: float = 0.0
     residual = kept - basis @ (a, b, c)
     total = np.sum((kept - kept.mean()) ** 2)
     r_squared = 1.0 - np.sum(residual**2) / total if total > 0 else 0.0
-    return SineFit(float(f), float(np.hypot(a, b)), float(np.arctan2(-b, a)), float(c), float(r_squared))
+    amplitude, phase = float(np.hypot(a, b)), float(np.arctan2(-b, a))
+    return SineFit(float(f), amplitude, phase, float(c), float(r_squared))
 
 
 def stepped_sine_frf(
@@ -94,8 +99,11 @@ def stepped_sine_frf(
     """
     force, response = np.asarray(force, dtype=float), np.asarray(response, dtype=float)
     if force.shape != response.shape or force.ndim != 1:
-        raise ValueError(f"force, response: need equal 1-D shapes, got {force.shape}, {response.shape}")
-    fits = [_fit_step(force, response, fs, f, start, stop, settle_cycles) for f, start, stop in steps]
+        raise ValueError(
+            f"force, response: need equal 1-D shapes, got {force.shape}, {response.shape}"
+        )
+    fits = [_fit_step(force, response, fs, f, start, stop, settle_cycles)
+            for f, start, stop in steps]
     if not fits:
         raise ValueError("steps: empty")
     force_fits, response_fits, drifts = zip(*fits)
@@ -126,7 +134,9 @@ def _fit_step(force, response, fs, f, start, stop, settle_cycles) -> tuple[SineF
     """Force and response fits of one step, and the drift of H between the two halves."""
     first = start + int(np.ceil(settle_cycles * fs / f))
     if not 0 <= start < stop <= force.size or stop - first < 8:
-        raise ValueError(f"steps: ({f}, {start}, {stop}) is outside the record or too short after settling")
+        raise ValueError(
+            f"steps: ({f}, {start}, {stop}) is outside the record or too short after settling"
+        )
     middle = (first + stop) // 2
     halves = [
         fit_sine(response[a:b], fs, f).phasor / fit_sine(force[a:b], fs, f).phasor
