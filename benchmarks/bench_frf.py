@@ -20,6 +20,7 @@ import pyFRF
 import scipy.signal
 
 from feedbench.analysis.frf import estimate_frf
+from feedbench.models.axis import TwoMassAxis
 
 FS = 10_000
 N_SAMPLES = 10**6
@@ -33,7 +34,8 @@ MATCH_TOLERANCE = 1e-6
 def signals() -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(0)
     force = 20.0 * rng.standard_normal(N_SAMPLES)
-    b, a = scipy.signal.bilinear([1.0], [11.3, 104.0, 1.68e6], FS)
+    flexure = TwoMassAxis()
+    b, a = scipy.signal.bilinear([1.0], [flexure.m_tip, flexure.c, flexure.k], FS)
     displacement = scipy.signal.lfilter(b, a, force)
     return force, displacement + 0.01 * displacement.std() * rng.standard_normal(N_SAMPLES)
 

@@ -8,7 +8,8 @@
 Spectra use scipy.signal.csd's conventions (one-sided density, constant detrend per
 segment, periodic window) so that results agree with scipy to rounding. Leakage at a lightly
 damped resonance biases H1 low (H1/H2 = coherence there); `estimate_frf` says so in
-`warnings` and the H2 estimate is offered as `FrfEstimate.preferred`.
+`warnings`, offers H2 for the peak magnitude (`FrfEstimate.preferred`) and the Welch lag window
+(`FrfEstimate.lag_window`) with which `modal.fit_modes` fits H1 without the bias.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ LEAKAGE_COHERENCE_DIP = 0.02
 """Coherence drop at a peak, against its neighbourhood, that reveals leakage (or nonlinearity)."""
 
 _NEIGHBOURHOOD_BINS = 12
+"""Bins each side of a peak whose median coherence is the reference for a dip."""
 
 
 @dataclass(frozen=True)
