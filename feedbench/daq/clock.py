@@ -67,11 +67,14 @@ class _BenchClock:
         """The first drive's unwrapped cycle counter after the last tick (0 before any)."""
         return self.cycles[0]
 
-    def _start_cycle(self) -> None:
+    def _start_cycle(self) -> float:
+        """Arm the drives, send their RPDOs, then SYNC; returns the perf_counter time of SYNC."""
         for drive in self.drives:
             drive.arm_cycle()
             drive.transmit()
+        sync_time = time.perf_counter()
         self.network.send_message(SYNC_COB_ID, b"")
+        return sync_time
 
     def _count_cycles(self) -> int:
         """Unwrap each drive's 16-bit counter; count the ticks where one skipped or stalled."""
@@ -140,8 +143,7 @@ class RealtimeClock(_BenchClock):
             self._next_sync += skipped * self.period_s
         slot = self._next_sync
         _sleep_until(slot)
-        self._start_cycle()
-        sent = time.perf_counter()
+        sent = self._start_cycle()
         self._lateness.append(sent - slot)
         self._next_sync = slot + self.period_s
         answer_by = slot + RESPONSE_SHARE * self.period_s
@@ -155,7 +157,11 @@ class RealtimeClock(_BenchClock):
         return self.cycle
 
     def jitter_stats(self) -> dict[str, float]:
-        """Lateness of the SYNCs behind their slots (µs): mean, max, std; n SYNCs sent."""
+        """Lateness of the SYNCs behind their slots (µs): mean, max, std; n SYNCs sent.
+
+        The slot starts with the RPDOs, so the mean includes their send time; the std is the
+        jitter of the cycle.
+        """
         late = np.frombuffer(self._lateness, dtype=float) * 1e6
         if late.size == 0:
             return {"n": 0, "mean_us": float("nan"), "max_us": float("nan"),
