@@ -16,6 +16,8 @@ import math
 import numpy as np
 from numba import njit
 
+from feedbench.models.effects import E_FORCE_LEVEL, acting_force, effect_forces
+
 CSP, CSV, CST = 8, 9, 10
 """CiA 402 modes of operation: cyclic synchronous position / velocity / torque (force)."""
 
@@ -220,10 +222,12 @@ def clear_controller(state: np.ndarray, delay_line: np.ndarray, keep_delay_line:
 
 @njit(**_JIT)
 def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positive: tuple,
-                  negative: tuple, params: np.ndarray, mode: int, enabled: bool,
-                  inputs: np.ndarray) -> None:
+                  negative: tuple, params: np.ndarray, effects: tuple, mode: int,
+                  enabled: bool, inputs: np.ndarray) -> None:
     """Advance one bus cycle: position ticks, velocity ticks inside them, physics substeps
-    inside those. The force command passes the delay line, then the force limit.
+    inside those. The force command passes the delay line, then the force limit; the force
+    acting on the carriage is the one behind that (reported) force, plus the world's extra
+    forces (`effects`: ripple, backlash, see `feedbench.models.effects`).
 
     inputs: one row of the input table (target position m, target velocity m/s, target
     force N, velocity offset m/s, force offset N, tip force N).
@@ -262,9 +266,13 @@ def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positi
             delay_line[index] = command
             index = index + 1 if index + 1 < delay_line.size else 0
             applied = min(max(delay_line[index], -force_limit), force_limit)
+            acting = acting_force(applied, effects[E_FORCE_LEVEL])
             for _ in range(int(params[P_PHYSICS_STEPS])):
-                mechanics, linearisation = physics_step(mechanics, linearisation, applied,
-                                                        tip_force, rows, positive, negative)
+                motor_extra, tip_extra = effect_forces(mechanics, effects)
+                mechanics, linearisation = physics_step(mechanics, linearisation,
+                                                        acting + motor_extra,
+                                                        tip_force + tip_extra, rows, positive,
+                                                        negative)
     state[S_X_MOT], state[S_V_MOT], state[S_X_TIP], state[S_V_TIP] = mechanics
     state[S_FRICTION_VELOCITY], state[S_FRICTION_FORCE], state[S_NEWTON_GAIN] = linearisation
     state[S_INTEGRAL], state[S_PREVIOUS_ERROR] = integral, previous_error
@@ -275,14 +283,16 @@ def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positi
 
 @njit(**_JIT)
 def run_cycles(state: np.ndarray, delay_line: np.ndarray, model: np.ndarray,
-               table: np.ndarray, params: np.ndarray, modes: np.ndarray, enabled: bool,
-               inputs: np.ndarray, outputs: np.ndarray) -> None:
+               table: np.ndarray, params: np.ndarray, effect_vector: np.ndarray,
+               modes: np.ndarray, enabled: bool, inputs: np.ndarray, outputs: np.ndarray) -> None:
     """Advance len(modes) bus cycles; row k of `outputs` gets the state after cycle k."""
     rows = model_rows(model)
     positive, negative = friction_side(table, 0), friction_side(table, 1)
+    effects = (effect_vector[0], effect_vector[1], effect_vector[2], effect_vector[3],
+               effect_vector[4], effect_vector[5], effect_vector[6])
     for k in range(modes.size):
-        advance_cycle(state, delay_line, rows, positive, negative, params, modes[k], enabled,
-                      inputs[k])
+        advance_cycle(state, delay_line, rows, positive, negative, params, effects, modes[k],
+                      enabled, inputs[k])
         outputs[k, O_POSITION] = state[S_X_MOT]
         outputs[k, O_VELOCITY] = state[S_V_MOT]
         outputs[k, O_FORCE] = state[S_FORCE]

@@ -37,6 +37,7 @@ from scipy.linalg import expm
 
 from feedbench.models import _kernel
 from feedbench.models._kernel import CSP, CST, CSV
+from feedbench.models.effects import AxisEffects
 from feedbench.models.friction import AnderssonFriction, DirectionalFriction, LAB_BENCH_FRICTION
 
 __all__ = [
@@ -211,11 +212,15 @@ class AxisSimulator:
         force_limit: float = 2000.0,
         velocity_feedforward: bool = True,
         physics_substeps: int = 1,
+        effects: AxisEffects = AxisEffects(),
     ) -> None:
         """velocity_feedforward: in CSP add the target's increment per cycle / cycle time to
-        the velocity command. physics_substeps: physics steps per velocity-loop period."""
+        the velocity command. physics_substeps: physics steps per velocity-loop period.
+        effects: what else the world carries (ripple, force-level nonlinearity, backlash)."""
         self.axis = axis
         self.timing = timing
+        self.effects = effects
+        self._effect_vector = effects.vector(axis.k, axis.c)
         physics_substeps = _whole_ratio("physics_substeps", physics_substeps, 1)
         self._model = _kernel.kernel_model(
             axis.discrete_model(timing.velocity_period / physics_substeps))
@@ -371,5 +376,6 @@ class AxisSimulator:
 
     def _run(self, modes: np.ndarray, inputs: np.ndarray, outputs: np.ndarray) -> None:
         _kernel.run_cycles(self._state, self._delay_line, self._model, self._friction_table,
-                           self._params, modes, self._enabled, inputs, outputs)
+                           self._params, self._effect_vector, modes, self._enabled, inputs,
+                           outputs)
         self._cycle_count += modes.size
