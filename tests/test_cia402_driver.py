@@ -33,6 +33,7 @@ def test_enable_reaches_operation_enabled_only_through_the_controlwords(can_chan
               if c == TPDO1]
     assert [cw for _, cw in controlwords] == [0x06, 0x07, 0x0F]
     assert [s for _, s in states] == ["READY TO SWITCH ON", "SWITCHED ON", "OPERATION ENABLED"]
+    assert bench.drive.is_enabled
     first_enabled = states[-1][0]
     assert controlwords[-1][0] < first_enabled  # 0x0F was on the bus before the statusword
 

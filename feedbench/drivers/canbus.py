@@ -1,8 +1,7 @@
 """CAN bus access for both sides: open a canopen Network, fast PDO codecs.
 
-The interface names are python-can's: ``virtual`` (tests, simulation), ``socketcan``
-(``can0`` on Linux), ``socketcand`` (a TCP bridge), … A bus spec in config reads
-``interface:channel`` (``socketcan:can0``; a bare ``virtual`` uses the default channel).
+The interface names are python-can's: ``virtual`` (tests, simulation: any channel name),
+``socketcan`` (channel ``can0`` on Linux), ``socketcand`` (a TCP bridge), …
 """
 
 from __future__ import annotations
@@ -18,13 +17,6 @@ from canopen.pdo import PdoMap
 
 NOTIFIER_POLL_S = 0.05
 """Receive-thread poll period: bounds how long `Network.disconnect` waits (canopen: 1 s)."""
-DEFAULT_CHANNEL = "feedbench"
-
-
-def parse_bus_spec(spec: str) -> tuple[str, str]:
-    """``"socketcan:can0"`` → ``("socketcan", "can0")``; ``"virtual"`` → default channel."""
-    interface, _, channel = spec.partition(":")
-    return interface, channel or DEFAULT_CHANNEL
 
 
 def connect(network: canopen.Network) -> canopen.Network:

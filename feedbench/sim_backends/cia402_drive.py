@@ -203,12 +203,6 @@ class SimulatedCia402Drive:
         self.node.nmt.stop_heartbeat()
         self.network.disconnect()
 
-    def __enter__(self) -> SimulatedCia402Drive:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     # -- SDO -----------------------------------------------------------------------------
 
     def _on_sdo_read(self, index: int, subindex: int, od: object) -> int | float | None:
