@@ -1,4 +1,4 @@
-"""The `feedbench` command: run, runs, analyze, demo.
+"""The `feedbench` command: run, runs, analyze, live, report, demo.
 
 Errors the user can fix (a config key, a limit, an unknown run) print one line
 ``feedbench: error: …`` and exit with status 2, before anything moves.
@@ -28,7 +28,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     from feedbench.bench import load_run_config, run_config
 
     config = load_run_config(args.config)
-    row = run_config(config, progress=not args.json)
+    if args.live:
+        from feedbench.gui.live_window import bench_session
+
+        row = bench_session(config, progress=not args.json).exec()
+    else:
+        row = run_config(config, progress=not args.json)
     if args.json:
         _print_json(row)
     else:
@@ -88,6 +93,23 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_live(args: argparse.Namespace) -> int:
+    """Replay a recorded run in the live window."""
+    from feedbench.gui.live_window import replay_session
+
+    replay_session(resolve_run(args.run, args.dir), speed=args.speed, span_s=args.span).exec()
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """Write the HTML report of recorded runs and print its path."""
+    from feedbench.report import write_report
+
+    files = [resolve_run(run, args.dir) for run in args.runs]
+    print(write_report(files, args.output or Path(args.dir) / "report.html"))
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """Friction sweep + chirp on the simulated bench, identified vs true values."""
     from feedbench.demo import describe_demo, run_demo
@@ -110,6 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="run an experiment config (TOML)")
     run.add_argument("config")
     run.add_argument("--json", action="store_true", help="print the run record as JSON")
+    run.add_argument("--live", action="store_true", help="watch the run in the live window")
     run.set_defaults(func=cmd_run)
 
     runs = sub.add_parser("runs", help="list the run catalog")
@@ -122,6 +145,20 @@ def build_parser() -> argparse.ArgumentParser:
     analyze.add_argument("--dir", default="runs")
     analyze.add_argument("--json", action="store_true")
     analyze.set_defaults(func=cmd_analyze)
+
+    live = sub.add_parser("live", help="replay a recorded run in the live window")
+    live.add_argument("run")
+    live.add_argument("--dir", default="runs")
+    live.add_argument("--speed", type=float, default=1.0,
+                      help="replay speed × real time (0: as fast as possible)")
+    live.add_argument("--span", type=float, default=10.0, help="window length (s)")
+    live.set_defaults(func=cmd_live)
+
+    report = sub.add_parser("report", help="HTML report of recorded runs (ids or .h5 files)")
+    report.add_argument("runs", nargs="+")
+    report.add_argument("--dir", default="runs")
+    report.add_argument("-o", "--output", help="report file (default: DIR/report.html)")
+    report.set_defaults(func=cmd_report)
 
     demo = sub.add_parser("demo", help="friction sweep + chirp on the simulated bench")
     demo.add_argument("--dir", default="runs/demo")

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from feedbench.bench import parse_run_config, run_config
 from feedbench.config import read_toml
+from feedbench.report import write_report
 from feedbench.sim_backends.world import world_truth
 
 DEMO_EXPERIMENTS = ("friction_sweep", "chirp")
@@ -52,6 +53,8 @@ def run_demo(directory: Path, quiet: bool = False) -> dict:
         analyses[name] = analyze_file(row["file"])
     truth = world_truth(world)
     mobility = analyses["chirp"]
+    report = write_report([r["file"] for r in runs], directory / "report.html",
+                          title="feedbench demo campaign")
     return {
         "friction": _friction_comparison(analyses["friction_sweep"], truth),
         "servo_mobility": {
@@ -63,6 +66,7 @@ def run_demo(directory: Path, quiet: bool = False) -> dict:
             "warnings": mobility["warnings"],
         },
         "runs": runs,
+        "report": str(report),
     }
 
 
@@ -94,6 +98,7 @@ def describe_demo(result: dict) -> str:
         "Runs:",
     ]
     lines += [f"  {r['id']}  {r['status']}  {r['file']}" for r in result["runs"]]
+    lines.append(f"Report: {result['report']}")
     if "elapsed_s" in result:
         lines.append(f"Finished in {result['elapsed_s']:.1f} s")
     return "\n".join(lines)

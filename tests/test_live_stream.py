@@ -332,7 +332,7 @@ def test_chirp_mobility_builds_up_sweep_by_sweep_and_matches_the_true_frf():
     assert f[0] >= 20.0 and f[-1] <= 150.0
     assert np.max(np.abs(H / np.abs(truth) - 1)) < 0.05
     assert coherence.curves[0].y.min() > 0.95
-    assert view.summary.startswith("3 sweeps averaged")
+    assert view.summary.startswith("3 sweeps (10 Welch averages)")  # (12000 − 2048) // 1024 + 1
 
 
 def test_sine_stream_points_carry_the_true_gain_phase_and_r_squared():

@@ -118,7 +118,7 @@ def test_the_mobility_builds_up_sweep_by_sweep(chirp_run):
     result = session.window.result
     assert result.version == 2
     assert session.window.result_plots.summary.text().startswith(
-        "<b>servo mobility of the sweeps so far</b>: 2 sweeps averaged")
+        "<b>servo mobility of the sweeps so far</b>: 2 sweeps (")
     f, log_H = session.window.result_plots.curves[0]["H1"].getData()
     view = result.view().panels[0].curves[0]
     assert f[0] >= 20.0 and f[-1] <= 150.0

@@ -256,14 +256,19 @@ class ChirpMobility(LiveResult):
         if not sweeps:
             return ResultView(self.title, _empty_frf_panels(), "waiting for the first sweep")
         force, velocity = np.concatenate(sweeps).T
-        est = estimate_frf(force, velocity, 1.0 / self.cycle_s,
-                           nperseg=min(FRF_NPERSEG, len(force)))
+        est = estimate_frf(force, velocity, 1.0 / self.cycle_s, nperseg=welch_length(len(force)))
         inside = (est.f >= MOBILITY_BAND_HZ[0]) & (est.f <= MOBILITY_BAND_HZ[1])
         panels = _frf_panels(est.f[inside], est.H1[inside], est.coherence[inside])
-        summary = (f"{len(sweeps)} sweep{'s' if len(sweeps) > 1 else ''} averaged; "
-                   f"{_extrema_text(est.f, est.H1)}"
+        summary = (f"{len(sweeps)} sweep{'s' if len(sweeps) > 1 else ''} "
+                   f"({est.n_averages} Welch averages); {_extrema_text(est.f, est.H1)}"
                    f"min coherence {est.coherence[inside].min():.3f}")
         return ResultView(self.title, panels, summary)
+
+
+def welch_length(n_samples: int) -> int:
+    """Welch segment length: the analysis's, or a power of two short enough for at least
+    three averages while little is recorded (one segment would make coherence 1 trivially)."""
+    return int(min(FRF_NPERSEG, 2 ** np.floor(np.log2(max(n_samples // 2, 8)))))
 
 
 def _extrema_text(f: np.ndarray, H: np.ndarray) -> str:
