@@ -24,7 +24,7 @@ from typing import NamedTuple
 import canopen
 
 from feedbench.daq.clock import LockstepClock
-from feedbench.drivers.canbus import connect, open_bus, open_network
+from feedbench.protocols.canbus import connect, open_bus, open_network
 from feedbench.drivers.cia402 import Cia402Drive, CycleSignal
 from feedbench.models.axis import CSV
 from feedbench.sim_backends.bench import start_simulated_axis

@@ -17,7 +17,7 @@ from feedbench.config import ConfigError, Field, one_of, positive, read_toml, va
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.clock import LockstepClock, RealtimeClock
 from feedbench.daq.recorder import Recorder
-from feedbench.drivers.canbus import open_network
+from feedbench.protocols.canbus import open_network
 from feedbench.drivers.cia402 import Cia402Drive
 from feedbench.experiments import chirp, friction_sweep
 from feedbench.experiments.limits import Limits

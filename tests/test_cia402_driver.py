@@ -125,7 +125,7 @@ def test_unmapped_objects_are_errors_or_nan(can_channel):
 
 
 def test_drivers_do_not_import_the_simulation():
-    code = ("import sys, feedbench.drivers.cia402, feedbench.drivers.canbus, feedbench.daq.clock;"
+    code = ("import sys, feedbench.drivers.cia402, feedbench.protocols.canbus, feedbench.daq.clock;"
             "print(sorted(m for m in sys.modules if m.startswith(('feedbench.sim_backends',"
             "'feedbench.models'))))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -20,7 +20,7 @@ from canopen.profiles.p402 import BaseNode402
 from canopen.sdo import SdoAbortedError
 
 from feedbench.daq.clock import LockstepClock
-from feedbench.drivers.canbus import open_network
+from feedbench.protocols.canbus import open_network
 from feedbench.drivers.cia402 import Cia402Drive, PdoConfig
 from feedbench.models.axis import CSP, CST, CSV, AxisSimulator, ServoTiming
 from feedbench.sim_backends import eds

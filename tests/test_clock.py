@@ -8,7 +8,7 @@ import can
 import pytest
 
 from feedbench.daq.clock import BusTimeout, LockstepClock, RealtimeClock
-from feedbench.drivers.canbus import open_network
+from feedbench.protocols.canbus import open_network
 from feedbench.drivers.cia402 import Cia402Drive
 from feedbench.models.axis import CSV
 from feedbench.sim_backends.bench import start_simulated_axis

@@ -29,7 +29,7 @@ from canopen.emcy import EmcyError
 from canopen.pdo import PdoMap
 from canopen.profiles.p402 import OperationMode, State402
 
-from feedbench.drivers.canbus import pdo_codec
+from feedbench.protocols.canbus import pdo_codec
 
 Entry = int | tuple[int, int]
 """A mapped object: index (sub-index 0) or (index, sub-index)."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from feedbench.drivers.canbus import open_bus
+from feedbench.protocols.canbus import open_bus
 from feedbench.models.axis import AxisSimulator
 from feedbench.sim_backends.cia402_drive import SimulatedCia402Drive
 

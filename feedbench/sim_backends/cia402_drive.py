@@ -34,7 +34,7 @@ import can
 import canopen
 from canopen.sdo import SdoAbortedError
 
-from feedbench.drivers.canbus import connect, pdo_codec
+from feedbench.protocols.canbus import connect, pdo_codec
 from feedbench.models.axis import CSP, CSV, MODES, AxisSimulator
 from feedbench.sim_backends import eds
 

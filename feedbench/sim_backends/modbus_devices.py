@@ -33,7 +33,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.base import ModbusBaseServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from feedbench.drivers.modbus_devices import (
+from feedbench.protocols.modbus_registers import (
     INVERTER_CONTROL_FAULT_RESET,
     INVERTER_CONTROL_RUN,
     INVERTER_MAP,

@@ -30,7 +30,7 @@ from typing import Callable, Literal
 
 import numpy as np
 
-from feedbench.drivers.serial_daq import (
+from feedbench.protocols.serial_frames import (
     CHANNELS, CRC_BYTES, CRC_INIT, FULL_SCALE_COUNTS, HEADER_BYTES, MAX_RATE_HZ, MIN_RATE_HZ,
     SAMPLE_BYTES, SEQ_BYTES, SYNC, TYPE_DATA, TYPE_REPLY, data_frame_bytes, link_load,
 )
