@@ -110,12 +110,12 @@ def acquire(path: Path, duration_s: float, with_window: bool) -> dict[str, float
     if window is not None:
         out.update(fps=(window.frames - frames0) / elapsed, paints_per_s=(window.paints - paints0) / elapsed,
                    observer_max_s=float(producer.observer_s.max()),
-                   **frame_costs(app, window, stream))
+                   **frame_costs(window, stream))
         window.close()
     return out
 
 
-def frame_costs(app, window: LiveWindow, stream: LiveStream, repeats: int = 5) -> dict[str, float]:
+def frame_costs(window: LiveWindow, stream: LiveStream, repeats: int = 5) -> dict[str, float]:
     """Seconds to build and paint one frame from the 20 s of raw samples (200 000 points
     per channel) and from the window's min/max copy (two points per pixel)."""
     costs = {}

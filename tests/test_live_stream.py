@@ -70,7 +70,7 @@ def test_ring_buffer_keeps_the_latest_rows_across_wraparound():
 def test_ring_buffer_cuts_rows_already_overwritten():
     ring = RingBuffer(100, ("a",))
     ring.write(np.arange(250), np.arange(250.0)[:, None])
-    cycles, copied, first = ring.copy_rows(100, 250, [0])
+    _, copied, first = ring.copy_rows(100, 250, [0])
     assert first == 150
     np.testing.assert_array_equal(copied[0], np.arange(150.0, 250.0))
 

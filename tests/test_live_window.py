@@ -7,6 +7,7 @@ keep the screenshot for the README (docs/img/live_window.png).
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import time
@@ -19,7 +20,11 @@ from feedbench.bench import parse_run_config
 from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
 from feedbench.drivers.cia402 import decode_state
-from feedbench.gui.live_window import STOP_REASON, bench_session, qt_app, replay_session
+from feedbench.daq.live import LiveStream
+from feedbench.experiments.runner import StopRequest
+from feedbench.gui.live_window import (
+    STOP_REASON, LiveWindow, Worker, bench_session, qt_app, replay_session, sticky_range,
+)
 from feedbench.units import MM_PER_MIN
 
 pytestmark = pytest.mark.timeout(120)
@@ -202,3 +207,59 @@ def test_replay_shows_the_recording_in_the_same_window(app, chirp_run):
     replayed, original = session.window.result.view(), live.window.result.view()
     np.testing.assert_array_equal(replayed.panels[0].curves[0].y, original.panels[0].curves[0].y)
     assert replayed.summary == original.summary
+
+
+def test_run_live_from_the_command_line(app, tmp_path, capsys):
+    """``feedbench run CONFIG --live``: the window opens, the run completes, closing the
+    window returns the run's record (a timer closes it once the run is over)."""
+    from importlib import resources
+
+    from PySide6.QtCore import QTimer
+
+    from feedbench.cli import main
+
+    text = (resources.files("feedbench") / "examples" / "chirp.toml").read_text()
+    text = (text.replace("repetitions = 4", "repetitions = 1")
+            .replace("duration_s = 4.0", "duration_s = 1.0")
+            .replace('output_dir = "runs"', f'output_dir = "{tmp_path}"')
+            .replace('channel = "feedbench-demo"', f'channel = "fb-cli-{uuid.uuid4().hex[:8]}"'))
+    (tmp_path / "chirp.toml").write_text(text)
+    seen = []
+
+    def close_when_done() -> None:
+        for widget in app.topLevelWidgets():
+            if isinstance(widget, LiveWindow) and widget.isVisible():
+                seen.append(widget.stream.state().status)
+                if seen[-1] == "complete":
+                    widget.close()
+
+    timer = QTimer()
+    timer.timeout.connect(close_when_done)
+    timer.start(50)
+    assert main(["run", str(tmp_path / "chirp.toml"), "--live", "--json"]) == 0
+    timer.stop()
+    row = json.loads(capsys.readouterr().out)
+    assert row["status"] == "complete" and seen[0] in ("idle", "running")
+    assert open_recording(row["file"]).n_gaps == 0
+
+
+def test_a_run_that_fails_shows_its_error_and_re_raises_it(app):
+    stream, stop = LiveStream(), StopRequest()
+    worker = Worker(lambda: 1 / 0)
+    window = LiveWindow(stream, {}, stop=stop, worker=worker)
+    worker.start()
+    worker.join(5)
+    window.refresh()
+    assert "error: division by zero" in window.state_label.text()
+    with pytest.raises(ZeroDivisionError):
+        worker.wait(stop)
+    window.close()
+
+
+def test_sticky_range_holds_still_until_the_data_leave_or_shrink():
+    shown = sticky_range(None, 0.0, 10.0)
+    assert shown == pytest.approx((-1.0, 11.0))
+    assert sticky_range(shown, 2.0, 9.0) is shown
+    assert sticky_range(shown, 2.0, 12.0) == pytest.approx((1.0, 13.0))
+    assert sticky_range(shown, 4.0, 5.0) == pytest.approx((3.9, 5.1))
+    assert sticky_range(None, 3.0, 3.0) == pytest.approx((2.7, 3.3))

@@ -12,6 +12,7 @@ asks the runner for its safe stop (ramp down, disable, file marked aborted).
 from __future__ import annotations
 
 import ctypes
+import html
 import signal
 import sys
 import threading
@@ -21,8 +22,15 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
+import pyqtgraph as pg
 import PySide6
 from PySide6 import QtCore, QtWidgets
+
+from feedbench.daq.live import Decimator, LiveFrame, LiveState, LiveStream, replay
+from feedbench.experiments.limits import Limits
+from feedbench.experiments.runner import StopRequest
+from feedbench.gui.live_results import Curve, LiveResult, Panel, ResultView, live_result_for
+from feedbench.units import MM_PER_MIN
 
 
 def _keep_singletons_alive() -> None:
@@ -37,14 +45,6 @@ def _keep_singletons_alive() -> None:
 
 
 _keep_singletons_alive()
-
-import pyqtgraph as pg  # noqa: E402  (after the work-around: pyqtgraph paints on import)
-
-from feedbench.daq.live import Decimator, LiveFrame, LiveState, LiveStream, replay
-from feedbench.experiments.limits import Limits
-from feedbench.experiments.runner import StopRequest
-from feedbench.gui.live_results import Curve, LiveResult, Panel, ResultView, live_result_for
-from feedbench.units import MM_PER_MIN
 
 SPANS_S = (1.0, 2.0, 5.0, 10.0, 20.0, 60.0)
 """Window lengths offered (s of bench time); the stream holds the longest."""
@@ -112,7 +112,8 @@ def state_text(state: LiveState) -> str:
     if np.isfinite(state.wall_time_left_s) and state.status == "running":
         left += f" (≈ {state.wall_time_left_s:.0f} s wall)"
     status = state.status + (f": {state.reason}" if state.reason else "")
-    return f"<b>{state.experiment}</b> — {status}<br>{state.step_text}<br>{left}"
+    return (f"<b>{html.escape(state.experiment)}</b> — {html.escape(status)}<br>"
+            f"{html.escape(state.step_text)}<br>{left}")
 
 
 class Worker:
@@ -131,13 +132,16 @@ class Worker:
             self.error = exc
 
     def start(self) -> None:
+        """Start the thread."""
         self._thread.start()
 
     @property
     def alive(self) -> bool:
+        """True while `target` runs."""
         return self._thread.is_alive()
 
     def join(self, timeout: float | None = None) -> None:
+        """Wait for the thread (at most `timeout` s)."""
         self._thread.join(timeout)
 
     def wait(self, stop: StopRequest) -> Any:
@@ -414,7 +418,7 @@ class LiveWindow(QtWidgets.QMainWindow):
     def _show_state(self, state: LiveState) -> None:
         text = state_text(state)
         if self.worker is not None and self.worker.error is not None:
-            text += f"<br><font color='red'>error: {self.worker.error}</font>"
+            text += f"<br><font color='red'>error: {html.escape(str(self.worker.error))}</font>"
         self.state_label.setText(text)
         self.progress.setValue(int(round(1000 * state.fraction)))
         if state.status not in ("idle", "running"):
