@@ -219,10 +219,14 @@ def test_reset_places_both_masses():
 
 def _andersson(v: float) -> tuple[float, float]:
     """Eq. (5.2) with Fig. 5.11 values, written out independently of the package (N, N·s/m)."""
-    f_c, f_s, v_s, sigma = (44.2, 84.0, 387.4 / 6e4, 168.0) if v >= 0 else (38.7, 88.0, 421 / 6e4, 150.0)
+    if v >= 0:
+        f_c, f_s, v_s, sigma = 44.2, 84.0, 387.4 / 6e4, 168.0
+    else:
+        f_c, f_s, v_s, sigma = 38.7, 88.0, 421 / 6e4, 150.0
     e, t = math.exp(-abs(v) / v_s), math.tanh(15000.0 * v)
     level = f_c + (f_s - f_c) * e
-    return level * t + sigma * v, level * 15000.0 * (1 - t * t) - (f_s - f_c) * e / v_s * abs(t) + sigma
+    slope = level * 15000.0 * (1 - t * t) - (f_s - f_c) * e / v_s * abs(t) + sigma
+    return level * t + sigma * v, slope
 
 
 def _radau_reference(force_per_cycle: np.ndarray) -> np.ndarray:
@@ -236,7 +240,7 @@ def _radau_reference(force_per_cycle: np.ndarray) -> np.ndarray:
         spring = k * (x[0] - x[2]) + c * (x[1] - x[3])
         return [x[1], (force - _andersson(x[1])[0] - spring) / m1, x[3], spring / m2]
 
-    def jacobian(_, x, force):
+    def jacobian(_, x, __):
         d = _andersson(x[1])[1]
         return [[0, 1, 0, 0], [-k / m1, -(c + d) / m1, k / m1, c / m1], [0, 0, 0, 1],
                 [k / m2, c / m2, -k / m2, -c / m2]]
@@ -244,7 +248,8 @@ def _radau_reference(force_per_cycle: np.ndarray) -> np.ndarray:
     state, states, previous = np.zeros(4), [], 0.0
     for cycle, force in enumerate(force_per_cycle):
         start = cycle * 1e-3
-        for t0, t1, f in ((start, start + 0.75e-3, previous), (start + 0.75e-3, start + 1e-3, force)):
+        delayed = start + 0.75e-3
+        for t0, t1, f in ((start, delayed, previous), (delayed, start + 1e-3, force)):
             state = solve_ivp(rhs, (t0, t1), state, method="Radau", jac=jacobian, args=(f,),
                               rtol=1e-10, atol=[1e-13, 1e-11, 1e-13, 1e-11]).y[:, -1]
         states.append(state)

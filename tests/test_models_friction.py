@@ -25,7 +25,8 @@ NEGATIVE = LAB_BENCH_FRICTION.negative
     ],
 )
 def test_lab_bench_law_matches_hand_computed_values(feed_mm_min, expected_N):
-    assert LAB_BENCH_FRICTION.force(feed_mm_min * MM_PER_MIN) == pytest.approx(expected_N, rel=1e-12)
+    force = LAB_BENCH_FRICTION.force(feed_mm_min * MM_PER_MIN)
+    assert force == pytest.approx(expected_N, rel=1e-12)
 
 
 def test_stribeck_shape_exponent_and_negative_side():

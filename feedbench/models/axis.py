@@ -121,7 +121,8 @@ class TwoMassAxis:
 
 @dataclass(frozen=True)
 class CascadeGains:
-    """P-PI cascade gains: K_p velocity gain (N·s/m), T_i integral time (s), K_v position gain (1/s)."""
+    """P-PI cascade gains: K_p velocity gain (N·s/m), T_i integral time (s), K_v position
+    gain (1/s)."""
 
     K_p: float
     T_i: float
