@@ -9,25 +9,36 @@ while it is written, and a writer killed mid-run leaves a readable file with sta
 
 from __future__ import annotations
 
+import json
 import platform
 from collections.abc import Mapping, Sequence
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, NamedTuple
 
 import h5py
 from h5py import h5s
 import numpy as np
 
 from feedbench.daq.recording import (
-    CYCLE, DATA, EVENT_DTYPE, EVENTS, RESERVED_ATTRS, to_json, utc_now_iso,
+    CYCLE, DATA, EVENT_DTYPE, EVENTS, RESERVED_ATTRS, SEQUENCE, STREAMS, to_json, utc_now_iso,
 )
 
 VERSIONED_DISTRIBUTIONS = (
     "feedbench", "numpy", "scipy", "h5py", "canopen", "python-can", "pymodbus", "pyserial",
 )
 EVENTS_CHUNK_ROWS = 64
+STREAM_CHUNK_ROWS = 10_000
+"""Rows of a high-rate stream held in memory before they are written (1 s at 10 kHz)."""
+
+
+class StreamSpec(NamedTuple):
+    """A high-rate stream to record beside the per-cycle rows: channel names, units, rate (Hz)."""
+
+    channels: tuple[str, ...]
+    units: Mapping[str, str]
+    rate_hz: float
 
 
 def software_versions() -> dict[str, str | None]:
@@ -48,7 +59,8 @@ class Recorder:
     """Write one run to an HDF5 file incrementally; use as a context manager.
 
     `metadata` keys: `experiment` (name), `config` (experiment + bench config, stored as
-    JSON), any other key is stored as its own JSON attribute.
+    JSON), any other key is stored as its own JSON attribute. `streams` declares the
+    high-rate streams (`append_stream`); SWMR files cannot grow new datasets later.
     """
 
     def __init__(
@@ -58,6 +70,7 @@ class Recorder:
         units: Mapping[str, str],
         metadata: Mapping[str, Any],
         chunk_rows: int = 1000,
+        streams: Mapping[str, StreamSpec] | None = None,
     ) -> None:
         if chunk_rows < 1:
             raise ValueError(f"chunk_rows must be >= 1, got {chunk_rows}")
@@ -72,7 +85,9 @@ class Recorder:
         self._written = 0
         self._next_cycle: int | None = None
         self._closed = False
-        self._file = self._create_file(units, metadata)
+        self._file = self._create_file(units, metadata, streams or {})
+        self._streams = {name: _StreamWriter(self._file[STREAMS][name], len(spec.channels))
+                         for name, spec in (streams or {}).items()}
         self._cycle_set = self._file[CYCLE]
         self._data_sets = [self._file[DATA][name] for name in self.channels]
         self._event_set = self._file[EVENTS]
@@ -129,6 +144,12 @@ class Recorder:
                 self._write_buffer()
         self._next_cycle = int(cycles[-1]) + 1
 
+    def append_stream(self, name: str, cycles: np.ndarray, sequence: np.ndarray,
+                      samples: np.ndarray) -> None:
+        """Add n samples to stream `name`: bus cycle and counter (n,) and values (n × channels)."""
+        self._require_open()
+        self._streams[name].append(cycles, sequence, samples)
+
     def event(self, cycle: int, kind: str, text: str = "") -> None:
         """Write an event marker and flush it at once (kinds: segment, fault, limit, abort,
         gap, info)."""
@@ -143,6 +164,8 @@ class Recorder:
         if self._closed:
             return
         self._write_buffer()
+        for stream in self._streams.values():
+            stream.write()
         self._file.close()
         self._closed = True
         # Final attributes are written outside SWMR mode: SWMR writers must not modify attributes.
@@ -173,7 +196,8 @@ class Recorder:
         if self._closed:
             raise RuntimeError(f"recorder for {self.path} is closed")
 
-    def _create_file(self, units: Mapping[str, str], metadata: Mapping[str, Any]) -> h5py.File:
+    def _create_file(self, units: Mapping[str, str], metadata: Mapping[str, Any],
+                     streams: Mapping[str, StreamSpec]) -> h5py.File:
         """Create every dataset and attribute, then switch to SWMR mode."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
         file = h5py.File(self.path, "w", libver="latest")
@@ -193,6 +217,7 @@ class Recorder:
             if key not in RESERVED_ATTRS:
                 file.attrs[key] = to_json(value)
         self._create_datasets(file, units)
+        _create_streams(file.create_group(STREAMS), streams)
         file.swmr_mode = True
         return file
 
@@ -239,6 +264,58 @@ class Recorder:
         else:
             text = f"cycle counter went from {last} to {cycle} (not advancing)"
         self.event(cycle, "gap", text)
+
+
+class _StreamWriter:
+    """Buffers one stream's samples and writes them in chunks of `STREAM_CHUNK_ROWS`."""
+
+    def __init__(self, group: h5py.Group, n_channels: int) -> None:
+        self._cycle_set, self._sequence_set = group[CYCLE], group[SEQUENCE]
+        self._data_sets = [group[DATA][name] for name in json.loads(group.attrs["channels"])]
+        self._cycles: list[np.ndarray] = []
+        self._sequences: list[np.ndarray] = []
+        self._samples: list[np.ndarray] = []
+        self._buffered = 0
+        self._written = 0
+        self._n_channels = n_channels
+
+    def append(self, cycles: np.ndarray, sequence: np.ndarray, samples: np.ndarray) -> None:
+        samples = np.asarray(samples, dtype=np.float64)
+        if samples.shape != (len(sequence), self._n_channels) or len(cycles) != len(sequence):
+            raise ValueError(f"stream samples {samples.shape}, {len(cycles)} cycles and "
+                             f"{len(sequence)} counters do not match {self._n_channels} channels")
+        self._cycles.append(np.asarray(cycles, dtype=np.int64))
+        self._sequences.append(np.asarray(sequence, dtype=np.int64))
+        self._samples.append(samples)
+        self._buffered += len(sequence)
+        if self._buffered >= STREAM_CHUNK_ROWS:
+            self.write()
+
+    def write(self) -> None:
+        """Write the buffered samples and flush (SWMR readers then see them)."""
+        if not self._buffered:
+            return
+        samples = np.concatenate(self._samples)
+        for column, dataset in enumerate(self._data_sets):
+            _write_rows(dataset, self._written, np.ascontiguousarray(samples[:, column]))
+        _write_rows(self._sequence_set, self._written, np.concatenate(self._sequences))
+        _write_rows(self._cycle_set, self._written, np.concatenate(self._cycles))
+        self._cycle_set.file.flush()
+        self._written += self._buffered
+        self._cycles, self._sequences, self._samples, self._buffered = [], [], [], 0
+
+
+def _create_streams(group: h5py.Group, streams: Mapping[str, StreamSpec]) -> None:
+    extendable = dict(shape=(0,), maxshape=(None,), chunks=(STREAM_CHUNK_ROWS,))
+    for name, spec in streams.items():
+        stream = group.create_group(name)
+        stream.attrs.update(rate_hz=float(spec.rate_hz), channels=to_json(list(spec.channels)))
+        stream.create_dataset(CYCLE, dtype=np.int64, **extendable)
+        stream.create_dataset(SEQUENCE, dtype=np.int64, **extendable)
+        data = stream.create_group(DATA)
+        for channel in spec.channels:
+            dataset = data.create_dataset(channel, dtype=np.float64, fillvalue=np.nan, **extendable)
+            dataset.attrs["units"] = spec.units.get(channel, "")
 
 
 def _write_rows(dataset: h5py.Dataset, start: int, rows: np.ndarray) -> None:

@@ -5,6 +5,10 @@ Layout written by `feedbench.daq.recorder.Recorder`:
 - `/cycle` (int64): the bus cycle counter of every sample.
 - `/data/<channel>` (float64, SI units in the dataset attribute `units`): one row per sample.
 - `/events` (compound cycle int64, kind str, text str): segment boundaries, faults, gaps.
+- `/streams/<name>/` (optional): a high-rate stream (e.g. the serial DAQ at 10 kHz) with its own
+  rows: `cycle` (int64, the bus cycle each sample belongs to), `sequence` (int64, the
+  instrument's sample counter; a step > 1 is a lost sample) and `data/<channel>` (float64, SI,
+  attribute `units`); group attributes `rate_hz` and `channels` (JSON list).
 - root attributes: `status` (`running` / `complete` / `aborted`), `reason`, `started_at`,
   `stopped_at` (ISO 8601 UTC), `experiment`, `channels` (JSON list, the column order),
   `config` and `versions` (JSON), `n_samples`, `n_gaps`, and every other metadata key as JSON.
@@ -28,6 +32,8 @@ import numpy as np
 CYCLE = "cycle"
 DATA = "data"
 EVENTS = "events"
+STREAMS = "streams"
+SEQUENCE = "sequence"
 EVENT_DTYPE = np.dtype(
     [("cycle", np.int64), ("kind", h5py.string_dtype()), ("text", h5py.string_dtype())]
 )
@@ -74,6 +80,31 @@ class Segment:
 
 
 @dataclass(frozen=True)
+class Stream:
+    """A high-rate stream of a recording: per sample its bus cycle, counter and values (SI)."""
+
+    rate_hz: float
+    cycle: np.ndarray
+    sequence: np.ndarray
+    channels: dict[str, np.ndarray]
+    units: dict[str, str]
+
+    @property
+    def n_samples(self) -> int:
+        """Number of samples in the stream."""
+        return len(self.sequence)
+
+    @property
+    def n_dropped(self) -> int:
+        """Samples missing from the counter sequence (lost on the link or in the instrument)."""
+        return missing_cycles(self.sequence)
+
+    def mask(self, segment: Segment) -> np.ndarray:
+        """Boolean mask of the samples that belong to the bus cycles of `segment`."""
+        return (self.cycle >= segment.start) & (self.cycle < segment.stop)
+
+
+@dataclass(frozen=True)
 class Recording:
     """One recording read into memory; arrays are read-only."""
 
@@ -91,6 +122,7 @@ class Recording:
     events: list[Event]
     n_gaps: int
     metadata: dict[str, Any] = field(default_factory=dict)
+    streams: dict[str, Stream] = field(default_factory=dict)
 
     @property
     def n_samples(self) -> int:
@@ -137,6 +169,7 @@ def open_recording(path: str | Path) -> Recording:
             metadata={
                 key: json.loads(value) for key, value in attrs.items() if key not in RESERVED_ATTRS
             },
+            streams={name: _read_stream(group) for name, group in file.get(STREAMS, {}).items()},
         )
 
 
@@ -149,6 +182,18 @@ def missing_cycles(cycle: np.ndarray) -> int:
 def _complete_rows(file: h5py.File, names: list[str]) -> int:
     """Rows present in every dataset (a crash between two resizes leaves them unequal)."""
     return min([len(file[CYCLE])] + [len(file[DATA][name]) for name in names])
+
+
+def _read_stream(group: h5py.Group) -> Stream:
+    names = json.loads(group.attrs["channels"])
+    rows = min([len(group[CYCLE]), len(group[SEQUENCE])] + [len(group[DATA][n]) for n in names])
+    return Stream(
+        rate_hz=float(group.attrs["rate_hz"]),
+        cycle=_read_only(group[CYCLE][:rows]),
+        sequence=_read_only(group[SEQUENCE][:rows]),
+        channels={name: _read_only(group[DATA][name][:rows]) for name in names},
+        units={name: str(group[DATA][name].attrs["units"]) for name in names},
+    )
 
 
 def _read_events(dataset: h5py.Dataset) -> list[Event]:
