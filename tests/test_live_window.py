@@ -172,8 +172,6 @@ def test_stop_button_stops_safely_and_marks_the_file_aborted(stopped_run):
     assert "aborted: " + STOP_REASON in session.window.state_label.text()
 
 
-@pytest.mark.xfail(strict=True, reason="the runner gives the drive 50 cycles to disable "
-                   "(DISABLE_TIMEOUT_CYCLES); the simulated quick stop needs ~700 at standstill")
 def test_stop_button_leaves_the_drive_switched_off(stopped_run):
     _, row, _, _ = stopped_run
     statusword = open_recording(row["file"]).channels["statusword"][-1]

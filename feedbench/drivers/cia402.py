@@ -41,6 +41,7 @@ DISABLED_STATES = ("SWITCH ON DISABLED", "NOT READY TO SWITCH ON", FAULT)
 CW_ENABLE_OPERATION = State402.CW_OPERATION_ENABLED
 CW_QUICK_STOP = State402.CW_QUICK_STOP
 CW_DISABLE_VOLTAGE = State402.CW_DISABLE_VOLTAGE
+CW_DISABLE_OPERATION = State402.CW_SWITCH_ON  # 0x07 from operation enabled: transition 5
 CW_FAULT_RESET = State402.CW_SWITCH_ON_DISABLED  # bit 7: resets a fault on its rising edge
 SW_FAULT = 0x0008
 SW_TARGET_REACHED = 0x0400  # in quick stop active: the stop is complete
@@ -304,17 +305,22 @@ class Cia402Drive:
         self._write_controlword(controlword_towards(state, OPERATION_ENABLED))
         return False
 
-    def disable_step(self) -> bool:
+    def disable_step(self, at_standstill: bool = False) -> bool:
         """Write the next controlword towards a de-energised drive; True once it is reached.
 
         Operation enabled → quick stop 0x02 (the drive ramps down); in quick stop active the
         drive either switches off itself or, once the stop is complete (bit 10), is sent
-        disable voltage 0x00; any other powered state gets 0x00 directly.
+        disable voltage 0x00; any other powered state gets 0x00 directly. With
+        `at_standstill` (the host has already ramped its setpoint down) operation enabled
+        gets disable operation 0x07 (transition 5) instead of a quick stop.
         """
         state = self.state
         if state in DISABLED_STATES:
             self._write_controlword(CW_DISABLE_VOLTAGE)
             return True
+        if state == OPERATION_ENABLED and at_standstill:
+            self._write_controlword(CW_DISABLE_OPERATION)
+            return False
         stopping = state == OPERATION_ENABLED or (
             state == QUICK_STOP_ACTIVE and not self._raw[0x6041] & SW_TARGET_REACHED)
         self._write_controlword(CW_QUICK_STOP if stopping else CW_DISABLE_VOLTAGE)

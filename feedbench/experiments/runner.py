@@ -211,12 +211,18 @@ class Runner:
             recorder.event(self._next_cycle(), "fault", f"safe stop incomplete: {exc}")
 
     def _disable(self, recorder, hold: float) -> None:
-        """Controlword sequence back to switch-on-disabled, one step per cycle."""
+        """Controlword sequence back to switch-on-disabled, one step per cycle.
+
+        The setpoint is already at standstill, so operation is disabled directly (0x07,
+        then 0x00) rather than through the drive's own quick-stop ramp.
+        """
         recorder.event(self._next_cycle(), "segment", _segment_text(None, "disable"))
         for _ in range(DISABLE_TIMEOUT_CYCLES):
-            if self.drive.disable_step():
+            if self.drive.disable_step(at_standstill=True):
                 return
             self._cycle(recorder, hold, 0.0, 0.0, watch=False)
+        recorder.event(self._next_cycle(), "fault",
+                       f"drive still {self.drive.state} after {DISABLE_TIMEOUT_CYCLES} cycles")
 
     @contextmanager
     def _interrupts_request_stop(self) -> Iterator[None]:

@@ -11,7 +11,6 @@ asks the runner for its safe stop (ramp down, disable, file marked aborted).
 
 from __future__ import annotations
 
-import ctypes
 import html
 import signal
 import sys
@@ -23,7 +22,6 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 import pyqtgraph as pg
-import PySide6
 from PySide6 import QtCore, QtWidgets
 
 from feedbench.daq.live import Decimator, LiveFrame, LiveState, LiveStream, replay
@@ -32,19 +30,6 @@ from feedbench.experiments.runner import StopRequest
 from feedbench.gui.live_results import Curve, LiveResult, Panel, ResultView, live_result_for
 from feedbench.units import MM_PER_MIN
 
-
-def _keep_singletons_alive() -> None:
-    """Work around PySide6 ≥ 6.12 on CPython 3.11: some Qt calls hand back None, True or
-    False without a reference (every void QPainter call drops one of None), so a few
-    seconds of painting end in "Fatal Python error: none_dealloc". CPython ≥ 3.12 makes
-    these objects immortal; lend them a reference count no run can use up (ob_refcnt is
-    PyObject's first field)."""
-    if sys.version_info < (3, 12) and PySide6.__version_info__[:2] >= (6, 12):
-        for singleton in (None, True, False):
-            ctypes.c_ssize_t.from_address(id(singleton)).value += 1 << 40
-
-
-_keep_singletons_alive()
 
 SPANS_S = (1.0, 2.0, 5.0, 10.0, 20.0, 60.0)
 """Window lengths offered (s of bench time); the stream holds the longest."""
