@@ -39,8 +39,10 @@ STATE_SIZE = 13
 I_TARGET_POSITION, I_TARGET_VELOCITY, I_TARGET_FORCE, I_VELOCITY_OFFSET, \
     I_FORCE_OFFSET, I_TIP_FORCE = range(6)
 INPUT_COLUMNS = 6
-O_POSITION, O_VELOCITY, O_FORCE, O_TIP_POSITION, O_TIP_VELOCITY = range(5)
-OUTPUT_COLUMNS = 5
+O_POSITION, O_VELOCITY, O_FORCE, O_TIP_POSITION, O_TIP_VELOCITY, O_TIP_ACCELERATION = range(6)
+OUTPUT_COLUMNS = 6
+ACCELERATION_ROW = 4
+"""Row of the kernel model holding the tip's continuous equation of motion (see `kernel_model`)."""
 
 NEWTON_TOLERANCE = 1e-9
 """Stop the implicit friction solve after a Newton update below this (m/s); the returned
@@ -141,26 +143,30 @@ def implicit_motor_velocity(v_free: float, beta: float, linearisation: tuple,
     return v_next, (v, force, gain)
 
 
-def kernel_model(discrete: np.ndarray) -> np.ndarray:
-    """[A_d | B_d | B_d[:, 0] / B_d[1, 0]] (4 × 7) from [A_d | B_d] (4 × 6).
+def kernel_model(discrete: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The 5 × 7 kernel model from [A_d | B_d] (4 × 6) and the continuous (A, B).
 
-    The last column maps the motor-velocity drop caused by friction over a substep to the
-    change of every state (saves a division per substep).
+    Rows 0–3: [A_d | B_d | B_d[:, 0] / B_d[1, 0]]; the last column maps the motor-velocity
+    drop caused by friction over a substep to the change of every state (saves a division
+    per substep). Row 4 (`ACCELERATION_ROW`): [A[3] | B[3] | 0], the tip acceleration
+    ẍ_tip = A[3]·x + B[3]·(F_mot, F_tip) of the continuous model.
     """
-    return np.hstack([discrete, discrete[:, 4:5] / discrete[S_V_MOT, 4]])
+    rows = np.hstack([discrete, discrete[:, 4:5] / discrete[S_V_MOT, 4]])
+    return np.vstack([rows, np.concatenate([a[S_V_TIP], b[S_V_TIP], [0.0]])])
 
 
 @njit(**_JIT)
 def model_row(model: np.ndarray, i: int) -> tuple:
-    """Row i of the 4 × 7 kernel model as a tuple (passed by value in the inner loop)."""
+    """Row i of the 5 × 7 kernel model as a tuple (passed by value in the inner loop)."""
     return (model[i, 0], model[i, 1], model[i, 2], model[i, 3], model[i, 4], model[i, 5],
             model[i, 6])
 
 
 @njit(**_JIT)
 def model_rows(model: np.ndarray) -> tuple:
-    """The 4 × 7 kernel model as a tuple of row tuples."""
-    return model_row(model, 0), model_row(model, 1), model_row(model, 2), model_row(model, 3)
+    """The 5 × 7 kernel model as a tuple of row tuples."""
+    return (model_row(model, 0), model_row(model, 1), model_row(model, 2), model_row(model, 3),
+            model_row(model, ACCELERATION_ROW))
 
 
 @njit(**_HOT)
@@ -189,6 +195,13 @@ def physics_step(mechanics: tuple, linearisation: tuple, motor_force: float, tip
     return (linear_update(rows[0], mechanics, motor_force, tip_force, drop), v_mot,
             linear_update(rows[2], mechanics, motor_force, tip_force, drop),
             linear_update(rows[3], mechanics, motor_force, tip_force, drop)), linearisation
+
+
+@njit(**_HOT)
+def tip_acceleration(mechanics: tuple, tip_force: float, rows: tuple, effects: tuple) -> float:
+    """Tip acceleration (m/s²) in state `mechanics` under `tip_force` (N) and the effects."""
+    tip_extra = effect_forces(mechanics, effects)[1]
+    return linear_update(rows[ACCELERATION_ROW], mechanics, 0.0, tip_force + tip_extra, 0.0)
 
 
 @njit(**_HOT)
@@ -223,14 +236,16 @@ def clear_controller(state: np.ndarray, delay_line: np.ndarray, keep_delay_line:
 @njit(**_JIT)
 def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positive: tuple,
                   negative: tuple, params: np.ndarray, effects: tuple, mode: int,
-                  enabled: bool, inputs: np.ndarray) -> None:
+                  enabled: bool, inputs: np.ndarray, trace: np.ndarray) -> None:
     """Advance one bus cycle: position ticks, velocity ticks inside them, physics substeps
     inside those. The force command passes the delay line, then the force limit; the force
     acting on the carriage is the one behind that (reported) force, plus the world's extra
     forces (`effects`: ripple, backlash, see `feedbench.models.effects`).
 
     inputs: one row of the input table (target position m, target velocity m/s, target
-    force N, velocity offset m/s, force offset N, tip force N).
+    force N, velocity offset m/s, force offset N, tip force N). trace (substeps + 1): the
+    tip acceleration (m/s²) at the start of the cycle (under this cycle's tip force) and at
+    the end of every physics substep.
     """
     if not enabled:
         clear_controller(state, delay_line, False)
@@ -248,6 +263,8 @@ def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positi
     linearisation = (state[S_FRICTION_VELOCITY], state[S_FRICTION_FORCE], state[S_NEWTON_GAIN])
     integral, previous_error = state[S_INTEGRAL], state[S_PREVIOUS_ERROR]
     index, applied = int(state[S_DELAY_INDEX]), state[S_FORCE]
+    trace[0] = tip_acceleration(mechanics, tip_force, rows, effects)
+    substep = 0
     for tick in range(position_ticks):
         if mode == CSP:
             reference = start + tick * (target - start) / position_ticks
@@ -273,6 +290,8 @@ def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positi
                                                         acting + motor_extra,
                                                         tip_force + tip_extra, rows, positive,
                                                         negative)
+                substep += 1
+                trace[substep] = tip_acceleration(mechanics, tip_force, rows, effects)
     state[S_X_MOT], state[S_V_MOT], state[S_X_TIP], state[S_V_TIP] = mechanics
     state[S_FRICTION_VELOCITY], state[S_FRICTION_FORCE], state[S_NEWTON_GAIN] = linearisation
     state[S_INTEGRAL], state[S_PREVIOUS_ERROR] = integral, previous_error
@@ -284,17 +303,20 @@ def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positi
 @njit(**_JIT)
 def run_cycles(state: np.ndarray, delay_line: np.ndarray, model: np.ndarray,
                table: np.ndarray, params: np.ndarray, effect_vector: np.ndarray,
-               modes: np.ndarray, enabled: bool, inputs: np.ndarray, outputs: np.ndarray) -> None:
-    """Advance len(modes) bus cycles; row k of `outputs` gets the state after cycle k."""
+               modes: np.ndarray, enabled: bool, inputs: np.ndarray, outputs: np.ndarray,
+               traces: np.ndarray) -> None:
+    """Advance len(modes) bus cycles; row k of `outputs` gets the state after cycle k, row k
+    of `traces` the tip acceleration through cycle k (see `advance_cycle`)."""
     rows = model_rows(model)
     positive, negative = friction_side(table, 0), friction_side(table, 1)
     effects = (effect_vector[0], effect_vector[1], effect_vector[2], effect_vector[3],
                effect_vector[4], effect_vector[5], effect_vector[6])
     for k in range(modes.size):
         advance_cycle(state, delay_line, rows, positive, negative, params, effects, modes[k],
-                      enabled, inputs[k])
+                      enabled, inputs[k], traces[k])
         outputs[k, O_POSITION] = state[S_X_MOT]
         outputs[k, O_VELOCITY] = state[S_V_MOT]
         outputs[k, O_FORCE] = state[S_FORCE]
         outputs[k, O_TIP_POSITION] = state[S_X_TIP]
         outputs[k, O_TIP_VELOCITY] = state[S_V_TIP]
+        outputs[k, O_TIP_ACCELERATION] = traces[k, -1]

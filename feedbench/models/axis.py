@@ -46,7 +46,8 @@ __all__ = [
 ]
 
 MODES = (CSP, CSV, CST)
-OUTPUT_NAMES = ("position", "velocity", "force", "tip_position", "tip_velocity")
+OUTPUT_NAMES = ("position", "velocity", "force", "tip_position", "tip_velocity",
+                "tip_acceleration")
 
 
 def _positive(name: str, value: float) -> None:
@@ -224,7 +225,10 @@ class AxisSimulator:
         self._effect_vector = effects.vector(axis.k, axis.c)
         physics_substeps = _whole_ratio("physics_substeps", physics_substeps, 1)
         self._model = _kernel.kernel_model(
-            axis.discrete_model(timing.velocity_period / physics_substeps))
+            axis.discrete_model(timing.velocity_period / physics_substeps), *axis.state_matrices())
+        self.substeps_per_cycle = (timing.position_ticks_per_cycle
+                                   * timing.velocity_ticks_per_position * physics_substeps)
+        """Physics substeps per bus cycle (N): the tip-acceleration trace has N + 1 points."""
         self._friction_table = axis.friction.table()
         self._params = np.zeros(_kernel.PARAMETER_COUNT)
         self._params[_kernel.P_CYCLE] = timing.cycle
@@ -238,6 +242,7 @@ class AxisSimulator:
         self._delay_line = np.zeros(timing.delay_ticks + 1)
         self._inputs = np.zeros((1, _kernel.INPUT_COLUMNS))
         self._outputs = np.zeros((1, _kernel.OUTPUT_COLUMNS))
+        self._trace = np.zeros((1, self.substeps_per_cycle + 1))
         self._modes = np.zeros(1, dtype=np.int64)
         self._enabled = True
         self._cycle_count = 0
@@ -306,6 +311,22 @@ class AxisSimulator:
         return float(self._state[_kernel.S_V_TIP])
 
     @property
+    def tip_acceleration(self) -> float:
+        """Tool-tip acceleration at the end of the last cycle (m/s²)."""
+        return float(self._outputs[0, _kernel.O_TIP_ACCELERATION])
+
+    @property
+    def tip_acceleration_trace(self) -> np.ndarray:
+        """Tip acceleration through the last cycle (m/s², N + 1 values, a copy).
+
+        Point j is at (cycle start) + j · cycle / N, N = `substeps_per_cycle`: point 0 under
+        the cycle's tip force (right after a step of it), points 1…N at the end of each
+        physics substep. The tip acceleration is continuous inside a cycle (the motor force
+        acts on the carriage only), so the points may be interpolated.
+        """
+        return self._trace[0].copy()
+
+    @property
     def cycle_count(self) -> int:
         """Bus cycles advanced since the last reset."""
         return self._cycle_count
@@ -321,6 +342,8 @@ class AxisSimulator:
         self._state[_kernel.S_X_MOT] = position
         self._state[_kernel.S_X_TIP] = position
         self._delay_line[:] = 0.0
+        self._outputs[:] = 0.0
+        self._trace[:] = 0.0
         self._cycle_count = 0
 
     # -- stepping ------------------------------------------------------------------------
@@ -341,7 +364,7 @@ class AxisSimulator:
         self._modes[0] = mode
         self._inputs[0] = (target_position, target_velocity, target_force, velocity_offset,
                            force_offset, tip_force)
-        self._run(self._modes, self._inputs, self._outputs)
+        self._run(self._modes, self._inputs, self._outputs, self._trace)
 
     def simulate(
         self,
@@ -356,7 +379,8 @@ class AxisSimulator:
         """Advance one cycle per array element (scalars broadcast) in one compiled call.
 
         Returns per-cycle arrays after each cycle: position, velocity, force, tip_position,
-        tip_velocity, and time (s, end of each cycle).
+        tip_velocity, tip_acceleration, time (s, end of each cycle), and
+        tip_acceleration_trace (cycles × (N + 1), as `tip_acceleration_trace`).
         """
         modes, *columns = np.broadcast_arrays(mode, target_position, target_velocity,
                                               target_force, velocity_offset, force_offset,
@@ -369,14 +393,19 @@ class AxisSimulator:
             raise ValueError(f"mode must be one of {MODES}, got {modes[bad][0]}")
         inputs = np.ascontiguousarray(np.column_stack(columns), dtype=float)
         outputs = np.empty((modes.size, _kernel.OUTPUT_COLUMNS))
+        traces = np.empty((modes.size, self.substeps_per_cycle + 1))
         start = self._cycle_count
-        self._run(modes, inputs, outputs)
+        self._run(modes, inputs, outputs, traces)
         result = {name: outputs[:, i].copy() for i, name in enumerate(OUTPUT_NAMES)}
         result["time"] = (start + 1 + np.arange(modes.size)) * self.timing.cycle
+        result["tip_acceleration_trace"] = traces
+        if modes.size:
+            self._outputs[0], self._trace[0] = outputs[-1], traces[-1]
         return result
 
-    def _run(self, modes: np.ndarray, inputs: np.ndarray, outputs: np.ndarray) -> None:
+    def _run(self, modes: np.ndarray, inputs: np.ndarray, outputs: np.ndarray,
+             traces: np.ndarray) -> None:
         _kernel.run_cycles(self._state, self._delay_line, self._model, self._friction_table,
                            self._params, self._effect_vector, modes, self._enabled, inputs,
-                           outputs)
+                           outputs, traces)
         self._cycle_count += modes.size
