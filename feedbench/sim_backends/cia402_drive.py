@@ -9,6 +9,7 @@ is the SYNC consumer. Lockstep virtual time: each SYNC
      at the SYNC, which is what CiA 301 prescribes for the synchronous ones),
   3. advances the CiA 402 state machine on the controlword,
   4. steps the physics one bus cycle (`AxisSimulator.step_cycle`, servo loops inside),
+     between the world's `before_physics` and `after_physics` hooks,
   5. publishes the actual values and sends the synchronous TPDOs (types 0–240; the
      asynchronous types 254/255 have no event source here and are not sent).
 The host sees the simulated world only through these frames and SDO.
@@ -134,13 +135,18 @@ class SimulatedCia402Drive:
     """A CiA 402 drive on `bus` (the drive owns it: `close()` shuts it down).
 
     `simulator` is the axis behind the drive; `tip_force` (N) is the external force the
-    simulated world applies to the tool tip during the next cycles.
+    simulated world applies to the tool tip during the next cycles. `before_physics` and
+    `after_physics` are the world's per-cycle hooks (callables without arguments), run in
+    the SYNC handler around the physics step in every state: a world device sets `tip_force`
+    for the cycle before it, an instrument samples the cycle after it.
     """
 
     def __init__(self, bus: can.BusABC, node_id: int, simulator: AxisSimulator,
                  eds_path: Path | str | None = None) -> None:
         self.simulator = simulator
         self.tip_force = 0.0
+        self.before_physics: list[Callable[[], None]] = []
+        self.after_physics: list[Callable[[], None]] = []
         self._received: dict[int, int] = {}
         self.node = canopen.LocalNode(node_id, eds.load(node_id, eds_path))
         self.network = canopen.Network(bus)
@@ -282,7 +288,11 @@ class SimulatedCia402Drive:
         values.update(self._received)  # the RPDO data received since the last SYNC
         self._received.clear()
         self._advance_state_machine(values[0x6040])
+        for hook in self.before_physics:
+            hook()
         self._step_physics()
+        for hook in self.after_physics:
+            hook()
         self._publish_actual_values()
         if self._operational:
             self._send_tpdos()
