@@ -68,6 +68,29 @@ class Observer(Protocol):
     def on_stop(self, status: str, reason: str) -> None: ...
 
 
+class CycleDevice(Protocol):
+    """A device besides the drive that the runner serves every bus cycle (Modbus, serial DAQ).
+
+    `channels` / `units`: the per-cycle values it adds to each recorded row (`after_sync`);
+    `streams`: the high-rate streams it writes with `Recorder.append_stream`, declared before
+    the file is created (name → `feedbench.daq.recorder.StreamSpec`). A device raises on its
+    first failure (the run aborts) and answers NaN without I/O afterwards, so the safe stop
+    of the drive never waits on a broken link.
+    """
+
+    channels: tuple[str, ...]
+    units: dict[str, str]
+    streams: dict
+
+    def start(self, plan: Plan, recorder) -> None: ...
+
+    def before_sync(self, index: int | None) -> None: ...
+
+    def after_sync(self, cycle: int) -> Sequence[float]: ...
+
+    def stop(self, recorder) -> None: ...
+
+
 @dataclass(frozen=True)
 class RunOutcome:
     """How a run ended."""
@@ -83,18 +106,25 @@ class Runner:
 
     `drive` is a `feedbench.drivers.cia402.Cia402Drive`, `clock` a `LockstepClock` or
     `RealtimeClock` from `feedbench.daq.clock`; `stop_accel` (m/s²) is the deceleration of
-    the safe stop.
+    the safe stop. `devices` are served every cycle: `before_sync(plan index)` before the
+    SYNC (None outside the plan: enable, disable, stop ramp), `after_sync` after it, their
+    values appended to the row; `start` before the enable sequence, `stop` at the end of
+    every run (complete or aborted), after the drive is disabled.
     """
 
     def __init__(self, drive, clock, limits: Limits, stop_accel: float = 2.0,
-                 observers: Sequence[Observer] = (), stop: StopRequest | None = None) -> None:
+                 observers: Sequence[Observer] = (), stop: StopRequest | None = None,
+                 devices: Sequence[CycleDevice] = ()) -> None:
         self.drive = drive
         self.clock = clock
         self.limits = limits
         self.stop_accel = stop_accel
         self.observers = list(observers)
         self.stop = stop or StopRequest()
-        self._block = np.zeros((BLOCK_CYCLES, len(CHANNELS)))
+        self.devices = list(devices)
+        self.channels = CHANNELS + tuple(c for d in self.devices for c in d.channels)
+        self.units = {**UNITS, **{c: u for d in self.devices for c, u in d.units.items()}}
+        self._block = np.zeros((BLOCK_CYCLES, len(self.channels)))
         self._block_cycles = np.zeros(BLOCK_CYCLES, dtype=np.int64)
         self._block_fill = 0
 
@@ -118,19 +148,22 @@ class Runner:
         force_offsets = plan.concatenated("force_offset")
         velocity_offsets = plan.concatenated("velocity_offset")
         for obs in self.observers:
-            obs.on_start(plan, CHANNELS)
+            obs.on_start(plan, self.channels)
         status, reason = "complete", ""
         last_target = start
         i = 0
         with self._interrupts_request_stop():
             try:
+                for device in self.devices:
+                    device.start(plan, recorder)
                 self._enable(plan.mode, start, recorder)
                 for index, segment in enumerate(plan.segments):
                     recorder.event(self._next_cycle(), "segment", _segment_text(segment))
                     for obs in self.observers:
                         obs.on_segment(index, segment, self._next_cycle())
                     for _ in range(segment.n_cycles):
-                        self._cycle(recorder, targets[i], force_offsets[i], velocity_offsets[i])
+                        self._cycle(recorder, targets[i], force_offsets[i], velocity_offsets[i],
+                                    index=i)
                         last_target = targets[i]
                         i += 1
             except RunAborted as exc:
@@ -143,6 +176,7 @@ class Runner:
                 self._safe_stop(recorder, last_target, velocity, plan.cycle_s)
             else:
                 self._disable(recorder, last_target)
+            self._stop_devices(recorder)
         self._flush_block()
         recorder.close(status, reason)
         for obs in self.observers:
@@ -153,15 +187,17 @@ class Runner:
         return self.clock.cycle + 1
 
     def _cycle(self, recorder, target: float, force_offset: float, velocity_offset: float,
-               watch: bool = True) -> None:
+               watch: bool = True, index: int | None = None) -> None:
         """One bus cycle: setpoints out, SYNC, actual values in, limits, record."""
         drive = self.drive
         drive.set_targets(position=target, force_offset=force_offset,
                           velocity_offset=velocity_offset)
+        for device in self.devices:
+            device.before_sync(index)
         cycle = self.clock.tick()
         a = drive.actual
         row = (target, a.position, a.velocity, a.force, force_offset, velocity_offset,
-               a.statusword)
+               a.statusword, *(v for d in self.devices for v in d.after_sync(cycle)))
         recorder.append(cycle, row)
         self._to_block(cycle, row)
         if not watch:
@@ -223,6 +259,15 @@ class Runner:
             self._cycle(recorder, hold, 0.0, 0.0, watch=False)
         recorder.event(self._next_cycle(), "fault",
                        f"drive still {self.drive.state} after {DISABLE_TIMEOUT_CYCLES} cycles")
+
+    def _stop_devices(self, recorder) -> None:
+        """Every device's `stop` (spindle off, stream drained); a failure is recorded."""
+        for device in self.devices:
+            try:
+                device.stop(recorder)
+            except Exception as exc:  # the link may be gone: the run still closes its file
+                recorder.event(self._next_cycle(), "fault",
+                               f"{type(device).__name__} stop failed: {exc}")
 
     @contextmanager
     def _interrupts_request_stop(self) -> Iterator[None]:
