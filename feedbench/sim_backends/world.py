@@ -42,6 +42,8 @@ WORLD_SCHEMA = {
     "bandwidth_Hz": Field(float, 60.0, "drive's factory tuning bandwidth, Eqs. (4.2, 4.8, 4.12)",
                           positive),
     "friction": Field(dict, {}, "Andersson friction per direction, Eq. (5.2)"),
+    "milling": Field(dict, {}, "milling process and structure at the tool (SMFE, Ch. 6): "
+                     "feedbench.sim_backends.smfe_world.MILLING_SCHEMA"),
 }
 
 
