@@ -20,7 +20,10 @@ class Segment:
     """A labelled stretch of cycles; `kind` tells analysis what it is for.
 
     kinds: ``move`` (ramps), ``settle`` (wait for steady state), ``measure`` (the window
-    analysis averages), ``excite`` (excitation on).
+    analysis averages), ``excite`` (excitation on). `target_velocity` (m/s) is the CSV
+    setpoint 0x60FF; `excitation` (N) the command to the plan's tool-tip exciter
+    (`Plan.exciter`: shaker or actuator force; for the hammer, the level of a hit fired in
+    that cycle, 0 for none).
     """
 
     label: str
@@ -29,6 +32,8 @@ class Segment:
     force_offset: np.ndarray | None = None
     velocity_offset: np.ndarray | None = None
     info: dict[str, float] = field(default_factory=dict)
+    target_velocity: np.ndarray | None = None
+    excitation: np.ndarray | None = None
 
     @property
     def n_cycles(self) -> int:
@@ -38,13 +43,18 @@ class Segment:
 
 @dataclass(frozen=True)
 class Plan:
-    """What the runner executes: segments in order, in one CiA 402 mode of operation."""
+    """What the runner executes: segments in order, in one CiA 402 mode of operation.
+
+    `exciter`: the tool-tip exciter the segments' `excitation` drives (``shaker``,
+    ``actuator``, ``hammer``), None if the plan has none.
+    """
 
     experiment: str
     mode: int
     segments: list[Segment]
     params: dict[str, Any]
     cycle_s: float
+    exciter: str | None = None
 
     @property
     def n_cycles(self) -> int:

@@ -138,7 +138,8 @@ class Runner:
         targets = start + plan.concatenated("target_position")
         self.limits.check_trajectory(np.concatenate([[start], targets]), plan.cycle_s)
         self.limits.check_excitation(
-            plan.concatenated("force_offset"), plan.concatenated("velocity_offset")
+            np.concatenate([plan.concatenated("force_offset"), plan.concatenated("excitation")]),
+            plan.concatenated("velocity_offset"),
         )
         return targets
 
@@ -147,6 +148,7 @@ class Runner:
         targets = self.absolute_targets(plan, start)
         force_offsets = plan.concatenated("force_offset")
         velocity_offsets = plan.concatenated("velocity_offset")
+        target_velocities = plan.concatenated("target_velocity")
         for obs in self.observers:
             obs.on_start(plan, self.channels)
         status, reason = "complete", ""
@@ -163,7 +165,7 @@ class Runner:
                         obs.on_segment(index, segment, self._next_cycle())
                     for _ in range(segment.n_cycles):
                         self._cycle(recorder, targets[i], force_offsets[i], velocity_offsets[i],
-                                    index=i)
+                                    index=i, velocity=target_velocities[i])
                         last_target = targets[i]
                         i += 1
             except RunAborted as exc:
@@ -187,10 +189,12 @@ class Runner:
         return self.clock.cycle + 1
 
     def _cycle(self, recorder, target: float, force_offset: float, velocity_offset: float,
-               watch: bool = True, index: int | None = None) -> None:
-        """One bus cycle: setpoints out, SYNC, actual values in, limits, record."""
+               watch: bool = True, index: int | None = None, velocity: float = 0.0) -> None:
+        """One bus cycle: setpoints out, SYNC, actual values in, limits, record.
+
+        `velocity` is the target velocity (CSV; CSP follows `target` and ignores it)."""
         drive = self.drive
-        drive.set_targets(position=target, force_offset=force_offset,
+        drive.set_targets(position=target, velocity=velocity, force_offset=force_offset,
                           velocity_offset=velocity_offset)
         for device in self.devices:
             device.before_sync(index)
@@ -241,7 +245,7 @@ class Runner:
             steps = int(np.ceil(abs(velocity) / (self.stop_accel * dt)))
             for v in np.linspace(velocity, 0.0, steps + 1)[1:]:
                 x += v * dt
-                self._cycle(recorder, x, 0.0, 0.0, watch=False)
+                self._cycle(recorder, x, 0.0, 0.0, watch=False, velocity=v)
             self._disable(recorder, x)
         except Exception as exc:  # the bus may be gone: record why the ramp ended early
             recorder.event(self._next_cycle(), "fault", f"safe stop incomplete: {exc}")
