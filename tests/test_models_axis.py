@@ -172,11 +172,14 @@ def test_disable_clears_the_delay_line():
     np.testing.assert_array_equal(out["force"], [0.0] * 6 + [30.0] * 2)
 
 
-def test_force_saturates_at_limit():
+def test_force_saturates_at_limit_without_windup():
+    """Step to 0.5 m/s against a 300 N limit: ≈ 70 ms saturated. Without anti-windup the
+    integral would gather ≈ 0.5 m/s · 35 ms, i.e. ≈ 10 kN of command, and overshoot by far."""
     sim = AxisSimulator(force_limit=300.0)
-    out = sim.simulate(CSV, 0.0, np.full(200, 0.5), 0.0)
+    out = sim.simulate(CSV, 0.0, np.full(600, 0.5), 0.0)
     assert np.abs(out["force"]).max() == 300.0
     assert out["force"][5] == 300.0
+    assert out["velocity"].max() < 0.5 * 1.02  # measured overshoot 0.85 %
 
 
 def test_step_cycle_and_simulate_are_identical():
