@@ -32,8 +32,8 @@ PARAMETER_COUNT = 9
 # entries of the state vector
 S_X_MOT, S_V_MOT, S_X_TIP, S_V_TIP, S_FORCE, S_INTEGRAL, S_PREVIOUS_ERROR, \
     S_PREVIOUS_TARGET, S_HAS_PREVIOUS_TARGET, S_DELAY_INDEX, \
-    S_FRICTION_VELOCITY, S_FRICTION_FORCE, S_NEWTON_GAIN = range(13)
-STATE_SIZE = 13
+    S_FRICTION_VELOCITY, S_FRICTION_FORCE, S_NEWTON_GAIN, S_TIP_FORCE = range(14)
+STATE_SIZE = 14
 
 # columns of the per-cycle input and output tables
 I_TARGET_POSITION, I_TARGET_VELOCITY, I_TARGET_FORCE, I_VELOCITY_OFFSET, \
@@ -243,9 +243,11 @@ def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positi
     forces (`effects`: ripple, backlash, see `feedbench.models.effects`).
 
     inputs: one row of the input table (target position m, target velocity m/s, target
-    force N, velocity offset m/s, force offset N, tip force N). trace (substeps + 1): the
-    tip acceleration (m/s²) at the start of the cycle (under this cycle's tip force) and at
-    the end of every physics substep.
+    force N, velocity offset m/s, force offset N, tip force N). The tip force ramps from the
+    previous cycle's value to this one's over the cycle (first-order hold); each physics
+    substep holds the ramp's value at its midpoint. trace (substeps + 1): the tip
+    acceleration (m/s²) at the start of the cycle and at the end of every physics substep,
+    under the ramp's value at that instant.
     """
     if not enabled:
         clear_controller(state, delay_line, False)
@@ -255,7 +257,9 @@ def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positi
     force_limit, cycle = params[P_FORCE_LIMIT], params[P_CYCLE]
     pi_params = (params[P_K_P], params[P_INVERSE_T_I], force_limit,
                  cycle / (position_ticks * velocity_ticks))
-    target, tip_force = inputs[I_TARGET_POSITION], inputs[I_TIP_FORCE]
+    target = inputs[I_TARGET_POSITION]
+    tip_start = state[S_TIP_FORCE]
+    tip_step = (inputs[I_TIP_FORCE] - tip_start) / (trace.size - 1)
     start = state[S_PREVIOUS_TARGET] if state[S_HAS_PREVIOUS_TARGET] > 0.0 else target
     feedforward = params[P_FEEDFORWARD] * (target - start) / cycle
     v_command = inputs[I_TARGET_VELOCITY] + inputs[I_VELOCITY_OFFSET]
@@ -263,7 +267,7 @@ def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positi
     linearisation = (state[S_FRICTION_VELOCITY], state[S_FRICTION_FORCE], state[S_NEWTON_GAIN])
     integral, previous_error = state[S_INTEGRAL], state[S_PREVIOUS_ERROR]
     index, applied = int(state[S_DELAY_INDEX]), state[S_FORCE]
-    trace[0] = tip_acceleration(mechanics, tip_force, rows, effects)
+    trace[0] = tip_acceleration(mechanics, tip_start, rows, effects)
     substep = 0
     for tick in range(position_ticks):
         if mode == CSP:
@@ -286,17 +290,20 @@ def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positi
             acting = acting_force(applied, effects[E_FORCE_LEVEL])
             for _ in range(int(params[P_PHYSICS_STEPS])):
                 motor_extra, tip_extra = effect_forces(mechanics, effects)
+                tip_force = tip_start + (substep + 0.5) * tip_step
                 mechanics, linearisation = physics_step(mechanics, linearisation,
                                                         acting + motor_extra,
                                                         tip_force + tip_extra, rows, positive,
                                                         negative)
                 substep += 1
-                trace[substep] = tip_acceleration(mechanics, tip_force, rows, effects)
+                trace[substep] = tip_acceleration(mechanics, tip_start + substep * tip_step,
+                                                  rows, effects)
     state[S_X_MOT], state[S_V_MOT], state[S_X_TIP], state[S_V_TIP] = mechanics
     state[S_FRICTION_VELOCITY], state[S_FRICTION_FORCE], state[S_NEWTON_GAIN] = linearisation
     state[S_INTEGRAL], state[S_PREVIOUS_ERROR] = integral, previous_error
     state[S_DELAY_INDEX], state[S_FORCE] = index, applied
     state[S_PREVIOUS_TARGET] = target
+    state[S_TIP_FORCE] = inputs[I_TIP_FORCE]
     state[S_HAS_PREVIOUS_TARGET] = 1.0 if enabled and mode == CSP else 0.0
 
 
@@ -310,7 +317,8 @@ def run_cycles(state: np.ndarray, delay_line: np.ndarray, model: np.ndarray,
     rows = model_rows(model)
     positive, negative = friction_side(table, 0), friction_side(table, 1)
     effects = (effect_vector[0], effect_vector[1], effect_vector[2], effect_vector[3],
-               effect_vector[4], effect_vector[5], effect_vector[6])
+               effect_vector[4], effect_vector[5], effect_vector[6], effect_vector[7],
+               effect_vector[8])
     for k in range(modes.size):
         advance_cycle(state, delay_line, rows, positive, negative, params, effects, modes[k],
                       enabled, inputs[k], traces[k])

@@ -203,7 +203,10 @@ class AxisSimulator:
     CSV: v_cmd = target velocity + velocity offset. Both: Tustin PI, F = K_p (e + ∫e / T_i)
     + force offset. CST: F = target force + force offset. `enabled` (default True): when
     False the motor force is 0, the PI integral and the delay line are cleared, and the
-    axis coasts under friction.
+    axis coasts under friction. Tip force (a hammer, shaker or cutting force on the tool
+    tip): the value of a cycle is reached at its end, ramping linearly from the previous
+    cycle's value (first-order hold, so a 1 kHz force sequence acts as a smooth force, not
+    as a staircase); each physics substep holds the ramp's midpoint value.
     """
 
     def __init__(
@@ -319,10 +322,11 @@ class AxisSimulator:
     def tip_acceleration_trace(self) -> np.ndarray:
         """Tip acceleration through the last cycle (m/s², N + 1 values, a copy).
 
-        Point j is at (cycle start) + j · cycle / N, N = `substeps_per_cycle`: point 0 under
-        the cycle's tip force (right after a step of it), points 1…N at the end of each
-        physics substep. The tip acceleration is continuous inside a cycle (the motor force
-        acts on the carriage only), so the points may be interpolated.
+        Point j is at (cycle start) + j · cycle / N, N = `substeps_per_cycle`: point 0 is
+        the end of the previous cycle, points 1…N the ends of the physics substeps, each
+        under the tip-force ramp's value at that instant. The tip acceleration is continuous
+        (the motor force acts on the carriage, the tip force ramps), so the points may be
+        interpolated.
         """
         return self._trace[0].copy()
 
@@ -358,7 +362,8 @@ class AxisSimulator:
         force_offset: float,
         tip_force: float = 0.0,
     ) -> None:
-        """Advance one bus cycle in `mode` (CSP, CSV or CST) with these setpoints (SI)."""
+        """Advance one bus cycle in `mode` (CSP, CSV or CST) with these setpoints (SI);
+        `tip_force` is the force on the tool tip at the end of the cycle."""
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES} (CSP, CSV, CST), got {mode}")
         self._modes[0] = mode
