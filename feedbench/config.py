@@ -50,8 +50,13 @@ def positive(value: Any) -> str | None:
 
 
 def non_negative(value: Any) -> str | None:
-    """Check: a number >= 0."""
-    return None if value >= 0 else f": must be >= 0 (got {value})"
+    """Check: a number >= 0 (or a list of them)."""
+    values = value if isinstance(value, list) else [value]
+    for i, v in enumerate(values):
+        if not v >= 0:
+            where = f"[{i}]" if isinstance(value, list) else ""
+            return f"{where}: must be >= 0 (got {v})"
+    return None
 
 
 def one_of(*choices: str) -> Check:
