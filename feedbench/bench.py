@@ -19,15 +19,14 @@ from feedbench.daq.clock import LockstepClock, RealtimeClock
 from feedbench.daq.recorder import Recorder
 from feedbench.protocols.canbus import open_network
 from feedbench.drivers.cia402 import Cia402Drive
-from feedbench.experiments import chirp, friction_sweep
+from feedbench.experiments import chirp, friction_sweep, smfe
+from feedbench.experiments.cycle_io import open_cycle_devices, split_address
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan
-from feedbench.experiments.runner import (
-    CHANNELS, UNITS, Observer, ProgressPrinter, Runner, StopRequest,
-)
+from feedbench.experiments.runner import Observer, ProgressPrinter, Runner, StopRequest
 from feedbench.units import kv_to_per_second
 
-EXPERIMENTS = {m.NAME: m for m in (friction_sweep, chirp)}
+EXPERIMENTS = {m.NAME: m for m in (friction_sweep, chirp, smfe)}
 
 GAINS_SCHEMA = {
     "K_p_Ns_m": Field(float, None, "velocity-loop gain (N·s/m)", positive),
@@ -49,6 +48,12 @@ BENCH_SCHEMA = {
     "output_dir": Field(str, "runs", "where recordings and the catalog go"),
     "gains": Field(dict, {}, "servo gains written to the drive by SDO before the run"),
     "world": Field(dict, {}, "simulated world (simulated = true only); never read by the host"),
+    "socketcand": Field(str, "127.0.0.1:29536", "host:port of the socketcand server "
+                        "(interface = socketcand; `feedbench sim` listens there)"),
+    "modbus": Field(str, "", "host:port of the Modbus TCP server of the spindle inverter "
+                    "(simulated: the bench starts one on 127.0.0.1)"),
+    "daq_port": Field(str, "", "serial port of the streaming DAQ, e.g. /dev/ttyACM0 "
+                      "(simulated: the bench's pseudo-terminal)"),
 }
 
 RUN_SCHEMA = {
@@ -126,27 +131,48 @@ def _gains_si(table: Mapping[str, Any]) -> dict[str, float]:
     return out
 
 
+def _device_needs(plan: Plan | None) -> dict[str, dict]:
+    """The devices besides the drive the plan's experiment needs (its module's `devices`)."""
+    module = EXPERIMENTS.get(plan.experiment) if plan is not None else None
+    if module is None or not hasattr(module, "devices"):
+        return {}
+    return module.devices(plan.params, plan.cycle_s)
+
+
+def _bus_options(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """python-can options beyond interface and channel: a socketcand server's host and port."""
+    if cfg["interface"] != "socketcand":
+        return {}
+    host, port = split_address(cfg["socketcand"], "bench.socketcand")
+    return {"host": host, "port": port}
+
+
 class Bench:
     """An open bench: the CAN network, the drive driver, the clock (and the simulated peer).
 
     Use as a context manager; `run(config)` executes one plan and returns its record.
     """
 
-    def __init__(self, bench: Mapping[str, Any]) -> None:
+    def __init__(self, bench: Mapping[str, Any], plan: Plan | None = None) -> None:
         self.config = dict(bench)
+        self.plan = plan
         self._stack = ExitStack()
         self.simulated_drive = None
+        self.simulated = None
         self.network = None
         self.drive: Cia402Drive | None = None
         self.clock = None
+        self.devices: list = []
 
     def __enter__(self) -> Bench:
         cfg = self.config
         cycle_s = cfg["cycle_ms"] * 1e-3
         try:
+            needs = _device_needs(self.plan)
             if cfg["simulated"]:
-                self._start_simulated_peer(cycle_s)
-            self.network = open_network(cfg["interface"], cfg["channel"], cfg["bitrate"])
+                self._start_simulated_peer(cycle_s, needs)
+            self.network = open_network(cfg["interface"], cfg["channel"], cfg["bitrate"],
+                                        **_bus_options(cfg))
             self._stack.callback(self.network.disconnect)
             eds = cfg["eds"] or _packaged_eds()
             self.drive = Cia402Drive(self.network, cfg["node_id"], eds)
@@ -158,21 +184,41 @@ class Bench:
                 self.clock = LockstepClock(self.network, [self.drive], timeout_s=cfg["timeout_s"])
             else:
                 self.clock = RealtimeClock(self.network, [self.drive], period_s=cycle_s)
+            self.devices = open_cycle_devices(needs, *self._device_addresses(), self._stack)
         except BaseException:
             self._stack.close()
             raise
         return self
 
-    def _start_simulated_peer(self, cycle_s: float) -> None:
+    def _start_simulated_peer(self, cycle_s: float, needs: Mapping[str, Any]) -> None:
         from feedbench.sim_backends.bench import start_simulated_axis
         from feedbench.sim_backends.world import build_axis
 
         cfg = self.config
+        if needs:  # devices besides the drive: the whole simulated bench
+            self._start_simulated_bench()
+            return
         simulator = build_axis(cfg["world"], cycle_s)
         self.simulated_drive = start_simulated_axis(
             cfg["interface"], cfg["channel"], cfg["node_id"], simulator
         )
         self._stack.callback(self.simulated_drive.close)
+
+    def _start_simulated_bench(self) -> None:
+        """Drive, inverter, DAQ and the milling world, the workpiece prepared as planned."""
+        from feedbench.sim_backends.process import SimulatedBench
+
+        self.simulated = SimulatedBench(self.config, self.plan.params.get("workpiece", ()),
+                                        bus_options=_bus_options(self.config))
+        self._stack.callback(self.simulated.close)
+        self.simulated_drive = self.simulated.drive
+
+    def _device_addresses(self) -> tuple[str, str]:
+        """Modbus host:port and DAQ port: the simulated bench's, else the configured ones."""
+        if self.simulated is not None:
+            host, port = self.simulated.modbus_address
+            return f"{host}:{port}", self.simulated.daq_port
+        return self.config["modbus"], self.config["daq_port"]
 
     def __exit__(self, *exc) -> None:
         self._stack.close()
@@ -186,7 +232,8 @@ class Bench:
         safe stop.
         """
         runner = Runner(self.drive, self.clock, config.limits, stop=stop,
-                        observers=[*observers, *([ProgressPrinter()] if progress else [])])
+                        observers=[*observers, *([ProgressPrinter()] if progress else [])],
+                        devices=self.devices)
         start = runner.read_position()
         runner.absolute_targets(config.plan, start)
         run_id = catalog.new_run_id(config.plan.experiment)
@@ -195,7 +242,8 @@ class Bench:
                     "config": host_config(config.raw),
                     "cycle_s": config.plan.cycle_s}
         catalog.add(run_id, config.plan.experiment, str(path), config.plan.params)
-        recorder = Recorder(path, CHANNELS, UNITS, metadata)
+        streams = {name: spec for d in self.devices for name, spec in d.streams.items()}
+        recorder = Recorder(path, runner.channels, runner.units, metadata, streams=streams)
         outcome = runner.run(config.plan, recorder, start)
         catalog.finish(run_id, outcome.status, outcome.reason, recorder.n_samples)
         return {"id": run_id, "file": str(path), "status": outcome.status,
@@ -208,5 +256,5 @@ def run_config(config: RunConfig, observers: Sequence[Observer] = (),
     output_dir = Path(config.bench["output_dir"])
     output_dir.mkdir(parents=True, exist_ok=True)
     catalog = Catalog(output_dir / "catalog.sqlite")
-    with Bench(config.bench) as bench:
+    with Bench(config.bench, config.plan) as bench:
         return bench.run(config, catalog, output_dir, observers, progress, stop)

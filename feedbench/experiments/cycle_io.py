@@ -1,0 +1,194 @@
+"""Host devices the runner serves every bus cycle besides the drive (`runner.CycleDevice`).
+
+- `SpindleCommands`: the spindle inverter over Modbus. A plan segment whose info holds
+  ``spindle_rpm`` (and optionally ``spindle_ramp_rpm_s``) sets the inverter's ramp limit and
+  speed setpoint in the cycle the segment starts (0 rpm: stop), so a linear speed ramp is the
+  inverter's own ramp, as on the thesis's SMFE bench (Ch. 6.4.1); the actual speed is read
+  back every `readback_cycles` and recorded as ``spindle_speed`` (rad/s).
+- `DaqStream`: the streaming DAQ over its serial port. Started with the run, read every
+  cycle into the recording's high-rate stream; each sample is given the bus cycle it belongs
+  to from its counter (the first sample after START is the first cycle after it: exact in
+  lockstep, where the instrument's sample clock is the bench clock).
+
+Either raises on its first failure (the runner aborts the run) and goes silent afterwards,
+so the drive's safe stop never waits on a broken link.
+"""
+
+from __future__ import annotations
+
+import math
+from contextlib import ExitStack
+
+from feedbench.config import ConfigError
+from feedbench.daq.recorder import StreamSpec
+from feedbench.experiments.plan import Plan
+from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
+from feedbench.units import RPM
+
+DAQ_SILENCE_CYCLES = 1000
+"""Bus cycles without one DAQ sample after which the stream counts as lost."""
+
+
+class DeviceLinkError(RuntimeError):
+    """A per-cycle device stopped answering."""
+
+
+def spindle_commands(plan: Plan) -> dict[int, tuple[float, float | None]]:
+    """Plan cycle index → (speed setpoint rpm, ramp limit rpm/s or None) from segment infos."""
+    commands, first = {}, 0
+    for segment in plan.segments:
+        if "spindle_rpm" in segment.info:
+            commands[first] = (float(segment.info["spindle_rpm"]),
+                               segment.info.get("spindle_ramp_rpm_s"))
+        first += segment.n_cycles
+    return commands
+
+
+class SpindleCommands:
+    """The spindle inverter (`drivers.modbus_devices.SpindleInverter`) commanded from the plan."""
+
+    channels = ("spindle_speed",)
+    units = {"spindle_speed": "rad/s"}
+    streams: dict[str, StreamSpec] = {}
+
+    def __init__(self, inverter, readback_cycles: int = 10) -> None:
+        self.inverter = inverter
+        self.readback_cycles = readback_cycles
+        self._commands: dict[int, tuple[float, float | None]] = {}
+        self._speed = math.nan
+        self._count = 0
+        self._failed = False
+
+    def start(self, plan: Plan, recorder) -> None:
+        self._commands = spindle_commands(plan)
+        self._guarded(self.inverter.reset_fault)
+
+    def before_sync(self, index: int | None) -> None:
+        command = self._commands.get(index) if index is not None else None
+        if command is not None:
+            self._guarded(lambda: self._apply(*command))
+
+    def after_sync(self, cycle: int) -> tuple[float]:
+        if self._count % self.readback_cycles == 0:
+            self._guarded(self._read_speed)
+        self._count += 1
+        return (self._speed,)
+
+    def stop(self, recorder) -> None:
+        """Ramp the spindle down (the inverter's ramp limit)."""
+        self._guarded(self.inverter.stop)
+
+    def _apply(self, speed_rpm: float, ramp_rpm_s: float | None) -> None:
+        if ramp_rpm_s is not None:
+            self.inverter.set_ramp_rpm_s(ramp_rpm_s)
+        if speed_rpm > 0.0:
+            self.inverter.set_speed_rpm(speed_rpm)
+            self.inverter.run()
+        else:
+            self.inverter.stop()
+
+    def _read_speed(self) -> None:
+        self._speed = self.inverter.actual_speed_rpm * RPM
+
+    def _guarded(self, action) -> None:
+        """Run `action`; its first failure is raised, later calls do nothing (NaN readings)."""
+        if self._failed:
+            return
+        try:
+            action()
+        except Exception:
+            self._failed = True
+            self._speed = math.nan
+            raise
+
+
+class DaqStream:
+    """The streaming DAQ (`drivers.serial_daq.SerialDaq`) recorded as stream `name`."""
+
+    channels: tuple[str, ...] = ()
+    units: dict[str, str] = {}
+
+    def __init__(self, daq, name: str = "daq") -> None:
+        self.daq = daq
+        self.name = name
+        units = {c: CHANNELS[CHANNEL_INDEX[c]].unit for c in daq.channels}
+        self.streams = {name: StreamSpec(tuple(daq.channels), units, daq.rate)}
+        self._recorder = None
+        self._samples_per_cycle = 1
+        self._first_cycle: int | None = None
+        self._first_sequence: int | None = None
+        self._last_cycle = 0
+        self._silent = 0
+        self._failed = False
+
+    def start(self, plan: Plan, recorder) -> None:
+        self._recorder = recorder
+        self._samples_per_cycle = max(1, round(self.daq.rate * plan.cycle_s))
+        self.daq.start()
+
+    def before_sync(self, index: int | None) -> None:
+        """Nothing to send: the instrument streams on its own."""
+
+    def after_sync(self, cycle: int) -> tuple[()]:
+        if self._first_cycle is None:
+            self._first_cycle = cycle
+        self._last_cycle = cycle
+        if not self._failed:
+            self._silent = 0 if self._drain() else self._silent + 1
+            if self._silent > DAQ_SILENCE_CYCLES:
+                self._failed = True
+                raise DeviceLinkError(f"DAQ: no sample for {DAQ_SILENCE_CYCLES} bus cycles")
+        return ()
+
+    def stop(self, recorder) -> None:
+        """STOP the stream, record what was still in flight and the link's loss counters."""
+        if self._failed:
+            return
+        self.daq.stop()
+        self._drain()
+        lost = {"crc_errors": self.daq.crc_errors, "dropped_frames": self.daq.dropped_frames,
+                "overflowed_frames": self.daq.overflowed_frames}
+        if any(lost.values()):
+            recorder.event(self._last_cycle + 1, "gap", f"{self.name}: {lost}")
+
+    def _drain(self) -> int:
+        """Everything received so far into the recording; returns the number of samples."""
+        block = self.daq.read_available()
+        n = len(block.sequence)
+        if n:
+            if self._first_sequence is None:
+                self._first_sequence = int(block.sequence[0])
+            cycles = self._first_cycle + (block.sequence - self._first_sequence) \
+                // self._samples_per_cycle
+            self._recorder.append_stream(self.name, cycles, block.sequence, block.samples)
+        return n
+
+
+def split_address(address: str, what: str) -> tuple[str, int]:
+    """``host:port`` → (host, port); `what` names the config key in the error."""
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit():
+        raise ConfigError(f"{what}: expected host:port, got {address!r}")
+    return host, int(port)
+
+
+def open_cycle_devices(needs: dict[str, dict], modbus: str, daq_port: str,
+                       stack: ExitStack) -> list:
+    """Connect the host drivers of the devices an experiment needs (`needs`, from its
+    module's `devices(params, cycle_s)`): ``spindle`` over Modbus TCP at `modbus`
+    (host:port), ``daq`` on the serial port `daq_port`. Closed by `stack`."""
+    from feedbench.drivers.modbus_devices import SpindleInverter, connect_tcp
+    from feedbench.drivers.serial_daq import SerialDaq
+
+    devices = []
+    if "spindle" in needs:
+        client = connect_tcp(*split_address(modbus, "bench.modbus"))
+        stack.callback(client.close)
+        devices.append(SpindleCommands(SpindleInverter(client), **needs["spindle"]))
+    if "daq" in needs:
+        if not daq_port:
+            raise ConfigError("bench.daq_port: the experiment records the DAQ; give its serial port")
+        daq = stack.enter_context(SerialDaq(daq_port, needs["daq"]["channels"],
+                                            needs["daq"]["rate_hz"]))
+        devices.append(DaqStream(daq))
+    return devices
