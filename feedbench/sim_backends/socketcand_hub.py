@@ -1,0 +1,218 @@
+"""A socketcand server in raw mode: processes on one machine share CAN buses over loopback TCP.
+
+Hand-written: socketcand itself is a C daemon over kernel SocketCAN (not available here, see
+STACKS.md) and no Python library provides a socketcand server; python-can only has the
+client (`interface="socketcand"`). The hub speaks the subset that client uses:
+
+    server: < hi >                 client: < open <bus> >     server: < ok >
+    client: < rawmode >            server: < ok >
+    client: < send <id> <dlc> <byte> … >      (hex; an 8-digit id is an extended id)
+    server: < frame <id> <seconds.micros> <hex data> >   to every other client on <bus>
+
+A frame goes to every other client that opened the same bus name, never back to its sender
+(as on SocketCAN without `recv_own_msgs`). A new client receives frames only once it has sent
+its first frame or `JOIN_S` after its raw-mode `< ok >`: python-can reads that `< ok >` with
+a single `recv` and would fail if a frame arrived in the same TCP segment.
+"""
+
+from __future__ import annotations
+
+import os
+import selectors
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+
+LOOPBACK = "127.0.0.1"
+JOIN_S = 0.05
+RECEIVE_BYTES = 65536
+THREAD_TIMEOUT_S = 5.0
+
+
+class HubError(RuntimeError):
+    """The hub could not start."""
+
+
+@dataclass
+class _Client:
+    sock: socket.socket
+    bus: str | None = None
+    raw: bool = False
+    joined_at: float = float("inf")
+    inbox: bytearray = field(default_factory=bytearray)
+    outbox: bytearray = field(default_factory=bytearray)
+
+    def receives(self, now: float) -> bool:
+        """Frames are delivered to it (raw mode, and it has sent or waited `JOIN_S`)."""
+        return self.raw and now >= self.joined_at
+
+
+def frame_text(can_id: str, data: bytes, now: float) -> bytes:
+    """The server's `< frame … >` message for a frame received as `< send … >`."""
+    return f"< frame {can_id} {now:.6f} {data.hex().upper()} >".encode("ascii")
+
+
+def parse_send(fields: list[str]) -> tuple[str, bytes]:
+    """`send <id> <dlc> <bytes…>` tokens → (id as sent, 3 or 8 hex digits; payload)."""
+    can_id, dlc = fields[1], int(fields[2], 16)
+    data = bytes(int(token, 16) for token in fields[3:3 + dlc])
+    if len(can_id) not in (3, 8) or len(data) != dlc or dlc > 8:
+        raise ValueError(f"malformed send: {' '.join(fields)}")
+    return can_id.upper(), data
+
+
+class SocketcandHub:
+    """The hub on `host:port` (port 0: a free one); `start()` returns the address it listens on."""
+
+    def __init__(self, host: str = LOOPBACK, port: int = 0) -> None:
+        self.host = host
+        self.port = port
+        self.frames = 0
+        """Frames received from clients (each delivered to every other client of its bus)."""
+        self._selector = selectors.DefaultSelector()
+        self._clients: dict[socket.socket, _Client] = {}
+        self._listener: socket.socket | None = None
+        self._wake_read, self._wake_write = os.pipe()
+        self._closing = False
+        self._thread = threading.Thread(target=self._serve, name="socketcand-hub", daemon=True)
+
+    def start(self) -> tuple[str, int]:
+        """Listen and serve in a background thread; returns (host, port)."""
+        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            listener.bind((self.host, self.port))
+        except OSError as error:
+            listener.close()
+            raise HubError(f"socketcand hub cannot listen on {self.host}:{self.port}: "
+                           f"{error}") from error
+        listener.listen()
+        listener.setblocking(False)
+        self._listener = listener
+        self.port = listener.getsockname()[1]
+        self._selector.register(listener, selectors.EVENT_READ)
+        self._selector.register(self._wake_read, selectors.EVENT_READ)
+        self._thread.start()
+        return self.host, self.port
+
+    def stop(self) -> None:
+        """Close every connection and the listener; the thread ends."""
+        if not self._thread.is_alive():
+            return
+        self._closing = True
+        os.write(self._wake_write, b"\0")
+        self._thread.join(THREAD_TIMEOUT_S)
+
+    def __enter__(self) -> SocketcandHub:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _serve(self) -> None:
+        try:
+            while not self._closing:
+                for key, events in self._selector.select(timeout=JOIN_S):
+                    self._dispatch(key.fileobj, events)
+        finally:
+            for sock in list(self._clients):
+                self._drop(sock)
+            self._selector.close()
+            self._listener.close()
+            os.close(self._wake_read)
+            os.close(self._wake_write)
+
+    def _dispatch(self, source, events: int) -> None:
+        if source is self._listener:
+            self._accept()
+        elif source == self._wake_read:
+            os.read(self._wake_read, 64)
+        elif source in self._clients:
+            if events & selectors.EVENT_READ:
+                self._receive(self._clients[source])
+            if source in self._clients and events & selectors.EVENT_WRITE:
+                self._flush(self._clients[source])
+
+    def _accept(self) -> None:
+        sock, _ = self._listener.accept()
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sock.setblocking(False)
+        client = _Client(sock)
+        self._clients[sock] = client
+        self._selector.register(sock, selectors.EVENT_READ)
+        self._send(client, b"< hi >")
+
+    def _receive(self, client: _Client) -> None:
+        try:
+            data = client.sock.recv(RECEIVE_BYTES)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            data = b""
+        if not data:
+            self._drop(client.sock)
+            return
+        client.inbox += data
+        while (start := client.inbox.find(b"<")) >= 0 and (end := client.inbox.find(b">", start)) >= 0:
+            message = client.inbox[start + 1:end].decode("ascii", "replace").split()
+            del client.inbox[:end + 1]
+            if message:
+                self._handle(client, message)
+
+    def _handle(self, client: _Client, message: list[str]) -> None:
+        command = message[0]
+        if command == "send" and client.raw:
+            self._relay(client, message)
+        elif command == "open" and len(message) == 2 and client.bus is None:
+            client.bus = message[1]
+            self._send(client, b"< ok >")
+        elif command == "rawmode" and client.bus is not None:
+            client.raw = True
+            client.joined_at = time.monotonic() + JOIN_S
+            self._send(client, b"< ok >")
+        elif command == "echo":
+            self._send(client, b"< echo >")
+        else:
+            self._send(client, b"< error unsupported command >")
+
+    def _relay(self, sender: _Client, message: list[str]) -> None:
+        try:
+            can_id, data = parse_send(message)
+        except (ValueError, IndexError):
+            self._send(sender, b"< error malformed frame >")
+            return
+        now = time.monotonic()
+        sender.joined_at = min(sender.joined_at, now)
+        self.frames += 1
+        text = frame_text(can_id, data, time.time())
+        for client in list(self._clients.values()):
+            if client is not sender and client.bus == sender.bus and client.receives(now):
+                self._send(client, text)
+
+    def _send(self, client: _Client, text: bytes) -> None:
+        """Queue `text` and write what the socket takes now (never blocks the hub)."""
+        client.outbox += text
+        self._flush(client)
+
+    def _flush(self, client: _Client) -> None:
+        try:
+            sent = client.sock.send(client.outbox)
+        except (BlockingIOError, InterruptedError):
+            sent = 0
+        except OSError:
+            self._drop(client.sock)
+            return
+        del client.outbox[:sent]
+        wanted = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.outbox else 0)
+        if self._selector.get_key(client.sock).events != wanted:
+            self._selector.modify(client.sock, wanted)
+
+    def _drop(self, sock: socket.socket) -> None:
+        self._clients.pop(sock, None)
+        try:
+            self._selector.unregister(sock)
+        except (KeyError, ValueError):
+            pass
+        sock.close()
