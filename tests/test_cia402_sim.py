@@ -222,7 +222,7 @@ def test_csv_velocity_converges_and_matches_direct_simulation(can_channel):
         actuals = bench.run(500, velocity=0.01)
     truth = reference(CSV, AxisSimulator(), target_velocity=np.r_[0.0, velocity])
     bus_velocity = np.array([a.velocity for a in actuals])
-    np.testing.assert_allclose(bus_velocity, np.round(truth["velocity"][1:] * 1e9) * 1e-9,
+    np.testing.assert_allclose(bus_velocity, np.round(truth["mean_velocity"][1:] * 1e9) * 1e-9,
                                rtol=0, atol=1.01e-9)
     assert abs(bus_velocity[-1] - 0.01) < 0.005 * 0.01
 
@@ -245,12 +245,13 @@ def test_cst_force_offset_appears_after_the_drive_delay(can_channel):
         before = bench.run(3, force_offset=0.0)
         after = bench.run(6, force_offset=100.0)
     forces = [a.force for a in before + after]
-    # the step starts with cycle 3; 2.5 ms later is inside cycle 5: first seen at its end
+    # the step starts with cycle 3; 2.5 ms later is half-way through cycle 5, whose
+    # reported force (the cycle mean) is therefore half the step
     assert forces[:5] == [0.0] * 5
-    assert forces[5:] == [100.0] * 4
+    assert forces[5:] == [50.0] + [100.0] * 3
     truth = reference(CST, AxisSimulator(timing=timing),
                       force_offset=np.r_[np.zeros(4), np.full(6, 100.0)])
-    np.testing.assert_allclose(forces, truth["force"][1:], rtol=0, atol=1e-3)
+    np.testing.assert_allclose(forces, truth["mean_force"][1:], rtol=0, atol=1e-3)
 
 
 def test_sdo_gains_change_the_closed_loop(can_channel):
@@ -268,8 +269,8 @@ def test_sdo_gains_change_the_closed_loop(can_channel):
     stiff = AxisSimulator()
     stiff.set_gains(type(slow)(float(np.float32(3.0 * slow.K_p)), slow.T_i, slow.K_v))
     command = np.r_[0.0, np.full(40, 0.01)]
-    with_new = reference(CSV, stiff, target_velocity=command)["velocity"][1:]
-    with_old = reference(CSV, AxisSimulator(), target_velocity=command)["velocity"][1:]
+    with_new = reference(CSV, stiff, target_velocity=command)["mean_velocity"][1:]
+    with_old = reference(CSV, AxisSimulator(), target_velocity=command)["mean_velocity"][1:]
     np.testing.assert_allclose(bus, np.round(with_new * 1e9) * 1e-9, rtol=0, atol=1.01e-9)
     assert np.max(np.abs(bus - with_old)) > 1e-3  # 3 × K_p: visibly faster response
 

@@ -32,15 +32,16 @@ PARAMETER_COUNT = 9
 # entries of the state vector
 S_X_MOT, S_V_MOT, S_X_TIP, S_V_TIP, S_FORCE, S_INTEGRAL, S_PREVIOUS_ERROR, \
     S_PREVIOUS_TARGET, S_HAS_PREVIOUS_TARGET, S_DELAY_INDEX, \
-    S_FRICTION_VELOCITY, S_FRICTION_FORCE, S_NEWTON_GAIN, S_TIP_FORCE = range(14)
-STATE_SIZE = 14
+    S_FRICTION_VELOCITY, S_FRICTION_FORCE, S_NEWTON_GAIN, S_TIP_FORCE, S_MEAN_FORCE = range(15)
+STATE_SIZE = 15
 
 # columns of the per-cycle input and output tables
 I_TARGET_POSITION, I_TARGET_VELOCITY, I_TARGET_FORCE, I_VELOCITY_OFFSET, \
     I_FORCE_OFFSET, I_TIP_FORCE = range(6)
 INPUT_COLUMNS = 6
-O_POSITION, O_VELOCITY, O_FORCE, O_TIP_POSITION, O_TIP_VELOCITY, O_TIP_ACCELERATION = range(6)
-OUTPUT_COLUMNS = 6
+O_POSITION, O_VELOCITY, O_FORCE, O_TIP_POSITION, O_TIP_VELOCITY, O_TIP_ACCELERATION, \
+    O_MEAN_VELOCITY, O_MEAN_FORCE = range(8)
+OUTPUT_COLUMNS = 8
 ACCELERATION_ROW = 4
 """Row of the kernel model holding the tip's continuous equation of motion (see `kernel_model`)."""
 
@@ -269,6 +270,7 @@ def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positi
     index, applied = int(state[S_DELAY_INDEX]), state[S_FORCE]
     trace[0] = tip_acceleration(mechanics, tip_start, rows, effects)
     substep = 0
+    force_sum = 0.0
     for tick in range(position_ticks):
         if mode == CSP:
             reference = start + tick * (target - start) / position_ticks
@@ -288,6 +290,7 @@ def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positi
             index = index + 1 if index + 1 < delay_line.size else 0
             applied = min(max(delay_line[index], -force_limit), force_limit)
             acting = acting_force(applied, effects[E_FORCE_LEVEL])
+            force_sum += applied
             for _ in range(int(params[P_PHYSICS_STEPS])):
                 motor_extra, tip_extra = effect_forces(mechanics, effects)
                 tip_force = tip_start + (substep + 0.5) * tip_step
@@ -302,6 +305,7 @@ def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positi
     state[S_FRICTION_VELOCITY], state[S_FRICTION_FORCE], state[S_NEWTON_GAIN] = linearisation
     state[S_INTEGRAL], state[S_PREVIOUS_ERROR] = integral, previous_error
     state[S_DELAY_INDEX], state[S_FORCE] = index, applied
+    state[S_MEAN_FORCE] = force_sum / (position_ticks * velocity_ticks)
     state[S_PREVIOUS_TARGET] = target
     state[S_TIP_FORCE] = inputs[I_TIP_FORCE]
     state[S_HAS_PREVIOUS_TARGET] = 1.0 if enabled and mode == CSP else 0.0
@@ -312,14 +316,17 @@ def run_cycles(state: np.ndarray, delay_line: np.ndarray, model: np.ndarray,
                table: np.ndarray, params: np.ndarray, effect_vector: np.ndarray,
                modes: np.ndarray, enabled: bool, inputs: np.ndarray, outputs: np.ndarray,
                traces: np.ndarray) -> None:
-    """Advance len(modes) bus cycles; row k of `outputs` gets the state after cycle k, row k
-    of `traces` the tip acceleration through cycle k (see `advance_cycle`)."""
+    """Advance len(modes) bus cycles; row k of `outputs` gets the state after cycle k (and
+    the motor velocity and force averaged over cycle k, as a drive reports them), row k of
+    `traces` the tip acceleration through cycle k (see `advance_cycle`)."""
     rows = model_rows(model)
     positive, negative = friction_side(table, 0), friction_side(table, 1)
     effects = (effect_vector[0], effect_vector[1], effect_vector[2], effect_vector[3],
                effect_vector[4], effect_vector[5], effect_vector[6], effect_vector[7],
                effect_vector[8])
+    cycle = params[P_CYCLE]
     for k in range(modes.size):
+        x_start = state[S_X_MOT]
         advance_cycle(state, delay_line, rows, positive, negative, params, effects, modes[k],
                       enabled, inputs[k], traces[k])
         outputs[k, O_POSITION] = state[S_X_MOT]
@@ -328,3 +335,5 @@ def run_cycles(state: np.ndarray, delay_line: np.ndarray, model: np.ndarray,
         outputs[k, O_TIP_POSITION] = state[S_X_TIP]
         outputs[k, O_TIP_VELOCITY] = state[S_V_TIP]
         outputs[k, O_TIP_ACCELERATION] = traces[k, -1]
+        outputs[k, O_MEAN_VELOCITY] = (state[S_X_MOT] - x_start) / cycle
+        outputs[k, O_MEAN_FORCE] = state[S_MEAN_FORCE]

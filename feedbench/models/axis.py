@@ -47,7 +47,7 @@ __all__ = [
 
 MODES = (CSP, CSV, CST)
 OUTPUT_NAMES = ("position", "velocity", "force", "tip_position", "tip_velocity",
-                "tip_acceleration")
+                "tip_acceleration", "mean_velocity", "mean_force")
 
 
 def _positive(name: str, value: float) -> None:
@@ -312,6 +312,21 @@ class AxisSimulator:
     def tip_velocity(self) -> float:
         """Tool-tip velocity (m/s)."""
         return float(self._state[_kernel.S_V_TIP])
+
+    @property
+    def mean_velocity(self) -> float:
+        """Motor velocity averaged over the last cycle, Δx_mot / cycle (m/s).
+
+        What a drive reports as velocity actual (a position difference per sample); unlike
+        the instantaneous `velocity`, it does not alias the 8 kHz loop's ripple into the
+        1 kHz samples.
+        """
+        return float(self._outputs[0, _kernel.O_MEAN_VELOCITY])
+
+    @property
+    def mean_force(self) -> float:
+        """Motor force averaged over the last cycle (N), as a drive's filtered force actual."""
+        return float(self._outputs[0, _kernel.O_MEAN_FORCE])
 
     @property
     def tip_acceleration(self) -> float:
