@@ -89,18 +89,21 @@ def two_mass_mobility(fs: float):
 
 
 def chirp_steps():
+    """Three sweeps as the chirp experiment records them: a 10–200 Hz chirp, then a tail
+    with no excitation in which the response rings down (each sweep starts at rest)."""
     fs = 1.0 / CYCLE_S
     b, a = two_mass_mobility(fs)
-    rng = np.random.default_rng(4)
-    force = 20.0 * rng.normal(size=3 * 8192 + 2000)
+    t = np.arange(6000) / fs
+    force = np.r_[20.0 * scipy.signal.chirp(t, 10.0, t[-1], 200.0), np.zeros(2192)]
     velocity = scipy.signal.lfilter(b, a, force)
+    rng = np.random.default_rng(4)
     steps = []
     for rep in range(3):
-        sweep = slice(2000 + rep * 8192, 2000 + (rep + 1) * 8192)
+        noise = 1e-3 * rng.normal(size=force.size)
         steps += [(f"settle {rep}", "settle", {}, rows_of(300)),
                   (f"sweep {rep}", "excite", {"repetition": rep},
-                   rows_of(8192, force=force[sweep], velocity=velocity[sweep],
-                           force_offset=force[sweep]))]
+                   rows_of(force.size, force=force + noise, velocity=velocity,
+                           force_offset=force))]
     return steps
 
 

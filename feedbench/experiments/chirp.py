@@ -3,7 +3,7 @@
 A linear or logarithmic chirp is added to the force (torque) offset 0x60B2 or the velocity
 offset 0x60B1 while the axis holds position or moves at a feed, repeated and averaged.
 Moving keeps friction in its sliding regime so only its viscous part acts (Ch. 5.3.2);
-repetitions alternate direction to stay within the travel.
+a return move between repetitions keeps every sweep in one direction.
 """
 
 from __future__ import annotations
@@ -15,11 +15,12 @@ import numpy as np
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
 from feedbench.analysis.frf import estimate_frf
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
-from feedbench.experiments.signals import chirp, ramp_to_feed, integrate_velocity
+from feedbench.experiments.signals import chirp, integrate_velocity, move_to, ramp_to_feed
 from feedbench.models.axis import CSP
 from feedbench.units import MM_PER_MIN
 
 NAME = "chirp"
+SIGNS = {"positive": 1.0, "negative": -1.0}
 
 SCHEMA = {
     "type": Field(str, NAME, "experiment family"),
@@ -35,7 +36,13 @@ SCHEMA = {
     "sweep": Field(str, "linear", "linear or logarithmic", one_of("linear", "logarithmic")),
     "feed_mm_min": Field(float, 500.0, "axis feed during the sweeps (mm/min); 0 holds position",
                          non_negative),
+    "direction": Field(str, "positive", "direction of motion during every sweep",
+                       one_of("positive", "negative")),
+    "return_feed_mm_min": Field(float, 1500.0, "feed of the return move between sweeps (mm/min)",
+                                positive),
     "settle_s": Field(float, 0.5, "time at feed before each sweep (s)", positive),
+    "tail_s": Field(float, 1.0, "time at feed after each sweep, recorded with it so the "
+                    "response rings down inside the record (s)", non_negative),
     "accel_m_s2": Field(float, 1.0, "acceleration of the ramps (m/s²)", positive),
 }
 
@@ -56,7 +63,11 @@ def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
 
 
 def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
-    """Settle, sweep, stop — `repetitions` times, alternating direction when moving."""
+    """Accelerate, settle, sweep, stop, return — `repetitions` times.
+
+    Every sweep runs in the same direction: direction-dependent friction (Fig. 5.11) makes
+    the in-motion response direction-dependent, so alternating sweeps would not average.
+    """
     p = _validated(params, cycle_s)
     if p["inject"] == "force":
         sweep = chirp(p["amplitude_N"], p["f_start_Hz"], p["f_stop_Hz"], p["duration_s"],
@@ -64,35 +75,39 @@ def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
     else:
         sweep = chirp(p["amplitude_mm_min"] * MM_PER_MIN, p["f_start_Hz"], p["f_stop_Hz"],
                       p["duration_s"], cycle_s, p["sweep"])
+    sweep = np.concatenate([sweep, np.zeros(int(round(p["tail_s"] / cycle_s)))])
     n_settle = int(round(p["settle_s"] / cycle_s))
+    feed = SIGNS[p["direction"]] * p["feed_mm_min"] * MM_PER_MIN
+    up = ramp_to_feed(0.0, feed, p["accel_m_s2"], cycle_s) if feed else np.zeros(0)
+    down = ramp_to_feed(feed, 0.0, p["accel_m_s2"], cycle_s) if feed else np.zeros(0)
+    cruise = np.full(n_settle + len(sweep), feed)
+    path = integrate_velocity(np.concatenate([up, cruise, down]), 0.0, cycle_s)
+    back = move_to(float(path[-1]), 0.0, p["return_feed_mm_min"] * MM_PER_MIN,
+                   p["accel_m_s2"], cycle_s)
+    a, b = len(up), len(up) + n_settle
+    c = b + len(sweep)
+    offset = {"force_offset" if p["inject"] == "force" else "velocity_offset": sweep}
     segments: list[Segment] = []
-    x = 0.0
     for rep in range(p["repetitions"]):
-        feed = (1.0 if rep % 2 == 0 else -1.0) * p["feed_mm_min"] * MM_PER_MIN
-        up = ramp_to_feed(0.0, feed, p["accel_m_s2"], cycle_s) if feed else np.zeros(0)
-        cruise = np.full(n_settle + len(sweep), feed)
-        down = ramp_to_feed(feed, 0.0, p["accel_m_s2"], cycle_s) if feed else np.zeros(0)
-        path = integrate_velocity(np.concatenate([up, cruise, down]), x, cycle_s)
-        a, b = len(up), len(up) + n_settle
-        c = b + len(sweep)
-        offset = {"force_offset" if p["inject"] == "force" else "velocity_offset": sweep}
         info = {"repetition": rep, "feed_mm_min": feed / MM_PER_MIN}
         segments += [
             Segment(f"accelerate sweep {rep + 1}", "move", path[:a], info=info),
             Segment(f"settle sweep {rep + 1}", "settle", path[a:b], info=info),
             Segment(f"sweep {rep + 1}", "excite", path[b:c], info=info, **offset),
             Segment(f"stop sweep {rep + 1}", "move", path[c:], info=info),
+            Segment(f"return after sweep {rep + 1}", "move", back, info=info),
         ]
-        x = float(path[-1])
     return Plan(NAME, CSP, [s for s in segments if s.n_cycles], p, cycle_s)
 
 
-def excited_signals(recording, windows: list[Window]) -> tuple[np.ndarray, np.ndarray]:
-    """Motor force (N) and motor velocity (m/s) of every sweep, each made zero-mean, joined."""
+def sweep_records(recording, windows: list[Window]) -> tuple[np.ndarray, np.ndarray]:
+    """Motor force (N) and motor velocity (m/s) of every sweep with its ring-down tail,
+    each made zero-mean, joined; all records have the length of the shortest."""
+    n = min(w.stop - w.start for w in windows)
     force = recording.channels["force"]
     velocity = recording.channels["velocity"]
-    f = [force[w.start:w.stop] - force[w.start:w.stop].mean() for w in windows]
-    v = [velocity[w.start:w.stop] - velocity[w.start:w.stop].mean() for w in windows]
+    f = [force[w.start:w.start + n] - force[w.start:w.start + n].mean() for w in windows]
+    v = [velocity[w.start:w.start + n] - velocity[w.start:w.start + n].mean() for w in windows]
     return np.concatenate(f), np.concatenate(v)
 
 
@@ -119,12 +134,18 @@ def mobility_extrema(f: np.ndarray, H: np.ndarray, band: tuple[float, float]) ->
     return _refined_extremum(f, db, k_t), _refined_extremum(f, db, k_r)
 
 
-def analyze_recording(recording, nperseg: int = 2048, band: tuple[float, float] = (20.0, 150.0)) -> dict:
-    """Servo mobility motor force → motor velocity (H1, Welch), its extrema and coherence."""
+def analyze_recording(recording, band: tuple[float, float] = (20.0, 150.0)) -> dict:
+    """Servo mobility motor force → motor velocity (H1) averaged over the sweeps.
+
+    Each sweep with its ring-down tail is one record (rectangular window, no overlap: the
+    response starts and ends inside it, so nothing leaks); spectra are averaged over the
+    records, and the coherence tells how well the repetitions agree.
+    """
     windows = recorded_windows(recording, "excite")
-    force, velocity = excited_signals(recording, windows)
+    force, velocity = sweep_records(recording, windows)
     fs = 1.0 / float(recording.metadata["cycle_s"])
-    est = estimate_frf(force, velocity, fs, nperseg=nperseg)
+    n = len(force) // len(windows)
+    est = estimate_frf(force, velocity, fs, nperseg=n, overlap=0.0, window="boxcar")
     f_t, f_r = mobility_extrema(est.f, est.H1, band)
     inside = (est.f >= band[0]) & (est.f <= band[1])
     return {

@@ -44,3 +44,22 @@ def chirp(
     sweep = scipy.signal.chirp(t, f_start, duration_s, f_stop, method=method, phi=-90.0)
     taper = scipy.signal.windows.tukey(len(t), alpha=0.04)
     return amplitude * sweep * taper
+
+
+def move_to(x_from: float, x_to: float, feed: float, accel: float, dt: float) -> np.ndarray:
+    """Per-cycle targets (m) of a trapezoidal move from `x_from` to exactly `x_to`.
+
+    `feed` (m/s, > 0) is the cruise speed, reduced to a triangle for short moves; the
+    profile is scaled by at most one cycle's travel so it ends on the target.
+    """
+    distance = x_to - x_from
+    if distance == 0.0:
+        return np.zeros(0)
+    speed = min(feed, np.sqrt(abs(distance) * accel))
+    signed = np.copysign(speed, distance)
+    up = ramp_to_feed(0.0, signed, accel, dt)
+    cruise_s = max(abs(distance) / speed - speed / accel, 0.0)
+    cruise = np.full(int(round(cruise_s / dt)), signed)
+    velocity = np.concatenate([up, cruise, up[::-1][1:], [0.0]])
+    velocity *= distance / (velocity.sum() * dt)
+    return integrate_velocity(velocity, x_from, dt)
