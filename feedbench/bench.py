@@ -106,6 +106,16 @@ def load_run_config(path: str | Path) -> RunConfig:
     return parse_run_config(read_toml(path))
 
 
+def sim_config(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """`feedbench sim`'s config: the validated [bench] table and, if the file has an
+    [experiment], the workpiece its plan prepares (SMFE lanes); else no workpiece."""
+    raw = read_toml(path)
+    if "experiment" in raw:
+        config = parse_run_config(raw)
+        return config.bench, list(config.plan.params.get("workpiece", ()))
+    return validate_table(raw.get("bench", {}), BENCH_SCHEMA, "bench"), []
+
+
 def host_config(raw: Mapping[str, Any]) -> dict[str, Any]:
     """The config as the host may record it: the simulated world's truth removed."""
     out = json.loads(json.dumps(raw))

@@ -1,4 +1,4 @@
-"""The `feedbench` command: run, runs, analyze, live, report, demo.
+"""The `feedbench` command: run, runs, analyze, live, report, demo, sim.
 
 Errors the user can fix (a config key, a limit, an unknown run) print one line
 ``feedbench: error: …`` and exit with status 2, before anything moves.
@@ -124,6 +124,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0 if all(r["status"] == "complete" for r in result["runs"]) else 1
 
 
+def cmd_sim(args: argparse.Namespace) -> int:
+    """Serve the simulated bench of a config as its own process until Ctrl-C / SIGTERM."""
+    from feedbench.bench import sim_config
+    from feedbench.sim_backends.process import serve
+
+    serve(*sim_config(args.config))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every sub-command."""
     parser = argparse.ArgumentParser(prog="feedbench", description=__doc__.splitlines()[0])
@@ -164,6 +173,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--dir", default="runs/demo")
     demo.add_argument("--json", action="store_true")
     demo.set_defaults(func=cmd_demo)
+
+    sim = sub.add_parser("sim", help="serve the simulated bench as its own process (CAN via "
+                         "socketcand, Modbus TCP, DAQ pty on loopback)")
+    sim.add_argument("config", help="TOML with [bench] (and [experiment] to prepare the "
+                     "workpiece of an SMFE plan)")
+    sim.set_defaults(func=cmd_sim)
     return parser
 
 

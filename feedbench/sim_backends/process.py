@@ -116,10 +116,21 @@ def serve(bench: Mapping[str, Any], workpiece: Sequence[Mapping[str, Any]] = (),
             info = {"socketcand": f"{host}:{port}", "channel": bench["channel"],
                     "modbus": f"{modbus_host}:{modbus_port}", "daq_port": simulated.daq_port,
                     "node_id": bench["node_id"]}
-            print(f"{READY} {json.dumps(info)}", file=out, flush=True)
-            stop.wait()
+            print(f"{READY} {json.dumps(info)}", file=out)
+            print(host_bench_table(info), file=out, flush=True)
+            while not stop.wait(0.5):
+                pass
     finally:
         hub.stop()
+
+
+def host_bench_table(info: Mapping[str, Any]) -> str:
+    """The [bench] table a host config needs to reach this simulated bench (TOML)."""
+    return "\n".join([
+        "# host config: reach this simulated bench over loopback, as hardware",
+        "[bench]", "simulated = false", 'interface = "socketcand"', 'clock = "lockstep"',
+        *(f'{key} = {json.dumps(info[key])}' for key in
+          ("socketcand", "channel", "node_id", "modbus", "daq_port"))])
 
 
 def _stop_on_signals() -> threading.Event:
