@@ -179,6 +179,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("config", help="TOML with [bench] (and [experiment] to prepare the "
                      "workpiece of an SMFE plan)")
     sim.set_defaults(func=cmd_sim)
+
+    from feedbench.closure_command import add_closure_parser
+
+    add_closure_parser(sub)
     return parser
 
 

@@ -25,8 +25,8 @@ _HOT = {**_JIT, "inline": "always"}
 
 # entries of the effect vector the axis kernel reads (`AxisEffects.vector`)
 E_RIPPLE_AMPLITUDE, E_RIPPLE_PITCH, E_RIPPLE_PHASE, E_FORCE_LEVEL, E_BACKLASH, E_COUPLING_K, \
-    E_COUPLING_C = range(7)
-EFFECT_COUNT = 7
+    E_COUPLING_C, E_LOAD_COULOMB, E_LOAD_K_TANH = range(9)
+EFFECT_COUNT = 9
 
 
 @dataclass(frozen=True)
@@ -35,7 +35,10 @@ class AxisEffects:
 
     ripple_amplitude (N), ripple_pitch (m), ripple_phase (rad): `ripple_force` on the
     carriage; force_level (1/N): β of `reported_force`, the drive reports F (1 + β|F|) while
-    F acts; backlash (m): total play of the motor–tip coupling (`dead_zone`).
+    F acts; backlash (m): total play of the motor–tip coupling (`dead_zone`);
+    load_coulomb (N), load_k_tanh (s/m): Coulomb friction F tanh(k v_tip) on the tip (the
+    load behind a play rests on its own guideways); explicit, so it needs substeps shorter
+    than 2 m_tip / (load_coulomb · load_k_tanh).
     """
 
     ripple_amplitude: float = 0.0
@@ -43,12 +46,16 @@ class AxisEffects:
     ripple_phase: float = 0.0
     force_level: float = 0.0
     backlash: float = 0.0
+    load_coulomb: float = 0.0
+    load_k_tanh: float = 1500.0
 
     def __post_init__(self) -> None:
         if not self.ripple_pitch > 0.0:
             raise ValueError(f"ripple_pitch must be > 0, got {self.ripple_pitch}")
         if not self.backlash >= 0.0:
             raise ValueError(f"backlash must be >= 0, got {self.backlash}")
+        if not (self.load_coulomb >= 0.0 and self.load_k_tanh > 0.0):
+            raise ValueError("load_coulomb must be >= 0 and load_k_tanh > 0")
         if not self.force_level >= 0.0:
             raise ValueError(f"force_level must be >= 0 (saturating force constant), "
                              f"got {self.force_level}")
@@ -56,10 +63,8 @@ class AxisEffects:
     def vector(self, k: float, c: float) -> np.ndarray:
         """The kernel's effect vector; k (N/m), c (N·s/m): the coupling the play sits in."""
         vector = np.zeros(EFFECT_COUNT)
-        vector[[E_RIPPLE_AMPLITUDE, E_RIPPLE_PITCH, E_RIPPLE_PHASE, E_FORCE_LEVEL, E_BACKLASH,
-                E_COUPLING_K, E_COUPLING_C]] = (self.ripple_amplitude, self.ripple_pitch,
-                                                self.ripple_phase, self.force_level,
-                                                self.backlash, k, c)
+        vector[:] = (self.ripple_amplitude, self.ripple_pitch, self.ripple_phase,
+                     self.force_level, self.backlash, k, c, self.load_coulomb, self.load_k_tanh)
         return vector
 
 
@@ -108,12 +113,15 @@ def dead_zone(gap: float, width: float) -> float:
 def effect_forces(mechanics: tuple, effects: tuple) -> tuple[float, float]:
     """Extra forces (N) on carriage and tip for the state (x_mot, v_mot, x_tip, v_tip).
 
-    effects: the `AxisEffects.vector` as a tuple. Ripple acts on the carriage. Backlash is
-    applied as the difference between the dead-zone coupling and the linear one the
-    discretised axis already contains: k (Δx − dz(Δx)), plus c Δv while the play is open,
-    on the carriage, the opposite on the tip (Δx = x_mot − x_tip; held over the substep).
+    effects: the `AxisEffects.vector` as a tuple. Ripple acts on the carriage, load friction
+    on the tip. Backlash is applied as the difference between the dead-zone coupling and the
+    linear one the discretised axis already contains: k (Δx − dz(Δx)), plus c Δv while the
+    play is open, on the carriage, the opposite on the tip (Δx = x_mot − x_tip). All are
+    held over the substep (explicit).
     """
     motor, tip = 0.0, 0.0
+    if effects[E_LOAD_COULOMB] != 0.0:
+        tip -= effects[E_LOAD_COULOMB] * math.tanh(effects[E_LOAD_K_TANH] * mechanics[3])
     if effects[E_RIPPLE_AMPLITUDE] != 0.0:
         motor += ripple_force(mechanics[0], effects[E_RIPPLE_AMPLITUDE],
                               effects[E_RIPPLE_PITCH], effects[E_RIPPLE_PHASE])

@@ -1,0 +1,513 @@
+"""The vocabulary of model terms and candidate effects of the closure.
+
+The inverse model predicts the measured motor force from the measured motion:
+
+    F̂ = S( A( Σ_terms Φ_term(x, v, a; η)(t + τ) · θ_term ) )
+
+θ: linear parameters (masses, friction levels, offsets, ripple components); η: nonlinear
+ones (Stribeck velocity, ripple pitch, mode frequency and damping, backlash width);
+τ: the `delay` between the force channel and the motion; A: the `amplitude_nonlinearity`
+of the force reading; S: its `sensor_gain`. A model config declares some terms; the closure
+adds the others from this library. Names below are the JSON/TOML vocabulary.
+
+Each effect says which columns it adds, where its nonlinear parameters may start (from the
+residual: its signature test), and when it applies. Friction columns come from the Andersson
+law, Eq. (5.2), in `feedbench.models.friction` (linear in F_c, F_s − F_c and σ); ripple,
+backlash, transmissibility and force-level laws from `feedbench.models.effects`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+import scipy.signal
+
+from feedbench.analysis.closure.trace import Kinematics, lowpass
+from feedbench.models import effects as laws
+from feedbench.models.friction import AnderssonFriction, DirectionalFriction
+from feedbench.units import MIN_PER_MM, MM_PER_MIN
+
+K_TANH_DEFAULT_MIN_MM = 0.25
+"""tanh constant of Eq. (5.2) (min/mm), the thesis's value (Fig. 5.11)."""
+
+_NO_FRICTION = AnderssonFriction(F_c=0.0, F_s=0.0, v_s=math.inf, sigma=0.0)
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One parameter of a term. `key` names it in TOML and JSON, in `unit`; SI = value · to_si.
+
+    linear: enters the prediction linearly (solved by least squares, needs no start);
+    setting: a shape constant that is declared, never fitted; default: SI start or setting;
+    lower, upper: SI bounds of a nonlinear parameter.
+    """
+
+    key: str
+    unit: str
+    to_si: float
+    doc: str
+    linear: bool = True
+    setting: bool = False
+    default: float = 0.0
+    lower: float = -math.inf
+    upper: float = math.inf
+
+
+@dataclass(frozen=True)
+class Context:
+    """What a signature test may look at besides the kinematics.
+
+    residual: measured − predicted force on the used samples (`Kinematics.rows`) (N);
+    acting: the model's force before the output transforms, every sample (N); present:
+    names of the terms already in the model; fixed: names of terms whose linear parameters
+    are all declared (not free).
+    """
+
+    residual: np.ndarray
+    acting: np.ndarray
+    present: frozenset[str]
+    fixed: frozenset[str]
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A model term / candidate effect. Subclasses give its columns and its signature.
+
+    Parameter values travel as SI floats keyed by the parameter's `key` (whose suffix names
+    the unit of the TOML and JSON value, not of the SI float).
+    """
+
+    name: str
+    doc: str
+    signature: str
+    parameters: tuple[Parameter, ...]
+    kind: str = "additive"
+    """additive (adds columns), shift (delays them), output (maps the summed force)."""
+
+    requires: tuple[str, ...] = ()
+    """Terms that must already be in the model for this one to make sense."""
+
+    excludes: tuple[str, ...] = ()
+    """Terms whose presence makes this one redundant."""
+
+    @property
+    def linear_keys(self) -> tuple[str, ...]:
+        """Keys of the linear parameters, in column order."""
+        return tuple(p.key for p in self.parameters if p.linear and not p.setting)
+
+    @property
+    def nonlinear_keys(self) -> tuple[str, ...]:
+        """Keys of the fitted nonlinear parameters."""
+        return tuple(p.key for p in self.parameters if not p.linear and not p.setting)
+
+    def parameter(self, key: str) -> Parameter:
+        """The parameter named `key`."""
+        for p in self.parameters:
+            if p.key == key:
+                return p
+        raise KeyError(f"{self.name}: no parameter {key!r}")
+
+    def defaults(self) -> dict[str, float]:
+        """SI start values of every parameter (linear ones 0, settings their value)."""
+        return {p.key: p.default for p in self.parameters}
+
+    def applicable(self, present: frozenset[str], fixed: frozenset[str]) -> bool:
+        """Whether the effect can be added to a model holding the terms `present`."""
+        return (self.name not in present and all(r in present for r in self.requires)
+                and not any(e in present for e in self.excludes))
+
+    def free_keys(self, present: frozenset[str]) -> tuple[str, ...]:
+        """Parameters fitted when the effect is added to a model holding `present`."""
+        return self.linear_keys + self.nonlinear_keys
+
+    def columns(self, kin: Kinematics, values: Mapping[str, float]) -> np.ndarray:
+        """Regressors (n × len(linear_keys)) of an additive effect at the SI `values`."""
+        return np.empty((kin.n, 0))
+
+    def starts(self, kin: Kinematics, context: Context) -> list[dict[str, float]]:
+        """Candidate start values of the nonlinear parameters (SI), to be screened."""
+        return [{}]
+
+    def probe(self, kin: Kinematics, context: Context, start: Mapping[str, float]) -> np.ndarray:
+        """Columns (every sample) whose span is the effect's first-order signature."""
+        return self.columns(kin, {**self.defaults(), **start})
+
+    def shift(self, values: Mapping[str, float]) -> float:
+        """Lead (s) of the force channel over the motion this term introduces."""
+        return 0.0
+
+    def forward(self, force: np.ndarray, values: Mapping[str, float]) -> np.ndarray:
+        """Reading (N) of the acting force `force` (N) (identity but for output effects)."""
+        return force
+
+    def inverse(self, reading: np.ndarray, values: Mapping[str, float]) -> np.ndarray:
+        """Acting force (N) behind a reading (N): the inverse of `forward`."""
+        return reading
+
+    def slope(self, force: np.ndarray, values: Mapping[str, float]) -> np.ndarray | float:
+        """d forward / d force at `force`."""
+        return 1.0
+
+    def implausible(self, values: Mapping[str, float], total_mass: float) -> str | None:
+        """Why fitted values cannot be physical (None if they can)."""
+        return None
+
+    def describe(self, values: Mapping[str, float]) -> str:
+        """What the fitted effect looks like, in engineering units."""
+        return ", ".join(f"{p.key} = {values[p.key] / p.to_si:.4g}"
+                         for p in self.parameters if not p.setting)
+
+
+def _andersson(kin: Kinematics, values: Mapping[str, float], v: np.ndarray | None = None,
+               **law: float) -> np.ndarray:
+    """Eq. (5.2) at velocity v (default: the filtered motor velocity) with the given levels
+    and the term's tanh constant."""
+    friction = AnderssonFriction(k_tanh=values["k_tanh_min_mm"], **law)
+    return np.asarray(friction.force(kin.v if v is None else v))
+
+
+def _k_tanh_setting() -> Parameter:
+    return Parameter("k_tanh_min_mm", "min/mm", MIN_PER_MM, "tanh constant of Eq. (5.2)",
+                     linear=False, setting=True, default=K_TANH_DEFAULT_MIN_MM * MIN_PER_MM)
+
+
+@dataclass(frozen=True)
+class Inertia(Effect):
+    """Rigid-body inertia M·a."""
+
+    def columns(self, kin, values):
+        return kin.a[:, None]
+
+
+@dataclass(frozen=True)
+class Viscous(Effect):
+    """Viscous friction σ v (Eq. 5.2, σ term)."""
+
+    def columns(self, kin, values):
+        return kin.v[:, None]
+
+
+@dataclass(frozen=True)
+class Coulomb(Effect):
+    """Coulomb friction F_c tanh(k_tanh v) (Eq. 5.2 with F_s = F_c)."""
+
+    def columns(self, kin, values):
+        return _andersson(kin, values, F_c=1.0, F_s=1.0, v_s=math.inf, sigma=0.0)[:, None]
+
+
+@dataclass(frozen=True)
+class Stribeck(Effect):
+    """Stribeck excess (F_s − F_c) exp(−(|v|/v_s)^δ) tanh(k_tanh v) (Eq. 5.2)."""
+
+    def columns(self, kin, values):
+        return _andersson(kin, values, F_c=0.0, F_s=1.0, v_s=values["v_s_mm_min"],
+                          sigma=0.0, delta=values["delta"])[:, None]
+
+    def implausible(self, values, total_mass):
+        return None if values["dF_s_N"] > 0.0 else "static level below the Coulomb level"
+
+    def starts(self, kin, context):
+        top = max(float(np.quantile(np.abs(kin.v), 0.9)), 1e-4)
+        return [{"v_s_mm_min": v_s} for v_s in np.geomspace(top * 1e-3, top, 16)]
+
+
+@dataclass(frozen=True)
+class DirectionDependent(Effect):
+    """Viscous friction that differs by direction: Δσ·v for v < 0 only
+    (`DirectionalFriction`, Fig. 5.11). A Coulomb level that differs by direction is, while
+    the axis moves, a Coulomb level plus a constant force: the `offset` effect."""
+
+    def columns(self, kin, values):
+        negative_only = DirectionalFriction(_NO_FRICTION,
+                                            AnderssonFriction(0.0, 0.0, math.inf, 1.0))
+        return np.asarray(negative_only.force(kin.v))[:, None]
+
+
+@dataclass(frozen=True)
+class Offset(Effect):
+    """A constant force: gravity on an inclined axis, an unbalanced counterweight, or a
+    force-reading offset (the two are the same in the force balance)."""
+
+    def columns(self, kin, values):
+        return np.ones((kin.n, 1))
+
+
+@dataclass(frozen=True)
+class Ripple(Effect):
+    """Force ripple periodic in position: A_s sin(2π x/p) + A_c cos(2π x/p) (cogging,
+    screw lead, pinion pitch); amplitude √(A_s² + A_c²), `models.effects.ripple_force`."""
+
+    def columns(self, kin, values):
+        pitch = values["pitch_mm"]
+        return np.column_stack([laws.ripple_forces(kin.x, 1.0, pitch, 0.0),
+                                laws.ripple_forces(kin.x, 1.0, pitch, 0.5 * math.pi)])
+
+    def starts(self, kin, context):
+        """Peaks of the Lomb–Scargle periodogram of the residual against position.
+
+        On every `stride`-th sample (the residual is band-limited) and at two wavenumbers
+        per 2π/stroke (the periodogram's resolution), so it stays cheap.
+        """
+        low, high = _pitch_range(kin)
+        stroke = float(np.ptp(kin.x))
+        wavenumbers = np.arange(2 * np.pi / high, 2 * np.pi / low, np.pi / stroke)
+        if wavenumbers.size < 3:
+            return []
+        stride = max(1, int(0.25 / (kin.bandwidth * kin.dt)))
+        residual = context.residual[::stride]
+        power = scipy.signal.lombscargle(kin.x[kin.rows[::stride]], residual - residual.mean(),
+                                         wavenumbers)
+        peaks = scipy.signal.find_peaks(power)[0]
+        best = peaks[np.argsort(power[peaks])[::-1][:3]]
+        return [{"pitch_mm": 2 * np.pi / wavenumbers[i]} for i in best]
+
+    def describe(self, values):
+        amplitude = math.hypot(values["A_sin_N"], values["A_cos_N"])
+        return f"amplitude {amplitude:.3g} N at pitch {values['pitch_mm'] * 1e3:.4g} mm"
+
+
+def _pitch_range(kin: Kinematics) -> tuple[float, float]:
+    """Shortest pitch the filter passes at the top speed, longest half the stroke (m)."""
+    fastest = float(np.quantile(np.abs(kin.v), 0.95))
+    return max(fastest / kin.bandwidth, 1e-6), max(float(np.ptp(kin.x)) / 2.0, 2e-6)
+
+
+@dataclass(frozen=True)
+class StructuralMode(Effect):
+    """A mass m on a spring-damper behind the motor: m (T(s) − 1) a, T = x_tip/x_mot of
+    `models.effects.tip_transmissibility` (Eq. 4.25), f_n = √(k/m)/2π (Eq. 4.13)."""
+
+    def columns(self, kin, values):
+        return _mode_column(kin, values["f_n_Hz"], values["zeta"])[:, None]
+
+    def implausible(self, values, total_mass):
+        if not 0.0 < values["m_kg"] < total_mass:
+            return f"modal mass {values['m_kg']:.3g} kg outside (0, {total_mass:.3g}) kg"
+        return None
+
+    def starts(self, kin, context):
+        top = 0.9 * kin.bandwidth
+        return [{"f_n_Hz": f, "zeta": z} for f in np.geomspace(2.0, top, 32) for z in (0.02, 0.1)]
+
+    def describe(self, values):
+        return (f"mass {values['m_kg']:.3g} kg at {values['f_n_Hz']:.4g} Hz, "
+                f"ζ = {values['zeta']:.3g}")
+
+
+def _mode_column(kin: Kinematics, f_n: float, zeta: float) -> np.ndarray:
+    """(T(s) − 1) a: T by Tustin at the sample rate, started in steady state."""
+    b, a = _tustin_biquad(*laws.tip_transmissibility(f_n, zeta), 1.0 / kin.dt)
+    tip = scipy.signal.lfilter(b, a, kin.a, zi=scipy.signal.lfilter_zi(b, a) * kin.a[0])[0]
+    return tip - kin.a
+
+
+def _tustin_biquad(num: np.ndarray, den: np.ndarray, fs: float) -> tuple[np.ndarray, np.ndarray]:
+    """Tustin (bilinear) transform of a second-order section, s = 2 fs (z − 1)/(z + 1).
+
+    Hand-written: scipy.signal.bilinear goes through numpy.polynomial (≈ 1 ms a call) and
+    the mode search calls it hundreds of times; for degree 2 it is three lines.
+    """
+    k = 2.0 * fs
+
+    def mapped(c: np.ndarray) -> np.ndarray:
+        c2, c1, c0 = np.concatenate([np.zeros(3 - c.size), c])
+        return np.array([c2 * k * k + c1 * k + c0, 2.0 * (c0 - c2 * k * k),
+                         c2 * k * k - c1 * k + c0])
+
+    b, a = mapped(num), mapped(den)
+    return b / a[0], a / a[0]
+
+
+@dataclass(frozen=True)
+class Delay(Effect):
+    """The force channel leads the motion by τ: F_meas(t) = F(t + τ) (a current-loop delay
+    behind a recorded force command, or channels not aligned in time)."""
+
+    def shift(self, values):
+        return values["tau_ms"]
+
+    def probe(self, kin, context, start):
+        return np.gradient(context.acting, kin.dt)[:, None]
+
+    def starts(self, kin, context):
+        slope = np.gradient(context.acting, kin.dt)[kin.rows]
+        tau = float(slope @ context.residual / max(slope @ slope, 1e-300))
+        bound = self.parameter("tau_ms").upper
+        return [{"tau_ms": float(np.clip(tau, -bound, bound))}]
+
+    def describe(self, values):
+        return f"force leads motion by {values['tau_ms'] * 1e3:.3g} ms"
+
+
+@dataclass(frozen=True)
+class AmplitudeNonlinearity(Effect):
+    """Force-level nonlinearity of the reading: F_meas = F (1 + β|F|)
+    (`models.effects.reported_force`)."""
+
+    def forward(self, force, values):
+        return laws.reported_forces(force, values["beta_per_kN"])
+
+    def inverse(self, reading, values):
+        return laws.acting_forces(reading, values["beta_per_kN"])
+
+    def slope(self, force, values):
+        return 1.0 + 2.0 * values["beta_per_kN"] * np.abs(force)
+
+    def probe(self, kin, context, start):
+        return (context.acting * np.abs(context.acting))[:, None]
+
+    def starts(self, kin, context):
+        acting = context.acting[kin.rows]
+        q = acting * np.abs(acting)
+        beta = float(q @ context.residual / max(q @ q, 1e-300))
+        return [{"beta_per_kN": float(np.clip(beta, *_bounds(self, "beta_per_kN")))}]
+
+    def describe(self, values):
+        return f"β = {values['beta_per_kN'] * 1e3:.3g} /kN"
+
+
+@dataclass(frozen=True)
+class InertiaMismatch(Effect):
+    """The declared mass is off by ΔM: ΔM·a. Applies only where M is declared, not fitted."""
+
+    def applicable(self, present, fixed):
+        return super().applicable(present, fixed) and "inertia" in fixed
+
+    def columns(self, kin, values):
+        return kin.a[:, None]
+
+
+@dataclass(frozen=True)
+class SensorGain(Effect):
+    """The force reading is scaled: F_meas = g F (a wrong motor force constant or drive gain).
+    Identifiable only against declared (fixed) terms: with every level free it is absorbed."""
+
+    def applicable(self, present, fixed):
+        return super().applicable(present, fixed) and bool(fixed)
+
+    def forward(self, force, values):
+        return values["gain"] * force
+
+    def inverse(self, reading, values):
+        return reading / values["gain"]
+
+    def slope(self, force, values):
+        return values["gain"]
+
+    def probe(self, kin, context, start):
+        return context.acting[:, None]
+
+    def starts(self, kin, context):
+        q = context.acting[kin.rows]
+        gain = 1.0 + float(q @ context.residual / max(q @ q, 1e-300))
+        return [{"gain": float(np.clip(gain, *_bounds(self, "gain")))}]
+
+    def describe(self, values):
+        return f"gain {values['gain']:.4g}"
+
+
+@dataclass(frozen=True)
+class Backlash(Effect):
+    """Backlash: a load dragged through a play of width b (the dead zone of Ch. 3.2). The
+    load's mass m_L and Coulomb friction F_L follow the load position x_L =
+    `models.effects.play`(x, b) instead of the motor's: m_L (a_L − a) + F_L (tanh(k v_L) −
+    tanh(k v)), Eq. (5.2)'s Coulomb term."""
+
+    def columns(self, kin, values):
+        lag = laws.play(kin.x, values["width_um"]) - kin.x
+        v_load = kin.v + lowpass(lag, kin.bandwidth, kin.dt, derivative=1)
+        coulomb = {"F_c": 1.0, "F_s": 1.0, "v_s": math.inf, "sigma": 0.0}
+        slip = (_andersson(kin, values, **coulomb, v=v_load)
+                - _andersson(kin, values, **coulomb, v=kin.v))
+        return np.column_stack([lowpass(lag, kin.bandwidth, kin.dt, derivative=2), slip])
+
+    def implausible(self, values, total_mass):
+        if not 0.0 < values["m_load_kg"] < total_mass:
+            return f"load mass {values['m_load_kg']:.3g} kg outside (0, {total_mass:.3g}) kg"
+        return None
+
+    def starts(self, kin, context):
+        low, high = 1e-6, max(float(np.ptp(kin.x)) / 20.0, 2e-6)
+        return [{"width_um": w} for w in np.geomspace(low, high, 12)]
+
+    def describe(self, values):
+        return (f"play {values['width_um'] * 1e6:.3g} µm, load {values['m_load_kg']:.3g} kg, "
+                f"load friction {values['F_load_N']:.3g} N")
+
+
+def _bounds(effect: Effect, key: str) -> tuple[float, float]:
+    p = effect.parameter(key)
+    return p.lower, p.upper
+
+
+def _nonlinear(key: str, unit: str, to_si: float, doc: str, default: float, lower: float,
+               upper: float) -> Parameter:
+    return Parameter(key, unit, to_si, doc, linear=False, default=default, lower=lower,
+                     upper=upper)
+
+
+LIBRARY: tuple[Effect, ...] = (
+    Inertia("inertia", "rigid-body inertia M a", "declared (base term)",
+            (Parameter("M_kg", "kg", 1.0, "moving mass (kg; kg·m² for a rotary axis)"),)),
+    Viscous("viscous", "viscous friction σ v, Eq. (5.2)", "residual ∝ v",
+            (Parameter("F_v_Ns_m", "N·s/m", 1.0, "viscous coefficient σ"),)),
+    Coulomb("coulomb", "Coulomb friction F_c tanh(k_tanh v), Eq. (5.2)",
+            "residual ∝ sign(v)",
+            (Parameter("F_c_N", "N", 1.0, "Coulomb level F_c"), _k_tanh_setting())),
+    Stribeck("stribeck", "Stribeck excess (F_s − F_c) exp(−(|v|/v_s)^δ) tanh(k_tanh v), Eq. (5.2)",
+             "residual ∝ sign(v), decaying with |v|",
+             (Parameter("dF_s_N", "N", 1.0, "static excess F_s − F_c"),
+              _nonlinear("v_s_mm_min", "mm/min", MM_PER_MIN, "Stribeck velocity v_s",
+                         100 * MM_PER_MIN, 1e-6, 10.0),
+              Parameter("delta", "-", 1.0, "Stribeck shape exponent δ", linear=False,
+                        setting=True, default=1.0),
+              _k_tanh_setting()),
+             requires=("coulomb",)),
+    DirectionDependent("direction_dependent",
+                       "viscous friction per direction: σ differs for v < 0 (Fig. 5.11)",
+                       "residual ∝ v on one side only",
+                       (Parameter("dF_v_Ns_m", "N·s/m", 1.0, "σ(v<0) − σ(v>0)"),),
+                       requires=("viscous", "coulomb", "offset")),
+    Offset("offset", "constant force offset (gravity, counterweight, force-reading offset)",
+           "residual has a non-zero mean",
+           (Parameter("offset_N", "N", 1.0, "constant force"),)),
+    Backlash("backlash", "load dragged through a play (dead zone, Ch. 3.2)",
+             "residual after each reversal, while the motor crosses the play",
+             (Parameter("m_load_kg", "kg", 1.0, "mass behind the play"),
+              Parameter("F_load_N", "N", 1.0, "Coulomb friction behind the play"),
+              _nonlinear("width_um", "µm", 1e-6, "total play L_z", 20e-6, 0.0, 0.05),
+              _k_tanh_setting())),
+    Ripple("ripple", "force ripple periodic in position (cogging, screw, pinion)",
+           "residual periodic in position (Lomb–Scargle peak)",
+           (Parameter("A_sin_N", "N", 1.0, "sine component"),
+            Parameter("A_cos_N", "N", 1.0, "cosine component"),
+            _nonlinear("pitch_mm", "mm", 1e-3, "period in position", 10e-3, 1e-6, 10.0))),
+    StructuralMode("structural_mode", "a mass on a spring-damper behind the motor (Eqs. 4.13, 4.25)",
+                   "residual ∝ (T(s) − 1)·a: resonant near f_n",
+                   (Parameter("m_kg", "kg", 1.0, "mass on the spring"),
+                    _nonlinear("f_n_Hz", "Hz", 1.0, "motor-locked frequency √(k/m)/2π",
+                               50.0, 0.5, 1e4),
+                    _nonlinear("zeta", "-", 1.0, "damping ratio", 0.05, 1e-3, 1.0))),
+    Delay("delay", "force channel leads the motion by τ", "residual ∝ dF/dt",
+          (_nonlinear("tau_ms", "ms", 1e-3, "lead of the force channel", 0.0, -0.02, 0.02),),
+          kind="shift"),
+    AmplitudeNonlinearity("amplitude_nonlinearity",
+                          "force-level nonlinearity of the reading F (1 + β|F|)",
+                          "residual ∝ F|F|",
+                          (_nonlinear("beta_per_kN", "1/kN", 1e-3, "β", 0.0, -5e-3, 5e-3),),
+                          kind="output"),
+    InertiaMismatch("inertia_mismatch", "declared mass off by ΔM", "residual ∝ a",
+                    (Parameter("dM_kg", "kg", 1.0, "mass error ΔM"),), requires=("inertia",)),
+    SensorGain("sensor_gain", "force reading scaled by g", "residual ∝ F",
+               (_nonlinear("gain", "-", 1.0, "force-reading gain g", 1.0, 0.2, 5.0),),
+               kind="output"),
+)
+"""Every term, base terms first; the order breaks ties between equally good candidates."""
+
+EFFECTS: dict[str, Effect] = {effect.name: effect for effect in LIBRARY}
+
+CANDIDATES: tuple[str, ...] = tuple(e.name for e in LIBRARY if e.name != "inertia")
+"""Effects the closure may add (everything but the rigid-body inertia)."""

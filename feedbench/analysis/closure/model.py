@@ -1,0 +1,357 @@
+"""Inverse-model evaluation and fitting: declared and added terms, variable projection.
+
+For given nonlinear parameters η the linear ones θ follow by least squares on the acting
+force behind the reading (output transforms inverted); η is then refined by bounded
+nonlinear least squares on the reading (variable projection, Golub & Pereyra). Parameter
+standard deviations come from the Jacobian of the reading at the optimum, scaled for the
+band-limited residual (n / n_eff, see `Kinematics.effective_n`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Mapping
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from feedbench.analysis.closure.effects import EFFECTS, Effect
+from feedbench.analysis.closure.trace import Kinematics, nrmse
+
+MAX_NONLINEAR_EVALUATIONS = 40
+"""Budget of residual evaluations of one nonlinear refinement (per free η)."""
+
+NONLINEAR_TOLERANCE = 1e-6
+"""Relative change of cost and η that ends a refinement (the ranking needs no more)."""
+
+
+@dataclass(frozen=True)
+class Term:
+    """One term of a model: its effect, SI values of every parameter, the free ones."""
+
+    effect: Effect
+    values: Mapping[str, float]
+    free: frozenset[str] = frozenset()
+
+    @property
+    def name(self) -> str:
+        """The effect's name."""
+        return self.effect.name
+
+    @property
+    def free_linear(self) -> tuple[str, ...]:
+        """Free linear parameters, in column order."""
+        return tuple(k for k in self.effect.linear_keys if k in self.free)
+
+    @property
+    def free_nonlinear(self) -> tuple[str, ...]:
+        """Free nonlinear parameters."""
+        return tuple(k for k in self.effect.nonlinear_keys if k in self.free)
+
+    def with_values(self, values: Mapping[str, float]) -> Term:
+        """The same term with some values replaced."""
+        return replace(self, values={**self.values, **values})
+
+
+def new_term(name: str, values: Mapping[str, float] | None = None,
+             free: tuple[str, ...] | None = None) -> Term:
+    """A term of the library effect `name` with SI `values` over its defaults; all of its
+    fittable parameters free unless `free` says otherwise."""
+    effect = EFFECTS[name]
+    keys = effect.linear_keys + effect.nonlinear_keys if free is None else free
+    return Term(effect, {**effect.defaults(), **(values or {})}, frozenset(keys))
+
+
+@dataclass(frozen=True)
+class Model:
+    """An inverse model: an ordered tuple of terms (base terms first, then effects added)."""
+
+    terms: tuple[Term, ...]
+    name: str = ""
+
+    @property
+    def names(self) -> frozenset[str]:
+        """Names of the terms present."""
+        return frozenset(t.name for t in self.terms)
+
+    @property
+    def fixed(self) -> frozenset[str]:
+        """Additive terms whose linear parameters are all declared (none free)."""
+        return frozenset(t.name for t in self.terms
+                         if t.effect.linear_keys and not t.free_linear)
+
+    @property
+    def total_mass(self) -> float:
+        """Rigid-body mass (kg): inertia plus any inertia mismatch."""
+        return sum(t.values.get("M_kg", 0.0) + t.values.get("dM_kg", 0.0) for t in self.terms)
+
+    def term(self, name: str) -> Term:
+        """The term named `name`."""
+        for t in self.terms:
+            if t.name == name:
+                return t
+        raise KeyError(f"model has no term {name!r}")
+
+    def with_term(self, term: Term) -> Model:
+        """This model with `term` appended."""
+        return replace(self, terms=self.terms + (term,))
+
+    def nonlinear_vector(self) -> tuple[np.ndarray, list[tuple[int, str]]]:
+        """Free nonlinear values (SI) and their (term index, key)."""
+        slots = [(i, k) for i, t in enumerate(self.terms) for k in t.free_nonlinear]
+        return np.array([self.terms[i].values[k] for i, k in slots]), slots
+
+    def with_nonlinear(self, vector: np.ndarray, slots: list[tuple[int, str]]) -> Model:
+        """This model with the free nonlinear values replaced by `vector`."""
+        terms = list(self.terms)
+        for value, (i, key) in zip(vector, slots):
+            terms[i] = terms[i].with_values({key: float(value)})
+        return replace(self, terms=tuple(terms))
+
+
+@dataclass(frozen=True)
+class Design:
+    """Regressors of a model on one kinematics: all linear columns, which are free, and who owns them."""
+
+    columns: np.ndarray
+    owners: list[tuple[int, str]]
+    free: np.ndarray
+    theta: np.ndarray
+
+
+ColumnCache = dict[int, tuple[float, np.ndarray]]
+"""Shifted columns of terms whose values do not change, by term index, with their lead (s)."""
+
+
+def design(model: Model, kin: Kinematics, cache: ColumnCache | None = None,
+           rows: np.ndarray | None = None) -> Design:
+    """Columns of every linear parameter (shifted by the model's delay) and current values.
+
+    rows: keep only these samples (after the shift); cache: columns of the terms it holds,
+    already cut to the same rows, are reused while the lead is the same.
+    """
+    lead = sum(t.effect.shift(t.values) for t in model.terms)
+    blocks, owners, free, theta = [], [], [], []
+    for i, term in enumerate(model.terms):
+        if not term.effect.linear_keys:
+            continue
+        if cache is not None and i in cache and cache[i][0] == lead:
+            blocks.append(cache[i][1])
+        else:
+            block = _advance(term.effect.columns(kin, term.values), lead / kin.dt)
+            blocks.append(block if rows is None else block[rows])
+        for key in term.effect.linear_keys:
+            owners.append((i, key))
+            free.append(key in term.free)
+            theta.append(term.values[key])
+    columns = np.hstack(blocks) if blocks else np.zeros((kin.n if rows is None else rows.size, 0))
+    return Design(columns, owners, np.array(free, dtype=bool), np.array(theta, dtype=float))
+
+
+def _advance(columns: np.ndarray, samples: float) -> np.ndarray:
+    """Columns evaluated `samples` later (linear interpolation, ends held)."""
+    if samples == 0.0:
+        return columns
+    index = np.arange(columns.shape[0], dtype=float)
+    shifted = np.empty_like(columns)
+    for j in range(columns.shape[1]):
+        shifted[:, j] = np.interp(index + samples, index, columns[:, j])
+    return shifted
+
+
+def _outputs(model: Model) -> list[Term]:
+    return [t for t in model.terms if t.effect.kind == "output"]
+
+
+def forward(model: Model, acting: np.ndarray) -> np.ndarray:
+    """The reading of the acting force through the model's output effects."""
+    for term in _outputs(model):
+        acting = term.effect.forward(acting, term.values)
+    return acting
+
+
+def inverse(model: Model, reading: np.ndarray) -> np.ndarray:
+    """The acting force behind a reading (output effects inverted, last first)."""
+    for term in reversed(_outputs(model)):
+        reading = term.effect.inverse(reading, term.values)
+    return reading
+
+
+def output_slope(model: Model, acting: np.ndarray) -> np.ndarray:
+    """d reading / d acting force, per sample."""
+    slope = np.ones_like(acting)
+    for term in _outputs(model):
+        slope = slope * term.effect.slope(acting, term.values)
+        acting = term.effect.forward(acting, term.values)
+    return slope
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """acting: the model's force (N); reading: what the force channel shows (N)."""
+
+    acting: np.ndarray
+    reading: np.ndarray
+
+
+def predict(model: Model, kin: Kinematics) -> Prediction:
+    """The model's force prediction on `kin` with its current values."""
+    d = design(model, kin)
+    acting = d.columns @ d.theta
+    return Prediction(acting, forward(model, acting))
+
+
+def held_out_error(model: Model, kin: Kinematics) -> float:
+    """NRMSE of the predicted force reading against the measured one on the used samples."""
+    rows = kin.rows
+    return nrmse(kin.force[rows], predict(model, kin).reading[rows])
+
+
+def least_squares_solution(columns: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """argmin ‖columns θ − target‖ by the normal equations of unit-norm columns (p ≪ n)."""
+    norms = np.linalg.norm(columns, axis=0)
+    norms[norms == 0.0] = 1.0
+    scaled = columns / norms
+    gram = scaled.T @ scaled
+    try:
+        solution = np.linalg.solve(gram, scaled.T @ target)
+    except np.linalg.LinAlgError:
+        solution = np.linalg.lstsq(scaled, target, rcond=None)[0]
+    return solution / norms
+
+
+def solve_linear(model: Model, kin: Kinematics) -> Model:
+    """Least-squares values of the free linear parameters for the model's current η, on
+    the used samples."""
+    return _solve(model, kin, kin.rows)[0]
+
+
+def _solve(model: Model, kin: Kinematics, rows: np.ndarray,
+           cache: ColumnCache | None = None) -> tuple[Model, np.ndarray]:
+    """The model with its free θ solved on `rows`, and its force reading there."""
+    d = design(model, kin, cache, rows)
+    theta = d.theta.copy()
+    if d.free.any():
+        target = inverse(model, kin.force[rows]) - d.columns[:, ~d.free] @ theta[~d.free]
+        theta[d.free] = least_squares_solution(d.columns[:, d.free], target)
+        terms = list(model.terms)
+        for value, (i, key) in zip(theta[d.free], [o for o, f in zip(d.owners, d.free) if f]):
+            terms[i] = terms[i].with_values({key: float(value)})
+        model = replace(model, terms=tuple(terms))
+    return model, forward(model, d.columns @ theta)
+
+
+@dataclass(frozen=True)
+class Fit:
+    """A model fitted on one kinematics.
+
+    residual: measured − predicted reading on the used samples (N); acting: the model's
+    force on every sample (N); ssr: sum of squared residuals (N²); n, n_eff: used and
+    independent samples; k: free parameters; std: one-sigma SI standard deviation per
+    (term name, key); measured_norm: ‖measured force‖ over the used samples (N).
+    """
+
+    model: Model
+    residual: np.ndarray
+    acting: np.ndarray
+    ssr: float
+    n: int
+    n_eff: float
+    k: int
+    std: dict[tuple[str, str], float]
+    measured_norm: float
+
+    @property
+    def bic(self) -> float:
+        """Bayesian information criterion n_eff ln(SSR/n) + k ln(n_eff) (Schwarz 1978)."""
+        return self.n_eff * np.log(self.ssr / self.n) + self.k * np.log(self.n_eff)
+
+    @property
+    def error(self) -> float:
+        """NRMSE of the force reading on the fit data."""
+        return float(np.sqrt(self.ssr) / self.measured_norm)
+
+
+def fit_model(model: Model, kin: Kinematics, with_std: bool = True) -> Fit:
+    """Fit every free parameter of `model` on `kin`; start η at the model's values.
+
+    with_std: also compute the parameter standard deviations (else `std` is empty).
+    """
+    x0, slots = model.nonlinear_vector()
+    if slots:
+        model = _refine_nonlinear(model, kin, x0, slots)
+    model = solve_linear(model, kin)
+    prediction = predict(model, kin)
+    rows = kin.rows
+    residual = kin.force[rows] - prediction.reading[rows]
+    k = sum(len(t.free_linear) + len(t.free_nonlinear) for t in model.terms)
+    std = _standard_deviations(model, kin, prediction, residual, k) if with_std else {}
+    return Fit(model, residual, prediction.acting, float(residual @ residual), kin.n_used,
+               kin.effective_n, k, std, float(np.linalg.norm(kin.force[rows])))
+
+
+def _refine_nonlinear(model: Model, kin: Kinematics, x0: np.ndarray,
+                      slots: list[tuple[int, str]]) -> Model:
+    """Bounded least squares over the free η, θ solved inside (variable projection).
+
+    Runs on every `stride`-th sample: the band is oversampled, the optimum barely moves.
+    """
+    lower = np.array([model.terms[i].effect.parameter(k).lower for i, k in slots])
+    upper = np.array([model.terms[i].effect.parameter(k).upper for i, k in slots])
+    x0 = np.clip(x0, lower, upper)
+    moving = {i for i, _ in slots}
+    rows = kin.rows[::_stride(kin)]
+    lead = sum(t.effect.shift(t.values) for t in model.terms)
+    cache = {i: (lead, _advance(t.effect.columns(kin, t.values), lead / kin.dt)[rows])
+             for i, t in enumerate(model.terms) if i not in moving and t.effect.linear_keys}
+    measured = kin.force[rows]
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        return measured - _solve(model.with_nonlinear(x, slots), kin, rows, cache)[1]
+
+    result = least_squares(residual, x0, bounds=(lower, upper), x_scale="jac",
+                           ftol=NONLINEAR_TOLERANCE, xtol=NONLINEAR_TOLERANCE,
+                           max_nfev=MAX_NONLINEAR_EVALUATIONS * len(slots))
+    return model.with_nonlinear(result.x, slots)
+
+
+def _stride(kin: Kinematics) -> int:
+    """Sample stride that keeps ≥ 4 samples per period of the filter's cut-off."""
+    return max(1, int(1.0 / (4.0 * kin.bandwidth * kin.dt)))
+
+
+def _standard_deviations(model: Model, kin: Kinematics, prediction: Prediction,
+                         residual: np.ndarray, k: int) -> dict[tuple[str, str], float]:
+    """One-sigma SI deviations from (JᵀJ)⁻¹ s² n/n_eff, J the reading's Jacobian."""
+    rows = kin.rows
+    d = design(model, kin)
+    slope = output_slope(model, prediction.acting)
+    blocks = [(d.columns[:, d.free] * slope[:, None])[rows]]
+    names = [(model.terms[i].name, key) for (i, key), f in zip(d.owners, d.free) if f]
+    x, slots = model.nonlinear_vector()
+    for j, (i, key) in enumerate(slots):
+        blocks.append(_nonlinear_derivative(model, kin, x, slots, j)[rows, None])
+        names.append((model.terms[i].name, key))
+    if not names:
+        return {}
+    jacobian = np.column_stack(blocks)
+    dof = max(kin.n_used - k, 1)
+    variance = float(residual @ residual) / dof * kin.n_used / kin.effective_n
+    covariance = np.linalg.pinv(jacobian.T @ jacobian) * variance
+    std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    return dict(zip(names, map(float, std)))
+
+
+def _nonlinear_derivative(model: Model, kin: Kinematics, x: np.ndarray,
+                          slots: list[tuple[int, str]], j: int) -> np.ndarray:
+    """Central difference of the reading in η_j with θ held (the joint model's Jacobian)."""
+    i, key = slots[j]
+    p = model.terms[i].effect.parameter(key)
+    span = p.upper - p.lower if np.isfinite(p.upper - p.lower) else 1.0
+    h = 1e-4 * max(abs(x[j]), 1e-3 * span)
+    plus, minus = x.copy(), x.copy()
+    plus[j] += h
+    minus[j] -= h
+    up = predict(model.with_nonlinear(plus, slots), kin).reading
+    down = predict(model.with_nonlinear(minus, slots), kin).reading
+    return (up - down) / (2.0 * h)

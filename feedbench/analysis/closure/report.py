@@ -1,0 +1,165 @@
+"""The closure's report: a dict for `--json` and the text a user reads.
+
+JSON values are in the units their keys name (the model config's), errors are fractions
+(NRMSE = ‖measured − predicted‖ / ‖measured‖ of the band-limited motor force, the EMPS
+benchmark's relative error).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from feedbench.analysis.closure.diagnosis import Candidate, ClosureResult
+from feedbench.analysis.closure.model import Fit, Term
+from feedbench.analysis.closure.replay import ReplayErrors
+from feedbench.analysis.closure.run import ClosureReport
+
+RUNNERS_UP = 3
+
+
+def term_params(term: Term, fit: Fit) -> dict[str, dict[str, float | bool]]:
+    """{key: {value, std, free}} of a term, in its config units (std NaN when declared)."""
+    out = {}
+    for p in term.effect.parameters:
+        if p.setting:
+            continue
+        std = fit.std.get((term.name, p.key), math.nan)
+        out[p.key] = {"value": term.values[p.key] / p.to_si, "std": std / p.to_si,
+                      "free": p.key in term.free}
+    return out
+
+
+def model_params(fit: Fit) -> dict[str, dict[str, dict[str, float | bool]]]:
+    """Parameters of every term of a fitted model."""
+    return {t.name: term_params(t, fit) for t in fit.model.terms}
+
+
+def candidate_dict(candidate: Candidate) -> dict[str, Any]:
+    """One ranked candidate: its evidence and score."""
+    return {"effect": candidate.name, "evidence": candidate.evidence,
+            "signature_share": candidate.screened, "explained": candidate.explained,
+            "delta_bic": candidate.delta_bic, "rejected": candidate.rejected}
+
+
+def replay_dict(errors: ReplayErrors | None) -> dict[str, Any] | None:
+    """Replay errors as a dict (None without a replay)."""
+    if errors is None:
+        return None
+    return {"force": errors.force, "position": errors.position, "tracking": errors.tracking,
+            "frf_magnitude_db": errors.frf_magnitude_db, "frf_phase_deg": errors.frf_phase_deg,
+            "frf_band_Hz": list(errors.frf_band_hz), "left_out": list(errors.left_out)}
+
+
+def stop_reason(result: ClosureResult) -> str:
+    """Why the search stopped, in one sentence."""
+    options = result.options
+    if result.steps and len(result.steps) >= options.max_effects:
+        return f"reached max_effects = {options.max_effects}"
+    valid = [c for c in result.final_ranking if c.rejected is None]
+    if not valid:
+        return "no candidate left to try"
+    best = valid[0]
+    return (f"no candidate significant: best {best.name} ΔBIC {best.delta_bic:.0f} "
+            f"(needs < −{options.bic_threshold:g}), explains {best.explained:.1%} "
+            f"(needs ≥ {options.min_explained:.0%})")
+
+
+def report_dict(report: ClosureReport) -> dict[str, Any]:
+    """The machine-readable report (`feedbench closure --json`)."""
+    result = report.result
+    steps = []
+    for step in result.steps:
+        term = step.fit.model.term(step.chosen.name)
+        steps.append({
+            "effect": step.chosen.name,
+            "description": term.effect.describe(term.values),
+            "evidence": step.chosen.evidence,
+            "delta_bic": step.chosen.delta_bic,
+            "explained": step.chosen.explained,
+            "error_before": step.error_before,
+            "error_after": step.error_after,
+            "params": term_params(term, step.fit),
+            "runners_up": [candidate_dict(c) for c in step.ranking[1:1 + RUNNERS_UP]],
+            "model_params": model_params(step.fit),
+        })
+    final = result.final
+    return {
+        "model": report.name,
+        "fit_data": report.fit_source,
+        "holdout_data": report.holdout_source,
+        "bandwidth_Hz": report.bandwidth,
+        "standstill_mm_s": report.standstill * 1e3,
+        "effects": list(result.effects),
+        "error_before": result.error_before,
+        "error_after": result.error_after,
+        "fit_error_before": result.base.error,
+        "fit_error_after": final.error,
+        "base_params": model_params(result.base),
+        "steps": steps,
+        "params": {name: term_params(final.model.term(name), final) for name in result.effects},
+        "final_params": model_params(final),
+        "stopped": stop_reason(result),
+        "final_ranking": [candidate_dict(c) for c in result.final_ranking],
+        "replay": None if report.replay_before is None else {
+            "before": replay_dict(report.replay_before),
+            "after": replay_dict(report.replay_after)},
+    }
+
+
+def _params_text(params: dict[str, dict[str, float | bool]], indent: str = "    ") -> str:
+    parts = []
+    for key, p in params.items():
+        std = "" if not p["free"] or math.isnan(p["std"]) else f" ± {p['std']:.3g}"
+        parts.append(f"{key} = {p['value']:.5g}{std}" + ("" if p["free"] else " (declared)"))
+    return indent + ", ".join(parts)
+
+
+def _replay_text(before: ReplayErrors, after: ReplayErrors) -> list[str]:
+    lines = [f"replay in closed loop, held out: force {before.force:.2%} → {after.force:.2%}, "
+             f"tracking error {before.tracking:.2%} → {after.tracking:.2%}, "
+             f"position {before.position:.3%} → {after.position:.3%}"]
+    if not math.isnan(after.frf_magnitude_db):
+        low, high = after.frf_band_hz
+        lines.append(f"FRF velocity/excitation, {low:.3g}–{high:.3g} Hz: |H| error "
+                     f"{before.frf_magnitude_db:.2f} → {after.frf_magnitude_db:.2f} dB RMS, "
+                     f"phase {before.frf_phase_deg:.1f}° → {after.frf_phase_deg:.1f}° RMS")
+    if after.left_out:
+        lines.append(f"not replayed: {', '.join(after.left_out)}")
+    return lines
+
+
+def report_text(report: ClosureReport) -> str:
+    """The human-readable report."""
+    data = report_dict(report)
+    result = report.result
+    lines = [
+        f"closure: {report.name or 'model'}",
+        f"fit on {report.fit_source}, judged on {report.holdout_source}; bandwidth "
+        f"{report.bandwidth:.4g} Hz; samples slower than {report.standstill * 1e3:.3g} mm/s "
+        f"not used (stiction)",
+        f"base model ({', '.join(t.name for t in result.base.model.terms)}): held-out force "
+        f"NRMSE {result.error_before:.2%} (fit {result.base.error:.2%})",
+    ]
+    for name, params in data["base_params"].items():
+        lines.append(f"  {name}:" + _params_text(params, " "))
+    for i, step in enumerate(data["steps"], 1):
+        runners = "; ".join(f"{c['effect']} ΔBIC {c['delta_bic']:.0f}, {c['explained']:.1%}"
+                            + (f" [{c['rejected']}]" if c["rejected"] else "")
+                            for c in step["runners_up"]) or "none"
+        lines += [
+            f"step {i}: + {step['effect']} ({step['description']}) — held-out "
+            f"{step['error_before']:.2%} → {step['error_after']:.2%}",
+            f"    signature: {step['evidence']}",
+            f"    why: ΔBIC {step['delta_bic']:.0f}, removes {step['explained']:.1%} of the "
+            f"fit residual; runners-up: {runners}",
+            _params_text(step["params"]),
+        ]
+    if not result.steps:
+        lines.append("no missing effect found: nothing added, the declared model stands")
+    lines.append(f"stop: {data['stopped']}")
+    lines.append(f"held-out force NRMSE before → after: {result.error_before:.2%} → "
+                 f"{result.error_after:.2%}")
+    if report.replay_before is not None:
+        lines += _replay_text(report.replay_before, report.replay_after)
+    return "\n".join(lines)

@@ -1,0 +1,265 @@
+"""The `feedbench closure` command: run the closure on a trace, or the table of simulated
+cases with undeclared effects.
+
+    feedbench closure DATA [--model M.toml] [--validation DATA2] [--json] [--plots DIR]
+    feedbench closure --cases [CASES.toml] [--json]
+
+DATA: a CSV file with its TOML sidecar, an EMPS .mat file, or a feedbench .h5 recording.
+This module composes the room that simulates (`sim_backends.effects`) with the one that
+analyses (`analysis.closure`); the analysis never sees a world table. The numerical
+packages are imported where used, so that registering the command costs nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Iterator, Mapping, Sequence
+
+from feedbench.config import ConfigError, Field, read_toml, validate_table
+
+if TYPE_CHECKING:
+    from feedbench.analysis.closure import ClosureReport, ModelSpec, Trace
+
+EXAMPLES = Path(__file__).parent / "examples" / "closure"
+CASES_PATH = EXAMPLES / "cases.toml"
+EMPS_MODEL = EXAMPLES / "emps_rigid_viscous.toml"
+
+WORLD_TO_VOCABULARY = {"sensor_offset": "offset"}
+"""World effects the closure names differently (a force-reading offset is an offset)."""
+
+
+@contextmanager
+def single_blas_thread() -> Iterator[None]:
+    """Run the block with one OpenBLAS thread, then restore the previous count.
+
+    The closure's least squares are thin (n × p, p ≤ 15): threads only spin and contend on
+    a loaded 2-core machine (measured 3× the CPU time). threadpoolctl does this if
+    installed; otherwise the OpenBLAS libraries the process has loaded are told directly.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        threadpool_limits = None
+    if threadpool_limits is not None:
+        with threadpool_limits(1, user_api="blas"):
+            yield
+        return
+    libraries = _openblas_controls()
+    previous = [get() for get, _ in libraries]
+    for _, set_threads in libraries:
+        set_threads(1)
+    try:
+        yield
+    finally:
+        for (_, set_threads), count in zip(libraries, previous):
+            set_threads(count)
+
+
+def _openblas_controls() -> list[tuple[Any, Any]]:
+    """(get, set) thread-count functions of every OpenBLAS loaded in this process (Linux)."""
+    try:
+        with open("/proc/self/maps") as maps:
+            paths = {line.split()[-1] for line in maps if "openblas" in line.lower()}
+    except OSError:
+        return []
+    controls = []
+    for path in sorted(paths):
+        library = ctypes.CDLL(path)
+        for prefix, suffix in (("scipy_openblas", "64_"), ("scipy_openblas", ""),
+                               ("openblas", "")):
+            get = getattr(library, f"{prefix}_get_num_threads{suffix}", None)
+            set_threads = getattr(library, f"{prefix}_set_num_threads{suffix}", None)
+            if get is not None and set_threads is not None:
+                controls.append((get, set_threads))
+                break
+    return controls
+
+
+def load_model_spec(path: str | Path) -> ModelSpec:
+    """Read and validate a model config file."""
+    from feedbench.analysis.closure import parse_model_config
+
+    return parse_model_config(read_toml(path))
+
+
+def closure_report(data: str | Path, model: str | Path | None = None,
+                   validation: str | Path | None = None,
+                   holdout: float | None = None) -> ClosureReport:
+    """Read the traces and the model config, run the closure; returns the report."""
+    from feedbench.analysis.closure import parse_model_config, run_closure
+    from feedbench.closure_io import read_trace
+
+    trace, controller = read_trace(data)
+    model_path = model or (EMPS_MODEL if Path(data).suffix.lower() == ".mat" else None)
+    if model_path is None:
+        raise ConfigError("--model: required (a model config TOML, see docs/closure.md)")
+    raw = read_toml(model_path)
+    if controller and "controller" not in raw:
+        raw = {**raw, "controller": controller}
+    spec = parse_model_config(raw)
+    if holdout is not None:
+        spec = replace(spec, holdout_fraction=holdout)
+    second = read_trace(validation)[0] if validation else None
+    with single_blas_thread():
+        return run_closure(spec, trace, second)
+
+
+# -- simulated cases -----------------------------------------------------------------------
+
+CASE_SCHEMA = {
+    "name": Field(str, None, "case name"),
+    "model": Field(str, None, "model config, relative to the cases file"),
+    "effects": Field(dict, {}, "effects the world carries (sim_backends.effects)"),
+    "world": Field(dict, {}, "overrides of [defaults] for this case"),
+}
+
+
+@dataclass(frozen=True)
+class CaseOutcome:
+    """One simulated case: the undeclared effect(s) injected, what the closure found."""
+
+    name: str
+    injected: tuple[str, ...]
+    found: tuple[str, ...]
+    error_before: float
+    error_after: float
+    seconds: float
+    params: dict[str, Any]
+
+    @property
+    def right_first(self) -> bool:
+        """The first effect found is the one injected (or nothing found on a clean case)."""
+        return self.found[:1] == self.injected[:1]
+
+    @property
+    def reduction(self) -> float:
+        """Share of the held-out error removed."""
+        return 1.0 - self.error_after / self.error_before
+
+
+def read_cases(path: str | Path = CASES_PATH) -> list[dict[str, Any]]:
+    """The case entries of a cases file, each with its world table and model path."""
+    raw = read_toml(path)
+    defaults = raw.get("defaults", {})
+    cases = []
+    for i, entry in enumerate(raw.get("case", [])):
+        case = validate_table(entry, CASE_SCHEMA, f"case[{i}]")
+        if not case["name"] or not case["model"]:
+            raise ConfigError(f"case[{i}]: needs a name and a model")
+        world = {**defaults, **case["world"], "effects": case["effects"]}
+        cases.append({"name": case["name"], "world": world,
+                      "model": Path(path).parent / case["model"]})
+    return cases
+
+
+def simulated_trace(world: Mapping[str, Any], name: str) -> Trace:
+    """Record a simulated world as a trace (the analysis's view of it)."""
+    from feedbench.analysis.closure import Trace
+    from feedbench.sim_backends.effects import simulate_recording
+
+    recording = simulate_recording(world)
+    c = recording.channels
+    return Trace(c["time"], c["position"], c["force"], c["x_ref"], c["force_offset"], name,
+                 recording.force_lag_s)
+
+
+def undeclared(world: Mapping[str, Any], spec: ModelSpec) -> tuple[str, ...]:
+    """The world's effects the model does not declare, in the closure's vocabulary."""
+    names = (WORLD_TO_VOCABULARY.get(n, n) for n in world.get("effects", {}))
+    return tuple(n for n in names if n not in spec.model.names)
+
+
+def run_case(case: Mapping[str, Any]) -> CaseOutcome:
+    """Generate one case's recording and close the loop on it."""
+    from feedbench.analysis.closure import report_dict, run_closure
+
+    start = time.perf_counter()
+    spec = load_model_spec(case["model"])
+    trace = simulated_trace(case["world"], case["name"])
+    with single_blas_thread():
+        report = run_closure(spec, trace)
+    data = report_dict(report)
+    return CaseOutcome(case["name"], undeclared(case["world"], spec), report.result.effects,
+                       report.result.error_before, report.result.error_after,
+                       time.perf_counter() - start, data["params"])
+
+
+def run_cases(path: str | Path = CASES_PATH) -> list[CaseOutcome]:
+    """Every case of a cases file."""
+    return [run_case(case) for case in read_cases(path)]
+
+
+def cases_table(outcomes: Sequence[CaseOutcome]) -> str:
+    """The acceptance table: case, effect injected, effect found, error before → after."""
+    lines = [f"{'case':<24s} {'injected':<24s} {'found (in order)':<40s} "
+             f"{'held-out error before → after':>30s}  ok"]
+    for o in outcomes:
+        ok = "yes" if o.right_first and (not o.found or o.reduction >= 0.5) else "NO"
+        lines.append(f"{o.name:<24s} {', '.join(o.injected) or '—':<24s} "
+                     f"{', '.join(o.found) or '—':<40s} "
+                     f"{o.error_before:>13.2%} → {o.error_after:>6.2%} ({-o.reduction:+.0%})  {ok}")
+    with_effect = [o for o in outcomes if o.injected]
+    clean = [o for o in outcomes if not o.injected]
+    right = sum(o.right_first for o in with_effect)
+    lines.append(f"right effect first: {right}/{len(with_effect)}; clean cases with nothing "
+                 f"added: {sum(not o.found for o in clean)}/{len(clean)}; error reduced ≥ 50 % "
+                 f"where found: {sum(o.reduction >= 0.5 for o in outcomes if o.found)}/"
+                 f"{sum(bool(o.found) for o in outcomes)}")
+    return "\n".join(lines)
+
+
+def cases_dict(outcomes: Sequence[CaseOutcome]) -> dict[str, Any]:
+    """The case table as JSON."""
+    return {"cases": [{"name": o.name, "injected": list(o.injected), "found": list(o.found),
+                       "right_first": o.right_first, "error_before": o.error_before,
+                       "error_after": o.error_after, "seconds": o.seconds, "params": o.params}
+                      for o in outcomes]}
+
+
+# -- the command ---------------------------------------------------------------------------
+
+def cmd_closure(args: argparse.Namespace) -> int:
+    """Run the closure on a trace, or the simulated case table."""
+    from feedbench.analysis.closure import report_dict, report_text
+    from feedbench.closure_io import save_plots
+
+    if args.cases:
+        outcomes = run_cases(args.cases)
+        print(json.dumps(cases_dict(outcomes), indent=2, default=float) if args.json
+              else cases_table(outcomes))
+        return 0
+    if not args.data:
+        raise ConfigError("closure: give a trace (CSV + sidecar, .mat or .h5) or --cases")
+    report = closure_report(args.data, args.model, args.validation, args.holdout)
+    plots = save_plots(report, args.plots) if args.plots else []
+    if args.json:
+        data = report_dict(report)
+        data["plots"] = [str(p) for p in plots]
+        print(json.dumps(data, indent=2, default=float))
+    else:
+        print(report_text(report))
+        for path in plots:
+            print(f"plot: {path}")
+    return 0
+
+
+def add_closure_parser(sub: Any) -> None:
+    """Register `feedbench closure` on the sub-command parsers."""
+    closure = sub.add_parser("closure", help="residual → missing effect → augmented model → "
+                             "error before/after, on a trace or on simulated cases")
+    closure.add_argument("data", nargs="?", help="trace: .csv (+ .toml sidecar), .mat, .h5")
+    closure.add_argument("--model", help="model config TOML (default for .mat: EMPS rigid "
+                         "body + viscous)")
+    closure.add_argument("--validation", help="second trace to judge on (else the end of DATA)")
+    closure.add_argument("--holdout", type=float, help="share of DATA held out (0–1)")
+    closure.add_argument("--plots", help="directory for PNG plots")
+    closure.add_argument("--cases", nargs="?", const=str(CASES_PATH),
+                         help="run the simulated cases table (default: the packaged one)")
+    closure.add_argument("--json", action="store_true", help="print the report as JSON")
+    closure.set_defaults(func=cmd_closure)

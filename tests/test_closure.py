@@ -1,0 +1,194 @@
+"""The closure's analysis core against synthetic data with known answers.
+
+Synthetic force = the inverse model itself at known parameters, plus noise; each effect of
+the library must be identifiable from it, and the search must add it (and nothing on clean
+data). The model config parser must name the field of every error.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from feedbench.analysis.closure import (
+    ClosureOptions, Kinematics, Model, Trace, close_the_loop, fit_model, kinematics, new_term,
+    parse_model_config,
+)
+from feedbench.analysis.closure.model import predict
+from feedbench.analysis.closure.trace import lowpass, standstill_speed
+from feedbench.closure_command import single_blas_thread
+from feedbench.config import ConfigError
+
+FS = 1000.0
+BANDWIDTH = 100.0
+
+
+@pytest.fixture(autouse=True)
+def _one_blas_thread():
+    with single_blas_thread():
+        yield
+
+
+MOTION = ((0.04, 0.4, 0.0), (0.01, 1.3, 1.0), (4e-4, 7.0, 2.0), (6e-5, 17.0, 0.5),
+          (1.5e-5, 31.0, 1.5))
+"""(amplitude m, frequency Hz, phase rad) of the synthetic motion: reversals, many speeds,
+and enough acceleration content up to 31 Hz for mass, mode and delay."""
+
+K_TANH = 600.0
+"""A soft Coulomb transition (s/m), so that the synthetic force stays in the filter's band."""
+
+
+def exact_kinematics(seconds: float = 12.0) -> Kinematics:
+    """Analytic position, velocity and acceleration of MOTION plus a random motion
+    band-limited to 60 Hz (0.3 m/s² RMS, its derivatives exact in the frequency domain)."""
+    t = np.arange(int(seconds * FS)) / FS
+    x, v, a = (sum(amp * (2 * np.pi * f) ** k * np.sin(2 * np.pi * f * t + phase + k * np.pi / 2)
+                   for amp, f, phase in MOTION) for k in range(3))
+    noise = np.random.default_rng(1).normal(size=t.size)
+    random = [lowpass(noise, 60.0, 1 / FS, k) for k in range(3)]
+    scale = 0.3 / random[2].std()
+    x, v, a = (x + scale * random[0], v + scale * random[1], a + scale * random[2])
+    return Kinematics(x, v, a, np.zeros_like(t), np.ones(t.size, bool), 1 / FS, BANDWIDTH)
+
+
+BASE = {"M_kg": 30.0, "F_v_Ns_m": 150.0, "F_c_N": 35.0}
+
+
+def base_model() -> Model:
+    return Model((new_term("inertia"), new_term("viscous"),
+                  new_term("coulomb", {"k_tanh_min_mm": K_TANH})))
+
+
+def synthetic_trace(extra: tuple = (), noise: float = 0.3, seed: int = 5) -> Trace:
+    """A trace whose force is the model (base + `extra` terms at their values) plus noise."""
+    kin = exact_kinematics()
+    truth = Model((new_term("inertia", {"M_kg": BASE["M_kg"]}),
+                   new_term("viscous", {"F_v_Ns_m": BASE["F_v_Ns_m"]}),
+                   new_term("coulomb", {"F_c_N": BASE["F_c_N"], "k_tanh_min_mm": K_TANH}))
+                  + extra)
+    force = predict(truth, kin).reading + np.random.default_rng(seed).normal(0, noise, kin.n)
+    return Trace(np.arange(kin.n) / FS, kin.x, force)
+
+
+def kin_of(trace: Trace):
+    """Kinematics at BANDWIDTH, samples below 2 % of the 95th-percentile speed not used."""
+    return kinematics(trace, BANDWIDTH, standstill_speed(kinematics(trace, BANDWIDTH), 0.02))
+
+
+def test_kinematics_differentiates_exactly_in_band():
+    t = np.arange(4000) / FS
+    f = 60.0  # 0.06 fs: central differences would lose 14 % of the acceleration here
+    x = 1e-3 * np.sin(2 * np.pi * f * t)
+    kin = kinematics(Trace(t, x, np.zeros_like(x)), 150.0)
+    w = 2 * np.pi * f
+    edge = (t.size - kin.n) // 2
+    a_true = -w**2 * 1e-3 * np.sin(w * t[edge:edge + kin.n])
+    gain = 1.0 / (1.0 + (f / 150.0) ** 8)
+    assert np.max(np.abs(kin.a - gain * a_true)) < 2e-3 * np.max(np.abs(a_true))
+
+
+def test_base_fit_recovers_mass_and_friction_with_honest_std():
+    kin = kin_of(synthetic_trace())
+    fit = fit_model(base_model(), kin)
+    values = {k: v for t in fit.model.terms for k, v in t.values.items()}
+    for key, truth in BASE.items():
+        assert values[key] == pytest.approx(truth, rel=0.01)
+        std = fit.std[(next(t.name for t in fit.model.terms if key in t.values), key)]
+        assert abs(values[key] - truth) < 5 * std, key
+    assert fit.error < 0.02
+
+
+EFFECT_CASES = [
+    # name, true values (SI), start values, relative tolerance
+    ("offset", {"offset_N": 6.0}, {}, 0.03),
+    ("stribeck", {"dF_s_N": 25.0, "v_s_mm_min": 0.01, "k_tanh_min_mm": K_TANH},
+     {"v_s_mm_min": 0.005, "k_tanh_min_mm": K_TANH}, 0.1),
+    ("ripple", {"A_sin_N": 3.0, "A_cos_N": -2.0, "pitch_mm": 0.008}, {"pitch_mm": 0.0079}, 0.03),
+    ("structural_mode", {"m_kg": 8.0, "f_n_Hz": 45.0, "zeta": 0.05},
+     {"f_n_Hz": 40.0, "zeta": 0.1}, 0.03),
+    ("delay", {"tau_ms": 0.0012}, {"tau_ms": 0.0}, 0.03),
+    ("amplitude_nonlinearity", {"beta_per_kN": 2e-3}, {"beta_per_kN": 0.0}, 0.03),
+    # the play acts on the filtered position, which rounds each reversal: looser
+    ("backlash", {"m_load_kg": 12.0, "F_load_N": 10.0, "width_um": 80e-6,
+                  "k_tanh_min_mm": K_TANH}, {"width_um": 60e-6, "k_tanh_min_mm": K_TANH}, 0.2),
+]
+
+
+@pytest.mark.parametrize("name, truth, start, tolerance", EFFECT_CASES,
+                         ids=[c[0] for c in EFFECT_CASES])
+def test_each_effect_is_identified_from_its_own_signature(name, truth, start, tolerance):
+    kin = kin_of(synthetic_trace((new_term(name, truth),)))
+    fit = fit_model(base_model().with_term(new_term(name, start)), kin)
+    fitted = fit.model.term(name).values
+    for key, value in truth.items():
+        assert fitted[key] == pytest.approx(value, rel=tolerance, abs=1e-9), key
+    assert fit.error < 0.02
+
+
+def test_search_adds_the_missing_effect_then_stops():
+    trace = synthetic_trace((new_term("ripple", {"A_sin_N": 4.0, "A_cos_N": 0.0,
+                                                  "pitch_mm": 0.012}),))
+    kin = kin_of(trace)
+    fit_kin, holdout = kin.window(0, 7000), kin.window(7300, kin.n)
+    result = close_the_loop(base_model(), fit_kin, holdout)
+    assert result.effects == ("ripple",)
+    assert result.final.model.term("ripple").values["pitch_mm"] == pytest.approx(0.012, rel=1e-3)
+    assert result.error_after < 0.5 * result.error_before
+
+
+def test_search_adds_nothing_to_a_complete_model():
+    kin = kin_of(synthetic_trace())
+    result = close_the_loop(base_model(), kin.window(0, 7000), kin.window(7300, kin.n))
+    assert result.effects == ()
+    assert result.error_after == result.error_before
+
+
+def test_inertia_mismatch_and_sensor_gain_apply_only_to_declared_terms():
+    declared = Model((new_term("inertia", {"M_kg": 30.0}, ()), new_term("viscous"),
+                      new_term("coulomb", {"k_tanh_min_mm": K_TANH})))
+    options = ClosureOptions(candidates=("inertia_mismatch", "sensor_gain"))
+    from feedbench.analysis.closure.diagnosis import rank_candidates
+
+    kin = kin_of(synthetic_trace())
+    names = {c.name for c in rank_candidates(fit_model(declared, kin), kin, options)}
+    assert names == {"inertia_mismatch", "sensor_gain"}
+    names = {c.name for c in rank_candidates(fit_model(base_model(), kin), kin, options)}
+    assert names == set()
+
+
+GOOD = {"model": {"name": "m", "bandwidth_Hz": 50.0},
+        "terms": {"inertia": {"M_kg": "free"}, "viscous": {"F_v_Ns_m": 200.0},
+                  "stribeck": {"v_s_mm_min": {"value": 300.0, "free": True}},
+                  "coulomb": {}},
+        "controller": {"K_p_Ns_m": 8000.0, "K_v_1_s": 160.0}}
+
+
+def test_model_config_converts_units_and_free_flags():
+    spec = parse_model_config(GOOD)
+    stribeck = spec.model.term("stribeck")
+    assert stribeck.values["v_s_mm_min"] == pytest.approx(300.0 / 60000.0)
+    assert stribeck.free == {"dF_s_N", "v_s_mm_min"}
+    assert spec.model.term("viscous").free == frozenset()
+    assert spec.model.term("coulomb").free == {"F_c_N"}
+    assert spec.controller.T_i == math.inf
+    assert spec.bandwidth == 50.0
+
+
+@pytest.mark.parametrize("patch, message", [
+    ({"terms": {"viscous": {}}}, "terms.inertia: required"),
+    ({"terms": {"inertia": {}, "friction": {}}}, "terms.friction: unknown term"),
+    ({"terms": {"inertia": {"M_kg": "loose"}}}, "terms.inertia.M_kg: must be a number"),
+    ({"terms": {"inertia": {}, "delay": {"tau_ms": 50.0}}}, "terms.delay.tau_ms: must lie in"),
+    ({"terms": {"inertia": {}, "stribeck": {}}}, "terms.stribeck: needs terms.coulomb"),
+    ({"terms": {"inertia": {}, "coulomb": {"k_tanh_min_mm": "free"}}},
+     "terms.coulomb.k_tanh_min_mm: a setting"),
+    ({"terms": {"inertia": {}}, "closure": {"candidates": ["magic"]}},
+     "closure.candidates: unknown effect 'magic'"),
+    ({"terms": {"inertia": {}}, "controller": {"K_v_1_s": 1.0}},
+     "controller.K_p_Ns_m: required"),
+])
+def test_model_config_errors_name_the_field(patch, message):
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
+        parse_model_config(patch)
