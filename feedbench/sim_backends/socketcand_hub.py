@@ -85,6 +85,7 @@ class SocketcandHub:
             listener.bind((self.host, self.port))
         except OSError as error:
             listener.close()
+            self.stop()
             raise HubError(f"socketcand hub cannot listen on {self.host}:{self.port}: "
                            f"{error}") from error
         listener.listen()
@@ -98,11 +99,15 @@ class SocketcandHub:
 
     def stop(self) -> None:
         """Close every connection and the listener; the thread ends."""
-        if not self._thread.is_alive():
+        if self._wake_write < 0:
             return
         self._closing = True
         os.write(self._wake_write, b"\0")
-        self._thread.join(THREAD_TIMEOUT_S)
+        if self._thread.is_alive():
+            self._thread.join(THREAD_TIMEOUT_S)
+        for fd in (self._wake_read, self._wake_write):
+            os.close(fd)
+        self._wake_read = self._wake_write = -1
 
     def __enter__(self) -> SocketcandHub:
         self.start()
@@ -121,8 +126,6 @@ class SocketcandHub:
                 self._drop(sock)
             self._selector.close()
             self._listener.close()
-            os.close(self._wake_read)
-            os.close(self._wake_write)
 
     def _dispatch(self, source, events: int) -> None:
         if source is self._listener:
@@ -136,7 +139,10 @@ class SocketcandHub:
                 self._flush(self._clients[source])
 
     def _accept(self) -> None:
-        sock, _ = self._listener.accept()
+        try:
+            sock, _ = self._listener.accept()
+        except OSError:  # the connection went away before it was accepted
+            return
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         sock.setblocking(False)
         client = _Client(sock)
