@@ -20,6 +20,7 @@ from feedbench.daq.recorder import Recorder
 from feedbench.protocols.canbus import open_network
 from feedbench.drivers.cia402 import Cia402Drive
 from feedbench.experiments import chirp, friction_sweep, smfe
+from feedbench.experiments import closed_loop_bode, impact_hammer, shaker_chirp, sine_stream
 from feedbench.experiments.cycle_io import open_cycle_devices, split_address
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan
@@ -27,6 +28,9 @@ from feedbench.experiments.runner import Observer, ProgressPrinter, Runner, Stop
 from feedbench.units import kv_to_per_second
 
 EXPERIMENTS = {m.NAME: m for m in (friction_sweep, chirp, smfe)}
+
+EXPERIMENTS.update({m.NAME: m for m in (impact_hammer, sine_stream, shaker_chirp,
+                                       closed_loop_bode)})
 
 GAINS_SCHEMA = {
     "K_p_Ns_m": Field(float, None, "velocity-loop gain (N·s/m)", positive),
@@ -99,6 +103,7 @@ def _check_excitation_fits(plan: Plan, limits: Limits) -> None:
         )
     limits.check_excitation(plan.concatenated("force_offset"),
                             plan.concatenated("velocity_offset"))
+    limits.check_excitation(plan.concatenated("excitation"), plan.concatenated("velocity_offset"))
 
 
 def load_run_config(path: str | Path) -> RunConfig:
@@ -127,6 +132,12 @@ def _packaged_eds() -> str:
     from feedbench.sim_backends.eds import packaged_eds_path
 
     return str(packaged_eds_path())
+
+
+def _drive_gains(drive) -> dict[str, float] | None:
+    """The cascade gains the drive runs with (SDO), for analyses such as Eq. (4.20); None
+    for an axis of several drives."""
+    return drive.read_gains()._asdict() if isinstance(drive, Cia402Drive) else None
 
 
 def _gains_si(table: Mapping[str, Any]) -> dict[str, float]:
@@ -194,7 +205,8 @@ class Bench:
                 self.clock = LockstepClock(self.network, [self.drive], timeout_s=cfg["timeout_s"])
             else:
                 self.clock = RealtimeClock(self.network, [self.drive], period_s=cycle_s)
-            self.devices = open_cycle_devices(needs, *self._device_addresses(), self._stack)
+            self.devices = open_cycle_devices(needs, *self._device_addresses(), self._stack,
+                                              self.network)
         except BaseException:
             self._stack.close()
             raise
@@ -206,7 +218,7 @@ class Bench:
 
         cfg = self.config
         if needs:  # devices besides the drive: the whole simulated bench
-            self._start_simulated_bench()
+            self._start_simulated_bench(needs.get("exciter", {}).get("node_id"))
             return
         simulator = build_axis(cfg["world"], cycle_s)
         self.simulated_drive = start_simulated_axis(
@@ -214,12 +226,14 @@ class Bench:
         )
         self._stack.callback(self.simulated_drive.close)
 
-    def _start_simulated_bench(self) -> None:
-        """Drive, inverter, DAQ and the milling world, the workpiece prepared as planned."""
+    def _start_simulated_bench(self, exciter_node: int | None = None) -> None:
+        """Drive, inverter, DAQ and the milling world, the workpiece prepared as planned (with
+        `exciter_node`: the tool-tip exciters and their I/O module instead of the milling)."""
         from feedbench.sim_backends.process import SimulatedBench
 
         self.simulated = SimulatedBench(self.config, self.plan.params.get("workpiece", ()),
-                                        bus_options=_bus_options(self.config))
+                                        bus_options=_bus_options(self.config),
+                                        exciter_node=exciter_node)
         self._stack.callback(self.simulated.close)
         self.simulated_drive = self.simulated.drive
 
@@ -250,7 +264,7 @@ class Bench:
         path = output_dir / f"{run_id}.h5"
         metadata = {"experiment": config.plan.experiment, "run_id": run_id,
                     "config": host_config(config.raw),
-                    "cycle_s": config.plan.cycle_s}
+                    "cycle_s": config.plan.cycle_s, "drive_gains": _drive_gains(self.drive)}
         catalog.add(run_id, config.plan.experiment, str(path), config.plan.params)
         streams = {name: spec for d in self.devices for name, spec in d.streams.items()}
         recorder = Recorder(path, runner.channels, runner.units, metadata, streams=streams)

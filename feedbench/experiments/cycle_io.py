@@ -173,10 +173,11 @@ def split_address(address: str, what: str) -> tuple[str, int]:
 
 
 def open_cycle_devices(needs: dict[str, dict], modbus: str, daq_port: str,
-                       stack: ExitStack) -> list:
+                       stack: ExitStack, network=None) -> list:
     """Connect the host drivers of the devices an experiment needs (`needs`, from its
     module's `devices(params, cycle_s)`): ``spindle`` over Modbus TCP at `modbus`
-    (host:port), ``daq`` on the serial port `daq_port`. Closed by `stack`."""
+    (host:port), ``daq`` on the serial port `daq_port`, ``exciter``: the CiA 401 I/O module
+    (node ``node_id``) on the drive's canopen `network`. Closed by `stack`."""
     from feedbench.drivers.modbus_devices import SpindleInverter, connect_tcp
     from feedbench.drivers.serial_daq import SerialDaq
 
@@ -187,8 +188,21 @@ def open_cycle_devices(needs: dict[str, dict], modbus: str, daq_port: str,
         devices.append(SpindleCommands(SpindleInverter(client), **needs["spindle"]))
     if "daq" in needs:
         if not daq_port:
-            raise ConfigError("bench.daq_port: the experiment records the DAQ; give its serial port")
+            raise ConfigError("bench.daq_port: the experiment records the DAQ; give its "
+                              "serial port")
         daq = stack.enter_context(SerialDaq(daq_port, needs["daq"]["channels"],
                                             needs["daq"]["rate_hz"]))
         devices.append(DaqStream(daq))
+    if "exciter" in needs:
+        devices.append(_exciter_outputs(network, needs["exciter"]["node_id"]))
     return devices
+
+
+def _exciter_outputs(network, node_id: int):
+    """The I/O module, checked and started, as the runner's exciter device."""
+    from feedbench.drivers.io_module import IoModule
+    from feedbench.experiments.tool_tip import ExciterOutputs
+
+    io = IoModule(network, node_id)
+    io.configure()
+    return ExciterOutputs(io)

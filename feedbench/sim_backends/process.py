@@ -28,6 +28,7 @@ from feedbench.sim_backends.modbus_devices import SimulatedModbusTcpServer, Simu
 from feedbench.sim_backends.serial_daq import SimulatedSerialDaq
 from feedbench.sim_backends.smfe_world import SmfeWorld, Workpiece, build_process, lanes_from_list
 from feedbench.sim_backends.socketcand_hub import LOOPBACK, SocketcandHub
+from feedbench.sim_backends.structure_world import StructureWorld, start_structure_world
 from feedbench.sim_backends.world import build_axis
 
 READY = "feedbench-sim ready"
@@ -47,18 +48,21 @@ class SimulatedBench:
     cuts (the SMFE plan's ``workpiece``); `peripherals`: also start the inverter, the DAQ and
     the milling world (an experiment on the drive alone does without them); `bus_options`
     go to python-can (``host``, ``port`` of a socketcand server); `modbus_address`: where the
-    Modbus server listens (port 0: a free one).
+    Modbus server listens (port 0: a free one). `exciter_node`: instead of the milling world,
+    the lab bench's tool-tip devices (`structure_world`: shaker, inertial actuator, impact
+    hammer, commanded by a CiA 401 I/O module at this node id) feed the DAQ.
     """
 
     def __init__(self, bench: Mapping[str, Any], workpiece: Sequence[Mapping[str, Any]] = (),
                  peripherals: bool = True, bus_options: Mapping[str, Any] | None = None,
-                 modbus_address: tuple[str, int] = (LOOPBACK, 0)) -> None:
+                 modbus_address: tuple[str, int] = (LOOPBACK, 0),
+                 exciter_node: int | None = None) -> None:
         self._stack = ExitStack()
         cycle_s = bench["cycle_ms"] * 1e-3
         world = bench["world"]
         self.modbus_address: tuple[str, int] | None = None
         self.daq_port: str | None = None
-        self.world: SmfeWorld | None = None
+        self.world: SmfeWorld | StructureWorld | None = None
         try:
             simulator = build_axis(world, cycle_s)
             process, milling = build_process(world.get("milling", {}))
@@ -67,7 +71,11 @@ class SimulatedBench:
                                               bench["node_id"], simulator,
                                               **(bus_options or {}))
             self._stack.callback(self.drive.close)
-            if peripherals:
+            if peripherals and exciter_node is not None:
+                self._start_peripherals(cycle_s, modbus_address)
+                self.world = start_structure_world(self.drive, self.daq, exciter_node,
+                                                   world.get("structure", {}), cycle_s)
+            elif peripherals:
                 self._start_peripherals(cycle_s, modbus_address)
                 self.world = SmfeWorld(process, Workpiece(lanes), lambda: simulator.tip_position,
                                        self.inverter, self.daq, cycle_s, milling["noise_m_s2"],

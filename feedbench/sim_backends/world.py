@@ -44,6 +44,8 @@ WORLD_SCHEMA = {
     "friction": Field(dict, {}, "Andersson friction per direction, Eq. (5.2)"),
     "milling": Field(dict, {}, "milling process and structure at the tool (SMFE, Ch. 6): "
                      "feedbench.sim_backends.smfe_world.MILLING_SCHEMA"),
+    "structure": Field(dict, {}, "exciters and sensors at the tool tip (shaker, inertial "
+                       "actuator, hammer): feedbench.sim_backends.structure_world"),
 }
 
 

@@ -1,0 +1,60 @@
+"""Host driver of the CiA 401 I/O module that drives the tool-tip exciters.
+
+The outputs go out by RPDO before each SYNC (`transmit`), so a command takes effect in the
+same bus cycle as the drive's setpoints. Wiring and scaling: `feedbench.protocols.cia401`.
+"""
+
+from __future__ import annotations
+
+import canopen
+
+from feedbench.protocols import cia401
+
+
+class IoModuleError(RuntimeError):
+    """The module did not answer or is not a CiA 401 device."""
+
+
+class IoModule:
+    """Node `node_id` on `network`; `configure()` checks it and starts it (NMT operational)."""
+
+    def __init__(self, network: canopen.Network, node_id: int) -> None:
+        self.network = network
+        self.node = canopen.RemoteNode(node_id, canopen.ObjectDictionary())
+        network.add_node(self.node)
+        self._analog = [0] * cia401.ANALOG_CHANNELS
+        self._digital = 0
+
+    def configure(self) -> None:
+        """Read the device type by SDO (profile 401 expected), then NMT operational."""
+        try:
+            raw = self.node.sdo.upload(0x1000, 0)
+        except (canopen.SdoCommunicationError, canopen.SdoAbortedError) as error:
+            raise IoModuleError(f"I/O module node {self.node.id}: {error}") from error
+        device_type = int.from_bytes(raw, "little")
+        if device_type & 0xFFFF != cia401.PROFILE:
+            raise IoModuleError(f"node {self.node.id} is not a CiA 401 device "
+                                f"(device type 0x{device_type:08X})")
+        self.node.nmt.state = "OPERATIONAL"
+
+    def set_force(self, channel: int, force: float) -> None:
+        """Command `force` (N) on analog output `channel` (saturates at ±10 V)."""
+        self._analog[channel] = cia401.analog_counts(force, channel)
+
+    def set_digital(self, bits: int) -> None:
+        """The eight digital outputs as a bit field."""
+        self._digital = bits & 0xFF
+
+    def transmit(self) -> None:
+        """Send both RPDOs (applied by the module at the next SYNC)."""
+        node_id = self.node.id
+        self.network.send_message(cia401.RPDO_DIGITAL + node_id,
+                                  cia401.DIGITAL_LAYOUT.pack(self._digital))
+        self.network.send_message(cia401.RPDO_ANALOG + node_id,
+                                  cia401.ANALOG_LAYOUT.pack(*self._analog))
+
+    def zero(self) -> None:
+        """All outputs off, sent at once."""
+        self._analog = [0] * cia401.ANALOG_CHANNELS
+        self._digital = 0
+        self.transmit()

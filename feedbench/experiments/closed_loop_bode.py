@@ -1,0 +1,201 @@
+"""The CNC-style closed-loop Bode of the drive (Ch. 4.3.1): discrete frequencies into the
+velocity or the position reference, at a feed that keeps friction sliding.
+
+- ``loop = "velocity"``: CSV, target velocity = the feed, a sine of `amplitude_mm_min` in the
+  velocity offset 0x60B1 at each frequency; response ẋ_mot (0x606C). The closed velocity
+  loop ẋ_mot/ẋ_ref feeds Eq. (4.20): the open-loop mobility G = H / (PI (1 − H)) with the
+  drive's K_p and T_i (read by SDO before the run, `metadata.drive_gains`), and its
+  anti-resonance f_t and resonance f_r (Eqs. 4.13, 4.14).
+- ``loop = "position"``: CSP, the target position carries a sine whose velocity amplitude is
+  `amplitude_mm_min`; response x_mot. The ratio is taken on the per-cycle increments of both
+  (the same difference operator cancels); reported with its −3 dB bandwidth.
+
+Each frequency is held `settle_cycles` + `cycles_per_frequency` periods, phase-continuous; a
+sine fitted after the settle cycles gives the FRF point and R² (`analysis.sinefit`); a point
+below `r_squared_min` is flagged and left out.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from feedbench.analysis.servo import open_loop_mobility
+from feedbench.analysis.sinefit import stepped_sine_frf
+from feedbench.config import ConfigError, Field, one_of, positive, validate_table
+from feedbench.experiments.chirp import mobility_extrema
+from feedbench.experiments.plan import Plan, Segment, recorded_windows
+from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
+from feedbench.models.axis import CSP, CSV
+from feedbench.units import MM_PER_MIN
+
+NAME = "closed_loop_bode"
+
+SCHEMA = {
+    "type": Field(str, NAME, "experiment family"),
+    "loop": Field(str, "velocity", "the loop whose reference is excited",
+                  one_of("velocity", "position")),
+    "feed_mm_min": Field(float, 500.0, "axis feed during the measurement (mm/min)", positive),
+    "amplitude_mm_min": Field(float, 60.0, "velocity amplitude of the excitation (mm/min)",
+                              positive),
+    "f_start_Hz": Field(float, 10.0, "first frequency (Hz)", positive),
+    "f_stop_Hz": Field(float, 150.0, "last frequency (Hz)", positive),
+    "f_step_Hz": Field(float, 1.0, "frequency step (Hz)", positive),
+    "cycles_per_frequency": Field(int, 10, "periods fitted per frequency", positive),
+    "settle_cycles": Field(int, 5, "periods before the fit at each frequency", positive),
+    "r_squared_min": Field(float, 0.99, "quality gate on both fits", positive),
+    "stroke_mm": Field(float, 200.0, "longest travel of one pass (mm)", positive),
+    "settle_s": Field(float, 0.5, "time at feed before the first frequency of a pass (s)",
+                      positive),
+    "accel_m_s2": Field(float, 1.0, "acceleration of the ramps (m/s²)", positive),
+}
+
+MOBILITY_BAND_HZ = (20.0, 150.0)
+
+
+def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
+    p = validate_table(params, SCHEMA, "experiment")
+    if not p["f_start_Hz"] <= p["f_stop_Hz"] < 0.25 / cycle_s:
+        raise ConfigError(f"experiment.f_stop_Hz: must lie at or above f_start_Hz and below "
+                          f"{0.25 / cycle_s:g} Hz (4 samples per period at the bus cycle)")
+    return p
+
+
+def frequencies(p: Mapping[str, Any]) -> np.ndarray:
+    """The discrete frequencies (Hz), start to stop inclusive."""
+    count = int(np.floor((p["f_stop_Hz"] - p["f_start_Hz"]) / p["f_step_Hz"] + 1e-9)) + 1
+    return p["f_start_Hz"] + p["f_step_Hz"] * np.arange(count)
+
+
+def _sine_steps(p: Mapping[str, Any], cycle_s: float) -> list[tuple[float, np.ndarray]]:
+    """Per frequency the velocity excitation (m/s) per cycle, phase-continuous."""
+    amplitude = p["amplitude_mm_min"] * MM_PER_MIN
+    periods = p["settle_cycles"] + p["cycles_per_frequency"]
+    steps, phase = [], 0.0
+    for f in frequencies(p):
+        n = int(round(periods / (f * cycle_s)))
+        t = np.arange(1, n + 1) * cycle_s
+        steps.append((float(f), amplitude * np.sin(phase + 2.0 * np.pi * f * t)))
+        phase += 2.0 * np.pi * f * n * cycle_s
+    return steps
+
+
+def _pass_groups(steps: list[tuple[float, np.ndarray]], travel_per_cycle: float,
+                 stroke: float) -> list[list[tuple[float, np.ndarray]]]:
+    groups: list[list[tuple[float, np.ndarray]]] = [[]]
+    used = 0.0
+    for step in steps:
+        travel = len(step[1]) * travel_per_cycle
+        if groups[-1] and used + travel > stroke:
+            groups.append([])
+            used = 0.0
+        groups[-1].append(step)
+        used += travel
+    return groups
+
+
+def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
+    """Passes at the feed, each: accelerate, settle, frequencies back to back, stop."""
+    p = _validated(params, cycle_s)
+    speed = p["feed_mm_min"] * MM_PER_MIN
+    n_settle = int(round(p["settle_s"] / cycle_s))
+    stroke = p["stroke_mm"] * 1e-3 - n_settle * speed * cycle_s
+    segments: list[Segment] = []
+    x, direction = 0.0, 1.0
+    for group in _pass_groups(_sine_steps(p, cycle_s), speed * cycle_s, stroke):
+        more, x = _pass(group, direction * speed, x, n_settle, p, cycle_s)
+        segments += more
+        direction = -direction
+    return Plan(NAME, CSV if p["loop"] == "velocity" else CSP, segments, p, cycle_s)
+
+
+def _pass(group: list[tuple[float, np.ndarray]], velocity: float, x0: float, n_settle: int,
+          p: Mapping[str, Any], cycle_s: float) -> tuple[list[Segment], float]:
+    """One pass at `velocity` (m/s) from x0 (m); returns its segments and end position."""
+    up = ramp_to_feed(0.0, velocity, p["accel_m_s2"], cycle_s)
+    down = ramp_to_feed(velocity, 0.0, p["accel_m_s2"], cycle_s)
+    feed = np.concatenate([up, np.full(n_settle + sum(len(s) for _, s in group), velocity), down])
+    path = integrate_velocity(feed, x0, cycle_s)
+    cuts = np.cumsum([0, len(up), n_settle] + [len(s) for _, s in group])
+    info = {"feed_mm_min": velocity / MM_PER_MIN}
+    segments = [Segment("accelerate", "move", path[:cuts[1]], info=info,
+                        target_velocity=feed[:cuts[1]]),
+                Segment("settle", "settle", path[cuts[1]:cuts[2]], info=info,
+                        target_velocity=feed[cuts[1]:cuts[2]])]
+    for (f, sine), a, b in zip(group, cuts[2:-1], cuts[3:]):
+        target = path[a:b]
+        offset = None
+        if p["loop"] == "velocity":
+            offset = sine
+        else:
+            target = target + integrate_velocity(sine, 0.0, cycle_s)
+        segments.append(Segment(f"{f:g} Hz", "excite", target, velocity_offset=offset,
+                                target_velocity=feed[a:b],
+                                info={**info, "frequency_hz": f}))
+    segments.append(Segment("stop", "move", path[cuts[-1]:], info=info,
+                            target_velocity=feed[cuts[-1]:]))
+    return segments, float(path[-1])
+
+
+def loop_signals(recording, window, loop: str) -> tuple[np.ndarray, np.ndarray]:
+    """Reference and response of one window: velocity offset and velocity (velocity loop),
+    per-cycle increments of target and position (position loop)."""
+    channels = recording.channels
+    if loop == "velocity":
+        rows = slice(window.start, window.stop)
+        return channels["velocity_offset"][rows], channels["velocity"][rows]
+    rows = slice(window.start - 1, window.stop)
+    return np.diff(channels["x_ref"][rows]), np.diff(channels["position"][rows])
+
+
+def measured_loop(recording, p: Mapping[str, Any]) -> dict:
+    """FRF points of every frequency with R²; points below the quality gate are flagged."""
+    fs = 1.0 / float(recording.metadata["cycle_s"])
+    f, H, r2, flagged = [], [], [], []
+    for window in recorded_windows(recording, "excite"):
+        reference, response = loop_signals(recording, window, p["loop"])
+        frequency = float(window.info["frequency_hz"])
+        fit = stepped_sine_frf(reference, response, fs, [(frequency, 0, len(reference))],
+                               p["settle_cycles"])
+        if fit.r_squared[0] < p["r_squared_min"]:
+            flagged.append({"frequency_hz": frequency, "r_squared": float(fit.r_squared[0])})
+            continue
+        f.append(frequency)
+        H.append(complex(fit.H[0]))
+        r2.append(float(fit.r_squared[0]))
+    return {"f": np.array(f), "H": np.array(H), "r_squared": r2, "flagged": flagged}
+
+
+def bandwidth(f: np.ndarray, H: np.ndarray) -> float:
+    """First frequency (Hz) where |H| falls below 1/√2 (linear interpolation), nan if none."""
+    below = np.flatnonzero(np.abs(H) < 1.0 / np.sqrt(2.0))
+    if not below.size or below[0] == 0:
+        return float("nan")
+    k = below[0]
+    a, b = np.abs(H[k - 1]), np.abs(H[k])
+    return float(f[k - 1] + (a - 1.0 / np.sqrt(2.0)) / (a - b) * (f[k] - f[k - 1]))
+
+
+def analyze_recording(recording) -> dict:
+    """The measured loop; for the velocity loop also Eq. (4.20) and the mobility's extrema.
+
+    SI: frequencies Hz, mobility m/(N·s); gains from `metadata.drive_gains` (K_p N·s/m, T_i s).
+    """
+    p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+    loop = measured_loop(recording, p)
+    f, H = loop["f"], loop["H"]
+    result = {"experiment": NAME, "loop": p["loop"], "feed_mm_min": p["feed_mm_min"],
+              "flagged": loop["flagged"], "min_r_squared": min(loop["r_squared"], default=None),
+              "bandwidth_hz": bandwidth(f, H),
+              "frf": {"f_hz": f.tolist(), "abs": np.abs(H).tolist(),
+                      "phase_rad": np.angle(H).tolist(), "r_squared": loop["r_squared"]}}
+    gains = recording.metadata.get("drive_gains")
+    if p["loop"] == "velocity" and gains:
+        mobility = open_loop_mobility(f, H, gains["K_p"], gains["T_i"])
+        inside = (f >= MOBILITY_BAND_HZ[0]) & (f <= MOBILITY_BAND_HZ[1])
+        f_t, f_r = mobility_extrema(f[inside], mobility[inside], MOBILITY_BAND_HZ)
+        result["mobility"] = {"antiresonance_hz": f_t, "resonance_hz": f_r,
+                              "abs": np.abs(mobility).tolist(),
+                              "phase_rad": np.angle(mobility).tolist()}
+    return result

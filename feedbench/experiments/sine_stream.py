@@ -1,0 +1,236 @@
+"""Sine-stream (stepped sine) at the tool tip, Ch. 5.5.3 (Figs. 5.20–5.22).
+
+An inertial actuator (or the shaker) on the tool tip holds a sine at each frequency from
+`f_start_Hz` to `f_stop_Hz` in steps of `f_step_Hz` for `settle_cycles` + `cycles_per_step`
+periods, phase-continuous, at each force amplitude and each axis feed. The force amplitude is
+held per frequency where the actuator allows: the command is the wanted force over the
+actuator's force transfer (its datasheet values in this config, `models.exciters`), capped by
+its coil force and stroke; such a step is marked `limited`.
+
+Analysis: per step a sine at the known frequency is fitted to the force and the tool-tip
+acceleration after the settle cycles (`analysis.sinefit`); the FRF point is the ratio of the
+phasors, R² the quality indicator the thesis uses. Quality gate: a repetition with
+R² < `r_squared_min`, an overloaded DAQ channel or lost samples is not used; the step's FRF
+is the mean of its good repetitions (`repeats_per_step`), and a step with none is flagged and
+left out, never silently used. The measured force amplitude is checked against the wanted one.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from feedbench.analysis.frf import accelerance_to_receptance
+from feedbench.analysis.sinefit import stepped_sine_frf
+from feedbench.config import ConfigError, Field, one_of, positive, validate_table
+from feedbench.experiments.plan import Plan, Window, recorded_windows
+from feedbench.experiments.tool_tip import (
+    FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, ExcitationWindow, daq_needs,
+    overloaded, plan_over_feeds, window_samples,
+)
+from feedbench.models.axis import CSP
+from feedbench.models.exciters import ExciterDynamics, InertialActuator, shaker
+
+NAME = "sine_stream"
+
+SCHEMA = {
+    "type": Field(str, NAME, "experiment family"),
+    "exciter": Field(str, "actuator", "inertial actuator (Fig. 5.20) or shaker",
+                     one_of("actuator", "shaker")),
+    "feeds_mm_min": Field(list, [0.0, 100.0, 1000.0], FEEDS_FIELD.doc, FEEDS_FIELD.check),
+    "amplitudes_N": Field(list, [10.0, 20.0, 40.0], "force amplitudes (N)", positive),
+    "f_start_Hz": Field(float, 20.0, "first frequency (Hz)", positive),
+    "f_stop_Hz": Field(float, 80.0, "last frequency (Hz)", positive),
+    "f_step_Hz": Field(float, 0.25, "frequency step (Hz)", positive),
+    "cycles_per_step": Field(int, 5, "periods fitted per step", positive),
+    "settle_cycles": Field(int, 5, "periods before the fit at each step", positive),
+    "repeats_per_step": Field(int, 1, "repetitions of each step (good ones are averaged)",
+                              positive),
+    "r_squared_min": Field(float, 0.99, "quality gate: least R² of force and response fits",
+                           positive),
+    "amplitude_tolerance": Field(float, 0.05, "force amplitude held within this share",
+                                 positive),
+    "actuator_mass_kg": Field(float, 2.0, "actuator datasheet: reaction mass (kg)", positive),
+    "actuator_f_Hz": Field(float, 15.0, "actuator datasheet: suspension frequency (Hz)",
+                           positive),
+    "actuator_zeta": Field(float, 0.3, "actuator datasheet: suspension damping", positive),
+    "actuator_limit_N": Field(float, 300.0, "actuator datasheet: coil force (N)", positive),
+    "actuator_stroke_mm": Field(float, 5.0, "actuator datasheet: stroke ± (mm)", positive),
+    "shaker_corner_Hz": Field(float, 160.0, "shaker datasheet: force fall-off corner (Hz)",
+                              positive),
+    "shaker_limit_N": Field(float, 500.0, "shaker datasheet: largest command (N)", positive),
+    **MOTION_SCHEMA,
+}
+
+
+def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
+    p = validate_table(params, SCHEMA, "experiment")
+    if p["f_stop_Hz"] < p["f_start_Hz"]:
+        raise ConfigError("experiment.f_stop_Hz: must not be below f_start_Hz")
+    if p["f_stop_Hz"] >= 0.25 / cycle_s:
+        raise ConfigError(f"experiment.f_stop_Hz: must be below {0.25 / cycle_s:g} Hz "
+                          "(4 commands per period at the bus cycle)")
+    if not p["r_squared_min"] < 1.0:
+        raise ConfigError("experiment.r_squared_min: must be below 1")
+    return p
+
+
+def frequencies(p: Mapping[str, Any]) -> np.ndarray:
+    """The step frequencies (Hz), start to stop inclusive."""
+    count = int(np.floor((p["f_stop_Hz"] - p["f_start_Hz"]) / p["f_step_Hz"] + 1e-9)) + 1
+    return p["f_start_Hz"] + p["f_step_Hz"] * np.arange(count)
+
+
+def exciter_model(p: Mapping[str, Any]) -> tuple[ExciterDynamics, Any]:
+    """The exciter's force transfer and its force capability f → largest amplitude (N)."""
+    if p["exciter"] == "shaker":
+        dynamics = shaker(p["shaker_corner_Hz"], p["shaker_limit_N"])
+        return dynamics, lambda f: p["shaker_limit_N"] * np.abs(dynamics.response(f))
+    actuator = InertialActuator(p["actuator_mass_kg"], p["actuator_f_Hz"], p["actuator_zeta"],
+                                p["actuator_limit_N"], p["actuator_stroke_mm"] * 1e-3)
+    return actuator.dynamics(), actuator.max_force
+
+
+def fade_in(n_cycles: int, n_total: int) -> np.ndarray:
+    """Gain 0 → 1 over the first n_cycles of n_total (raised cosine), then 1: the stream
+    starts without a force step, which would ring the lightly damped idle structure."""
+    gain = np.ones(n_total)
+    gain[:n_cycles] = 0.5 * (1.0 - np.cos(np.pi * np.arange(1, n_cycles + 1) / n_cycles))
+    return gain
+
+
+def step_windows(p: Mapping[str, Any], amplitude: float, cycle_s: float) -> list[ExcitationWindow]:
+    """The phase-continuous stream at one force amplitude: a window per step (and repeat);
+    the first step fades in over its settle periods."""
+    dynamics, capability = exciter_model(p)
+    windows, phase = [], 0.0
+    periods = p["settle_cycles"] + p["cycles_per_step"]
+    for i, f in enumerate(frequencies(p)):
+        force = min(amplitude, float(capability(f)))
+        command_amplitude = force / float(np.abs(dynamics.response(f)))
+        n = int(round(periods / (f * cycle_s)))
+        for repeat in range(p["repeats_per_step"]):
+            t = np.arange(1, n + 1) * cycle_s
+            command = command_amplitude * np.sin(phase + 2.0 * np.pi * f * t)
+            if not windows:
+                command *= fade_in(int(round(p["settle_cycles"] / (f * cycle_s))), n)
+            phase += 2.0 * np.pi * f * n * cycle_s
+            info = {"step": i, "repeat": repeat, "frequency_hz": float(f),
+                    "amplitude_N": amplitude, "held_N": force, "limited": force < amplitude}
+            windows.append(ExcitationWindow(f"{f:g} Hz, {amplitude:g} N", command, info))
+    return windows
+
+
+def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
+    """The stream at every amplitude at each feed in turn (CSP)."""
+    p = _validated(params, cycle_s)
+    streams = [w for a in p["amplitudes_N"] for w in step_windows(p, a, cycle_s)]
+    return plan_over_feeds(NAME, CSP, p["feeds_mm_min"], lambda feed: streams, p, cycle_s,
+                           p["exciter"])
+
+
+def devices(p: Mapping[str, Any], cycle_s: float) -> dict[str, dict[str, Any]]:
+    """The DAQ (exciter force, tool-tip acceleration) and the I/O module driving the exciter."""
+    return daq_needs(p, p["exciter"])
+
+
+def fit_step(recording, window: Window, force_channel: str, fs: float, settle_cycles: int,
+             r_squared_min: float) -> dict:
+    """Sine fits of one recorded step: FRF point (m/s² per N), R², force amplitude, verdict."""
+    channels = (force_channel, RESPONSE_CHANNEL)
+    samples, lost = window_samples(recording, window, channels)
+    f = float(window.info["frequency_hz"])
+    fit = stepped_sine_frf(samples[0], samples[1], fs, [(f, 0, samples.shape[1])],
+                           settle_cycles)
+    reasons = list(lost)
+    if overloaded(samples, channels):
+        reasons.append("overloaded channel")
+    if fit.r_squared[0] < r_squared_min:
+        reasons.append(f"R² {fit.r_squared[0]:.4f} < {r_squared_min}")
+    return {"H": complex(fit.H[0]), "r_squared": float(fit.r_squared[0]),
+            "force_amplitude_N": float(fit.force_amplitude[0]), "drift": float(fit.drift[0]),
+            "reasons": reasons}
+
+
+def _combine_repeats(fits: list[dict], info: dict, tolerance: float) -> dict:
+    """One step's result from its repetitions: the mean FRF of the good ones, or flagged."""
+    good = [fit for fit in fits if not fit["reasons"]]
+    step = {"frequency_hz": info["frequency_hz"], "limited": bool(info["limited"]),
+            "held_N": info["held_N"], "repeats": len(fits), "good_repeats": len(good),
+            "r_squared": min(fit["r_squared"] for fit in fits),
+            "flagged": not good, "reasons": sorted({r for fit in fits for r in fit["reasons"]})}
+    if good:
+        H = np.mean([fit["H"] for fit in good])
+        force = float(np.mean([fit["force_amplitude_N"] for fit in good]))
+        step.update(H=H, force_amplitude_N=force,
+                    amplitude_held=abs(force - info["held_N"]) <= tolerance * info["held_N"])
+    return step
+
+
+def _stream_summary(feed: float, amplitude: float, steps: list[dict]) -> dict:
+    """FRF arrays of one (feed, amplitude) stream from its used steps, and its quality."""
+    used = [s for s in steps if not s["flagged"]]
+    f = np.array([s["frequency_hz"] for s in used])
+    H = np.array([s["H"] for s in used])
+    compliance = accelerance_to_receptance(f, H) if used else np.zeros(0, complex)
+    return {
+        "feed_mm_min": feed, "amplitude_N": amplitude,
+        "steps": len(steps), "steps_used": len(used),
+        "flagged": [{"frequency_hz": s["frequency_hz"], "reasons": s["reasons"]}
+                    for s in steps if s["flagged"]],
+        "limited_hz": [s["frequency_hz"] for s in steps if s["limited"]],
+        "not_held_hz": [s["frequency_hz"] for s in used if not s["amplitude_held"]],
+        "min_r_squared": min((s["r_squared"] for s in used), default=float("nan")),
+        "peak_hz": float(f[np.argmax(np.abs(compliance))]) if used else float("nan"),
+        "frf": {"f_hz": f.tolist(), "accelerance_abs": np.abs(H).tolist(),
+                "accelerance_phase_rad": np.angle(H).tolist(),
+                "compliance_abs": np.abs(compliance).tolist(),
+                "r_squared": [s["r_squared"] for s in used],
+                "force_amplitude_N": [s["force_amplitude_N"] for s in used]},
+    }
+
+
+def amplitude_spread(streams: list[dict]) -> float:
+    """Largest spread of |compliance| between the amplitudes of one feed, relative to its
+    peak, over the frequencies all of them kept (0 for one amplitude): the linearity of
+    Fig. 5.22."""
+    common = set.intersection(*(set(s["frf"]["f_hz"]) for s in streams)) if streams else set()
+    if len(streams) < 2 or not common:
+        return 0.0
+    keep = sorted(common)
+    table = np.array([[dict(zip(s["frf"]["f_hz"], s["frf"]["compliance_abs"]))[f] for f in keep]
+                      for s in streams])
+    return float(np.max(table.max(axis=0) - table.min(axis=0)) / table.max())
+
+
+def analyze_recording(recording) -> dict:
+    """FRF per feed and amplitude with the quality gate, and the amplitude spread per feed.
+
+    SI: accelerance (m/s²)/N, compliance m/N, frequencies Hz; feeds mm/min, amplitudes N.
+    """
+    p = recording.config["experiment"]
+    p = validate_table(p, SCHEMA, "experiment")
+    fs = recording.streams["daq"].rate_hz
+    force_channel = FORCE_CHANNELS[p["exciter"]]
+    grouped: dict[tuple[float, float, int], list[tuple[dict, dict]]] = {}
+    for window in recorded_windows(recording, "excite"):
+        fit = fit_step(recording, window, force_channel, fs, p["settle_cycles"],
+                       p["r_squared_min"])
+        key = (abs(float(window.info["feed_mm_min"])), float(window.info["amplitude_N"]),
+               int(window.info["step"]))
+        grouped.setdefault(key, []).append((fit, window.info))
+    streams: dict[tuple[float, float], list[dict]] = {}
+    for (feed, amplitude, _), fits in sorted(grouped.items()):
+        step = _combine_repeats([fit for fit, _ in fits], fits[0][1], p["amplitude_tolerance"])
+        streams.setdefault((feed, amplitude), []).append(step)
+    summaries = [_stream_summary(feed, amplitude, steps)
+                 for (feed, amplitude), steps in streams.items()]
+    feeds = sorted({s["feed_mm_min"] for s in summaries})
+    return {
+        "experiment": NAME,
+        "streams": summaries,
+        "amplitude_spread": {f"{feed:g}": amplitude_spread(
+            [s for s in summaries if s["feed_mm_min"] == feed]) for feed in feeds},
+        "steps_flagged": sum(len(s["flagged"]) for s in summaries),
+    }

@@ -1,0 +1,191 @@
+"""Shared by the tool-tip experiments (impact hammer, sine-stream, shaker chirp; Ch. 3.5.1, 5.3,
+5.5.3): excitation windows laid out in passes at a constant feed, the exciter commanded from
+the plan through the CiA 401 I/O module, and the DAQ samples of a recorded window.
+
+A window is a stretch of cycles with an exciter command (a hit, a sine step, a sweep). At a
+feed the axis accelerates, settles, runs windows back to back while the pass fits the stroke,
+and stops; the next pass goes the other way. Idle (feed 0) the axis holds position. Windows
+are never split by a reversal.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from feedbench.config import Field, non_negative, positive
+from feedbench.daq.recorder import StreamSpec
+from feedbench.experiments.plan import Plan, Segment, Window
+from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
+from feedbench.protocols import cia401
+from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
+from feedbench.units import MM_PER_MIN
+
+DAQ_STREAM = "daq"
+RESPONSE_CHANNEL = "acc_tool_x"
+"""The tool-side accelerometer along the feed (the flexure's direction)."""
+FORCE_CHANNELS = {"shaker": "shaker_force", "actuator": "actuator_force",
+                  "hammer": "hammer_force"}
+
+MOTION_SCHEMA = {
+    "stroke_mm": Field(float, 200.0, "longest travel of one pass at feed (mm)", positive),
+    "settle_s": Field(float, 0.5, "time at feed (or holding) before the first window (s)",
+                      positive),
+    "accel_m_s2": Field(float, 1.0, "acceleration of the ramps (m/s²)", positive),
+    "daq_rate_Hz": Field(int, 10_000, "DAQ sample rate (Hz), a whole number per bus cycle",
+                         positive),
+    "io_node_id": Field(int, 10, "CANopen node of the CiA 401 I/O module driving the exciter",
+                        positive),
+}
+"""Keys every tool-tip experiment shares (engineering units)."""
+
+FEEDS_FIELD = Field(list, [0.0, 500.0, 1000.0], "axis feeds (mm/min); 0 holds position",
+                    non_negative)
+
+
+@dataclass(frozen=True)
+class ExcitationWindow:
+    """Cycles of one excitation: the exciter command (N) per cycle, label, info for analysis."""
+
+    label: str
+    command: np.ndarray
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_cycles(self) -> int:
+        return len(self.command)
+
+
+def windows_at_feed(windows: Sequence[ExcitationWindow], feed_mm_min: float, x0: float,
+                    p: dict[str, Any], cycle_s: float, direction: float = 1.0
+                    ) -> tuple[list[Segment], float, float]:
+    """Segments running `windows` at a feed (mm/min) from position x0 (m).
+
+    Returns the segments, the end position and the direction of the next pass. Each pass:
+    accelerate, settle, windows (kind ``excite``, info with ``feed_mm_min``), stop.
+    """
+    speed = feed_mm_min * MM_PER_MIN
+    n_settle = int(round(p["settle_s"] / cycle_s))
+    segments: list[Segment] = []
+    for group in _passes(windows, speed * cycle_s, p["stroke_mm"] * 1e-3, n_settle):
+        velocity = direction * speed
+        up = ramp_to_feed(0.0, velocity, p["accel_m_s2"], cycle_s) if speed else np.zeros(0)
+        down = ramp_to_feed(velocity, 0.0, p["accel_m_s2"], cycle_s) if speed else np.zeros(0)
+        cruise = np.full(n_settle + sum(w.n_cycles for w in group), velocity)
+        path = integrate_velocity(np.concatenate([up, cruise, down]), x0, cycle_s)
+        info = {"feed_mm_min": direction * feed_mm_min}
+        label = f"{feed_mm_min:g} mm/min"
+        cuts = np.cumsum([0, len(up), n_settle] + [w.n_cycles for w in group])
+        segments.append(Segment(f"accelerate {label}", "move", path[:cuts[1]], info=info))
+        segments.append(Segment(f"settle {label}", "settle", path[cuts[1]:cuts[2]], info=info))
+        for w, a, b in zip(group, cuts[2:-1], cuts[3:]):
+            segments.append(Segment(f"{w.label} at {label}", "excite", path[a:b],
+                                    info={**info, **w.info}, excitation=w.command))
+        segments.append(Segment(f"stop {label}", "move", path[cuts[-1]:], info=info))
+        x0 = float(path[-1]) if path.size else x0
+        direction = -direction if speed else direction
+    return [s for s in segments if s.n_cycles], x0, direction
+
+
+def _passes(windows: Sequence[ExcitationWindow], step: float, stroke: float,
+            n_settle: int) -> list[list[ExcitationWindow]]:
+    """Windows grouped into passes whose settle + windows travel at most `stroke` (m) at
+    `step` (m per cycle); a window longer than a pass gets a pass of its own."""
+    groups: list[list[ExcitationWindow]] = [[]]
+    used = n_settle * step
+    for window in windows:
+        travel = window.n_cycles * step
+        if groups[-1] and used + travel > stroke:
+            groups.append([])
+            used = n_settle * step
+        groups[-1].append(window)
+        used += travel
+    return [g for g in groups if g]
+
+
+def plan_over_feeds(name: str, mode: int, feeds: Sequence[float],
+                    windows_of_feed, p: dict[str, Any], cycle_s: float, exciter: str) -> Plan:
+    """A plan running `windows_of_feed(feed)` at each feed in turn, passes alternating."""
+    segments: list[Segment] = []
+    x, direction = 0.0, 1.0
+    for feed in feeds:
+        more, x, direction = windows_at_feed(windows_of_feed(feed), feed, x, p, cycle_s,
+                                             direction)
+        segments += more
+    return Plan(name, mode, segments, p, cycle_s, exciter=exciter)
+
+
+def daq_needs(p: dict[str, Any], exciter: str) -> dict[str, dict[str, Any]]:
+    """The devices a tool-tip experiment needs: the DAQ (response and exciter force) and the
+    I/O module commanding the exciter."""
+    return {"daq": {"channels": [RESPONSE_CHANNEL, FORCE_CHANNELS[exciter]],
+                    "rate_hz": p["daq_rate_Hz"]},
+            "exciter": {"node_id": p["io_node_id"]}}
+
+
+def window_samples(recording, window: Window, channels: Sequence[str]
+                   ) -> tuple[np.ndarray, list[str]]:
+    """DAQ samples (channels × n) of a recorded window and notes on their quality.
+
+    The stream's samples whose bus cycle lies in the window; a gap in the sample counter
+    inside the window is noted (the window should not be used as a record).
+    """
+    stream = recording.streams[DAQ_STREAM]
+    first, last = int(recording.cycle[window.start]), int(recording.cycle[window.stop - 1])
+    inside = (stream.cycle >= first) & (stream.cycle <= last)
+    notes = []
+    if np.any(np.diff(stream.sequence[inside]) != 1):
+        notes.append(f"{window.label}: DAQ samples lost inside the window")
+    return np.vstack([stream.channels[c][inside] for c in channels]), notes
+
+
+def overloaded(samples: np.ndarray, channels: Sequence[str], share: float = 0.98) -> bool:
+    """True when any channel reaches `share` of its full scale (the ADC clips there)."""
+    scale = np.array([CHANNELS[CHANNEL_INDEX[c]].full_scale for c in channels])
+    return bool(np.any(np.abs(samples).max(axis=1, initial=0.0) >= share * scale))
+
+
+def full_scale(channel: str) -> float:
+    """The DAQ input's full scale (SI)."""
+    return CHANNELS[CHANNEL_INDEX[channel]].full_scale
+
+
+class ExciterOutputs:
+    """The plan's exciter commands, sent every cycle through the CiA 401 I/O module
+    (`drivers.io_module.IoModule`); a runner `CycleDevice`. Records the command sent as
+    ``excitation`` (N). Outside the plan (enable, disable, safe stop) the outputs are zero.
+    """
+
+    channels = ("excitation",)
+    units = {"excitation": "N"}
+    streams: dict[str, StreamSpec] = {}
+
+    def __init__(self, io) -> None:
+        self.io = io
+        self._commands = np.zeros(0)
+        self._exciter: str | None = None
+        self._value = 0.0
+
+    def start(self, plan: Plan, recorder) -> None:
+        self._commands = plan.concatenated("excitation")
+        self._exciter = plan.exciter
+
+    def before_sync(self, index: int | None) -> None:
+        value = float(self._commands[index]) if index is not None and self._exciter else 0.0
+        if self._exciter == "hammer":
+            self.io.set_force(cia401.HAMMER_LEVEL, value)
+            self.io.set_digital(cia401.HAMMER_FIRE if value > 0.0 else 0)
+        elif self._exciter is not None:
+            self.io.set_force(cia401.EXCITER_CHANNELS[self._exciter], value)
+        self.io.transmit()
+        self._value = value
+
+    def after_sync(self, cycle: int) -> tuple[float]:
+        return (self._value,)
+
+    def stop(self, recorder) -> None:
+        """All outputs off."""
+        self.io.zero()
