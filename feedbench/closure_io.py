@@ -182,15 +182,19 @@ def read_emps(path: str | Path) -> Trace:
 
 
 def read_recording(path: str | Path) -> Trace:
-    """A feedbench HDF5 recording (the runner's channels) as a trace."""
+    """A feedbench HDF5 recording (the runner's channels) as a trace.
+
+    The drive's force actual is its force averaged over each cycle (what the simulated
+    drive publishes), so the force samples lag the position samples by half a cycle.
+    """
     from feedbench.daq.recording import open_recording
 
     recording = open_recording(path)
     channels = recording.channels
     cycle = float(recording.metadata.get("cycle_s", 1e-3))
-    excitation = channels.get("force_offset")
     return Trace(recording.cycle * cycle, channels["position"], channels["force"],
-                 channels.get("x_ref"), excitation, Path(path).name)
+                 channels.get("x_ref"), channels.get("force_offset"), Path(path).name,
+                 0.5 * cycle)
 
 
 def read_trace(path: str | Path) -> tuple[Trace, dict[str, Any]]:

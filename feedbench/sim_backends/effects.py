@@ -43,9 +43,9 @@ WORLD_SCHEMA = {
     "coupling_zeta": Field(float, 0.3, "damping ratio of the coupling", positive),
     "viscous_Ns_m": Field(float, 168.0, "viscous friction σ (N·s/m)", non_negative),
     "k_tanh_min_mm": Field(float, 0.25, "tanh constant of Eq. (5.2) (min/mm)", positive),
-    "delay_ms": Field(float, 1.0, "drive force delay (ms), whole velocity-loop periods",
+    "delay_ms": Field(float, 0.75, "drive force delay τ_ol (ms), whole velocity-loop periods",
                       non_negative),
-    "f_velocity_Hz": Field(float, 1000.0, "velocity-loop rate (Hz), a multiple of 1 kHz",
+    "f_velocity_Hz": Field(float, 8000.0, "velocity-loop rate (Hz), a multiple of 1 kHz",
                            positive),
     "bandwidth_Hz": Field(float, 40.0, "drive tuning, Eqs. (4.2, 4.8, 4.12) (Hz)", positive),
     "force_limit_N": Field(float, 2000.0, "drive force saturation (N)", positive),
@@ -93,9 +93,9 @@ EFFECT_SCHEMAS = {
 class SimulatedRecording:
     """What a recorder would hold: per-cycle channels (SI, runner names) and the cycle (s).
 
-    force_lag_s: the force sample of a cycle is the force the drive held over that cycle,
-    centred this long before the position sample (half a cycle when the velocity loop runs
-    at the bus cycle); truth: the world table it came from, for reports only.
+    force_lag_s: the force sample of a cycle is the drive's force averaged over that cycle
+    (`AxisSimulator` mean force, as a drive reports it), centred half a cycle before the
+    position sample; truth: the world table it came from, for reports only.
     """
 
     channels: dict[str, np.ndarray]
@@ -136,10 +136,10 @@ def simulate_recording(table: Mapping[str, Any]) -> SimulatedRecording:
         "x_ref": x_ref,
         "position": quantised(out["position"], world["position_resolution_nm"] * 1e-9),
         "velocity": out["velocity"],
-        "force": force_reading(world, out["time"], out["force"], rng),
+        "force": force_reading(world, out["time"], out["mean_force"], rng),
         "force_offset": excitation,
     }
-    return SimulatedRecording(channels, CYCLE_S, 0.5 / world["f_velocity_Hz"], world)
+    return SimulatedRecording(channels, CYCLE_S, 0.5 * CYCLE_S, world)
 
 
 def build_simulator(world: Mapping[str, Any]) -> AxisSimulator:

@@ -36,7 +36,8 @@ NOT_REPLAYED = ("backlash",)
 
 @dataclass(frozen=True)
 class Replay:
-    """Replayed channels (every sample of the trace) and what was left out."""
+    """Replayed channels (every sample of the trace) and what was left out. The force is
+    the cycle-mean force, as a drive reports it."""
 
     position: np.ndarray
     force: np.ndarray
@@ -132,7 +133,7 @@ def replay(trace: Trace, model: Model, controller: ControllerSpec) -> Replay:
     offset = _values(model, "offset").get("offset_N", 0.0)
     out = simulator.simulate(CSP, trace.reference, 0.0, 0.0, force_offset=excitation,
                              tip_force=-offset)
-    return Replay(out["position"], _reading(model, out["force"], dt), out["velocity"],
+    return Replay(out["position"], _reading(model, out["mean_force"], dt), out["velocity"],
                   tuple(n for n in NOT_REPLAYED if n in model.names))
 
 
