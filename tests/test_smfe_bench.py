@@ -1,7 +1,8 @@
 """SMFE on the simulated bench, end to end: planning, spindle ramp through Modbus, feed through
 CiA 402, cut simulated per bus cycle, DAQ stream over a pseudo-terminal, Φ_tt / Φ_ww.
 
-The run uses 8 s ramps (300 → 1500 rpm) instead of the thesis's 65 s to keep the test short:
+The run uses 8 s ramps (300 → 1500 rpm) instead of the thesis's 65 s, and quick moves between
+the cuts, to keep the test short:
 tooth passing 10 → 50 Hz, its second harmonic 20 → 100 Hz, 4 s Welch segments (0.25 Hz).
 Truth: Table 6.2 at the tool (DIGEST §3b) and the example's flexible workpiece fixture.
 """
@@ -105,7 +106,8 @@ def test_bad_world_table_names_the_field(tmp_path, can_channel):
 @pytest.fixture(scope="module")
 def smfe_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("smfe")
-    raw = _config(out, f"smfe-bench-{id(out)}", ramp_s=RAMP_S)
+    raw = _config(out, f"smfe-bench-{id(out)}", ramp_s=RAMP_S, spindle_accel_rpm_s=3000.0,
+                  approach_mm=0.3, return_feed_mm_min=2500.0)
     with warnings.catch_warnings():
         warnings.simplefilter("error", SmfePlanningWarning)
         row = run_config(parse_run_config(raw), progress=False)
@@ -121,7 +123,8 @@ def _truth_peak(structure: ModalStructure, axis: int, f: np.ndarray) -> tuple[fl
     return float(magnitude.max()), float(f[np.argmin(np.abs(f - f_peak))])
 
 
-@pytest.mark.parametrize("side, structure", [("tool", SMFE_TOOL_STRUCTURE), ("workpiece", WORKPIECE)])
+@pytest.mark.parametrize("side, structure",
+                         [("tool", SMFE_TOOL_STRUCTURE), ("workpiece", WORKPIECE)])
 def test_smfe_recovers_the_direct_receptance_peaks(smfe_run, side, structure):
     """The must-show: direct FRF peaks within 5 % of the truth (measured: tool 1.01 / 1.006 /
     1.001, workpiece 0.99 / 1.015 / 0.993) at the truth's bin ± one bin (0.25 Hz), coherence

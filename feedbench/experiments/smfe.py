@@ -100,7 +100,8 @@ class SmfePlanningWarning(UserWarning):
 
 def planned_tool(p: Mapping[str, Any]) -> Tool:
     """The tool of the validated parameters."""
-    return Tool(D=p["tool_diameter_mm"] * 1e-3, Z=p["teeth"], kappa=math.radians(p["lead_angle_deg"]))
+    return Tool(D=p["tool_diameter_mm"] * 1e-3, Z=p["teeth"],
+                kappa=math.radians(p["lead_angle_deg"]))
 
 
 def planned_coefficients(p: Mapping[str, Any]) -> CuttingCoefficients:
@@ -210,10 +211,10 @@ def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
                                   float(cut[-1]), cycle_s)
         workpiece.append({"mode": mode, "a_e_mm": a_e, "a_p_mm": p["a_p_mm"],
                           "start_mm": float(approach[-1]) * 1e3, "stop_mm": float(cut[-1]) * 1e3})
+        ramp = {"spindle_rpm": n1, "spindle_ramp_rpm_s": (n1 - n0) / p["ramp_s"]}
         segments += [
             Segment(f"approach {mode}", "move", approach, info=info),
-            Segment(f"{mode} milling ramp", "measure", cut,
-                    info={**info, "spindle_rpm": n1, "spindle_ramp_rpm_s": (n1 - n0) / p["ramp_s"]}),
+            Segment(f"{mode} milling ramp", "measure", cut, info={**info, **ramp}),
             Segment(f"stop {mode}", "move", stop, info=info),
             Segment(f"spindle back {mode}", "settle", _hold(float(stop[-1]), (n1 - n0) / spin + 0.2,
                                                             cycle_s),
@@ -229,11 +230,15 @@ def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
 def devices(p: Mapping[str, Any], cycle_s: float) -> dict[str, dict[str, Any]]:
     """The devices besides the drive this experiment needs, with their settings (from the
     plan's validated parameters)."""
-    return {"spindle": {"readback_cycles": max(1, round(p["spindle_readback_ms"] * 1e-3 / cycle_s))},
+    readback = max(1, round(p["spindle_readback_ms"] * 1e-3 / cycle_s))
+    return {"spindle": {"readback_cycles": readback},
             "daq": {"channels": DAQ_CHANNELS, "rate_hz": p["daq_rate_Hz"]}}
 
 
-def cut_records(recording) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray], list[str]]:
+Records = list[np.ndarray]
+
+
+def cut_records(recording) -> tuple[Records, Records, Records, list[str]]:
     """Per measured cut: force on the tool (3 × n, N), tool and workpiece accelerations.
 
     The dynamometer measures the force on the workpiece, so F_tool = −dyn. Every cut is cut

@@ -1,4 +1,4 @@
-"""The milling process at the tool of the simulated bench (Ch. 6.2–6.3), advanced once per bus cycle.
+"""The milling process at the tool of the simulated bench (Ch. 6.2–6.3), one bus cycle a step.
 
 `SmfeWorld.step` runs in the simulated drive's SYNC handler, right after the axis physics:
   1. the spindle inverter advances one bus cycle (`SimulatedSpindleInverter.advance`); its
@@ -31,7 +31,7 @@ from typing import Any, Callable
 import numpy as np
 from numba import njit
 
-from feedbench.config import ConfigError, Field, one_of, positive, validate_table
+from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
 from feedbench.models.milling import (
     MILLING_MODES,
     SMFE_SENSOR_NOISE,
@@ -45,7 +45,7 @@ from feedbench.models.milling import (
 )
 from feedbench.models.structure import POINT_DOF, SMFE_TOOL_STRUCTURE, ModalStructure, modal_step
 from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
-from feedbench.units import N_PER_UM, RPM
+from feedbench.units import N_PER_UM
 
 _JIT = {"cache": True, "error_model": "numpy"}
 
@@ -54,12 +54,6 @@ ACCELEROMETERS = ("acc_tool_x", "acc_tool_y", "acc_tool_z", "acc_work_x", "acc_w
 DYNAMOMETER = ("dyn_fx", "dyn_fy", "dyn_fz")
 _ACC_COLUMNS = np.array([CHANNEL_INDEX[name] for name in ACCELEROMETERS])
 _DYN_COLUMNS = np.array([CHANNEL_INDEX[name] for name in DYNAMOMETER])
-
-def _each_non_negative(values: list) -> str | None:
-    """Check: every number of a list ≥ 0."""
-    bad = [v for v in values if v < 0]
-    return f": every value must be >= 0 (got {bad[0]})" if bad else None
-
 
 STRUCTURE_SCHEMA = {
     "f_n_Hz": Field(list, None, "natural frequency of each mode (Hz)", positive),
@@ -79,7 +73,7 @@ MILLING_SCHEMA = {
     "K_re_N_mm": Field(float, TABLE_6_1.K_re * 1e-3, "radial edge coefficient (N/mm)"),
     "K_ae_N_mm": Field(float, TABLE_6_1.K_ae * 1e-3, "axial edge coefficient (N/mm)"),
     "noise_m_s2": Field(list, list(SMFE_SENSOR_NOISE),
-                        "accelerometer noise std x, y, z (m/s²), Eq. (6.18)", _each_non_negative),
+                        "accelerometer noise std x, y, z (m/s²), Eq. (6.18)", non_negative),
     "seed": Field(int, 0, "seed of the sensor noise"),
     "min_rpm": Field(float, 30.0, "slowest spindle speed whose tooth period the regeneration "
                      "history covers (rpm)", positive),
@@ -137,8 +131,8 @@ class MillingProcess:
         self._ring_theta = np.zeros(0)
         self._ring_state = np.zeros((1 + POINT_DOF, 0))
         self._counters = np.zeros(2, dtype=np.int64)
-        copy.deepcopy(self).advance(np.zeros(1), np.zeros(1), None, 1e-4)  # compile now, not
-        # in the first SYNC (numba takes seconds the first time)
+        # compile here, not in the first SYNC (numba takes seconds the first time)
+        copy.deepcopy(self).advance(np.zeros(1), np.zeros(1), None, 1e-4)
 
     def advance(self, theta: np.ndarray, travel: np.ndarray, lane: CutLane | None,
                 dt: float) -> tuple[np.ndarray, np.ndarray]:

@@ -161,10 +161,11 @@ class SocketcandHub:
             self._drop(client.sock)
             return
         client.inbox += data
-        while (start := client.inbox.find(b"<")) >= 0 and (end := client.inbox.find(b">", start)) >= 0:
+        while (end := client.inbox.find(b">")) >= 0:
+            start = client.inbox.rfind(b"<", 0, end)
             message = client.inbox[start + 1:end].decode("ascii", "replace").split()
             del client.inbox[:end + 1]
-            if message:
+            if start >= 0 and message:
                 self._handle(client, message)
 
     def _handle(self, client: _Client, message: list[str]) -> None:
