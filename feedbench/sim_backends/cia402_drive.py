@@ -374,9 +374,9 @@ class SimulatedCia402Drive:
     def _publish_actual_values(self) -> None:
         v = self.values
         sim = self.simulator
-        force = sim.force
+        force = sim.mean_force  # actual values are cycle means, as a drive filters them
         v[0x6064] = position = _int32_wrapped(sim.position * 1e9)
-        v[0x606C] = _saturated(sim.velocity * 1e9, INT32_MAX)
+        v[0x606C] = _saturated(sim.mean_velocity * 1e9, INT32_MAX)
         v[0x2010] = _saturated(force * 1e3, INT32_MAX)
         v[0x6077] = _saturated(force / self._newton_per_mille, INT16_MAX)
         v[0x60F4] = error = v[0x607A] - position
