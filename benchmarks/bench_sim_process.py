@@ -1,0 +1,160 @@
+"""The simulated bench in its own process against the in-process default, and the SMFE world.
+
+- Lockstep bus cycles per second of the same host loop (`Cia402Drive` + `LockstepClock`,
+  RPDOs, SYNC, TPDOs): against the simulated drive in the host's process on python-can's
+  `virtual` bus (baseline), and against `feedbench sim` in a separate process over the
+  socketcand hub on loopback TCP. Rounds alternate so load from other processes hits both.
+- Hub relay: frames per second one way between two python-can socketcand clients.
+- SMFE world: wall time of one bus cycle of the milling process (10 samples at 10 kHz) in
+  `MillingProcess.advance`, against the offline `simulate_smfe_cut` per 10 samples
+  (baseline: the same numba kernel family without per-call overhead), and a whole
+  `SmfeWorld.step` (inverter, cut, noise, DAQ frames) with the DAQ not streaming.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from pathlib import Path
+
+import can
+import numpy as np
+
+from feedbench.bench import BENCH_SCHEMA, Bench
+from feedbench.config import validate_table
+from feedbench.models.milling import SMFE_TOOL, TABLE_6_1, simulate_smfe_cut, spindle_ramp
+from feedbench.models.structure import SMFE_TOOL_STRUCTURE
+from feedbench.protocols.canbus import open_bus
+from feedbench.sim_backends.process import READY, SimulatedBench
+from feedbench.sim_backends.smfe_world import CutLane, MillingProcess
+from feedbench.sim_backends.socketcand_hub import SocketcandHub
+from feedbench.units import RPM
+
+N_CYCLES = 1000
+ROUNDS = 5
+HUB_FRAMES = 5000
+REPEATS = 3
+FS = 10_000.0
+
+
+def _cycles_per_s(bench: Bench, n: int) -> float:
+    t0 = time.perf_counter()
+    for _ in range(n):
+        bench.clock.tick()
+    return n / (time.perf_counter() - t0)
+
+
+def _bench_table(**values) -> dict:
+    return validate_table(values, BENCH_SCHEMA, "bench")
+
+
+def _start_bench_process(directory: Path) -> tuple[subprocess.Popen, dict]:
+    config = directory / "bench.toml"
+    config.write_text('[bench]\nsimulated = true\ninterface = "socketcand"\n'
+                      'socketcand = "127.0.0.1:0"\nmodbus = "127.0.0.1:0"\n'
+                      f'channel = "bench-{uuid.uuid4().hex[:8]}"\n')
+    process = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "sim", str(config)],
+                               stdout=subprocess.PIPE, text=True)
+    line = process.stdout.readline()
+    if not line.startswith(READY):
+        process.kill()
+        raise RuntimeError("feedbench sim did not start")
+    return process, json.loads(line[len(READY):])
+
+
+def lockstep_rates() -> tuple[float, float]:
+    """Median cycles/s: in-process virtual bus, and the bench process over socketcand."""
+    local = _bench_table(channel=f"bench-local-{uuid.uuid4().hex[:8]}")
+    with tempfile.TemporaryDirectory() as directory:
+        process, info = _start_bench_process(Path(directory))
+        remote = _bench_table(simulated=False, interface="socketcand",
+                              socketcand=info["socketcand"], channel=info["channel"])
+        try:
+            with Bench(local) as near, Bench(remote) as far:
+                rates = [(_cycles_per_s(near, N_CYCLES), _cycles_per_s(far, N_CYCLES))
+                         for _ in range(ROUNDS)]
+        finally:
+            process.terminate()
+            process.wait(timeout=20)
+    return statistics.median(r[0] for r in rates), statistics.median(r[1] for r in rates)
+
+
+def hub_frames_per_s() -> float:
+    """One-way frames/s from one socketcand client to another through the hub."""
+    with SocketcandHub() as hub:
+        sender, receiver = (open_bus("socketcand", "relay", host=hub.host, port=hub.port)
+                            for _ in range(2))
+        try:
+            receiver.send(can.Message(arbitration_id=0x700, data=b"", is_extended_id=False))
+            time.sleep(0.1)
+            message = can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False)
+            t0 = time.perf_counter()
+            for _ in range(HUB_FRAMES):
+                sender.send(message)
+            received = sum(receiver.recv(2.0) is not None for _ in range(HUB_FRAMES))
+            elapsed = time.perf_counter() - t0
+        finally:
+            sender.shutdown()
+            receiver.shutdown()
+    return received / elapsed
+
+
+def _best_us(job, per: int, repeats: int = REPEATS) -> float:
+    """Best wall time of `job()` over `repeats`, in µs per one of its `per` units."""
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        job()
+        best = min(best, time.perf_counter() - t0)
+    return best / per * 1e6
+
+
+def milling_cycle_us() -> tuple[float, float, float]:
+    """µs per bus cycle (10 samples): stepping process, offline kernel, whole world step."""
+    rpm = spindle_ramp(1000.0, 0.0, 2.0, FS)
+    theta = np.cumsum(rpm * RPM / FS)
+    travel = 1e-4 * SMFE_TOOL.Z * theta / (2 * np.pi)
+    lane = CutLane(-1.0, 1.0, "down", 12e-3, 2e-3)
+    cycles = rpm.size // 10
+
+    def stepped() -> None:
+        process = MillingProcess(SMFE_TOOL_STRUCTURE, SMFE_TOOL, TABLE_6_1)
+        for k in range(0, rpm.size, 10):
+            process.advance(theta[k:k + 10], travel[k:k + 10], lane, 1 / FS)
+
+    def offline() -> None:
+        simulate_smfe_cut(SMFE_TOOL_STRUCTURE, SMFE_TOOL, TABLE_6_1, 2e-3, 12e-3, "down", rpm, FS)
+
+    offline()  # compile (or load the numba cache) outside the timing
+    with SimulatedBench(_bench_table(channel=f"bench-world-{uuid.uuid4().hex[:8]}")) as bench:
+        bench.inverter.setpoint_rpm, bench.inverter.run_commanded = 1000.0, True
+        world = _best_us(lambda: [bench.world.step() for _ in range(cycles)], cycles)
+    return _best_us(stepped, cycles), _best_us(offline, cycles), world
+
+
+def run() -> dict[str, float]:
+    local, remote = lockstep_rates()
+    relay = hub_frames_per_s()
+    stepping, offline, world = milling_cycle_us()
+    load = os.getloadavg()[0]
+    print(f"lockstep cycles/s, simulated drive in the host process (virtual bus): {local:.0f}")
+    print(f"lockstep cycles/s, `feedbench sim` in its own process (socketcand hub, TCP): "
+          f"{remote:.0f} = {remote / local:.2f}× the in-process rate (load average {load:.1f})")
+    print(f"hub relay, one way between two socketcand clients: {relay:.0f} frames/s")
+    print(f"milling process per bus cycle (10 samples at 10 kHz): {stepping:.1f} µs stepped "
+          f"per cycle vs {offline:.1f} µs in one offline call = {stepping / offline:.2f}×; "
+          f"whole world step (inverter, cut, noise, 10 DAQ frames): {world:.1f} µs")
+    return {"sim_inprocess_cycles_per_s": local, "sim_process_cycles_per_s": remote,
+            "sim_process_ratio": remote / local, "hub_frames_per_s": relay,
+            "smfe_step_us_per_cycle": stepping, "smfe_offline_us_per_cycle": offline,
+            "smfe_world_step_us": world}
+
+
+if __name__ == "__main__":
+    run()
