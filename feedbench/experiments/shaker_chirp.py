@@ -1,9 +1,11 @@
 """Chirp injection with a shaker at the tool tip (Ch. 3.5.1, Fig. 3.17).
 
 The shaker (or the inertial actuator) sweeps `f_start_Hz` → `f_stop_Hz` in `duration_s`,
-`repetitions` times at each feed; the DAQ records its force (load cell at the stinger) and
-the tool-tip acceleration. Analysis per feed: the tool-tip FRF a_tip / F_tip with H1, H2 and
-coherence by Welch averaging over all sweeps (`analysis.frf.estimate_frf`), and the
+`repetitions` times at each feed, each sweep followed by `tail_s` without excitation; the DAQ
+records its force (load cell at the stinger) and the tool-tip acceleration. Analysis per feed:
+each sweep with its ring-down is one record (rectangular window, no overlap: both signals
+start and end near zero, so the records are leakage-free, unlike Welch segments cutting a
+chirp); H1, H2 and coherence over the records (`analysis.frf.estimate_frf`), and the
 compliance x_tip / F_tip = H1 / (jω)². The drive-offset chirp is `experiments.chirp`.
 """
 
@@ -34,14 +36,11 @@ SCHEMA = {
     "f_start_Hz": Field(float, 20.0, "start frequency (Hz)", positive),
     "f_stop_Hz": Field(float, 100.0, "stop frequency (Hz)", positive),
     "duration_s": Field(float, 8.0, "duration of one sweep (s)", positive),
+    "tail_s": Field(float, 0.5, "ring-down after each sweep, recorded with it (s)", positive),
     "repetitions": Field(int, 4, "sweeps averaged per feed", positive),
     "sweep": Field(str, "linear", "linear or logarithmic", one_of("linear", "logarithmic")),
     **MOTION_SCHEMA,
 }
-
-DEFAULT_NPERSEG = 2**15
-"""Welch segment at 10 kHz: 3.3 s, 0.31 Hz bins (the in-motion resonance spans > 8 bins)."""
-
 
 def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
     p = validate_table(params, SCHEMA, "experiment")
@@ -56,6 +55,7 @@ def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
     p = _validated(params, cycle_s)
     sweep = chirp(p["amplitude_N"], p["f_start_Hz"], p["f_stop_Hz"], p["duration_s"], cycle_s,
                   p["sweep"])
+    sweep = np.concatenate([sweep, np.zeros(int(round(p["tail_s"] / cycle_s)))])
     windows = [ExcitationWindow(f"sweep {i + 1}", sweep, {"repetition": i})
                for i in range(p["repetitions"])]
     return plan_over_feeds(NAME, CSP, p["feeds_mm_min"], lambda feed: windows, p, cycle_s,
@@ -68,8 +68,9 @@ def devices(p: Mapping[str, Any], cycle_s: float) -> dict[str, dict[str, Any]]:
 
 
 def sweep_records(recording, force_channel: str) -> tuple[dict[float, np.ndarray], list[str]]:
-    """|feed| (mm/min) → force and acceleration of its sweeps joined (2 × n); sweeps with an
-    overloaded channel or lost samples are left out (noted)."""
+    """|feed| (mm/min) → its sweeps as records × (force, acceleration) × n, each record
+    zero-mean and cut to the shortest; sweeps with an overloaded channel or lost samples are
+    left out (noted)."""
     grouped: dict[float, list[np.ndarray]] = {}
     notes: list[str] = []
     channels = (force_channel, RESPONSE_CHANNEL)
@@ -80,7 +81,12 @@ def sweep_records(recording, force_channel: str) -> tuple[dict[float, np.ndarray
             notes.append(f"{window.label}: overloaded channel, sweep left out")
         elif not lost:
             grouped.setdefault(abs(float(window.info["feed_mm_min"])), []).append(samples)
-    return {feed: np.hstack(parts) for feed, parts in grouped.items()}, notes
+    records = {}
+    for feed, parts in grouped.items():
+        n = min(part.shape[1] for part in parts)
+        records[feed] = np.stack([part[:, :n] - part[:, :n].mean(axis=1, keepdims=True)
+                                  for part in parts])
+    return records, notes
 
 
 def warnings_in_band(est: FrfEstimate, band: tuple[float, float]) -> list[str]:
@@ -90,8 +96,7 @@ def warnings_in_band(est: FrfEstimate, band: tuple[float, float]) -> list[str]:
     return [w for w in est.warnings if any(f"near {f:.2f} Hz" in w for f in peaks)]
 
 
-def analyze_recording(recording, nperseg: int = DEFAULT_NPERSEG,
-                      band: tuple[float, float] | None = None) -> dict:
+def analyze_recording(recording, band: tuple[float, float] | None = None) -> dict:
     """Tool-tip FRF per feed: H1, H2 (accelerance), compliance, coherence in `band` (Hz;
     default the swept range)."""
     p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
@@ -99,8 +104,10 @@ def analyze_recording(recording, nperseg: int = DEFAULT_NPERSEG,
     fs = recording.streams["daq"].rate_hz
     records, notes = sweep_records(recording, FORCE_CHANNELS[p["exciter"]])
     feeds = []
-    for feed, (force, response) in sorted(records.items()):
-        est = estimate_frf(force, response, fs, nperseg=min(nperseg, force.size))
+    for feed, sweeps in sorted(records.items()):
+        force, response = np.concatenate(sweeps, axis=1)
+        est = estimate_frf(force, response, fs, nperseg=sweeps.shape[2], overlap=0.0,
+                           window="boxcar")
         inside = (est.f >= band[0]) & (est.f <= band[1])
         f = est.f[inside]
         compliance = accelerance_to_receptance(f, est.H1[inside])

@@ -96,6 +96,8 @@ class ForceExciter:
         """Advance one cycle under `command` (N); returns the cycle's force (N)."""
         u = min(max(command, -self.limit), self.limit)
         x = self._state
+        if u == 0.0 and self.force == 0.0 and not any(x):
+            return 0.0  # at rest (the other exciters of a run): nothing to integrate
         self.force = sum(c_i * x_i for c_i, x_i in zip(self._c, x)) + self._d * u
         self._state = tuple(sum(a_ij * x_j for a_ij, x_j in zip(row, x)) + b_i * u
                             for row, b_i in zip(self._a, self._b))
