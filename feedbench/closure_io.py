@@ -235,7 +235,7 @@ def _residual_plot(plt: Any, report: Any, path: Path) -> Path:
                   f"NRMSE {result.error_after:.2%}")
     ax.set_xlabel("time in the held-out data (s)")
     ax.set_ylabel("force residual (N)")
-    ax.set_title(f"{report.name}: held-out residual, {report.holdout_source}")
+    ax.set_title(f"{report.name}\nheld-out residual, {report.holdout_source}", fontsize=10)
     ax.legend(markerscale=6)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -264,7 +264,8 @@ def _frf_plot(plt: Any, report: Any, path: Path) -> Path | None:
     phase.set_ylabel("phase (deg)")
     phase.set_xlabel("frequency (Hz)")
     mag.legend()
-    mag.set_title(f"{report.name}: FRF velocity / excitation, {report.holdout_source}")
+    mag.set_title(f"{report.name}\nFRF velocity / excitation, {report.holdout_source}",
+                  fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -125,7 +125,7 @@ def close_the_loop(model: Model, fit_kin: Kinematics, holdout_kin: Kinematics,
 def rank_candidates(current: Fit, kin: Kinematics, options: ClosureOptions) -> list[Candidate]:
     """Every applicable candidate tried against `current`, best (lowest ΔBIC) first."""
     present, fixed = current.model.names, current.model.fixed
-    context = Context(current.residual, current.acting, present, fixed)
+    context = Context(current.residual, current.acting)
     basis = _free_basis(current, kin)
     tried = [try_effect(EFFECTS[name], current, kin, context, basis, options.starts)
              for name in options.candidates if EFFECTS[name].applicable(present, fixed)]
@@ -157,7 +157,7 @@ def _fit_candidate(effect: Effect, current: Fit, kin: Kinematics, start: dict) -
     """The current model (its nonlinear parameters held) plus `effect` from `start`."""
     held = _hold_nonlinear(current.model)
     term = Term(effect, {**effect.defaults(), **start},
-                frozenset(effect.free_keys(current.model.names)))
+                frozenset(effect.linear_keys + effect.nonlinear_keys))
     return fit_model(held.with_term(term), kin, with_std=False)
 
 

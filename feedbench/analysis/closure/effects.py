@@ -61,15 +61,11 @@ class Context:
     """What a signature test may look at besides the kinematics.
 
     residual: measured − predicted force on the used samples (`Kinematics.rows`) (N);
-    acting: the model's force before the output transforms, every sample (N); present:
-    names of the terms already in the model; fixed: names of terms whose linear parameters
-    are all declared (not free).
+    acting: the model's force before the output transforms, every sample (N).
     """
 
     residual: np.ndarray
     acting: np.ndarray
-    present: frozenset[str]
-    fixed: frozenset[str]
 
 
 @dataclass(frozen=True)
@@ -89,9 +85,6 @@ class Effect:
 
     requires: tuple[str, ...] = ()
     """Terms that must already be in the model for this one to make sense."""
-
-    excludes: tuple[str, ...] = ()
-    """Terms whose presence makes this one redundant."""
 
     @property
     def linear_keys(self) -> tuple[str, ...]:
@@ -116,12 +109,7 @@ class Effect:
 
     def applicable(self, present: frozenset[str], fixed: frozenset[str]) -> bool:
         """Whether the effect can be added to a model holding the terms `present`."""
-        return (self.name not in present and all(r in present for r in self.requires)
-                and not any(e in present for e in self.excludes))
-
-    def free_keys(self, present: frozenset[str]) -> tuple[str, ...]:
-        """Parameters fitted when the effect is added to a model holding `present`."""
-        return self.linear_keys + self.nonlinear_keys
+        return self.name not in present and all(r in present for r in self.requires)
 
     def columns(self, kin: Kinematics, values: Mapping[str, float]) -> np.ndarray:
         """Regressors (n × len(linear_keys)) of an additive effect at the SI `values`."""
@@ -485,7 +473,8 @@ LIBRARY: tuple[Effect, ...] = (
            (Parameter("A_sin_N", "N", 1.0, "sine component"),
             Parameter("A_cos_N", "N", 1.0, "cosine component"),
             _nonlinear("pitch_mm", "mm", 1e-3, "period in position", 10e-3, 1e-6, 10.0))),
-    StructuralMode("structural_mode", "a mass on a spring-damper behind the motor (Eqs. 4.13, 4.25)",
+    StructuralMode("structural_mode",
+                   "a mass on a spring-damper behind the motor (Eqs. 4.13, 4.25)",
                    "residual ∝ (T(s) − 1)·a: resonant near f_n",
                    (Parameter("m_kg", "kg", 1.0, "mass on the spring"),
                     _nonlinear("f_n_Hz", "Hz", 1.0, "motor-locked frequency √(k/m)/2π",

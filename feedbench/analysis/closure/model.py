@@ -111,7 +111,8 @@ class Model:
 
 @dataclass(frozen=True)
 class Design:
-    """Regressors of a model on one kinematics: all linear columns, which are free, and who owns them."""
+    """Regressors of a model on one kinematics: every linear column, which are free, and
+    which (term index, key) owns each."""
 
     columns: np.ndarray
     owners: list[tuple[int, str]]

@@ -54,9 +54,13 @@ CONTROLLER_SCHEMA = {
     "velocity_feedforward": Field(bool, False, "feed the reference's speed forward"),
 }
 
+def _fraction(value: float) -> str | None:
+    return None if 0.0 < value < 1.0 else f": must lie in (0, 1) (got {value})"
+
+
 CLOSURE_SCHEMA = {
     "holdout_fraction": Field(float, 0.3, "share of a single recording held out (its end)",
-                              lambda v: None if 0.0 < v < 1.0 else f": must lie in (0, 1) (got {v})"),
+                              _fraction),
     "bic_threshold": Field(float, 10.0, "ΔBIC an effect must beat", non_negative),
     "min_explained": Field(float, 0.15, "share of the residual an effect must explain",
                            non_negative),
@@ -147,7 +151,8 @@ def _parameter(effect: Effect, key: str, given: Any, path: str) -> tuple[float, 
         return p.default, not p.setting
     if isinstance(given, str):
         if given != "free":
-            raise ConfigError(f'{path}: must be a number, "free" or {{ value, free }} (got {given!r})')
+            raise ConfigError(f'{path}: must be a number, "free" or {{ value, free }} '
+                              f"(got {given!r})")
         if p.setting:
             raise ConfigError(f"{path}: a setting, declared but never fitted")
         return p.default, True
