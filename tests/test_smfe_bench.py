@@ -21,6 +21,7 @@ from feedbench.cli import analyze_file
 from feedbench.config import ConfigError
 from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
+from feedbench.experiments import smfe
 from feedbench.experiments.plan import recorded_windows
 from feedbench.experiments.smfe import SmfePlanningWarning
 from feedbench.models.milling import (
@@ -83,6 +84,19 @@ def test_planning_picks_the_condition_number_optimum():
     lane = config.plan.params["workpiece"][0]
     # travel of one ramp at f_z·Z·N: 0.1 mm · 2 · (300 + 1500)/2 rpm · 8 s / 60 = 24 mm
     assert lane["stop_mm"] - lane["start_mm"] == pytest.approx(24.0, rel=1e-3)
+
+
+def test_full_example_fits_its_limits():
+    """The packaged example (65 s ramps: 195 mm per lane) stays inside its travel limits."""
+    config = parse_run_config(example_config("smfe"))
+    targets = config.plan.concatenated("target_position")
+    config.limits.check_trajectory(np.concatenate([[0.0], targets]), config.plan.cycle_s)
+    lanes = config.plan.params["workpiece"]
+    assert [lane["stop_mm"] - lane["start_mm"] for lane in lanes] == pytest.approx([195.0] * 3,
+                                                                                  rel=1e-3)
+    # 3 ramps of 65 s, plus spindle start and returns (≈ 5 s), approaches and stops (≈ 3 s)
+    # and the return of 588 mm at 2000 mm/min (17.6 s): 220.7 s
+    assert 3 * 65.0 + 20.0 < config.plan.duration_s < 3 * 65.0 + 30.0
 
 
 def test_badly_conditioned_cuts_are_warned_about_before_cutting(tmp_path, can_channel):
@@ -149,6 +163,8 @@ def test_smfe_reports_the_condition_number(smfe_run):
     assert cond["max"] < 100.0
     assert cond["planned_C_th"] == pytest.approx(9.06, abs=0.05)
     assert result["n_averages"] == 6 and result["warnings"] == []
+    lines = smfe.describe(result)
+    assert lines[1].startswith("  Φ_tt peaks: xx ") and "median" in lines[3]
 
 
 def test_spindle_feed_and_daq_stream_are_locked_to_the_bench_clock(smfe_run):

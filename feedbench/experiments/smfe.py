@@ -324,3 +324,21 @@ def plan_engagement_quietly(p: Mapping[str, Any]) -> dict[str, Any]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SmfePlanningWarning)
         return plan_engagement(p)
+
+
+def describe(result: dict) -> list[str]:
+    """Text lines of an SMFE analysis (`feedbench analyze`): peaks, condition number, warnings."""
+    lines = [f"  cuts {', '.join(result['cuts'])} at a_e "
+             f"{', '.join(f'{a:.1f}' for a in result['a_e_mm'])} mm, band "
+             f"{result['band_hz'][0]:g}-{result['band_hz'][1]:g} Hz, "
+             f"{result['n_averages']} averages"]
+    for side, name in (("tool", "Φ_tt"), ("workpiece", "Φ_ww")):
+        peaks = result[side]["peaks"]
+        lines.append(f"  {name} peaks: " + ", ".join(
+            f"{axis}{axis} {p['abs_m_N']:.3g} m/N at {p['f_hz']:.2f} Hz "
+            f"(γ² ≥ {p['coherence_min']:.3f})" for axis, p in peaks.items()))
+    cond = result["condition_number"]
+    lines.append(f"  condition number (Eq. 6.14): median {cond['median']:.1f}, "
+                 f"max {cond['max']:.1f}; planned C_th {cond['planned_C_th']:.1f}")
+    lines += [f"  warning: {w}" for w in result["warnings"]]
+    return lines
