@@ -113,7 +113,6 @@ def serve(bench: Mapping[str, Any], workpiece: Sequence[Mapping[str, Any]] = (),
     (``host:port``, port 0: a free one); the ready line is ``feedbench-sim ready {json}``
     with ``socketcand``, ``channel``, ``modbus``, ``daq_port`` and ``node_id``.
     """
-    stop = stop or _stop_on_signals()
     hub = SocketcandHub(*split_address(bench["socketcand"]))
     host, port = hub.start()
     try:
@@ -126,8 +125,7 @@ def serve(bench: Mapping[str, Any], workpiece: Sequence[Mapping[str, Any]] = (),
                     "node_id": bench["node_id"]}
             print(f"{READY} {json.dumps(info)}", file=out)
             print(host_bench_table(info), file=out, flush=True)
-            while not stop.wait(0.5):
-                pass
+            _wait_for_stop(stop)
     finally:
         hub.stop()
 
@@ -141,9 +139,17 @@ def host_bench_table(info: Mapping[str, Any]) -> str:
           ("socketcand", "channel", "node_id", "modbus", "daq_port"))])
 
 
-def _stop_on_signals() -> threading.Event:
-    """An event set by SIGINT or SIGTERM (the main thread then leaves `serve`)."""
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
-    return stop
+def _wait_for_stop(stop: threading.Event | None) -> None:
+    """Until `stop` is set, or (None) until SIGINT / SIGTERM; the previous handlers return."""
+    if stop is not None:
+        stop.wait()
+        return
+    stopped = threading.Event()
+    previous = {signum: signal.signal(signum, lambda *_: stopped.set())
+                for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        while not stopped.wait(0.5):
+            pass
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
