@@ -15,8 +15,14 @@ import pytest
 from feedbench.bench import EXPERIMENTS, parse_run_config, run_config
 from feedbench.config import ConfigError
 from feedbench.daq.recording import open_recording
+from feedbench.experiments import sine_stream
+from feedbench.experiments.closed_loop_bode import bandwidth
+from feedbench.experiments.impact_hammer import frf_distance, invariant_from
 from feedbench.experiments.limits import LimitError
+from feedbench.experiments.tool_tip import ExcitationWindow, overloaded, windows_at_feed
 from feedbench.models.axis import TwoMassAxis
+from feedbench.models.exciters import InertialActuator
+from feedbench.units import MM_PER_MIN
 
 
 def _run(tmp_path, channel: str, experiment: dict) -> tuple[dict, object]:
@@ -52,6 +58,7 @@ def test_hammer_quasi_frf_changes_with_feed_and_is_invariant_above_500_mm_min(tm
     assert fast["peak_hz"] < idle["peak_hz"] - 10.0
     assert idle["peak_compliance_m_N"] > 3.0 * fast["peak_compliance_m_N"]
     assert moving["distance_to_highest_feed"] < 0.3
+    assert result["invariant_from_mm_min"] == 500.0  # within 30 % of the peak from there on
     assert moving["distance_to_highest_feed"] < 0.1 * idle["distance_to_highest_feed"]
     assert slow["distance_to_highest_feed"] > 2.0 * moving["distance_to_highest_feed"]
     for feed in feeds.values():
@@ -106,3 +113,63 @@ def test_structure_plans_are_checked_before_anything_moves():
     with pytest.raises(LimitError, match="limits.excitation_N"):
         parse_run_config({"bench": {}, "limits": {"excitation_N": 10.0},
                           "experiment": {"type": "shaker_chirp", "amplitude_N": 50.0}})
+
+
+# -- plans and analysis steps (no bus) -----------------------------------------------------
+
+def test_windows_run_in_passes_within_the_stroke_and_never_across_a_reversal():
+    p = {"stroke_mm": 50.0, "settle_s": 0.2, "accel_m_s2": 1.0}
+    windows = [ExcitationWindow(f"w{i}", np.full(1000, float(i + 1)), {"i": i}) for i in range(5)]
+    segments, _, _ = windows_at_feed(windows, 1000.0, 0.0, p, 1e-3)
+    excited = [s for s in segments if s.kind == "excite"]
+    assert [s.info["i"] for s in excited] == [0, 1, 2, 3, 4]
+    for segment in excited:
+        v = np.diff(segment.target_position) / 1e-3 / MM_PER_MIN
+        assert np.allclose(np.abs(v), 1000.0)  # every window at constant feed
+        assert np.all(segment.excitation == segment.info["i"] + 1)
+    path = np.concatenate([s.target_position for s in segments])
+    assert path.max() - path.min() <= 0.050 + 1e-9  # 3.3 s at 1000 mm/min fits only in passes
+    assert sum(s.kind == "settle" for s in segments) == 3  # 2 windows per pass (0.2 + 2 s)
+    idle, _, _ = windows_at_feed(windows, 0.0, 0.01, p, 1e-3)
+    assert np.all(np.concatenate([s.target_position for s in idle]) == 0.01)
+
+
+def test_sine_stream_holds_the_amplitude_where_the_actuator_allows():
+    """Command = force / |F/u(f)|; below 15.9 Hz the ±1 mm stroke of the 2 kg mass bounds the
+    force (m ω² stroke < 20 N): those steps are limited to what the actuator can give."""
+    p = sine_stream._validated({"f_start_Hz": 10.0, "f_stop_Hz": 20.0, "f_step_Hz": 1.0,
+                                "actuator_stroke_mm": 1.0}, 1e-3)
+    windows = sine_stream.step_windows(p, 20.0, 1e-3)
+    actuator = InertialActuator(stroke=1e-3)
+    limited = [w.info["frequency_hz"] for w in windows if w.info["limited"]]
+    assert limited == [10.0, 11.0, 12.0, 13.0, 14.0, 15.0]
+    for w in windows:
+        f = w.info["frequency_hz"]
+        expected = min(20.0, actuator.max_force(f)) / abs(actuator.dynamics().response(f))
+        assert np.max(np.abs(w.command[-200:])) == pytest.approx(expected, rel=0.01)
+    joined = np.concatenate([w.command for w in windows[1:]])
+    assert np.max(np.abs(np.diff(joined))) < 2 * np.pi * 20.0 * 1e-3 * 30.0  # no phase jumps
+    assert windows[0].command[0] == pytest.approx(0.0, abs=0.5)  # fades in
+
+
+def test_quality_gate_uses_good_repetitions_and_flags_a_step_without_any():
+    info = {"frequency_hz": 50.0, "limited": False, "held_N": 20.0}
+    good = {"H": 0.3 + 0.1j, "r_squared": 0.999, "force_amplitude_N": 19.9, "reasons": []}
+    noisy = {"H": 9.0 + 0j, "r_squared": 0.9, "force_amplitude_N": 19.9,
+             "reasons": ["R² 0.9000 < 0.99"]}
+    step = sine_stream._combine_repeats([noisy, good], info, 0.05)
+    assert not step["flagged"] and step["H"] == good["H"] and step["good_repeats"] == 1
+    assert step["amplitude_held"]
+    flagged = sine_stream._combine_repeats([noisy], info, 0.05)
+    assert flagged["flagged"] and "H" not in flagged and flagged["reasons"] == noisy["reasons"]
+    assert overloaded(np.array([[0.0, 4950.0]]), ["hammer_force"])  # 0.99 of 5 kN
+    assert not overloaded(np.array([[0.0, 4000.0]]), ["hammer_force"])
+
+
+def test_feed_comparison_helpers():
+    reference = np.array([1.0, 2.0, 4.0, 2.0])
+    assert frf_distance(reference, reference * 1.1) == pytest.approx(0.1)
+    assert invariant_from([0.0, 100.0, 500.0, 1000.0], [4.0, 1.0, 0.15, 0.0], 0.2) == 500.0
+    assert invariant_from([0.0, 1000.0], [4.0, 0.0], 0.2) == 1000.0
+    f = np.arange(10.0, 100.0, 10.0)
+    assert bandwidth(f, 1.0 / (1.0 + 1j * f / 45.0)) == pytest.approx(45.0, abs=1.5)

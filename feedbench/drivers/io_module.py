@@ -1,7 +1,8 @@
 """Host driver of the CiA 401 I/O module that drives the tool-tip exciters.
 
-The outputs go out by RPDO before each SYNC (`transmit`), so a command takes effect in the
-same bus cycle as the drive's setpoints. Wiring and scaling: `feedbench.protocols.cia401`.
+The outputs go out by RPDO before the SYNC (`transmit`), so a command takes effect in the
+same bus cycle as the drive's setpoints; a PDO is sent when its content changed (the module
+keeps applying the last one it received). Wiring and scaling: `feedbench.protocols.cia401`.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ class IoModule:
         network.add_node(self.node)
         self._analog = [0] * cia401.ANALOG_CHANNELS
         self._digital = 0
+        self._sent: dict[int, bytes] = {}
 
     def configure(self) -> None:
         """Read the device type by SDO (profile 401 expected), then NMT operational."""
@@ -45,16 +47,19 @@ class IoModule:
         """The eight digital outputs as a bit field."""
         self._digital = bits & 0xFF
 
-    def transmit(self) -> None:
-        """Send both RPDOs (applied by the module at the next SYNC)."""
+    def transmit(self, every: bool = False) -> None:
+        """Send the RPDOs whose content changed since they were last sent (`every`: all),
+        applied by the module at the next SYNC."""
         node_id = self.node.id
-        self.network.send_message(cia401.RPDO_DIGITAL + node_id,
-                                  cia401.DIGITAL_LAYOUT.pack(self._digital))
-        self.network.send_message(cia401.RPDO_ANALOG + node_id,
-                                  cia401.ANALOG_LAYOUT.pack(*self._analog))
+        frames = {cia401.RPDO_DIGITAL + node_id: cia401.DIGITAL_LAYOUT.pack(self._digital),
+                  cia401.RPDO_ANALOG + node_id: cia401.ANALOG_LAYOUT.pack(*self._analog)}
+        for cob_id, data in frames.items():
+            if every or self._sent.get(cob_id) != data:
+                self.network.send_message(cob_id, data)
+                self._sent[cob_id] = data
 
     def zero(self) -> None:
         """All outputs off, sent at once."""
         self._analog = [0] * cia401.ANALOG_CHANNELS
         self._digital = 0
-        self.transmit()
+        self.transmit(every=True)

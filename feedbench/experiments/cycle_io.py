@@ -17,6 +17,7 @@ so the drive's safe stop never waits on a broken link.
 from __future__ import annotations
 
 import math
+import time
 from contextlib import ExitStack
 
 from feedbench.config import ConfigError
@@ -26,7 +27,9 @@ from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
 from feedbench.units import RPM
 
 DAQ_SILENCE_CYCLES = 1000
-"""Bus cycles without one DAQ sample after which the stream counts as lost."""
+DAQ_SILENCE_S = 2.0
+"""The stream counts as lost after this many bus cycles AND wall seconds without one sample
+(lockstep cycles run faster than real time: the reader thread may lag many cycles)."""
 
 
 class DeviceLinkError(RuntimeError):
@@ -119,6 +122,7 @@ class DaqStream:
         self._first_sequence: int | None = None
         self._last_cycle = 0
         self._silent = 0
+        self._last_sample = time.monotonic()
         self._failed = False
 
     def start(self, plan: Plan, recorder) -> None:
@@ -135,9 +139,13 @@ class DaqStream:
         self._last_cycle = cycle
         if not self._failed:
             self._silent = 0 if self._drain() else self._silent + 1
-            if self._silent > DAQ_SILENCE_CYCLES:
+            now = time.monotonic()
+            if not self._silent:
+                self._last_sample = now
+            elif self._silent > DAQ_SILENCE_CYCLES and now - self._last_sample > DAQ_SILENCE_S:
                 self._failed = True
-                raise DeviceLinkError(f"DAQ: no sample for {DAQ_SILENCE_CYCLES} bus cycles")
+                raise DeviceLinkError(f"DAQ: no sample for {self._silent} bus cycles "
+                                      f"({now - self._last_sample:.1f} s)")
         return ()
 
     def stop(self, recorder) -> None:

@@ -172,6 +172,7 @@ class ExciterOutputs:
     def start(self, plan: Plan, recorder) -> None:
         self._commands = plan.concatenated("excitation")
         self._exciter = plan.exciter
+        self.io.zero()
 
     def before_sync(self, index: int | None) -> None:
         value = float(self._commands[index]) if index is not None and self._exciter else 0.0

@@ -4,10 +4,10 @@ The module (a CANopen node, profile 401) uses the predefined connection set, syn
 an output received by RPDO is applied at the next SYNC, in the same bus cycle as the drive's
 setpoints. Wiring of the bench:
 
-| PDO (COB-ID) | object | content |
-|---|---|---|
-| RPDO1 (0x200 + node) | 0x6200 sub 1, UNSIGNED8 | digital outputs; bit 0 fires the impact hammer (rising edge) |
-| RPDO2 (0x300 + node) | 0x6411 sub 1–4, INTEGER16 | analog outputs ±10 V = ±32767: 1 shaker amplifier, 2 inertial-actuator amplifier, 3 hammer level, 4 spare |
+- RPDO1 (0x200 + node): 0x6200 sub 1, UNSIGNED8, the digital outputs; bit 0 fires the
+  impact hammer (rising edge).
+- RPDO2 (0x300 + node): 0x6411 sub 1–4, INTEGER16, the analog outputs (±10 V = ±32767):
+  1 shaker amplifier, 2 inertial-actuator amplifier, 3 hammer level, 4 spare.
 
 Amplifier gains: 10 V is `FULL_SCALE_N` of each output (shaker and actuator: force command,
 hammer: peak force of the next hit).
