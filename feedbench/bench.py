@@ -19,7 +19,7 @@ from feedbench.daq.clock import LockstepClock, RealtimeClock
 from feedbench.daq.recorder import Recorder
 from feedbench.protocols.canbus import open_network
 from feedbench.drivers.cia402 import Cia402Drive
-from feedbench.experiments import chirp, friction_sweep, smfe
+from feedbench.experiments import chirp, friction_sweep, smfe, stepped_loading
 from feedbench.experiments import closed_loop_bode, impact_hammer, shaker_chirp, sine_stream
 from feedbench.experiments.cycle_io import open_cycle_devices, split_address
 from feedbench.experiments.limits import Limits
@@ -27,7 +27,7 @@ from feedbench.experiments.plan import Plan
 from feedbench.experiments.runner import Observer, ProgressPrinter, Runner, StopRequest
 from feedbench.units import kv_to_per_second
 
-EXPERIMENTS = {m.NAME: m for m in (friction_sweep, chirp, smfe)}
+EXPERIMENTS = {m.NAME: m for m in (friction_sweep, chirp, smfe, stepped_loading)}
 
 EXPERIMENTS.update({m.NAME: m for m in (impact_hammer, sine_stream, shaker_chirp,
                                        closed_loop_bode)})
@@ -58,6 +58,13 @@ BENCH_SCHEMA = {
                     "(simulated: the bench starts one on 127.0.0.1)"),
     "daq_port": Field(str, "", "serial port of the streaming DAQ, e.g. /dev/ttyACM0 "
                       "(simulated: the bench's pseudo-terminal)"),
+    "axis": Field(str, "lab", "lab (one linear drive) or rack_pinion (master and slave "
+                  "drives, Ch. 3.2)", one_of("lab", "rack_pinion")),
+    "slave_node_id": Field(int, 2, "rack_pinion: CANopen node id of the slave drive", positive),
+    "load_cell": Field(str, "", "rack_pinion: host:port of the bumper's load-cell amplifier "
+                       "(Modbus TCP; simulated: the bench starts one on 127.0.0.1)"),
+    "load_cell_every": Field(int, 1, "rack_pinion: read the load cell every n bus cycles",
+                             positive),
 }
 
 RUN_SCHEMA = {
@@ -88,6 +95,10 @@ def parse_run_config(raw: Mapping[str, Any]) -> RunConfig:
     kind = top["experiment"].get("type")
     if kind not in EXPERIMENTS:
         raise ConfigError(f"experiment.type: must be one of {', '.join(EXPERIMENTS)} (got {kind!r})")
+    axes = getattr(EXPERIMENTS[kind], "AXES", None)
+    if axes and bench["axis"] not in axes:
+        raise ConfigError(f"bench.axis: experiment {kind} needs axis = {' or '.join(axes)} "
+                          f"(got {bench['axis']!r})")
     plan = EXPERIMENTS[kind].build_plan(top["experiment"], bench["cycle_ms"] * 1e-3)
     _check_excitation_fits(plan, limits)
     return RunConfig(bench, limits, plan, dict(raw))
@@ -189,6 +200,9 @@ class Bench:
         cfg = self.config
         cycle_s = cfg["cycle_ms"] * 1e-3
         try:
+            if cfg["axis"] == "rack_pinion":
+                self._open_rack_pinion(cycle_s)
+                return self
             needs = _device_needs(self.plan)
             if cfg["simulated"]:
                 self._start_simulated_peer(cycle_s, needs)
@@ -211,6 +225,15 @@ class Bench:
             self._stack.close()
             raise
         return self
+
+    def _open_rack_pinion(self, cycle_s: float) -> None:
+        """Master and slave drives of the rack-and-pinion axis (`rack_pinion_bench`)."""
+        from feedbench.rack_pinion_bench import open_rack_pinion
+
+        axis = open_rack_pinion(self.config, cycle_s, _gains_si(self.config["gains"]),
+                                self._stack, _bus_options(self.config))
+        self.network, self.drive, self.clock = axis.network, axis.drives, axis.clock
+        self.devices, self.simulated = axis.devices, axis.simulated
 
     def _start_simulated_peer(self, cycle_s: float, needs: Mapping[str, Any]) -> None:
         from feedbench.sim_backends.bench import start_simulated_axis

@@ -10,7 +10,7 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-from feedbench.bench import parse_run_config, run_config
+from feedbench.bench import EXPERIMENTS, parse_run_config, run_config
 from feedbench.config import read_toml
 from feedbench.report import write_report
 from feedbench.sim_backends.world import world_truth
@@ -107,7 +107,10 @@ def describe_demo(result: dict) -> str:
 def describe_analysis(result: dict) -> str:
     """Human-readable summary of one run's analysis."""
     lines = [f"{result['experiment']}: {result['run']['file']} ({result['run']['status']})"]
-    if result["experiment"] == "friction_sweep":
+    module = EXPERIMENTS.get(result["experiment"])
+    if hasattr(module, "describe"):
+        lines += module.describe(result)
+    elif result["experiment"] == "friction_sweep":
         for direction in ("positive", "negative"):
             fit = result[direction]
             lines.append(f"  {direction}: R² {fit['r_squared']:.5f}, rms {fit['rms_N']:.3f} N")

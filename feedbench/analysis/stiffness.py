@@ -45,15 +45,31 @@ class BacklashEstimate:
 class PreloadLoss:
     """Where the electronically preloaded motor loses contact (Ch. 3.4.3, Fig. 3.11-a).
 
-    force: load at the loss (N); jump: relative-displacement jump at the loss (m), which
+    force: load at the loss (N), where the master's contact force reaches zero; recovery:
+    load at which it carries again on the other flank (N; equal to `force` if the crossing
+    left no sample); jump: relative-displacement jump between the two contacts (m), which
     the thesis finds equal to the backlash; k_before / k_after: Eq. (3.26) stiffness of the
     two contact segments (N/m).
     """
 
     force: float
+    recovery: float
     jump: float
     k_before: float
     k_after: float
+
+
+@dataclass(frozen=True)
+class LossStiffness:
+    """Eq. (3.26) stiffness of the other (slave) motor around a preload loss (N/m), Fig. 3.12-b.
+
+    contact: while both motors carry; lost: while the master has lost contact and the
+    slave carries the whole load (half the contact value); n_lost: samples in that phase.
+    """
+
+    contact: float
+    lost: float
+    n_lost: int
 
 
 @dataclass(frozen=True)
@@ -217,9 +233,11 @@ def preload_loss_force(
     fit of δ_m(F) (the split with the least squared error, exhaustive via running sums)
     locates the kink; robust lines either side sort the samples into first line, second
     line and crossing (on neither), and the two lines are refitted on their own samples.
-    The loss is the median load of the crossing samples or, if none were recorded, the
-    midpoint between the last load on the first line and the first on the second.
-    jump: the distance between the lines at the loss (≈ the backlash, Ch. 3.4.3).
+    The loss is the midpoint between the last load on the first line and the next load
+    (crossing or second line); the recovery, between the last crossing load and the first
+    on the second line. The flank change takes time (Ch. 3.4.3), so under a rising load the
+    crossing spans loads. jump: the distance between the lines at the loss (≈ the
+    backlash, Ch. 3.4.3).
     """
     load, master, scale = _loading_branch(force, x_master, x_load)
     order = np.argsort(load, kind="stable")
@@ -227,14 +245,59 @@ def preload_loss_force(
     if f.size < 2 * min_points:
         raise ValueError(f"need at least {2 * min_points} samples on the loading branch")
     first, second, crossing = _assign_to_lines(f, d, _two_segment_split(f, d, min_points), n_sigma)
+    if np.count_nonzero(first) < 3 or np.count_nonzero(second) < 3:
+        raise ValueError("fewer than 3 samples on one of the contact lines: the loading "
+                         "must go on well beyond the loss (and start below it)")
     before, after = linregress(f[first], d[first]), linregress(f[second], d[second])
-    loss = np.median(f[crossing]) if crossing.any() else 0.5 * (f[first].max() + f[second].min())
+    last_contact = f[first].max()
+    loss = 0.5 * (last_contact + f[f > last_contact].min())
+    recovery = 0.5 * (f[crossing].max() + f[second].min()) if crossing.any() else loss
     return PreloadLoss(
         force=float(loss),
+        recovery=float(recovery),
         jump=float(after.intercept - before.intercept + (after.slope - before.slope) * loss),
         k_before=share / before.slope,
         k_after=share / after.slope,
     )
+
+
+def stiffness_while_lost(
+    force: np.ndarray,
+    x_master: np.ndarray,
+    x_other: np.ndarray,
+    x_load: np.ndarray,
+    force_master: np.ndarray,
+    share: float = 0.5,
+    idle_fraction: float = 0.02,
+    min_points: int = 5,
+    n_sigma: float = 6.0,
+) -> LossStiffness:
+    """The other motor's stiffness k = share · ΔF_load / Δδ, Eq. (3.26), before and during
+    the master's preload loss, from a coupled loading test (Ch. 3.4.3, Fig. 3.12-b).
+
+    The master's contact states come from δ_m(F) as in `preload_loss_force`: samples on
+    its first line (both carry, taken above 20 % of that line's load range to leave out
+    the take-up) and samples on neither line while the master's own force is below
+    `idle_fraction` of its peak (its pinion crosses the backlash and carries nothing; the
+    re-contact transient, where it carries again, is left out). Line fits of F against the
+    other motor's δ = x_other − x_load on each set.
+    """
+    load, master, other, scale, own = _loading_branch(force, x_master, x_other, x_load,
+                                                      force_master)
+    order = np.argsort(load, kind="stable")
+    f, d = load[order], (master - scale)[order]
+    delta, own = (other - scale)[order], np.abs(own[order])
+    if f.size < 2 * min_points:
+        raise ValueError(f"need at least {2 * min_points} samples on the loading branch")
+    first, _, crossing = _assign_to_lines(f, d, _two_segment_split(f, d, min_points), n_sigma)
+    both = first & (f >= 0.2 * f[first].max())
+    lost = crossing & (own < idle_fraction * own.max())
+    if np.count_nonzero(both) < 3 or np.count_nonzero(lost) < 3:
+        raise ValueError("fewer than 3 samples with both motors in contact or with the "
+                         "master out of contact")
+    return LossStiffness(contact=share * linregress(delta[both], f[both]).slope,
+                         lost=share * linregress(delta[lost], f[lost]).slope,
+                         n_lost=int(np.count_nonzero(lost)))
 
 
 def torque_sharing(tau_master: np.ndarray, tau_slave: np.ndarray) -> TorqueSharing:

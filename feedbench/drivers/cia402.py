@@ -407,6 +407,10 @@ class Cia402Drive:
         return Actual(self.device_cycle, raw[0x6041], raw.get(0x6064, math.nan) * 1e-9,
                       raw.get(0x606C, math.nan) * 1e-9, force)
 
+    def latest(self, index: int) -> int | float:
+        """The latest raw value of an object mapped in a TPDO (KeyError if it is not)."""
+        return self._raw[index]
+
     # -- cycle hand-shake with the bench clock -------------------------------------------
 
     @property

@@ -2,7 +2,9 @@
 
 At each feed the axis accelerates, settles, and holds the feed over a measure window;
 the mean motor force over that window is the friction force at that velocity, and the
-points of each direction are fitted with Andersson's law, Eq. (5.2).
+points of each direction are fitted with Andersson's law, Eq. (5.2). On an axis driven by
+several drives (the rack-and-pinion master and slave) the force is the sum of the drives'
+forces, so an electronic preload cancels out, and the velocity is the first drive's.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from feedbench.config import Field, one_of, positive, validate_table
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import constant_feed_move
 from feedbench.models.axis import CSP
-from feedbench.units import MM_PER_MIN
+from feedbench.units import MIN_PER_MM, MM_PER_MIN
 
 NAME = "friction_sweep"
 
@@ -34,6 +36,8 @@ SCHEMA = {
     "settle_s": Field(float, 1.0, "time at feed before measuring (s)", positive),
     "measure_s": Field(float, 0.5, "measure window at each feed (s)", positive),
     "accel_m_s2": Field(float, 1.0, "acceleration of the ramps (m/s²)", positive),
+    "k_tanh_min_mm": Field(float, 0.25, "tanh constant of Eq. (5.2), held in the fit (min/mm)",
+                           positive),
 }
 
 SIGNS = {"positive": 1.0, "negative": -1.0}
@@ -87,14 +91,26 @@ def _fit_summary(fit: FrictionFit) -> dict:
     }
 
 
+def axis_signals(channels: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Velocity (m/s) and force (N) of the axis: the drive's, or with several drives (named
+    channels ``name.velocity``, ``name.force``, see `runner.drive_channels`) the first
+    drive's velocity and the sum of their forces."""
+    if "force" in channels:
+        return channels["velocity"], channels["force"]
+    drives = [c.removesuffix(".statusword") for c in channels if c.endswith(".statusword")]
+    return (channels[f"{drives[0]}.velocity"],
+            np.sum([channels[f"{d}.force"] for d in drives], axis=0))
+
+
 def analyze_recording(recording) -> dict:
     """Friction points of every measure window and the Andersson fit per direction (5.2).
 
     Returns SI values: velocities (m/s), forces (N), F_c, F_s (N), v_s (m/s), σ (N·s/m).
     """
+    params = validate_table(recording.config["experiment"], SCHEMA, "experiment")
     windows = recorded_windows(recording, "measure")
-    v, f = friction_points(recording.channels["velocity"], recording.channels["force"], windows)
-    fit = fit_andersson_directional(v, f)
+    v, f = friction_points(*axis_signals(recording.channels), windows)
+    fit = fit_andersson_directional(v, f, k_tanh=params["k_tanh_min_mm"] * MIN_PER_MM)
     return {
         "experiment": NAME,
         "points": {"velocity_m_s": v.tolist(), "force_N": f.tolist()},

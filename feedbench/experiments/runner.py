@@ -18,7 +18,7 @@ import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Iterator, Protocol, Sequence
+from typing import Iterator, Mapping, Protocol, Sequence
 
 import numpy as np
 
@@ -29,6 +29,7 @@ CHANNELS = ("x_ref", "position", "velocity", "force", "force_offset", "velocity_
             "statusword")
 UNITS = {"x_ref": "m", "position": "m", "velocity": "m/s", "force": "N", "force_offset": "N",
          "velocity_offset": "m/s", "statusword": ""}
+DRIVE_CHANNELS = ("position", "velocity", "force")
 
 ENABLE_TIMEOUT_CYCLES = 200
 DISABLE_TIMEOUT_CYCLES = 50
@@ -102,9 +103,12 @@ class RunOutcome:
 
 
 class Runner:
-    """Runs plans on one CiA 402 drive driven by a bench clock.
+    """Runs plans on one CiA 402 drive, or on several that move one axis, with a bench clock.
 
-    `drive` is a `feedbench.drivers.cia402.Cia402Drive`, `clock` a `LockstepClock` or
+    `drive` is a `feedbench.drivers.cia402.Cia402Drive`, or a mapping name → drive (e.g.
+    master and slave of a rack-and-pinion axis): then each drive follows the plan from
+    where it stood at `read_position`, every drive is enabled, watched and disabled, and
+    the channels are named per drive (`drive_channels`). `clock` is a `LockstepClock` or
     `RealtimeClock` from `feedbench.daq.clock`; `stop_accel` (m/s²) is the deceleration of
     the safe stop. `devices` are served every cycle: `before_sync(plan index)` before the
     SYNC (None outside the plan: enable, disable, stop ramp), `after_sync` after it, their
@@ -115,28 +119,38 @@ class Runner:
     def __init__(self, drive, clock, limits: Limits, stop_accel: float = 2.0,
                  observers: Sequence[Observer] = (), stop: StopRequest | None = None,
                  devices: Sequence[CycleDevice] = ()) -> None:
-        self.drive = drive
+        self.drives = dict(drive) if isinstance(drive, Mapping) else {"": drive}
+        self.drive = next(iter(self.drives.values()))
         self.clock = clock
         self.limits = limits
         self.stop_accel = stop_accel
         self.observers = list(observers)
         self.stop = stop or StopRequest()
         self.devices = list(devices)
-        self.channels = CHANNELS + tuple(c for d in self.devices for c in d.channels)
-        self.units = {**UNITS, **{c: u for d in self.devices for c, u in d.units.items()}}
+        own_channels, own_units = drive_channels(tuple(self.drives))
+        self.channels = own_channels + tuple(c for d in self.devices for c in d.channels)
+        self.units = {**own_units, **{c: u for d in self.devices for c, u in d.units.items()}}
+        self._offsets = [0.0] * len(self.drives)
         self._block = np.zeros((BLOCK_CYCLES, len(self.channels)))
         self._block_cycles = np.zeros(BLOCK_CYCLES, dtype=np.int64)
         self._block_fill = 0
 
     def read_position(self) -> float:
-        """Run one cycle with the drive as it is and return the measured position (m)."""
+        """Run one cycle with the drives as they are; the first one's measured position (m).
+
+        Every other drive keeps its offset from it: the plan moves each from where it stands.
+        """
         self.clock.tick()
-        return self.drive.actual.position
+        positions = [d.actual.position for d in self.drives.values()]
+        self._offsets = [p - positions[0] for p in positions]
+        return positions[0]
 
     def absolute_targets(self, plan: Plan, start: float) -> np.ndarray:
         """The plan's targets shifted to the start position, checked against the limits."""
         targets = start + plan.concatenated("target_position")
-        self.limits.check_trajectory(np.concatenate([[start], targets]), plan.cycle_s)
+        for offset in self._offsets:
+            self.limits.check_trajectory(np.concatenate([[start], targets]) + offset,
+                                         plan.cycle_s)
         self.limits.check_excitation(
             np.concatenate([plan.concatenated("force_offset"), plan.concatenated("excitation")]),
             plan.concatenated("velocity_offset"),
@@ -193,26 +207,33 @@ class Runner:
         """One bus cycle: setpoints out, SYNC, actual values in, limits, record.
 
         `velocity` is the target velocity (CSV; CSP follows `target` and ignores it)."""
-        drive = self.drive
-        drive.set_targets(position=target, velocity=velocity, force_offset=force_offset,
-                          velocity_offset=velocity_offset)
+        for drive, offset in zip(self.drives.values(), self._offsets):
+            drive.set_targets(position=target + offset, velocity=velocity,
+                              force_offset=force_offset, velocity_offset=velocity_offset)
         for device in self.devices:
             device.before_sync(index)
         cycle = self.clock.tick()
-        a = drive.actual
-        row = (target, a.position, a.velocity, a.force, force_offset, velocity_offset,
-               a.statusword, *(v for d in self.devices for v in d.after_sync(cycle)))
+        actual = [drive.actual for drive in self.drives.values()]
+        row = (target, *(v for a in actual for v in (a.position, a.velocity, a.force)),
+               force_offset, velocity_offset, *(a.statusword for a in actual),
+               *(v for d in self.devices for v in d.after_sync(cycle)))
         recorder.append(cycle, row)
         self._to_block(cycle, row)
         if not watch:
             return
         if self.stop.reason is not None:
             raise RunAborted(self.stop.reason)
+        for (name, drive), a in zip(self.drives.items(), actual):
+            self._watch(name, drive, a)
+
+    def _watch(self, name: str, drive, a) -> None:
+        """Abort on a drive fault or a limit trip (the drive's name in the reason)."""
+        where = f"{name}: " if name else ""
         if drive.fault:
-            raise RunAborted(f"drive fault (EMCY 0x{drive.emcy_code or 0:04X})")
+            raise RunAborted(f"{where}drive fault (EMCY 0x{drive.emcy_code or 0:04X})")
         trip = self.limits.violation(a.position, a.velocity, a.force)
         if trip:
-            raise RunAborted(f"limit tripped: {trip}")
+            raise RunAborted(f"limit tripped: {where}{trip}")
 
     def _to_block(self, cycle: int, row: tuple) -> None:
         self._block[self._block_fill] = row
@@ -232,12 +253,14 @@ class Runner:
     def _enable(self, mode: int, hold: float, recorder) -> None:
         """Walk the CiA 402 state machine to operation enabled, one controlword per cycle."""
         recorder.event(self._next_cycle(), "segment", _segment_text(None, "enable"))
-        self.drive.set_mode(mode)
+        for drive in self.drives.values():
+            drive.set_mode(mode)
         for _ in range(ENABLE_TIMEOUT_CYCLES):
-            if self.drive.enable_step():
+            if all([drive.enable_step() for drive in self.drives.values()]):
                 return
             self._cycle(recorder, hold, 0.0, 0.0, watch=False)
-        raise RunAborted(f"drive did not reach operation enabled (state {self.drive.state})")
+        states = ", ".join(drive.state for drive in self.drives.values())
+        raise RunAborted(f"drive did not reach operation enabled (state {states})")
 
     def _safe_stop(self, recorder, x: float, velocity: float, dt: float) -> None:
         """Ramp the commanded velocity to zero at `stop_accel`, excitation off, disable."""
@@ -258,11 +281,12 @@ class Runner:
         """
         recorder.event(self._next_cycle(), "segment", _segment_text(None, "disable"))
         for _ in range(DISABLE_TIMEOUT_CYCLES):
-            if self.drive.disable_step(at_standstill=True):
+            if all([drive.disable_step(at_standstill=True) for drive in self.drives.values()]):
                 return
             self._cycle(recorder, hold, 0.0, 0.0, watch=False)
+        states = ", ".join(drive.state for drive in self.drives.values())
         recorder.event(self._next_cycle(), "fault",
-                       f"drive still {self.drive.state} after {DISABLE_TIMEOUT_CYCLES} cycles")
+                       f"drive still {states} after {DISABLE_TIMEOUT_CYCLES} cycles")
 
     def _stop_devices(self, recorder) -> None:
         """Every device's `stop` (spindle off, stream drained); a failure is recorded."""
@@ -288,6 +312,21 @@ class Runner:
         finally:
             for s, h in previous.items():
                 signal.signal(s, h)
+
+
+def drive_channels(names: Sequence[str]) -> tuple[tuple[str, ...], dict[str, str]]:
+    """The runner's own channels and units for drives `names` ("" alone: `CHANNELS`).
+
+    Several drives: x_ref, each drive's position, velocity, force as ``name.position``…,
+    the offsets, each drive's ``name.statusword``.
+    """
+    if tuple(names) == ("",):
+        return CHANNELS, dict(UNITS)
+    measured = tuple(f"{n}.{c}" for n in names for c in DRIVE_CHANNELS)
+    status = tuple(f"{n}.statusword" for n in names)
+    channels = ("x_ref", *measured, "force_offset", "velocity_offset", *status)
+    units = {c: UNITS[c.rsplit(".", 1)[-1]] for c in channels}
+    return channels, units
 
 
 def _segment_text(segment: Segment | None, label: str = "") -> str:

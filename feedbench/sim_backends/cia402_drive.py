@@ -29,7 +29,7 @@ import math
 import operator
 import struct
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Protocol
 
 import can
 import canopen
@@ -126,6 +126,19 @@ def _saturated(value: float, limit: int) -> int:
     return limit if value > 0 else -limit
 
 
+class DriveObjects(Protocol):
+    """Objects of a drive variant that its world serves (e.g. the rack-and-pinion axis's)."""
+
+    def values(self) -> dict[int, int | float]:
+        """Parameter values at power-on / application reset (index → raw value)."""
+
+    def write(self, index: int, value: int | float) -> bool:
+        """Apply an SDO write; False if not one of its objects, ValueError to refuse it."""
+
+    def actual(self) -> dict[int, int]:
+        """Process values published every cycle (index → raw value)."""
+
+
 def _compile_physics(simulator: AxisSimulator) -> None:
     """Step a copy once: numba compiles on the first call (seconds), not on the first SYNC."""
     copy.deepcopy(simulator).step_cycle(CSV, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -139,24 +152,33 @@ class SimulatedCia402Drive:
     `after_physics` are the world's per-cycle hooks (callables without arguments), run in
     the SYNC handler around the physics step in every state: a world device sets `tip_force`
     for the cycle before it, an instrument samples the cycle after it.
+
+    With `network`, the drive joins a network several drives share (`drive_bus`): the
+    network's owner consumes the SYNC and calls `begin_cycle` and `end_cycle` around the
+    step of their common world; `simulator` is then this drive's port of that world.
+    `objects` serves the objects of a drive variant (`DriveObjects`).
     """
 
     def __init__(self, bus: can.BusABC, node_id: int, simulator: AxisSimulator,
-                 eds_path: Path | str | None = None) -> None:
+                 eds_path: Path | str | None = None, network: canopen.Network | None = None,
+                 objects: DriveObjects | None = None) -> None:
         self.simulator = simulator
+        self._objects = objects
+        self._owns_network = network is None
         self.tip_force = 0.0
         self.before_physics: list[Callable[[], None]] = []
         self.after_physics: list[Callable[[], None]] = []
         self._received: dict[int, int] = {}
         self.node = canopen.LocalNode(node_id, eds.load(node_id, eds_path))
-        self.network = canopen.Network(bus)
+        self.network = network if network is not None else canopen.Network(bus)
         self.network.add_node(self.node)
         self.node.add_read_callback(self._on_sdo_read)
         self.node.add_write_callback(self._on_sdo_write)
-        self.network.subscribe(0x80, self._on_sync)
         self.network.subscribe(0, self._on_nmt)
-        _compile_physics(simulator)
-        connect(self.network)
+        if self._owns_network:
+            self.network.subscribe(0x80, self._on_sync)
+            _compile_physics(simulator)
+            connect(self.network)
         self._boot(application=True)
 
     # -- boot, NMT, close ----------------------------------------------------------------
@@ -184,6 +206,8 @@ class SimulatedCia402Drive:
                             FORCE_LIMIT_OBJECT: sim.force_limit})
         self.values.update({index: getattr(sim.gains, name)
                             for index, name in GAIN_OBJECTS.items()})
+        if self._objects is not None:
+            self.values.update(self._objects.values())
         self.state = SWITCH_ON_DISABLED
         self._previous_controlword = 0
         self._following_error = False
@@ -205,9 +229,10 @@ class SimulatedCia402Drive:
         self._operational = self.node.nmt.state == "OPERATIONAL"
 
     def close(self) -> None:
-        """Stop the heartbeat, the receive thread and the bus."""
+        """Stop the heartbeat, and the receive thread and the bus unless they are shared."""
         self.node.nmt.stop_heartbeat()
-        self.network.disconnect()
+        if self._owns_network:
+            self.network.disconnect()
 
     # -- SDO -----------------------------------------------------------------------------
 
@@ -226,6 +251,11 @@ class SimulatedCia402Drive:
             self._apply_parameter(index, od.decode_raw(data))
 
     def _apply_parameter(self, index: int, value: int | float) -> None:
+        if self._objects is not None:
+            try:
+                self._objects.write(index, value)
+            except ValueError:
+                raise SdoAbortedError(ABORT_VALUE_RANGE) from None
         if index in GAIN_OBJECTS:
             try:
                 gains = dataclasses.replace(self.simulator.gains, **{GAIN_OBJECTS[index]: value})
@@ -280,6 +310,12 @@ class SimulatedCia402Drive:
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """One bus cycle: RPDOs in, state machine, physics, actual values, TPDOs out."""
+        self.begin_cycle()
+        self.end_cycle()
+
+    def begin_cycle(self) -> None:
+        """First half of a SYNC: count, latch the RPDOs, state machine, setpoints to the
+        world (an `AxisSimulator` steps here; a shared world's port only latches them)."""
         self._count += 1
         values = self.values
         values[0x2020] = self._count & 0xFFFF
@@ -291,8 +327,12 @@ class SimulatedCia402Drive:
         for hook in self.before_physics:
             hook()
         self._step_physics()
+
+    def end_cycle(self) -> None:
+        """Second half of a SYNC, after the world stepped: actual values, TPDOs out."""
         for hook in self.after_physics:
             hook()
+        self._finish_quick_stop()
         self._publish_actual_values()
         if self._operational:
             self._send_tpdos()
@@ -368,7 +408,11 @@ class SimulatedCia402Drive:
         self._stop_velocity = math.copysign(max(0.0, abs(self._stop_velocity) - ramp),
                                             self._stop_velocity)
         sim.step_cycle(CSV, 0.0, self._stop_velocity, 0.0, 0.0, 0.0, self.tip_force)
-        if self._stop_velocity == 0.0 and abs(sim.velocity) * 1e9 < v[0x606D]:
+
+    def _finish_quick_stop(self) -> None:
+        """Quick stop complete (ramp at zero, |v| below 0x606D): switch on disabled."""
+        if (self.state == QUICK_STOP_ACTIVE and self._stop_velocity == 0.0
+                and abs(self.simulator.velocity) * 1e9 < self.values[0x606D]):
             self._enter(SWITCH_ON_DISABLED)
 
     def _publish_actual_values(self) -> None:
@@ -379,6 +423,8 @@ class SimulatedCia402Drive:
         v[0x606C] = _saturated(sim.mean_velocity * 1e9, INT32_MAX)
         v[0x2010] = _saturated(force * 1e3, INT32_MAX)
         v[0x6077] = _saturated(force / self._newton_per_mille, INT16_MAX)
+        if self._objects is not None:
+            v.update(self._objects.actual())
         v[0x60F4] = error = v[0x607A] - position
         if (self.state == OPERATION_ENABLED and v[0x6061] == CSP
                 and v[0x6065] != FOLLOWING_ERROR_OFF and abs(error) > v[0x6065]):

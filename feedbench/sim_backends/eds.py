@@ -14,12 +14,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import canopen
 from canopen.objectdictionary import ODRecord, ODVariable, ObjectDictionary, datatypes
 from canopen.objectdictionary.eds import export_eds
 
 EDS_FILE = "cia402.eds"
+PRODUCT_NAME = "Simulated CiA 402 feed drive"
 
 RPDO_COUNT = TPDO_COUNT = 4
 TRANSMISSION_SYNC = 1
@@ -176,15 +178,17 @@ def _identity(od: ObjectDictionary) -> None:
     od.add_object(identity)
 
 
-def build_object_dictionary() -> ObjectDictionary:
-    """The simulated drive's object dictionary (CiA 301 communication + CiA 402 + ours)."""
+def build_object_dictionary(extra: Sequence[Entry] = (),
+                            product_name: str = PRODUCT_NAME) -> ObjectDictionary:
+    """The simulated drive's object dictionary (CiA 301 communication + CiA 402 + ours),
+    with `extra` objects of a drive variant (e.g. the rack-and-pinion axis's)."""
     od = ObjectDictionary()
     od.device_information.vendor_name = "feedbench"
-    od.device_information.product_name = "Simulated CiA 402 feed drive"
+    od.device_information.product_name = product_name
     od.device_information.nr_of_RXPDO = RPDO_COUNT
     od.device_information.nr_of_TXPDO = TPDO_COUNT
     od.device_information.allowed_baudrates.add(1_000_000)
-    for entry in (*COMMUNICATION, *PROFILE, *MANUFACTURER):
+    for entry in (*COMMUNICATION, *PROFILE, *MANUFACTURER, *extra):
         od.add_object(_variable(entry))
     _identity(od)
     for number in range(1, RPDO_COUNT + 1):
@@ -194,19 +198,20 @@ def build_object_dictionary() -> ObjectDictionary:
     return od
 
 
-def packaged_eds_path() -> Path:
-    """Path of the EDS shipped in the package (for the host's config)."""
-    return Path(__file__).with_name(EDS_FILE)
+def packaged_eds_path(file_name: str = EDS_FILE) -> Path:
+    """Path of an EDS shipped in the package (for the host's config)."""
+    return Path(__file__).with_name(file_name)
 
 
-def export(path: Path | str) -> None:
+def export(path: Path | str, extra: Sequence[Entry] = (),
+           product_name: str = PRODUCT_NAME) -> None:
     """Write the object dictionary as an EDS file (fixed dates: reproducible output)."""
-    file_info = {"FileName": EDS_FILE, "FileVersion": 1, "FileRevision": 1,
-                 "EdsVersion": "4.0", "Description": "Simulated CiA 402 feed drive",
+    file_info = {"FileName": Path(path).name, "FileVersion": 1, "FileRevision": 1,
+                 "EdsVersion": "4.0", "Description": product_name,
                  "CreationDate": "01-01-2025", "CreationTime": "12:00PM",
                  "ModificationDate": "01-01-2025", "ModificationTime": "12:00PM"}
     with open(path, "w", encoding="ascii") as stream:
-        export_eds(build_object_dictionary(), stream, file_info=file_info)
+        export_eds(build_object_dictionary(extra, product_name), stream, file_info=file_info)
 
 
 def load(node_id: int, path: Path | str | None = None) -> ObjectDictionary:

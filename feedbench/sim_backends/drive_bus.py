@@ -1,0 +1,59 @@
+"""Several simulated CiA 402 drives on one CAN bus that share one simulated world.
+
+A machine axis driven by two motors (the rack-and-pinion master and slave) is one world
+behind two nodes. One canopen `Network` carries both `LocalNode`s and ONE SYNC consumer:
+on each SYNC every drive first latches its RPDOs and advances its state machine
+(`SimulatedCia402Drive.begin_cycle`, which hands its setpoints to its port of the world),
+then the world steps once, then every drive publishes its actual values and sends its
+TPDOs (`end_cycle`). So the world advances exactly one cycle per SYNC, with the setpoints
+of the same cycle from all nodes, whatever order the frames came in.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import can
+import canopen
+
+from feedbench.protocols.canbus import connect
+from feedbench.sim_backends.cia402_drive import DriveObjects, SimulatedCia402Drive
+
+SYNC_COB_ID = 0x80
+
+
+class SimulatedDriveBus:
+    """Simulated drives on one network over `bus` (owned: `close()` shuts it down).
+
+    `step_world()` advances the shared world by one bus cycle; it runs on the network's
+    receive thread between the drives' latch and publish phases.
+    """
+
+    def __init__(self, bus: can.BusABC, step_world: Callable[[], None]) -> None:
+        self.network = canopen.Network(bus)
+        self.drives: list[SimulatedCia402Drive] = []
+        self._step_world = step_world
+        self.network.subscribe(SYNC_COB_ID, self._on_sync)
+        connect(self.network)
+
+    def add_drive(self, node_id: int, simulator, eds_path: Path | str | None = None,
+                  objects: DriveObjects | None = None) -> SimulatedCia402Drive:
+        """A drive node on this bus; `simulator` is its port of the shared world."""
+        drive = SimulatedCia402Drive(self.network.bus, node_id, simulator, eds_path,
+                                     network=self.network, objects=objects)
+        self.drives.append(drive)
+        return drive
+
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        for drive in self.drives:
+            drive.begin_cycle()
+        self._step_world()
+        for drive in self.drives:
+            drive.end_cycle()
+
+    def close(self) -> None:
+        """Stop every drive's heartbeat, the receive thread and the bus."""
+        for drive in self.drives:
+            drive.close()
+        self.network.disconnect()
