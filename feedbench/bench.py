@@ -237,7 +237,7 @@ class Bench:
 
     def _start_simulated_peer(self, cycle_s: float, needs: Mapping[str, Any]) -> None:
         from feedbench.sim_backends.bench import start_simulated_axis
-        from feedbench.sim_backends.world import build_axis
+        from feedbench.sim_backends.world import build_axis, build_sensor_noise
 
         cfg = self.config
         if needs:  # devices besides the drive: the whole simulated bench
@@ -245,7 +245,8 @@ class Bench:
             return
         simulator = build_axis(cfg["world"], cycle_s)
         self.simulated_drive = start_simulated_axis(
-            cfg["interface"], cfg["channel"], cfg["node_id"], simulator
+            cfg["interface"], cfg["channel"], cfg["node_id"], simulator,
+            noise=build_sensor_noise(cfg["world"]),
         )
         self._stack.callback(self.simulated_drive.close)
 

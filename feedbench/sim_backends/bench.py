@@ -7,12 +7,13 @@ from typing import Any
 
 from feedbench.protocols.canbus import open_bus
 from feedbench.models.axis import AxisSimulator
-from feedbench.sim_backends.cia402_drive import SimulatedCia402Drive
+from feedbench.sim_backends.cia402_drive import SensorNoise, SimulatedCia402Drive
 
 
 def start_simulated_axis(interface: str = "virtual", channel: str = "feedbench",
                          node_id: int = 1, simulator: AxisSimulator | None = None,
                          eds_path: Path | str | None = None,
+                         noise: SensorNoise = SensorNoise(),
                          **bus_options: Any) -> SimulatedCia402Drive:
     """A simulated drive on its own python-can bus (`interface`, `channel`).
 
@@ -21,7 +22,8 @@ def start_simulated_axis(interface: str = "virtual", channel: str = "feedbench",
     """
     bus = open_bus(interface, channel, **bus_options)
     try:
-        return SimulatedCia402Drive(bus, node_id, simulator or AxisSimulator(), eds_path)
+        return SimulatedCia402Drive(bus, node_id, simulator or AxisSimulator(), eds_path,
+                                    noise=noise)
     except BaseException:
         bus.shutdown()
         raise

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from dataclasses import dataclass
 import math
 import operator
 import struct
@@ -33,6 +34,7 @@ from typing import Callable, Protocol
 
 import can
 import canopen
+import numpy as np
 from canopen.sdo import SdoAbortedError
 
 from feedbench.protocols.canbus import connect, pdo_codec
@@ -132,8 +134,8 @@ class DriveObjects(Protocol):
     def values(self) -> dict[int, int | float]:
         """Parameter values at power-on / application reset (index → raw value)."""
 
-    def write(self, index: int, value: int | float) -> bool:
-        """Apply an SDO write; False if not one of its objects, ValueError to refuse it."""
+    def write(self, index: int, value: int | float) -> None:
+        """Apply an SDO write to one of its objects (others: nothing); ValueError refuses it."""
 
     def actual(self) -> dict[int, int]:
         """Process values published every cycle (index → raw value)."""
@@ -142,6 +144,22 @@ class DriveObjects(Protocol):
 def _compile_physics(simulator: AxisSimulator) -> None:
     """Step a copy once: numba compiles on the first call (seconds), not on the first SYNC."""
     copy.deepcopy(simulator).step_cycle(CSV, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """Gaussian noise on the drive's reported force (N) and velocity (m/s), one sigma each;
+    `seed` makes runs repeatable. Real drives report noisy current and encoder-difference
+    velocity: without it, repeated excitations of the deterministic world agree exactly
+    and coherence says nothing."""
+
+    force: float = 0.0
+    velocity: float = 0.0
+    seed: int = 0
+
+
+NOISE_BLOCK = 4096
+"""Noise samples drawn at a time (one generator call per 4 s of bus cycles, not per cycle)."""
 
 
 class SimulatedCia402Drive:
@@ -161,8 +179,12 @@ class SimulatedCia402Drive:
 
     def __init__(self, bus: can.BusABC, node_id: int, simulator: AxisSimulator,
                  eds_path: Path | str | None = None, network: canopen.Network | None = None,
-                 objects: DriveObjects | None = None) -> None:
+                 objects: DriveObjects | None = None,
+                 noise: SensorNoise = SensorNoise()) -> None:
         self.simulator = simulator
+        self.noise = noise
+        self._rng = np.random.default_rng(noise.seed)
+        self._noise_block = np.zeros((0, 2))
         self._objects = objects
         self._owns_network = network is None
         self.tip_force = 0.0
@@ -415,12 +437,21 @@ class SimulatedCia402Drive:
                 and abs(self.simulator.velocity) * 1e9 < self.values[0x606D]):
             self._enter(SWITCH_ON_DISABLED)
 
+    def _next_noise(self) -> tuple[float, float]:
+        """This cycle's measurement noise (force N, velocity m/s) from the pre-drawn block."""
+        if not len(self._noise_block):
+            scale = (self.noise.force, self.noise.velocity)
+            self._noise_block = self._rng.normal(size=(NOISE_BLOCK, 2)) * scale
+        sample, self._noise_block = self._noise_block[0], self._noise_block[1:]
+        return float(sample[0]), float(sample[1])
+
     def _publish_actual_values(self) -> None:
         v = self.values
         sim = self.simulator
-        force = sim.mean_force  # actual values are cycle means, as a drive filters them
+        force_noise, velocity_noise = self._next_noise()
+        force = sim.mean_force + force_noise  # cycle means, as a drive filters them
         v[0x6064] = position = _int32_wrapped(sim.position * 1e9)
-        v[0x606C] = _saturated(sim.mean_velocity * 1e9, INT32_MAX)
+        v[0x606C] = _saturated((sim.mean_velocity + velocity_noise) * 1e9, INT32_MAX)
         v[0x2010] = _saturated(force * 1e3, INT32_MAX)
         v[0x6077] = _saturated(force / self._newton_per_mille, INT16_MAX)
         if self._objects is not None:

@@ -29,7 +29,7 @@ from feedbench.sim_backends.serial_daq import SimulatedSerialDaq
 from feedbench.sim_backends.smfe_world import SmfeWorld, Workpiece, build_process, lanes_from_list
 from feedbench.sim_backends.socketcand_hub import LOOPBACK, SocketcandHub
 from feedbench.sim_backends.structure_world import StructureWorld, start_structure_world
-from feedbench.sim_backends.world import build_axis
+from feedbench.sim_backends.world import build_axis, build_sensor_noise
 
 READY = "feedbench-sim ready"
 """First word of the line `serve` prints once every device listens."""
@@ -69,6 +69,7 @@ class SimulatedBench:
             lanes = lanes_from_list(workpiece, "experiment.workpiece")
             self.drive = start_simulated_axis(bench["interface"], bench["channel"],
                                               bench["node_id"], simulator,
+                                              noise=build_sensor_noise(world),
                                               **(bus_options or {}))
             self._stack.callback(self.drive.close)
             if peripherals and exciter_node is not None:

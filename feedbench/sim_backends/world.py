@@ -13,6 +13,7 @@ from typing import Any, Mapping
 
 from feedbench.config import ConfigError, Field, positive, non_negative, validate_table
 from feedbench.models.axis import AxisSimulator, CascadeGains, ServoTiming, TwoMassAxis
+from feedbench.sim_backends.cia402_drive import SensorNoise
 from feedbench.models.friction import AnderssonFriction, DirectionalFriction
 from feedbench.units import MM_PER_MIN, N_MIN_PER_MM, MIN_PER_MM, N_PER_UM
 
@@ -41,6 +42,11 @@ WORLD_SCHEMA = {
     "f_position_Hz": Field(float, 1000.0, "position-loop rate (Hz)", positive),
     "bandwidth_Hz": Field(float, 60.0, "drive's factory tuning bandwidth, Eqs. (4.2, 4.8, 4.12)",
                           positive),
+    "force_noise_N": Field(float, 0.05, "noise (1 σ) on the drive's reported force (N)",
+                           non_negative),
+    "velocity_noise_mm_min": Field(float, 0.06, "noise (1 σ) on the drive's reported "
+                                   "velocity (mm/min; 0.06 = 1 nm per 1 ms cycle)", non_negative),
+    "noise_seed": Field(int, 0, "seed of the measurement noise", non_negative),
     "friction": Field(dict, {}, "Andersson friction per direction, Eq. (5.2)"),
     "milling": Field(dict, {}, "milling process and structure at the tool (SMFE, Ch. 6): "
                      "feedbench.sim_backends.smfe_world.MILLING_SCHEMA"),
@@ -83,3 +89,10 @@ def world_truth(table: Mapping[str, Any]) -> dict:
     friction = {d: asdict(getattr(axis.friction, d)) for d in ("positive", "negative")}
     return {"m_mot": axis.m_mot, "m_tip": axis.m_tip, "k": axis.k, "c": axis.c,
             "f_t_hz": axis.f_t, "f_r_hz": axis.f_r, "friction": friction}
+
+
+def build_sensor_noise(table: Mapping[str, Any]) -> SensorNoise:
+    """The drive's measurement noise from a ``[bench.world]`` table."""
+    w = validate_table(table, WORLD_SCHEMA, "bench.world")
+    return SensorNoise(force=w["force_noise_N"], velocity=w["velocity_noise_mm_min"] * MM_PER_MIN,
+                       seed=w["noise_seed"])
