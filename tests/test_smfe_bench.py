@@ -75,12 +75,15 @@ def test_bench_process_equals_the_offline_cut():
 
 def test_planning_picks_the_condition_number_optimum():
     """No a_e given: the search of Fig. 6.7-b gives ≈ 16 % of D for DM, UM, CM (measured
-    15.7 %, C_th 9.06); the lanes of the workpiece follow the feed of each ramp."""
+    15.7 %, C_th 9.06), Fig. 6.7-a ≈ 12 % for UM, DM with κ = 90° (measured 13.0 %); the
+    lanes of the workpiece follow the feed of each ramp."""
     config = parse_run_config(_config("/tmp", "unused", ramp_s=RAMP_S))
     planning = config.plan.params["planning"]
     assert planning["a_e_mm"] == pytest.approx([0.157 * 80.0] * 3, abs=0.8)
     assert planning["condition_number"] == pytest.approx(9.06, abs=0.05)
     assert planning["warnings"] == []
+    planar = parse_run_config(_config("/tmp", "unused", cuts=["up", "down"], lead_angle_deg=90.0))
+    assert planar.plan.params["planning"]["a_e_mm"] == pytest.approx([0.13 * 80.0] * 2, abs=0.8)
     lane = config.plan.params["workpiece"][0]
     # travel of one ramp at f_z·Z·N: 0.1 mm · 2 · (300 + 1500)/2 rpm · 8 s / 60 = 24 mm
     assert lane["stop_mm"] - lane["start_mm"] == pytest.approx(24.0, rel=1e-3)

@@ -238,27 +238,33 @@ def devices(p: Mapping[str, Any], cycle_s: float) -> dict[str, dict[str, Any]]:
 Records = list[np.ndarray]
 
 
-def cut_records(recording) -> tuple[Records, Records, Records, list[str]]:
-    """Per measured cut: force on the tool (3 × n, N), tool and workpiece accelerations.
+def cut_records(recording, d: int) -> tuple[Records, Records, Records, list[str]]:
+    """Per measured cut: force on the tool (d × n, N), tool and workpiece accelerations.
 
-    The dynamometer measures the force on the workpiece, so F_tool = −dyn. Every cut is cut
-    to the shortest one's length (`smfe_estimate` needs equal records). Returns the lists and
-    the warnings (lost samples, a cut without cutting force).
+    d: cuts planned = directions solved (3: x, y, z; 2: x, y). The dynamometer measures the
+    force on the workpiece, so F_tool = −dyn. Every cut is cut to the shortest one's length
+    (`smfe_estimate` needs equal records). Returns the lists and the warnings (lost samples,
+    a cut without cutting force).
     """
+    windows = recorded_windows(recording, "measure")
+    if "daq" not in recording.streams or len(windows) != d:
+        raise ConfigError(f"{recording.path}: {len(windows)} of {d} cuts recorded, "
+                          f"{'a' if 'daq' in recording.streams else 'no'} DAQ stream "
+                          "(was the run aborted?)")
     stream = recording.streams["daq"]
     forces, tools, works, notes = [], [], [], []
-    for window in recorded_windows(recording, "measure"):
+    for window in windows:
         first, last = int(recording.cycle[window.start]), int(recording.cycle[window.stop - 1])
         inside = (stream.cycle >= first) & (stream.cycle <= last)
         if stream.n_dropped and np.any(np.diff(stream.sequence[inside]) != 1):
             notes.append(f"{window.label}: samples lost inside the cut")
         channel = {name: stream.channels[name][inside] for name in DAQ_CHANNELS}
-        force = -np.vstack([channel["dyn_fx"], channel["dyn_fy"], channel["dyn_fz"]])
+        force = -np.vstack([channel[f"dyn_f{a}"] for a in "xyz"[:d]])
         if np.abs(force).max(initial=0.0) < 1.0:
             notes.append(f"{window.label}: no cutting force recorded (tool not in the workpiece?)")
         forces.append(force)
-        tools.append(np.vstack([channel[f"acc_tool_{a}"] for a in "xyz"]))
-        works.append(np.vstack([channel[f"acc_work_{a}"] for a in "xyz"]))
+        tools.append(np.vstack([channel[f"acc_tool_{a}"] for a in "xyz"[:d]]))
+        works.append(np.vstack([channel[f"acc_work_{a}"] for a in "xyz"[:d]]))
     n = min(f.shape[1] for f in forces)
     return ([f[:, :n] for f in forces], [a[:, :n] for a in tools], [a[:, :n] for a in works],
             notes)
@@ -279,8 +285,9 @@ def _direct_peaks(result: SmfeResult, band: tuple[float, float]) -> list[dict[st
 
 def _side(result: SmfeResult, band: tuple[float, float]) -> dict[str, Any]:
     inside = (result.f >= band[0]) & (result.f <= band[1])
-    return {"peaks": dict(zip("xyz", _direct_peaks(result, band))),
-            "abs_m_N": {a: np.abs(result.Phi[inside, i, i]).tolist() for i, a in enumerate("xyz")}}
+    axes = "xyz"[:result.Phi.shape[1]]
+    return {"peaks": dict(zip(axes, _direct_peaks(result, band))),
+            "abs_m_N": {a: np.abs(result.Phi[inside, i, i]).tolist() for i, a in enumerate(axes)}}
 
 
 def analyze_recording(recording) -> dict:
@@ -292,7 +299,7 @@ def analyze_recording(recording) -> dict:
     """
     p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
     fs = recording.streams["daq"].rate_hz
-    forces, tools, works, notes = cut_records(recording)
+    forces, tools, works, notes = cut_records(recording, len(p["cuts"]))
     nfft = int(round(p["segment_s"] * fs))
     band = (2.0 * p["teeth"] * p["spindle_rpm_start"] / 60.0,
             2.0 * p["teeth"] * p["spindle_rpm_stop"] / 60.0)
