@@ -13,7 +13,6 @@ error that judges a step is measured on the held-out kinematics.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -35,7 +34,7 @@ class ClosureOptions:
     min_explained: float = 0.15
     max_effects: int = 6
     candidates: tuple[str, ...] = CANDIDATES
-    starts: int = 2
+    starts: int = 1
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.candidates) - set(CANDIDATES))
@@ -192,7 +191,3 @@ def _explained_share(probe: np.ndarray, residual: np.ndarray, basis: np.ndarray)
     explained = probe @ least_squares_solution(probe, residual)
     return float(min(1.0, explained @ explained / max(residual @ residual, 1e-300)))
 
-
-def relative_change(before: float, after: float) -> float:
-    """(before − after) / before: the share of an error removed."""
-    return (before - after) / before if before > 0.0 and math.isfinite(before) else 0.0

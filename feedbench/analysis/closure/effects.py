@@ -25,7 +25,7 @@ from typing import Mapping
 import numpy as np
 import scipy.signal
 
-from feedbench.analysis.closure.trace import Kinematics, lowpass
+from feedbench.analysis.closure.trace import Kinematics, lowpass_derivatives
 from feedbench.models import effects as laws
 from feedbench.models.friction import AnderssonFriction, DirectionalFriction
 from feedbench.units import MIN_PER_MM, MM_PER_MIN
@@ -236,15 +236,15 @@ class Ripple(Effect):
     def starts(self, kin, context):
         """Peaks of the Lomb–Scargle periodogram of the residual against position.
 
-        On every `stride`-th sample (the residual is band-limited) and at two wavenumbers
-        per 2π/stroke (the periodogram's resolution), so it stays cheap.
+        On every `stride`-th sample (≥ 3 per period of the band's edge: the residual is
+        band-limited) and at two wavenumbers per 2π/stroke (the periodogram's resolution).
         """
         low, high = _pitch_range(kin)
         stroke = float(np.ptp(kin.x))
         wavenumbers = np.arange(2 * np.pi / high, 2 * np.pi / low, np.pi / stroke)
         if wavenumbers.size < 3:
             return []
-        stride = max(1, int(0.25 / (kin.bandwidth * kin.dt)))
+        stride = max(1, int(1.0 / (3.0 * kin.bandwidth * kin.dt)))
         residual = context.residual[::stride]
         power = scipy.signal.lombscargle(kin.x[kin.rows[::stride]], residual - residual.mean(),
                                          wavenumbers)
@@ -406,11 +406,11 @@ class Backlash(Effect):
 
     def columns(self, kin, values):
         lag = laws.play(kin.x, values["width_um"]) - kin.x
-        v_load = kin.v + lowpass(lag, kin.bandwidth, kin.dt, derivative=1)
+        v_lag, a_lag = lowpass_derivatives(lag, kin.bandwidth, kin.dt, (1, 2))
         coulomb = {"F_c": 1.0, "F_s": 1.0, "v_s": math.inf, "sigma": 0.0}
-        slip = (_andersson(kin, values, **coulomb, v=v_load)
+        slip = (_andersson(kin, values, **coulomb, v=kin.v + v_lag)
                 - _andersson(kin, values, **coulomb, v=kin.v))
-        return np.column_stack([lowpass(lag, kin.bandwidth, kin.dt, derivative=2), slip])
+        return np.column_stack([a_lag, slip])
 
     def implausible(self, values, total_mass):
         if not 0.0 < values["m_load_kg"] < total_mass:

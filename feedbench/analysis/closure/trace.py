@@ -135,7 +135,13 @@ class Kinematics:
 def lowpass(signal: np.ndarray, bandwidth: float, dt: float, derivative: int = 0,
             lead: float = 0.0) -> np.ndarray:
     """Zero-phase Butterworth low-pass (|H|² of order FILTER_ORDER, as forward-backward
-    filtering), differentiated `derivative` times and advanced by `lead` seconds.
+    filtering), differentiated `derivative` times and advanced by `lead` seconds."""
+    return lowpass_derivatives(signal, bandwidth, dt, (derivative,), lead)[0]
+
+
+def lowpass_derivatives(signal: np.ndarray, bandwidth: float, dt: float,
+                        orders: tuple[int, ...], lead: float = 0.0) -> list[np.ndarray]:
+    """`lowpass` for several derivative orders from one forward transform.
 
     Applied in the frequency domain to the signal followed by its last value held and its
     mirror image (periodic without a jump; the hold pads to a fast FFT length).
@@ -144,9 +150,10 @@ def lowpass(signal: np.ndarray, bandwidth: float, dt: float, derivative: int = 0
     length = scipy.fft.next_fast_len(2 * n, real=True)
     extended = np.concatenate([signal, np.full(length - 2 * n, signal[-1]), signal[::-1]])
     f = scipy.fft.rfftfreq(length, dt)
-    response = 1.0 / (1.0 + (f / bandwidth) ** (2 * FILTER_ORDER))
-    response = response * (2j * np.pi * f) ** derivative * np.exp(2j * np.pi * f * lead)
-    return scipy.fft.irfft(scipy.fft.rfft(extended) * response, length)[:n]
+    spectrum = scipy.fft.rfft(extended) * np.exp(2j * np.pi * f * lead)
+    spectrum /= 1.0 + (f / bandwidth) ** (2 * FILTER_ORDER)
+    jw = 2j * np.pi * f
+    return [scipy.fft.irfft(spectrum * jw**order, length)[:n] for order in orders]
 
 
 def edge_samples(bandwidth: float, dt: float) -> int:
@@ -163,7 +170,7 @@ def kinematics(trace: Trace, bandwidth: float, standstill: float = 0.0) -> Kinem
     dt = 1.0 / trace.sample_rate
     if not 0.0 < bandwidth < 0.5 / dt:
         raise ValueError(f"bandwidth must lie in (0, {0.5 / dt:g}) Hz, got {bandwidth}")
-    x, v, a = (lowpass(trace.position, bandwidth, dt, order) for order in range(3))
+    x, v, a = lowpass_derivatives(trace.position, bandwidth, dt, (0, 1, 2))
     force = lowpass(trace.force, bandwidth, dt, lead=trace.force_lag)
     edge = edge_samples(bandwidth, dt)
     if trace.n_samples <= 4 * edge:
