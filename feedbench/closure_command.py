@@ -106,8 +106,11 @@ def closure_report(data: str | Path, model: str | Path | None = None,
     if holdout is not None:
         spec = replace(spec, holdout_fraction=holdout)
     second = read_trace(validation)[0] if validation else None
-    with single_blas_thread():
-        return run_closure(spec, trace, second)
+    try:
+        with single_blas_thread():
+            return run_closure(spec, trace, second)
+    except ValueError as exc:  # data the closure cannot use: too short, too slow, no reference
+        raise ConfigError(f"{data}: {exc}") from None
 
 
 # -- simulated cases -----------------------------------------------------------------------

@@ -94,3 +94,12 @@ def test_command_reports_user_errors_in_one_line(tmp_path, capsys):
                    str(tmp_path / "m.toml")])
     assert status == 2
     assert "terms.inertia.M_kg: must be a number" in capsys.readouterr().err
+
+
+def test_command_rejects_a_trace_too_short_for_the_filter(tmp_path, capsys):
+    t = np.arange(100) * 1e-3
+    write_csv_trace(tmp_path / "short.csv", Trace(t, 0.01 * t, np.ones_like(t)), {})
+    status = main(["closure", str(tmp_path / "short.csv"), "--model",
+                   str(EXAMPLES / "bench_viscous.toml")])
+    assert status == 2
+    assert "too short to hold out 30% at a 150 Hz bandwidth" in capsys.readouterr().err
