@@ -116,7 +116,8 @@ def parse_world(table: Mapping[str, Any], path: str = "world") -> dict[str, Any]
             raise ConfigError(f"{path}.effects.{name}: must be a table of parameters")
         effects[name] = validate_table(params, EFFECT_SCHEMAS[name], f"{path}.effects.{name}")
     if "stribeck" in effects and "coulomb" not in effects:
-        raise ConfigError(f"{path}.effects.stribeck: needs effects.coulomb (F_s − F_c on top of F_c)")
+        raise ConfigError(f"{path}.effects.stribeck: needs effects.coulomb "
+                          "(F_s − F_c on top of F_c)")
     return {**world, "effects": effects}
 
 
