@@ -13,7 +13,6 @@ packages are imported where used, so that registering the command costs nothing.
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
 import time
 from contextlib import contextmanager
@@ -36,49 +35,15 @@ WORLD_TO_VOCABULARY = {"sensor_offset": "offset"}
 
 @contextmanager
 def single_blas_thread() -> Iterator[None]:
-    """Run the block with one OpenBLAS thread, then restore the previous count.
+    """Run the block with one BLAS thread (threadpoolctl), then restore the previous count.
 
     The closure's least squares are thin (n × p, p ≤ 15): threads only spin and contend on
-    a loaded 2-core machine (measured 3× the CPU time). threadpoolctl does this if
-    installed; otherwise the OpenBLAS libraries the process has loaded are told directly.
+    a loaded 2-core machine (measured 3× the CPU time).
     """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        threadpool_limits = None
-    if threadpool_limits is not None:
-        with threadpool_limits(1, user_api="blas"):
-            yield
-        return
-    libraries = _openblas_controls()
-    previous = [get() for get, _ in libraries]
-    for _, set_threads in libraries:
-        set_threads(1)
-    try:
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1, user_api="blas"):
         yield
-    finally:
-        for (_, set_threads), count in zip(libraries, previous):
-            set_threads(count)
-
-
-def _openblas_controls() -> list[tuple[Any, Any]]:
-    """(get, set) thread-count functions of every OpenBLAS loaded in this process (Linux)."""
-    try:
-        with open("/proc/self/maps") as maps:
-            paths = {line.split()[-1] for line in maps if "openblas" in line.lower()}
-    except OSError:
-        return []
-    controls = []
-    for path in sorted(paths):
-        library = ctypes.CDLL(path)
-        for prefix, suffix in (("scipy_openblas", "64_"), ("scipy_openblas", ""),
-                               ("openblas", "")):
-            get = getattr(library, f"{prefix}_get_num_threads{suffix}", None)
-            set_threads = getattr(library, f"{prefix}_set_num_threads{suffix}", None)
-            if get is not None and set_threads is not None:
-                controls.append((get, set_threads))
-                break
-    return controls
 
 
 def load_model_spec(path: str | Path) -> ModelSpec:
