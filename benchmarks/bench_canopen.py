@@ -21,7 +21,8 @@ import statistics
 import struct
 import time
 from pathlib import Path
-from typing import NamedTuple
+from contextlib import contextmanager
+from typing import Iterator, NamedTuple
 
 import canopen
 import numpy as np
@@ -111,14 +112,23 @@ def _bare_loop(n_cycles: int) -> Timing:
         device.disconnect()
 
 
-def _full_loop(n_cycles: int) -> Timing:
-    channel = _channel("full")
+@contextmanager
+def _drive_on_simulated_axis(kind: str) -> Iterator[tuple[Cia402Drive, LockstepClock]]:
+    """A configured host driver and its lockstep clock, against a simulated axis."""
+    channel = _channel(kind)
     simulated = start_simulated_axis("virtual", channel, NODE_ID)
     network = open_network("virtual", channel)
     try:
         drive = Cia402Drive(network, NODE_ID, packaged_eds_path())
         drive.configure()
-        clock = LockstepClock(network, [drive])
+        yield drive, LockstepClock(network, [drive])
+    finally:
+        network.disconnect()
+        simulated.close()
+
+
+def _full_loop(n_cycles: int) -> Timing:
+    with _drive_on_simulated_axis("full") as (drive, clock):
         drive.set_mode(CSV)
         drive.enable(clock.tick)
 
@@ -128,35 +138,23 @@ def _full_loop(n_cycles: int) -> Timing:
             drive.actual
 
         return _timed(n_cycles, cycle)
-    finally:
-        network.disconnect()
-        simulated.close()
 
 
 def _runner_loop(n_cycles: int) -> Timing:
     """The whole run path: `Runner` (limits, observers' blocks) + `Recorder` (HDF5) on top
     of the full loop, holding position in CSP; counts every bus cycle of the run."""
-    channel = _channel("runner")
-    simulated = start_simulated_axis("virtual", channel, NODE_ID)
-    network = open_network("virtual", channel)
-    try:
-        drive = Cia402Drive(network, NODE_ID, packaged_eds_path())
-        drive.configure()
-        clock = LockstepClock(network, [drive])
+    with _drive_on_simulated_axis("runner") as (drive, clock), \
+            tempfile.TemporaryDirectory() as directory:
         runner = Runner(drive, clock, Limits.from_config({}))
         plan = Plan("benchmark", CSP, [Segment("hold", "settle", np.zeros(n_cycles))], {},
                     1e-3)
         start = runner.read_position()
-        with tempfile.TemporaryDirectory() as directory:
-            recorder = Recorder(Path(directory) / "run.h5", CHANNELS, UNITS, {})
-            first, wall, cpu = clock.cycle, time.perf_counter(), time.process_time()
-            runner.run(plan, recorder, start)
-            wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        recorder = Recorder(Path(directory) / "run.h5", CHANNELS, UNITS, {})
+        first, wall, cpu = clock.cycle, time.perf_counter(), time.process_time()
+        runner.run(plan, recorder, start)
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         cycles = clock.cycle - first
         return Timing(cycles / wall, cpu / cycles * 1e6)
-    finally:
-        network.disconnect()
-        simulated.close()
 
 
 def run() -> dict[str, float]:
