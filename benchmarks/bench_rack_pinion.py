@@ -60,7 +60,7 @@ def physics_factors() -> tuple[float, float]:
     targets = staircase(SIMULATED_SECONDS)
     rack, lab = RackPinionSimulator(), AxisSimulator()
     rack.simulate(CSP, targets[:10])
-    lab.simulate(CSP, targets[:10])
+    lab.simulate(CSP, targets[:10], 0.0, 0.0)
 
     def run_rack() -> None:
         rack.reset()
@@ -68,7 +68,7 @@ def physics_factors() -> tuple[float, float]:
 
     def run_lab() -> None:
         lab.reset()
-        lab.simulate(CSP, targets)
+        lab.simulate(CSP, targets, 0.0, 0.0)
 
     return SIMULATED_SECONDS / best_seconds(run_rack), SIMULATED_SECONDS / best_seconds(run_lab)
 

@@ -257,8 +257,8 @@ def analyze_recording(recording) -> dict:
 
 def describe(result: Mapping[str, Any]) -> list[str]:
     """Lines of a human-readable summary of `analyze_recording`'s result (µm, N/µm, N)."""
-    lines = [f"  k_{motor[0]} {fit['k_N_m'] / 1e6:7.2f} N/µm (Eq. 3.26, R² {fit['r_squared']:.6f})"
-             for motor, fit in result["stiffness"].items()]
+    lines = [f"  k_{motor[0]} {fit['k_N_m'] / 1e6:7.2f} N/µm (Eq. 3.26, "
+             f"R² {fit['r_squared']:.6f})" for motor, fit in result["stiffness"].items()]
     lines += [f"  backlash {motor} {b['value_m'] * 1e6:7.1f} µm"
               + ("" if b["corrected"] else " (no stiffness: friction wind-up included)")
               for motor, b in result["backlash"].items()]

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Mapping
 
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
@@ -168,7 +169,7 @@ def world_truth(table: Mapping[str, Any]) -> dict[str, float]:
             "rated_force": axis.rated_force, "K_tr": axis.K_tr}
 
 
-def packaged_eds_path():
+def packaged_eds_path() -> Path:
     """The rack-and-pinion drives' EDS shipped in the package."""
     return eds.packaged_eds_path(EDS_FILE)
 
@@ -189,7 +190,8 @@ class MotorPort:
     """One motor's view of the shared axis, with the interface `SimulatedCia402Drive` uses.
 
     position: the axis position the position loop closes on (0x6064, the linear scale
-    when coupled); velocity, force: this motor's, at the rack.
+    when coupled); velocity, force: this motor's, at the rack, at the end of the cycle
+    (they also serve as the cycle means the drive publishes).
     """
 
     def __init__(self, world: RackPinionWorld, motor: str) -> None:
@@ -198,7 +200,7 @@ class MotorPort:
         self.command = MotorCommand()
 
     @property
-    def timing(self):
+    def timing(self) -> ServoTiming:
         return self.world.simulator.timing
 
     @property
@@ -285,9 +287,8 @@ class MotorObjects:
         """Parameters at power-on: 0x6076 is the rated torque as a force at the rack (mN)."""
         return {RATED_FORCE_OBJECT: round(self.world.simulator.axis.rated_force * 1e3)}
 
-    def write(self, index: int, value: int | float) -> bool:
+    def write(self, index: int, value: int | float) -> None:
         """A node without axis objects: nothing to apply."""
-        return False
 
     def actual(self) -> dict[int, int]:
         sim = self.world.simulator
@@ -308,7 +309,7 @@ class AxisObjects(MotorObjects):
                 objects.PRELOAD_GAIN: sim.equalisation.K_p,
                 objects.PRELOAD_INTEGRAL_TIME: sim.equalisation.T_i}
 
-    def write(self, index: int, value: int | float) -> bool:
+    def write(self, index: int, value: int | float) -> None:
         """Apply an axis object (ValueError refuses it: SDO abort value range)."""
         sim = self.world.simulator
         preload_fields = {objects.PRELOAD_LEVEL: ("level", value / 1000),
@@ -322,9 +323,6 @@ class AxisObjects(MotorObjects):
             sim.equalisation = dataclasses.replace(sim.equalisation, **{pi_fields[index]: value})
         elif index == objects.COUPLING:
             sim.coupling = int(value)
-        else:
-            return False
-        return True
 
 
 class SimulatedRackPinionAxis:
