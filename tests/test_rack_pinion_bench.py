@@ -1,5 +1,6 @@
 """The rack-and-pinion axis on the bus: two simulated drives stepping one shared world once
-per SYNC, the axis controller's objects by SDO, and the friction sweep on this axis."""
+per SYNC, the axis controller's objects by SDO, the friction sweep on this axis, and the
+runner's safe stop of both drives."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import pytest
 from feedbench.bench import parse_run_config, run_config
 from feedbench.cli import analyze_file
 from feedbench.daq.clock import LockstepClock
+from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
 from feedbench.drivers.cia402 import Cia402Drive
 from feedbench.drivers.rack_pinion import AXIS_PDOS, AxisController, load_position, motor_position
@@ -96,3 +98,21 @@ def test_friction_sweep_on_the_rack_pinion_axis(tmp_path, can_channel):
         assert fit["F_s"] == pytest.approx(900.0, rel=0.01)
         assert fit["v_s"] == pytest.approx(300.0 / 60e3, rel=0.03)
         assert fit["sigma"] == pytest.approx(0.1 * 60e3 + 2 * 2000.0, rel=0.02)
+
+
+def test_a_limit_trip_stops_and_disables_both_drives(tmp_path, can_channel):
+    """Coupled loading into the bumper with a 2 kN motor-force limit: the run aborts naming
+    the drive that tripped, ramps down and leaves both drives disabled; every sample kept."""
+    raw = example_config("stepped_loading")
+    raw["bench"].update(output_dir=str(tmp_path), channel=can_channel, load_cell_every=5)
+    raw["limits"]["force_N"] = 2000.0
+    raw["experiment"].update(backlash=[], single_motor=[], preload_pct=[4.0], setup_s=1.0)
+    row = run_config(parse_run_config(raw), progress=False)
+    assert row["status"] == "aborted"
+    assert row["reason"].startswith("limit tripped: slave: |force|")
+    recording = open_recording(row["file"])
+    assert recording.n_gaps == 0
+    for drive in ("master", "slave"):
+        statusword = recording.channels[f"{drive}.statusword"].astype(int)
+        assert any(statusword & 0x6F == 0x27), f"{drive} ran"
+        assert statusword[-1] & 0x6F != 0x27, f"{drive} is disabled at the end"

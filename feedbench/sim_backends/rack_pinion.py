@@ -14,6 +14,7 @@ linear scale (`protocols.rack_pinion`). The bumper's load cell is the Modbus
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
@@ -250,9 +251,14 @@ class MotorPort:
 
 
 class RackPinionWorld:
-    """The axis behind both drives and the devices sampled with it (the load cell)."""
+    """The axis behind both drives and the devices sampled with it (the load cell).
+
+    A copy of the simulator is stepped once here: numba compiles (or loads its cache) on
+    the first call, which must not happen in the first SYNC the host waits for.
+    """
 
     def __init__(self, simulator: RackPinionSimulator) -> None:
+        copy.deepcopy(simulator).step_cycle(CSP, 0.0)
         self.simulator = simulator
         self.ports = {motor: MotorPort(self, motor) for motor in MOTORS}
         self.sampled: list[SimulatedLoadCell] = []
