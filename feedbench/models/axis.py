@@ -36,23 +36,18 @@ import numpy as np
 from scipy.linalg import expm
 
 from feedbench.models import _kernel
+from feedbench.models._cycle_simulator import MODES, CycleSimulator, check_mode, positive
 from feedbench.models._kernel import CSP, CST, CSV
 from feedbench.models.effects import AxisEffects
 from feedbench.models.friction import AnderssonFriction, DirectionalFriction, LAB_BENCH_FRICTION
 
 __all__ = [
-    "CSP", "CSV", "CST", "TwoMassAxis", "CascadeGains", "LAB_BENCH_GAINS", "ServoTiming",
+    "CSP", "CSV", "CST", "MODES", "TwoMassAxis", "CascadeGains", "LAB_BENCH_GAINS", "ServoTiming",
     "AxisSimulator",
 ]
 
-MODES = (CSP, CSV, CST)
 OUTPUT_NAMES = ("position", "velocity", "force", "tip_position", "tip_velocity",
                 "tip_acceleration", "mean_velocity", "mean_force")
-
-
-def _positive(name: str, value: float) -> None:
-    if not value > 0.0:
-        raise ValueError(f"{name} must be > 0, got {value}")
 
 
 def _whole_ratio(name: str, ratio: float, minimum: int) -> int:
@@ -79,7 +74,7 @@ class TwoMassAxis:
 
     def __post_init__(self) -> None:
         for name in ("m_mot", "m_tip", "k"):
-            _positive(name, getattr(self, name))
+            positive(name, getattr(self, name))
         if not self.c >= 0.0:
             raise ValueError(f"c must be >= 0, got {self.c}")
 
@@ -130,7 +125,7 @@ class CascadeGains:
     K_v: float
 
     def __post_init__(self) -> None:
-        _positive("T_i", self.T_i)
+        positive("T_i", self.T_i)
         for name in ("K_p", "K_v"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -141,8 +136,8 @@ class CascadeGains:
 
         Eq. (4.2) K_p = 2π M f_bw, Eq. (4.8) T_i = 1/(π f_bw), Eq. (4.12) K_v = π f_bw / 2.
         """
-        _positive("M_total", M_total)
-        _positive("f_bw", f_bw)
+        positive("M_total", M_total)
+        positive("f_bw", f_bw)
         return cls(K_p=2.0 * math.pi * M_total * f_bw, T_i=1.0 / (math.pi * f_bw),
                    K_v=math.pi * f_bw / 2.0)
 
@@ -166,7 +161,7 @@ class ServoTiming:
 
     def __post_init__(self) -> None:
         for name in ("f_velocity", "f_position", "cycle"):
-            _positive(name, getattr(self, name))
+            positive(name, getattr(self, name))
         for derived in ("velocity_ticks_per_position", "position_ticks_per_cycle", "delay_ticks"):
             getattr(self, derived)  # raises ValueError unless a whole number
 
@@ -191,7 +186,7 @@ class ServoTiming:
         return _whole_ratio("delay · f_velocity", self.delay * self.f_velocity, 0)
 
 
-class AxisSimulator:
+class AxisSimulator(CycleSimulator):
     """The drive's inner world: two-mass axis, friction, P-PI cascade, delay, force limit.
 
     `step_cycle` advances one bus cycle (`timing.cycle`); `simulate` advances many from
@@ -209,6 +204,8 @@ class AxisSimulator:
     as a staircase); each physics substep holds the ramp's midpoint value.
     """
 
+    _KERNEL = _kernel
+
     def __init__(
         self,
         axis: TwoMassAxis = TwoMassAxis(),
@@ -222,33 +219,22 @@ class AxisSimulator:
         """velocity_feedforward: in CSP add the target's increment per cycle / cycle time to
         the velocity command. physics_substeps: physics steps per velocity-loop period.
         effects: what else the world carries (ripple, force-level nonlinearity, backlash)."""
+        physics_substeps = _whole_ratio("physics_substeps", physics_substeps, 1)
+        super().__init__(timing, physics_substeps, velocity_feedforward)
         self.axis = axis
-        self.timing = timing
         self.effects = effects
         self._effect_vector = effects.vector(axis.k, axis.c)
-        physics_substeps = _whole_ratio("physics_substeps", physics_substeps, 1)
         self._model = _kernel.kernel_model(
             axis.discrete_model(timing.velocity_period / physics_substeps), *axis.state_matrices())
         self.substeps_per_cycle = (timing.position_ticks_per_cycle
                                    * timing.velocity_ticks_per_position * physics_substeps)
         """Physics substeps per bus cycle (N): the tip-acceleration trace has N + 1 points."""
         self._friction_table = axis.friction.table()
-        self._params = np.zeros(_kernel.PARAMETER_COUNT)
-        self._params[_kernel.P_CYCLE] = timing.cycle
-        self._params[_kernel.P_POSITION_TICKS] = timing.position_ticks_per_cycle
-        self._params[_kernel.P_VELOCITY_TICKS] = timing.velocity_ticks_per_position
-        self._params[_kernel.P_PHYSICS_STEPS] = physics_substeps
-        self._params[_kernel.P_FEEDFORWARD] = 1.0 if velocity_feedforward else 0.0
         self.set_gains(gains)
         self.force_limit = force_limit
-        self._state = np.zeros(_kernel.STATE_SIZE)
         self._delay_line = np.zeros(timing.delay_ticks + 1)
-        self._inputs = np.zeros((1, _kernel.INPUT_COLUMNS))
-        self._outputs = np.zeros((1, _kernel.OUTPUT_COLUMNS))
         self._trace = np.zeros((1, self.substeps_per_cycle + 1))
-        self._modes = np.zeros(1, dtype=np.int64)
         self._enabled = True
-        self._cycle_count = 0
         self.reset()
 
     # -- configuration -------------------------------------------------------------------
@@ -264,16 +250,6 @@ class AxisSimulator:
         self._params[_kernel.P_K_P] = gains.K_p
         self._params[_kernel.P_INVERSE_T_I] = 1.0 / gains.T_i
         self._params[_kernel.P_K_V] = gains.K_v
-
-    @property
-    def force_limit(self) -> float:
-        """Saturation of the applied motor force, ±force_limit (N)."""
-        return float(self._params[_kernel.P_FORCE_LIMIT])
-
-    @force_limit.setter
-    def force_limit(self, value: float) -> None:
-        _positive("force_limit", value)
-        self._params[_kernel.P_FORCE_LIMIT] = value
 
     @property
     def enabled(self) -> bool:
@@ -345,16 +321,6 @@ class AxisSimulator:
         """
         return self._trace[0].copy()
 
-    @property
-    def cycle_count(self) -> int:
-        """Bus cycles advanced since the last reset."""
-        return self._cycle_count
-
-    @property
-    def time(self) -> float:
-        """Simulated time since the last reset (s)."""
-        return self._cycle_count * self.timing.cycle
-
     def reset(self, position: float = 0.0) -> None:
         """Both masses at rest at `position` (m), flexure unloaded, controller cleared, time 0."""
         self._state[:] = 0.0
@@ -379,8 +345,7 @@ class AxisSimulator:
     ) -> None:
         """Advance one bus cycle in `mode` (CSP, CSV or CST) with these setpoints (SI);
         `tip_force` is the force on the tool tip at the end of the cycle."""
-        if mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES} (CSP, CSV, CST), got {mode}")
+        check_mode(mode)
         self._modes[0] = mode
         self._inputs[0] = (target_position, target_velocity, target_force, velocity_offset,
                            force_offset, tip_force)
@@ -402,22 +367,15 @@ class AxisSimulator:
         tip_velocity, tip_acceleration, time (s, end of each cycle), and
         tip_acceleration_trace (cycles × (N + 1), as `tip_acceleration_trace`).
         """
-        modes, *columns = np.broadcast_arrays(mode, target_position, target_velocity,
-                                              target_force, velocity_offset, force_offset,
-                                              tip_force)
-        if modes.ndim != 1:
-            raise ValueError("simulate needs 1-D per-cycle arrays (at least one of them)")
-        modes = np.ascontiguousarray(modes, dtype=np.int64)
-        bad = ~np.isin(modes, MODES)
-        if bad.any():
-            raise ValueError(f"mode must be one of {MODES}, got {modes[bad][0]}")
+        modes, columns = self._per_cycle(mode, target_position, target_velocity, target_force,
+                                         velocity_offset, force_offset, tip_force)
         inputs = np.ascontiguousarray(np.column_stack(columns), dtype=float)
         outputs = np.empty((modes.size, _kernel.OUTPUT_COLUMNS))
         traces = np.empty((modes.size, self.substeps_per_cycle + 1))
-        start = self._cycle_count
+        times = self._end_times(modes.size)
         self._run(modes, inputs, outputs, traces)
         result = {name: outputs[:, i].copy() for i, name in enumerate(OUTPUT_NAMES)}
-        result["time"] = (start + 1 + np.arange(modes.size)) * self.timing.cycle
+        result["time"] = times
         result["tip_acceleration_trace"] = traces
         if modes.size:
             self._outputs[0], self._trace[0] = outputs[-1], traces[-1]

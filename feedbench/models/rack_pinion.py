@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from feedbench.models import _rack_kernel as kernel
-from feedbench.models._kernel import CSP, CST, CSV
+from feedbench.models._cycle_simulator import CycleSimulator, check_mode, positive
 from feedbench.models.axis import CascadeGains, ServoTiming
 from feedbench.models.friction import AnderssonFriction, DirectionalFriction
 
@@ -44,7 +44,6 @@ __all__ = [
 COUPLED, MASTER_ALONE, SLAVE_ALONE = kernel.COUPLED, kernel.MASTER_ALONE, kernel.SLAVE_ALONE
 COUPLINGS = (COUPLED, MASTER_ALONE, SLAVE_ALONE)
 MOTORS = ("master", "slave")
-MODES = (CSP, CSV, CST)
 OUTPUT_COLUMNS = {
     "master_position": kernel.O_X_M, "master_velocity": kernel.O_V_M,
     "master_force": kernel.O_F_M, "slave_position": kernel.O_X_S,
@@ -57,11 +56,6 @@ K_TR_THESIS = 190.0
 """Linear-rotary conversion factor (N per N·m) behind the thesis's preload-loss forces:
 F_loss = 2 τ_p K_tr gives 1064 N at 4 %, 5320 N at 20 % and 6650 N at 25 % of 70 N·m
 (measured ≈ 1100, 5300, 6600 N, Ch. 3.4.3). The thesis does not print the pinion radius."""
-
-
-def _positive(name: str, value: float) -> None:
-    if not value > 0.0:
-        raise ValueError(f"{name} must be > 0, got {value}")
 
 
 def _non_negative(name: str, value: float) -> None:
@@ -85,7 +79,7 @@ class Bumper:
     def __post_init__(self) -> None:
         if self.position == 0.0:
             raise ValueError("bumper position must be != 0: its sign gives the side it stops")
-        _positive("stiffness", self.stiffness)
+        positive("stiffness", self.stiffness)
         _non_negative("damping", self.damping)
 
     @property
@@ -134,7 +128,7 @@ class RackPinionAxis:
     def __post_init__(self) -> None:
         for name in ("m_load", "J_motor", "i_red", "pinion_radius", "k_master", "k_slave",
                      "rated_torque"):
-            _positive(name, getattr(self, name))
+            positive(name, getattr(self, name))
         for name in ("J_gearbox", "J_pinion", "backlash_master", "backlash_slave",
                      "damping_ratio", "motor_damping"):
             _non_negative(name, getattr(self, name))
@@ -197,7 +191,7 @@ class Preload:
             raise ValueError(f"preload level must be within 0…1 of the rated torque, "
                              f"got {self.level}")
         for name in ("K_Tm", "K_Ts"):
-            _positive(name, getattr(self, name))
+            positive(name, getattr(self, name))
 
 
 @dataclass(frozen=True)
@@ -217,8 +211,8 @@ class TorqueEqualisation:
 
     def __post_init__(self) -> None:
         _non_negative("K_p", self.K_p)
-        _positive("T_i", self.T_i)
-        _positive("limit", self.limit)
+        positive("T_i", self.T_i)
+        positive("limit", self.limit)
 
 
 RACK_PINION_GAINS = CascadeGains(K_p=2.4e5, T_i=0.04, K_v=10.0)
@@ -232,7 +226,7 @@ RACK_PINION_TIMING = ServoTiming(f_velocity=8000.0, f_position=1000.0, delay=0.2
 """8 kHz velocity loops, 1 kHz position loop (Ch. 3.3), 0.25 ms current-loop delay."""
 
 
-class RackPinionSimulator:
+class RackPinionSimulator(CycleSimulator):
     """The axis and its master–slave controller, advanced one bus cycle at a time.
 
     `step_cycle` advances one cycle (`timing.cycle`), `simulate` many from arrays in one
@@ -240,6 +234,8 @@ class RackPinionSimulator:
     mode and targets run the axis (the master's when coupled); each motor adds its own
     force offset, and in CST applies its own target force (no preload then).
     """
+
+    _KERNEL = kernel
 
     def __init__(
         self,
@@ -254,32 +250,20 @@ class RackPinionSimulator:
         velocity_feedforward: bool = True,
     ) -> None:
         """torque_limit: the drives' peak torque as a multiple of the rated torque."""
+        positive("physics_substeps", physics_substeps)
+        super().__init__(timing, int(physics_substeps), velocity_feedforward)
         self.axis = axis
-        self.timing = timing
         self._mechanics = axis.mechanics_vector()
         self._friction_table = axis.friction.table()
-        self._params = np.zeros(kernel.PARAMETER_COUNT)
-        p = self._params
-        p[kernel.P_CYCLE] = timing.cycle
-        p[kernel.P_POSITION_TICKS] = timing.position_ticks_per_cycle
-        p[kernel.P_VELOCITY_TICKS] = timing.velocity_ticks_per_position
-        _positive("physics_substeps", physics_substeps)
-        p[kernel.P_PHYSICS_STEPS] = int(physics_substeps)
-        p[kernel.P_FEEDFORWARD] = 1.0 if velocity_feedforward else 0.0
-        p[kernel.P_ENABLED_M] = p[kernel.P_ENABLED_S] = 1.0
+        self._params[kernel.P_ENABLED_M] = self._params[kernel.P_ENABLED_S] = 1.0
         self._gains = {"master": master, "slave": slave}
         for motor in MOTORS:
             self.set_gains(motor, self._gains[motor])
         self.equalisation = equalisation
         self.preload = preload
         self.force_limit = torque_limit * axis.rated_force
-        self._state = np.zeros(kernel.STATE_SIZE)
         self._delay_lines = np.zeros((2, timing.delay_ticks + 1))
         self._coupling = COUPLED
-        self._cycle_count = 0
-        self._inputs = np.zeros((1, kernel.INPUT_COLUMNS))
-        self._outputs = np.zeros((1, kernel.OUTPUT_COLUMNS))
-        self._modes = np.zeros(1, dtype=np.int64)
         self.reset()
 
     # -- configuration -------------------------------------------------------------------
@@ -319,16 +303,6 @@ class RackPinionSimulator:
         self._params[kernel.P_K_P_PRELOAD] = equalisation.K_p
         self._params[kernel.P_INV_T_I_PRELOAD] = 1.0 / equalisation.T_i
         self._params[kernel.P_PRELOAD_LIMIT] = equalisation.limit
-
-    @property
-    def force_limit(self) -> float:
-        """Saturation of each motor's force at the rack, ±force_limit (N)."""
-        return float(self._params[kernel.P_FORCE_LIMIT])
-
-    @force_limit.setter
-    def force_limit(self, value: float) -> None:
-        _positive("force_limit", value)
-        self._params[kernel.P_FORCE_LIMIT] = value
 
     @property
     def coupling(self) -> int:
@@ -399,16 +373,6 @@ class RackPinionSimulator:
         encoder, referenced to the scale at the last coupling change, when alone."""
         return self._value(kernel.O_FEEDBACK)
 
-    @property
-    def cycle_count(self) -> int:
-        """Bus cycles advanced since the last reset."""
-        return self._cycle_count
-
-    @property
-    def time(self) -> float:
-        """Simulated time since the last reset (s)."""
-        return self._cycle_count * self.timing.cycle
-
     def reset(self, position: float = 0.0) -> None:
         """Load and motors at rest at `position` (m), pinions centred in their play,
         controllers cleared, coupling kept, time 0."""
@@ -428,7 +392,7 @@ class RackPinionSimulator:
                    force_offset: tuple[float, float] = (0.0, 0.0),
                    load_force: float = 0.0) -> None:
         """Advance one bus cycle in `mode` (CSP, CSV, CST); forces per (master, slave) (N)."""
-        _check_mode(mode)
+        check_mode(mode)
         self._modes[0] = mode
         self._inputs[0] = (target_position, target_velocity, velocity_offset, target_force[0],
                            force_offset[0], target_force[1], force_offset[1], load_force)
@@ -442,24 +406,20 @@ class RackPinionSimulator:
 
         Returns per-cycle arrays after each cycle, keyed as `OUTPUT_COLUMNS`, and time (s).
         """
-        modes, position, velocity, offset, load = np.broadcast_arrays(
+        modes, (position, velocity, offset, load) = self._per_cycle(
             mode, target_position, target_velocity, velocity_offset, load_force)
-        if modes.ndim != 1:
-            raise ValueError("simulate needs 1-D per-cycle arrays (at least one of them)")
-        for m in np.unique(modes):
-            _check_mode(int(m))
         inputs = np.zeros((modes.size, kernel.INPUT_COLUMNS))
         inputs[:, kernel.I_TARGET_POSITION] = position
         inputs[:, kernel.I_TARGET_VELOCITY] = velocity
         inputs[:, kernel.I_VELOCITY_OFFSET] = offset
         inputs[:, kernel.I_LOAD_FORCE] = load
         outputs = np.zeros((modes.size, kernel.OUTPUT_COLUMNS))
-        start = self._cycle_count
-        self._run(np.ascontiguousarray(modes, dtype=np.int64), inputs, outputs)
+        times = self._end_times(modes.size)
+        self._run(modes, inputs, outputs)
         if modes.size:
             self._outputs[-1] = outputs[-1]
         result = {name: outputs[:, column] for name, column in OUTPUT_COLUMNS.items()}
-        result["time"] = (start + 1 + np.arange(modes.size)) * self.timing.cycle
+        result["time"] = times
         return result
 
     def _run(self, modes: np.ndarray, inputs: np.ndarray, outputs: np.ndarray) -> None:
@@ -476,8 +436,3 @@ def _motor_index(motor: str) -> int:
 
 def _enabled_index(motor: str) -> int:
     return kernel.P_ENABLED_M if _motor_index(motor) == 0 else kernel.P_ENABLED_S
-
-
-def _check_mode(mode: int) -> None:
-    if mode not in MODES:
-        raise ValueError(f"mode must be one of {MODES} (CSP, CSV, CST), got {mode}")
