@@ -216,6 +216,21 @@ def _assign_to_lines(f: np.ndarray, d: np.ndarray, split: int, n_sigma: float) -
     return first, ~first & ~crossing, crossing
 
 
+def _master_contact_lines(load: np.ndarray, delta_master: np.ndarray, min_points: int,
+                          n_sigma: float) -> tuple[np.ndarray, ...]:
+    """The master's contact states on the loading branch, samples sorted by load.
+
+    Returns the sort order, f (load, N) and δ_m (m) sorted, and the masks of the samples on
+    the first contact line, on the second and on neither (crossing), split where a
+    two-segment line fit of δ_m(F) has the least squared error.
+    """
+    order = np.argsort(load, kind="stable")
+    f, d = load[order], delta_master[order]
+    if f.size < 2 * min_points:
+        raise ValueError(f"need at least {2 * min_points} samples on the loading branch")
+    return order, f, d, *_assign_to_lines(f, d, _two_segment_split(f, d, min_points), n_sigma)
+
+
 def preload_loss_force(
     force: np.ndarray,
     x_master: np.ndarray,
@@ -240,11 +255,8 @@ def preload_loss_force(
     backlash, Ch. 3.4.3).
     """
     load, master, scale = _loading_branch(force, x_master, x_load)
-    order = np.argsort(load, kind="stable")
-    f, d = load[order], (master - scale)[order]
-    if f.size < 2 * min_points:
-        raise ValueError(f"need at least {2 * min_points} samples on the loading branch")
-    first, second, crossing = _assign_to_lines(f, d, _two_segment_split(f, d, min_points), n_sigma)
+    _, f, d, first, second, crossing = _master_contact_lines(load, master - scale, min_points,
+                                                             n_sigma)
     if np.count_nonzero(first) < 3 or np.count_nonzero(second) < 3:
         raise ValueError("fewer than 3 samples on one of the contact lines: the loading "
                          "must go on well beyond the loss (and start below it)")
@@ -284,12 +296,9 @@ def stiffness_while_lost(
     """
     load, master, other, scale, own = _loading_branch(force, x_master, x_other, x_load,
                                                       force_master)
-    order = np.argsort(load, kind="stable")
-    f, d = load[order], (master - scale)[order]
+    order, f, _, first, _, crossing = _master_contact_lines(load, master - scale, min_points,
+                                                            n_sigma)
     delta, own = (other - scale)[order], np.abs(own[order])
-    if f.size < 2 * min_points:
-        raise ValueError(f"need at least {2 * min_points} samples on the loading branch")
-    first, _, crossing = _assign_to_lines(f, d, _two_segment_split(f, d, min_points), n_sigma)
     both = first & (f >= 0.2 * f[first].max())
     lost = crossing & (own < idle_fraction * own.max())
     if np.count_nonzero(both) < 3 or np.count_nonzero(lost) < 3:
