@@ -1,4 +1,4 @@
-"""Speed of the simulated axis physics (`feedbench.models.AxisSimulator`).
+"""Speed of the simulated axis physics (`feedbench.models.axis.AxisSimulator`).
 
 Figures:
 - physics_realtime_factor: simulated seconds per wall second of `simulate` over 60 s of a
@@ -13,15 +13,16 @@ Figures:
 
 from __future__ import annotations
 
-import time
 from contextlib import contextmanager
-from typing import Callable, Iterator
+from typing import Iterator
 
 import numpy as np
 from numba.core.registry import CPUDispatcher
 
 from feedbench.models import _kernel
 from feedbench.models.axis import CSP, CSV, AxisSimulator
+
+from _timing import best_seconds  # benchmarks/_timing.py
 
 SIMULATED_SECONDS = 60.0
 PYTHON_SECONDS = 3.0
@@ -50,16 +51,6 @@ def pure_python_kernel() -> Iterator[None]:
             setattr(_kernel, name, dispatcher)
 
 
-def best_seconds(action: Callable[[], object], repeats: int = REPEATS) -> float:
-    """Shortest wall time of `repeats` runs (s): the least disturbed by other processes."""
-    best = np.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        action()
-        best = min(best, time.perf_counter() - start)
-    return best
-
-
 def realtime_factor(reference: np.ndarray, repeats: int = REPEATS) -> float:
     """Simulated seconds per wall second of one `simulate` call over `reference`."""
     sim = AxisSimulator()
@@ -80,7 +71,7 @@ def step_cycle_microseconds() -> float:
         for _ in range(STEP_CALLS):
             sim.step_cycle(CSV, 0.0, 0.00833, 0.0, 0.0, 0.0)
 
-    return best_seconds(run) / STEP_CALLS * 1e6
+    return best_seconds(run, REPEATS) / STEP_CALLS * 1e6
 
 
 def run() -> dict[str, float]:

@@ -15,9 +15,6 @@ Figures:
 
 from __future__ import annotations
 
-import time
-from typing import Callable
-
 import numpy as np
 
 from feedbench.daq.clock import LockstepClock
@@ -32,6 +29,8 @@ from feedbench.sim_backends.eds import packaged_eds_path
 from feedbench.sim_backends.rack_pinion import SimulatedRackPinionAxis, build_simulator
 from feedbench.sim_backends.rack_pinion import packaged_eds_path as rack_pinion_eds
 
+from _timing import best_seconds  # benchmarks/_timing.py
+
 SIMULATED_SECONDS = 60.0
 BUS_CYCLES = 3000
 MODBUS_READS = 1000
@@ -43,16 +42,6 @@ def staircase(seconds: float, cycle: float = 1e-3) -> np.ndarray:
     steps = np.r_[np.arange(0, 31), np.arange(29, -1, -1)] * -10e-6
     per_step = np.repeat(steps, int(0.3 / cycle))
     return np.resize(per_step, int(round(seconds / cycle)))
-
-
-def best_seconds(action: Callable[[], object], repeats: int = REPEATS) -> float:
-    """Shortest wall time of `repeats` runs (s): the least disturbed by other processes."""
-    best = np.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        action()
-        best = min(best, time.perf_counter() - start)
-    return best
 
 
 def physics_factors() -> tuple[float, float]:
@@ -70,12 +59,13 @@ def physics_factors() -> tuple[float, float]:
         lab.reset()
         lab.simulate(CSP, targets, 0.0, 0.0)
 
-    return SIMULATED_SECONDS / best_seconds(run_rack), SIMULATED_SECONDS / best_seconds(run_lab)
+    return (SIMULATED_SECONDS / best_seconds(run_rack, REPEATS),
+            SIMULATED_SECONDS / best_seconds(run_lab, REPEATS))
 
 
 def cycles_per_second(clock: LockstepClock) -> float:
     """Lockstep ticks per wall second (best of REPEATS blocks)."""
-    return BUS_CYCLES / best_seconds(lambda: [clock.tick() for _ in range(BUS_CYCLES)])
+    return BUS_CYCLES / best_seconds(lambda: [clock.tick() for _ in range(BUS_CYCLES)], REPEATS)
 
 
 def rack_pinion_bus(channel: str) -> tuple[float, float]:
@@ -90,7 +80,7 @@ def rack_pinion_bus(channel: str) -> tuple[float, float]:
         rate = cycles_per_second(LockstepClock(network, drives))
         client = connect_tcp(*simulated.modbus_address)
         amplifier = LoadCellAmplifier(client, simulated.load_cell_id)
-        read = best_seconds(lambda: [amplifier.reading() for _ in range(MODBUS_READS)])
+        read = best_seconds(lambda: [amplifier.reading() for _ in range(MODBUS_READS)], REPEATS)
         client.close()
         return rate, read / MODBUS_READS * 1e6
     finally:
