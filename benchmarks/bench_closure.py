@@ -35,6 +35,8 @@ from feedbench.closure_command import (
     EXAMPLES, closure_report, load_model_spec, simulated_trace, single_blas_thread,
 )
 
+from _timing import best_of, print_figures  # benchmarks/_timing.py
+
 WORLD_60S = {"duration_s": 60.0, "seed": 3,
              "effects": {"coulomb": {"F_c_N": 40.0}, "ripple": {}, "delay": {"tau_ms": 0.5}}}
 EMPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "emps"
@@ -46,12 +48,6 @@ def timed(action) -> tuple[float, float, object]:
     wall, cpu = time.perf_counter(), time.process_time()
     result = action()
     return time.perf_counter() - wall, time.process_time() - cpu, result
-
-
-def best(action, repeats: int = REPEATS) -> tuple[float, object]:
-    """Shortest wall time (s) of `repeats` calls, and the last result."""
-    runs = [timed(action) for _ in range(repeats)]
-    return min(r[0] for r in runs), runs[-1][2]
 
 
 def joint_fit(model: Model, kin, x0: dict[str, float]) -> float:
@@ -98,10 +94,9 @@ def run() -> dict[str, float]:
                          standstill_speed(kinematics(trace, spec.bandwidth), spec.standstill))
         base = Model((new_term("inertia"), new_term("viscous"), new_term("coulomb")))
         candidate = base.with_term(new_term("ripple", {"pitch_mm": 9.9e-3}))
-        vp_s, vp_fit = best(lambda: fit_model(candidate, kin, with_std=False))
-        joint_s, joint_ssr = best(lambda: joint_fit(candidate, kin, {"M_kg": 30.0,
-                                                                     "F_v_Ns_m": 100.0,
-                                                                     "F_c_N": 30.0}), 1)
+        vp_s, vp_fit = best_of(lambda: fit_model(candidate, kin, with_std=False), REPEATS)
+        x0 = {"M_kg": 30.0, "F_v_Ns_m": 100.0, "F_c_N": 30.0}
+        joint_s, joint_ssr = best_of(lambda: joint_fit(candidate, kin, x0), 1)
     emps_s = (timed(lambda: closure_report(EMPS / "DATA_EMPS.mat",
                                            validation=EMPS / "DATA_EMPS_PULSES.mat"))[0]
               if (EMPS / "DATA_EMPS.mat").exists() else float("nan"))
@@ -135,8 +130,7 @@ def run() -> dict[str, float]:
         "bench_chirp_error_before": "held-out force NRMSE, bench chirp, rigid model",
         "bench_chirp_error_after": "the same after the effects found",
     }
-    for name, value in figures.items():
-        print(f"{name:<28s} {value:10.3f}  {notes[name]}")
+    print_figures(figures, notes, 28, "10.3f")
     return figures
 
 

@@ -11,6 +11,8 @@ import numpy as np
 
 from feedbench.daq.recorder import Recorder
 
+from _timing import print_figures  # benchmarks/_timing.py
+
 N_CHANNELS = 8
 N_ROWS = 200_000
 CHUNK_ROWS = 1000
@@ -116,8 +118,7 @@ def run() -> dict[str, float]:
         "full_array_mib": "size of the full run as one array, what np.save needs in memory (MiB)",
         "recorder_peak_over_full_array": "recorder peak memory / full array size",
     }
-    for name, value in figures.items():
-        print(f"{name:32s} {value:14.3f}  {explanations[name]}")
+    print_figures(figures, explanations, 32, "14.3f")
     return figures
 
 

@@ -10,12 +10,12 @@ and interpolates where the depth a = 1/μ turns real.
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from feedbench.analysis.stability import directional_matrix, zoa_lobes
 from feedbench.models.structure import ModalStructure
+
+from _timing import best_of, print_figures  # benchmarks/_timing.py
 
 STRUCTURE = ModalStructure(
     f_n=[48.0, 61.0], zeta=[0.03, 0.04], k=[30e6, 40e6], shapes=[[0.8, -0.6], [0.6, 0.8]],
@@ -51,22 +51,12 @@ def per_speed_loop(f: np.ndarray, Phi: np.ndarray, speeds: np.ndarray) -> np.nda
     return depth
 
 
-def best_of(repeats: int, call) -> tuple[float, object]:
-    """Shortest wall time (s) of `repeats` calls and the last result."""
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = call()
-        times.append(time.perf_counter() - start)
-    return min(times), result
-
-
 def run() -> dict[str, float]:
     Phi = STRUCTURE.receptance(FREQUENCIES)
-    zoa_s, lobes = best_of(REPEATS, lambda: zoa_lobes(
-        FREQUENCIES, Phi, SPEEDS, N_TEETH, K_T, K_R, PHI_ST, PHI_EX, N_LOBES))
+    zoa_s, lobes = best_of(lambda: zoa_lobes(
+        FREQUENCIES, Phi, SPEEDS, N_TEETH, K_T, K_R, PHI_ST, PHI_EX, N_LOBES), REPEATS)
     subset = SPEEDS[::LOOP_STRIDE]
-    loop_s, loop_depth = best_of(1, lambda: per_speed_loop(FREQUENCIES, Phi, subset))
+    loop_s, loop_depth = best_of(lambda: per_speed_loop(FREQUENCIES, Phi, subset), 1)
     loop_s *= SPEEDS.size / subset.size
     zoa_depth = lobes.depth[::LOOP_STRIDE]
     both = np.isfinite(zoa_depth) & np.isfinite(loop_depth)
@@ -87,8 +77,7 @@ def run() -> dict[str, float]:
         f"{int(both.sum())} speeds both resolve (interpolation in speed vs in frequency)",
         "zoa_min_depth_mm": "absolute stability limit over the speeds (mm), for reference",
     }
-    for name, value in figures.items():
-        print(f"{name:28s} {value:12.4g}  {explanations[name]}")
+    print_figures(figures, explanations, 28, "12.4g")
     return figures
 
 
