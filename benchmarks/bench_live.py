@@ -1,10 +1,13 @@
-"""Live window under load: 8 channels at 10 kHz for 60 s, a 20 s span, offscreen Qt.
+"""Live window under load: 8 DAQ channels at 10 kHz for 60 s, a 20 s span, offscreen Qt.
 
-A producer thread plays a real-time acquisition (blocks of 50 samples paced by the wall
-clock) into the HDF5 recorder and the live stream; the window redraws from the stream on
-its own timer. Figures: the window's redraw rate, the recorder's lag behind the
-acquisition clock (with and without the window), the samples on disk and their gaps, and
-the cost of one frame drawn from raw samples against one drawn from the min/max copy.
+A producer thread plays a real-time acquisition as the runner and the serial DAQ deliver it:
+per 1 ms bus cycle one row of 4 drive channels and the DAQ's 10 samples of 8 channels, each
+written to the HDF5 recorder (rows and the high-rate stream) and handed to the live stream
+(`on_stream` every cycle, `on_block` every 50 cycles), paced by the wall clock in blocks of
+50 cycles. The window redraws from the stream on its own timer. Figures: the window's redraw
+rate, the recorder's lag behind the acquisition clock (with and without the window), the
+DAQ samples on disk and their gaps, and the cost of one frame drawn from raw samples
+against one drawn from the min/max copy.
 """
 
 from __future__ import annotations
@@ -20,23 +23,28 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 import numpy as np  # noqa: E402
 
 from feedbench.daq.live import Decimator, LiveStream  # noqa: E402
-from feedbench.daq.recorder import Recorder  # noqa: E402
+from feedbench.daq.recorder import Recorder, StreamSpec  # noqa: E402
 from feedbench.daq.recording import open_recording  # noqa: E402
 from feedbench.experiments.plan import Plan, Segment  # noqa: E402
 from feedbench.gui.live_window import LiveWindow, qt_app  # noqa: E402
 
 N_CHANNELS = 8
 RATE_HZ = 10_000
+CYCLE_S = 1e-3
+PER_CYCLE = int(RATE_HZ * CYCLE_S)
 DURATION_S = 60.0
 BASELINE_S = 10.0
 SPAN_S = 20.0
 BLOCK = 50
+"""Bus cycles per pacing step and per `on_block` (the runner's BLOCK_CYCLES)."""
+ROWS = ("x_ref", "position", "velocity", "force")
+ROW_UNITS = {"x_ref": "m", "position": "m", "velocity": "m/s", "force": "N"}
 NAMES = tuple(f"ch{i}" for i in range(N_CHANNELS))
-UNITS = {name: ("m", "m/s", "N", "m/s²")[i % 4] for i, name in enumerate(NAMES)}
+DAQ = StreamSpec(NAMES, {name: ("N", "m/s^2")[i % 2] for i, name in enumerate(NAMES)}, RATE_HZ)
 
 
 def signals(first: int, n: int) -> np.ndarray:
-    """n samples (rows) of 8 channels from sample number `first`: sines, noise, a spike
+    """n DAQ samples (rows) of 8 channels from sample number `first`: sines, noise, a spike
     every 10 000 samples."""
     index = np.arange(first, first + n)
     t = index / RATE_HZ
@@ -47,49 +55,68 @@ def signals(first: int, n: int) -> np.ndarray:
 
 
 class Acquisition(threading.Thread):
-    """The producer: blocks paced to real time into the recorder and the stream.
+    """The producer: rows and DAQ samples paced to real time into the recorder and the stream.
 
-    `lags` holds, per block, how late (s) its last sample reached the recorder against
-    the acquisition clock; `observer_s` the time spent handing blocks to the stream.
+    `lags` holds, per block, how late (s) its last sample reached the recorder against the
+    acquisition clock; `observer_s` the time spent handing the block's data to the stream.
     """
 
     def __init__(self, recorder: Recorder, stream: LiveStream | None, duration_s: float) -> None:
         super().__init__(name="acquisition")
         self.recorder, self.stream = recorder, stream
-        self.n_total = int(duration_s * RATE_HZ)
-        self.lags = np.zeros(self.n_total // BLOCK)
-        self.observer_s = np.zeros(self.n_total // BLOCK)
+        self.n_cycles = int(duration_s / CYCLE_S)
+        self.lags = np.zeros(self.n_cycles // BLOCK)
+        self.observer_s = np.zeros(self.n_cycles // BLOCK)
 
     def run(self) -> None:
         plan = Plan("bench_live", 0, [Segment("acquire", "measure",
-                                              np.broadcast_to(0.0, (self.n_total,)))],
-                    {}, 1.0 / RATE_HZ)
+                                              np.broadcast_to(0.0, (self.n_cycles,)))],
+                    {}, CYCLE_S)
         if self.stream is not None:
-            self.stream.on_start(plan, NAMES)
+            self.stream.on_start(plan, ROWS)
+            self.stream.on_layout(ROW_UNITS, {"daq": DAQ})
             self.stream.on_segment(0, plan.segments[0], 0)
         start = time.perf_counter()
-        for b, first in enumerate(range(0, self.n_total, BLOCK)):
-            due = start + (first + BLOCK) / RATE_HZ
+        for b, first in enumerate(range(0, self.n_cycles, BLOCK)):
+            due = start + (first + BLOCK) * CYCLE_S
             pause = due - time.perf_counter()
             if pause > 0:
                 time.sleep(pause)
-            cycles, rows = np.arange(first, first + BLOCK), signals(first, BLOCK)
-            self.recorder.append_block(cycles, rows)
+            self.observer_s[b] = self._block(first)
             self.lags[b] = time.perf_counter() - due
-            if self.stream is not None:
-                t0 = time.perf_counter()
-                self.stream.on_block(cycles, rows)
-                self.observer_s[b] = time.perf_counter() - t0
         if self.stream is not None:
             self.stream.on_stop("complete", "")
+
+    def _block(self, first: int) -> float:
+        """One block of cycles as the runner serves them; returns the seconds spent in the
+        live stream's calls."""
+        cycles = np.arange(first, first + BLOCK)
+        rows = np.column_stack([np.sin(cycles * CYCLE_S)] * len(ROWS))
+        daq = signals(first * PER_CYCLE, BLOCK * PER_CYCLE)
+        observer = 0.0
+        for i, cycle in enumerate(cycles):
+            self.recorder.append(int(cycle), rows[i])
+            samples = daq[i * PER_CYCLE:(i + 1) * PER_CYCLE]
+            sequence = (first + i) * PER_CYCLE + np.arange(PER_CYCLE)
+            self.recorder.append_stream("daq", np.full(PER_CYCLE, cycle), sequence, samples)
+            if self.stream is not None:
+                t0 = time.perf_counter()
+                self.stream.on_stream("daq", np.full(PER_CYCLE, cycle), sequence, samples)
+                observer += time.perf_counter() - t0
+        if self.stream is not None:
+            t0 = time.perf_counter()
+            self.stream.on_block(cycles, rows)
+            observer += time.perf_counter() - t0
+        return observer
 
 
 def acquire(path: Path, duration_s: float, with_window: bool) -> dict[str, float]:
     """One paced acquisition, with or without the live window; its figures."""
     app = qt_app()
     stream = LiveStream(span_max_s=SPAN_S) if with_window else None
-    recorder = Recorder(path, NAMES, UNITS, {"experiment": "bench_live"}, chunk_rows=1000)
-    window = LiveWindow(stream, UNITS, span_s=SPAN_S, fps=60.0) if with_window else None
+    recorder = Recorder(path, ROWS, ROW_UNITS, {"experiment": "bench_live", "cycle_s": CYCLE_S},
+                        chunk_rows=1000, streams={"daq": DAQ})
+    window = LiveWindow(stream, {}, span_s=SPAN_S, fps=60.0) if with_window else None
     if window is not None:
         window.show()
         app.processEvents()
@@ -102,13 +129,16 @@ def acquire(path: Path, duration_s: float, with_window: bool) -> dict[str, float
         time.sleep(0.001)
     elapsed = time.perf_counter() - t0
     recorder.close()
-    recording = open_recording(path)
-    out = {"n_samples": recording.n_samples, "n_gaps": recording.n_gaps,
-           "lag_p99_s": float(np.percentile(producer.lags, 99)), "lag_max_s": float(producer.lags.max()),
-           "samples_equal": float(np.array_equal(recording.channels["ch3"][-BLOCK:],
-                                                 signals(producer.n_total - BLOCK, BLOCK)[:, 3]))}
+    daq = open_recording(path).streams["daq"]
+    n_expected = producer.n_cycles * PER_CYCLE
+    out = {"n_samples": daq.n_samples, "n_expected": n_expected, "n_gaps": daq.n_dropped,
+           "lag_p99_s": float(np.percentile(producer.lags, 99)),
+           "lag_max_s": float(producer.lags.max()),
+           "samples_equal": float(np.array_equal(daq.channels["ch3"][-500:],
+                                                 signals(n_expected - 500, 500)[:, 3]))}
     if window is not None:
-        out.update(fps=(window.frames - frames0) / elapsed, paints_per_s=(window.paints - paints0) / elapsed,
+        out.update(fps=(window.frames - frames0) / elapsed,
+                   paints_per_s=(window.paints - paints0) / elapsed,
                    observer_max_s=float(producer.observer_s.max()),
                    **frame_costs(window, stream))
         window.close()
@@ -116,13 +146,15 @@ def acquire(path: Path, duration_s: float, with_window: bool) -> dict[str, float
 
 
 def frame_costs(window: LiveWindow, stream: LiveStream, repeats: int = 5) -> dict[str, float]:
-    """Seconds to build and paint one frame from the 20 s of raw samples (200 000 points
-    per channel) and from the window's min/max copy (two points per pixel)."""
+    """Seconds to build and paint one frame from the 20 s of raw DAQ samples (200 000
+    points per channel) and from the window's min/max copy (two points per pixel)."""
     costs = {}
     for name, buckets in (("raw", 10**9), ("decimated", max(window.trace_view.width(), 200))):
         start = time.perf_counter()
         for _ in range(repeats):
-            window.traces.draw(Decimator(stream, SPAN_S, buckets).frame(), False, time.monotonic())
+            frames = [Decimator(stream, SPAN_S, buckets, source=source).frame()
+                      for source in stream.sources]
+            window.traces.draw(frames, False, time.monotonic())
             window.trace_view.grab()
         costs[f"frame_{name}_s"] = (time.perf_counter() - start) / repeats
     return costs
@@ -132,7 +164,8 @@ def run(duration_s: float = DURATION_S) -> dict[str, float]:
     """Measure, print and return the figures."""
     with tempfile.TemporaryDirectory() as tmp:
         live = acquire(Path(tmp) / "live.h5", duration_s, with_window=True)
-        baseline = acquire(Path(tmp) / "baseline.h5", min(BASELINE_S, duration_s), with_window=False)
+        baseline = acquire(Path(tmp) / "baseline.h5", min(BASELINE_S, duration_s),
+                           with_window=False)
     figures = {
         "live_fps": live["fps"],
         "live_paints_per_s": live["paints_per_s"],
@@ -145,18 +178,18 @@ def run(duration_s: float = DURATION_S) -> dict[str, float]:
         "live_frame_raw_ms": 1e3 * live["frame_raw_s"],
         "live_frame_decimated_ms": 1e3 * live["frame_decimated_s"],
     }
-    print(f"  {N_CHANNELS} channels at {RATE_HZ} Hz for {duration_s:g} s, window span {SPAN_S:g} s "
-          "(offscreen Qt)")
+    print(f"  {N_CHANNELS} DAQ channels at {RATE_HZ} Hz + {len(ROWS)} drive channels at "
+          f"{1 / CYCLE_S:g} Hz for {duration_s:g} s, window span {SPAN_S:g} s (offscreen Qt)")
     print(f"  window redraws            {figures['live_fps']:7.1f} frames/s (target ≥ 30; "
           f"{figures['live_paints_per_s']:.1f} Qt repaints/s)")
-    print(f"  samples on disk           {live['n_samples']:7d} of {int(duration_s * RATE_HZ)}, "
-          f"gaps {live['n_gaps']}, last block equal to the source: {bool(live['samples_equal'])}")
+    print(f"  DAQ samples on disk       {live['n_samples']:7d} of {live['n_expected']}, "
+          f"lost {live['n_gaps']}, last 500 equal to the source: {bool(live['samples_equal'])}")
     print(f"  recorder lag p99 / max    {figures['live_recorder_lag_p99_ms']:7.2f} / "
           f"{figures['live_recorder_lag_max_ms']:.2f} ms behind the acquisition clock with the "
-          f"window; {figures['baseline_recorder_lag_p99_ms']:.2f} ms p99 without it "
-          f"(ratio {figures['live_recorder_lag_p99_ms'] / figures['baseline_recorder_lag_p99_ms']:.2f})")
-    print(f"  stream.on_block worst     {figures['live_observer_block_max_us']:7.0f} µs per 50-sample "
-          "block (the producer's whole cost of the window)")
+          f"window; {figures['baseline_recorder_lag_p99_ms']:.2f} ms p99 without it (ratio "
+          f"{figures['live_recorder_lag_p99_ms'] / figures['baseline_recorder_lag_p99_ms']:.2f})")
+    print(f"  live stream calls worst   {figures['live_observer_block_max_us']:7.0f} µs per "
+          "50-cycle block (50 × on_stream + on_block: the producer's whole cost of the window)")
     print(f"  one frame raw / min-max   {figures['live_frame_raw_ms']:7.1f} / "
           f"{figures['live_frame_decimated_ms']:.1f} ms (raw is "
           f"{figures['live_frame_raw_ms'] / figures['live_frame_decimated_ms']:.1f}× slower)")

@@ -2,6 +2,7 @@
 cases with undeclared effects.
 
     feedbench closure DATA [--model M.toml] [--validation DATA2] [--json] [--plots DIR]
+                           [--report FILE]
     feedbench closure --cases [CASES.toml] [--json]
 
 DATA: a CSV file with its TOML sidecar, an EMPS .mat file, or a feedbench .h5 recording.
@@ -212,14 +213,23 @@ def cmd_closure(args: argparse.Namespace) -> int:
         raise ConfigError("closure: give a trace (CSV + sidecar, .mat or .h5) or --cases")
     report = closure_report(args.data, args.model, args.validation, args.holdout)
     plots = save_plots(report, args.plots) if args.plots else []
+    html = None
+    if args.report:
+        from feedbench.report import write_report
+
+        html = write_report([], args.report, f"closure of {Path(args.data).name}",
+                            closures=[report])
     if args.json:
         data = report_dict(report)
         data["plots"] = [str(p) for p in plots]
+        data["report"] = str(html) if html else None
         print(json.dumps(data, indent=2, default=float))
     else:
         print(report_text(report))
         for path in plots:
             print(f"plot: {path}")
+        if html:
+            print(f"report: {html}")
     return 0
 
 
@@ -233,6 +243,8 @@ def add_closure_parser(sub: Any) -> None:
     closure.add_argument("--validation", help="second trace to judge on (else the end of DATA)")
     closure.add_argument("--holdout", type=float, help="share of DATA held out (0–1)")
     closure.add_argument("--plots", help="directory for PNG plots")
+    closure.add_argument("--report", help="also write the result as an HTML report (the "
+                         "campaign report's closure section)")
     closure.add_argument("--cases", nargs="?", const=str(CASES_PATH),
                          help="run the simulated cases table (default: the packaged one)")
     closure.add_argument("--json", action="store_true", help="print the report as JSON")

@@ -7,9 +7,15 @@ matplotlib's Agg canvas (no pyplot state, no display) and embedded as base64, so
 needs no network and no other file to be viewed.
 
 Results come from each experiment's `analyze_recording`; how they are drawn is a registry
-keyed by experiment name (`REPORT_RESULTS`), like the live window's, so new experiment
-families (sine-stream, hammer, stepped loading, SMFE, stability lobes, closure) add one
-function with ``@report_result("name")``.
+keyed by experiment name (`REPORT_RESULTS`), like the live window's: a family adds one
+function with ``@report_result("name")``. Present: friction sweep (curve and fitted model),
+chirp (servo mobility), closed-loop Bode (points with R², open-loop mobility by Eq. 4.20),
+stepped loading (load against displacement with the fitted stiffness, backlash, preload
+loss per level), impact hammer and shaker chirp (tool-tip compliance per feed with coherence,
+and the stability lobes it predicts, `tool_tip_lobes`), sine-stream (FRF points with R²) and
+SMFE (Φ_tt, Φ_ww, condition number, coherence). A closure result (`feedbench closure …
+--report FILE`) gets a section of its own (`closure_section`): held-out residual before and
+after, the effects found, the replay errors.
 """
 
 from __future__ import annotations
@@ -25,12 +31,15 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure as MplFigure
 
+from feedbench.analysis.stability import Lobes, zoa_lobes
+from feedbench.config import validate_table
 from feedbench.daq.live import bucket_size, minmax_decimate
 from feedbench.daq.recording import Recording, open_recording
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import recorded_windows
 from feedbench.models.friction import AnderssonFriction
-from feedbench.units import MM_PER_MIN, N_MIN_PER_MM
+from feedbench.models.milling import engagement_angles
+from feedbench.units import MM_PER_MIN, N_MIN_PER_MM, RPM
 
 TRACE_POINTS = 3000
 """Min/max buckets per trace: enough for a 1000-pixel-wide plot at any run length."""
@@ -42,6 +51,39 @@ MIN_R_SQUARED = 0.99
 """A friction fit with a lower R² is flagged."""
 
 SHADED_KINDS = {"measure": "#2ca02c", "excite": "#ff7f0e"}
+
+TRACE_PANELS = (
+    ("position (mm)", ("x_ref", "position", "load_position"), 1e3),
+    ("velocity (mm/min)", ("velocity", "velocity_offset"), 1.0 / MM_PER_MIN),
+    ("force (N)", ("force", "force_offset", "excitation", "load_cell.force"), 1.0),
+    ("spindle speed (rpm)", ("spindle_speed",), 1.0 / RPM),
+)
+"""Per-cycle panels of the key traces: channels by name, a drive's also as ``drive.name``."""
+
+STREAM_PANELS = (("DAQ forces (N)", "N"), ("accelerations (m/s²)", "m/s^2"))
+"""Panels of the high-rate streams' channels, by unit."""
+
+
+@dataclass(frozen=True)
+class CuttingTest:
+    """A milling operation for stability lobes (ZOA): tool diameter D (m), teeth Z, radial
+    engagement a_e (m) in `mode`, cutting coefficients K_tc, K_rc (N/m²)."""
+
+    D: float
+    Z: int
+    a_e: float
+    mode: str
+    K_tc: float
+    K_rc: float
+
+
+TABLE_5_1 = CuttingTest(D=40e-3, Z=4, a_e=32e-3, mode="down", K_tc=1885e6, K_rc=749e6)
+"""Tables 4.2 / 5.1: Walter F4042 (D 40 mm, Z 4, κ 90°), a_e 32 mm down-milling, C45 steel:
+the cut the thesis predicts the lobes of from idle and in-motion FRFs (Fig. 5.25)."""
+
+LOBE_SPEEDS_RPM = np.linspace(400.0, 2000.0, 801)
+"""Spindle speeds of the lobes (Fig. 5.25: 400–1500 rpm; up to 2000 for lobe 0 of a
+47–61 Hz mode with 4 teeth)."""
 
 
 @dataclass(frozen=True)
@@ -113,32 +155,73 @@ def png_of(figure: MplFigure) -> bytes:
 
 
 def trace_plot(recording: Recording) -> Plot:
-    """Positions (mm), velocities (mm/min) and forces (N) over the run, measure and
-    excite windows shaded."""
+    """Positions (mm), velocities (mm/min), forces (N), spindle speed (rpm) and the DAQ's
+    forces and accelerations over the run, measure and excite windows shaded."""
     cycle_s = float(recording.metadata.get("cycle_s", 1e-3))
     t = (recording.cycle - (recording.cycle[0] if recording.n_samples else 0)) * cycle_s
-    panels = (("position (mm)", ("x_ref", "position"), 1e3),
-              ("velocity (mm/min)", ("velocity", "velocity_offset"), 1.0 / MM_PER_MIN),
-              ("force (N)", ("force", "force_offset"), 1.0))
-    figure = new_figure(10.0, 7.0)
-    axes = figure.subplots(len(panels), 1, sharex=True)
-    k = bucket_size(recording.n_samples, TRACE_POINTS)
-    for ax, (label, names, scale) in zip(axes, panels):
-        for name in (n for n in names if n in recording.channels):
-            t_d, y_d = minmax_decimate(t, recording.channels[name][None, :] * scale, k)
+    panels = [(label, [(t, recording.channels[n] * scale, n)
+                       for n in drive_channels(recording, names)])
+              for label, names, scale in TRACE_PANELS]
+    panels += [(label, stream_traces(recording, unit)) for label, unit in STREAM_PANELS]
+    panels = [(label, traces) for label, traces in panels if traces]
+    figure = new_figure(10.0, 7.0 if len(panels) <= 3 else 9.5)
+    axes = np.atleast_1d(figure.subplots(len(panels), 1, sharex=True))
+    spans = _shaded_spans(recording, t, cycle_s)
+    for ax, (label, traces) in zip(axes, panels):
+        for time_s, values, name in traces:
+            read = np.isfinite(values)  # e.g. a load cell read every few cycles
+            k = bucket_size(int(read.sum()), TRACE_POINTS)
+            t_d, y_d = minmax_decimate(time_s[read], values[read][None, :], k)
             ax.plot(t_d, y_d[0], lw=0.7, label=name)
-        _shade_windows(ax, recording, t, cycle_s)
+        _shade_windows(ax, spans)
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-        ax.legend(loc="upper right", fontsize=8)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)  # beside the data
     axes[-1].set_xlabel("time (s)")
     return Plot("key time traces", png_of(figure))
 
 
-def _shade_windows(ax, recording: Recording, t: np.ndarray, cycle_s: float) -> None:
-    for kind, color in SHADED_KINDS.items():
-        for w in recorded_windows(recording, kind):
-            ax.axvspan(t[w.start], t[w.stop - 1] + cycle_s, color=color, alpha=0.12, lw=0)
+def drive_channels(recording: Recording, names: Sequence[str]) -> list[str]:
+    """The recording's channels among `names`, a drive's as ``name`` or ``drive.name`` (a
+    drive: a prefix with its own statusword, e.g. master and slave of a rack-and-pinion
+    axis)."""
+    drives = {c.rsplit(".", 1)[0] for c in recording.channels if c.endswith(".statusword")}
+    return [c for c in recording.channels
+            if c in names or ("." in c and c.split(".", 1)[0] in drives
+                              and c.split(".", 1)[1] in names)]
+
+
+def stream_traces(recording: Recording, unit: str) -> list[tuple[np.ndarray, np.ndarray, str]]:
+    """(time s, values, name) of every high-rate stream channel in `unit`; a sample's time
+    from its counter, t = 0 at the run's first cycle."""
+    if not recording.n_samples:
+        return []
+    cycle_s = float(recording.metadata.get("cycle_s", 1e-3))
+    out = []
+    for stream in recording.streams.values():
+        if not stream.n_samples:
+            continue
+        t = ((stream.cycle[0] - recording.cycle[0]) * cycle_s
+             + (stream.sequence - stream.sequence[0]) / stream.rate_hz)
+        out += [(t, values, name) for name, values in stream.channels.items()
+                if stream.units.get(name) == unit]
+    return out
+
+
+def _shaded_spans(recording: Recording, t: np.ndarray,
+                  cycle_s: float) -> dict[str, list[tuple[float, float]]]:
+    """(start s, width s) of the measure and excite windows, by colour."""
+    return {color: [(t[w.start], t[w.stop - 1] + cycle_s - t[w.start])
+                    for w in recorded_windows(recording, kind)]
+            for kind, color in SHADED_KINDS.items()}
+
+
+def _shade_windows(ax, spans: dict[str, list[tuple[float, float]]]) -> None:
+    """One collection per colour over the full height (hundreds of windows stay cheap)."""
+    for color, ranges in spans.items():
+        if ranges:
+            ax.broken_barh(ranges, (0.0, 1.0), transform=ax.get_xaxis_transform(),
+                           color=color, alpha=0.12, lw=0)
 
 
 # common tables and indicators
@@ -173,6 +256,7 @@ def run_quality(recording: Recording) -> list[Indicator]:
         Indicator("status", status, recording.status == "complete"),
         Indicator("samples", f"{recording.n_samples} ({recording.n_samples * cycle_s:.2f} s)"),
         Indicator("missing samples (gaps)", str(recording.n_gaps), recording.n_gaps == 0),
+        *stream_quality(recording),
     ]
     try:
         limits = Limits.from_config(recording.config.get("limits", {}))
@@ -182,13 +266,16 @@ def run_quality(recording: Recording) -> list[Indicator]:
 
 
 def headroom(recording: Recording, limits: Limits) -> list[Indicator]:
-    """Peak |force|, peak |velocity| and position range against the watched limits."""
-    ch = recording.channels
+    """Peak |force|, peak |velocity| and position range of the drives against the watched
+    limits."""
     if not recording.n_samples:
         return []
-    peak_force = float(np.max(np.abs(ch["force"])))
-    peak_velocity = float(np.max(np.abs(ch["velocity"])))
-    low, high = float(ch["position"].min()), float(ch["position"].max())
+    peak_force, peak_velocity = (
+        max(float(np.max(np.abs(recording.channels[c]))) for c in drive_channels(recording, (q,)))
+        for q in ("force", "velocity"))
+    positions = np.concatenate([recording.channels[c]
+                                for c in drive_channels(recording, ("position",))])
+    low, high = float(positions.min()), float(positions.max())
     return [
         Indicator("peak |force|", f"{peak_force:.1f} N = {100 * peak_force / limits.force:.0f} % "
                   "of the limit", peak_force < limits.force),
@@ -199,6 +286,13 @@ def headroom(recording: Recording, limits: Limits) -> list[Indicator]:
                   f"{limits.position[0] * 1e3:g} … {limits.position[1] * 1e3:g} mm)",
                   limits.position[0] <= low and high <= limits.position[1]),
     ]
+
+
+def stream_quality(recording: Recording) -> list[Indicator]:
+    """Samples and lost samples of every high-rate stream (the DAQ's counter)."""
+    return [Indicator(f"{name} stream", f"{stream.n_samples} samples at {stream.rate_hz:g} Hz, "
+                      f"{stream.n_dropped} lost", stream.n_dropped == 0)
+            for name, stream in recording.streams.items()]
 
 
 # per-experiment results
@@ -287,6 +381,421 @@ def chirp_results(recording: Recording, result: dict, section: RunSection) -> No
     section.headline = f"f_t {result['antiresonance_hz']:.1f} Hz, f_r {result['resonance_hz']:.1f} Hz"
 
 
+# tool-tip FRFs and stability lobes
+
+@dataclass(frozen=True)
+class FrfSeries:
+    """One FRF of a figure: label, frequencies (Hz), |H| and its quality (coherence or R²)."""
+
+    label: str
+    f: np.ndarray
+    magnitude: np.ndarray
+    quality: np.ndarray
+
+
+def frf_figure(series: Sequence[FrfSeries], y_label: str, quality_label: str = "coherence γ²",
+               gate: float = MIN_COHERENCE, points: bool = False) -> MplFigure:
+    """|H| (log) above its quality per frequency, one colour per series, the gate dotted."""
+    figure = new_figure(8.0, 5.5)
+    magnitude, quality = figure.subplots(2, 1, sharex=True, height_ratios=(2, 1))
+    style = dict(marker="o", ms=3, lw=0.6) if points else dict(lw=1.2)
+    for s in series:
+        magnitude.semilogy(s.f, s.magnitude, label=s.label, **style)
+        quality.plot(s.f, s.quality, **style)
+    quality.axhline(gate, color="r", ls=":", lw=0.8)
+    magnitude.set_ylabel(y_label)
+    magnitude.grid(alpha=0.3, which="both")
+    magnitude.legend(fontsize=8)
+    quality.set_ylim(min(0.0, float(np.nanmin([s.quality.min(initial=1.0) for s in series]))),
+                     1.05)
+    quality.set_ylabel(quality_label)
+    quality.set_xlabel("frequency (Hz)")
+    quality.grid(alpha=0.3)
+    return figure
+
+
+def tool_tip_lobes(f: np.ndarray, compliance: np.ndarray,
+                   cut: CuttingTest = TABLE_5_1) -> Lobes:
+    """ZOA stability lobes (Altintas & Budak; Ch. 5.5.6) of `cut` from the tool-tip
+    compliance x/F (m/N) measured along the feed. The lab bench's flexure moves along the
+    feed only, so the y direction is taken as rigid: Φ = [[Φ_xx, 0], [0, 0]]."""
+    phi = np.zeros((len(f), 2, 2), dtype=complex)
+    phi[:, 0, 0] = compliance
+    start, stop = engagement_angles(cut.a_e, cut.D, cut.mode)
+    return zoa_lobes(np.asarray(f, dtype=float), phi, LOBE_SPEEDS_RPM, cut.Z, cut.K_tc,
+                     cut.K_rc / cut.K_tc, start, stop)
+
+
+def lobes_results(compliances: dict[str, tuple[np.ndarray, np.ndarray]],
+                  section: RunSection) -> None:
+    """Stability lobes of each named compliance (Table 5.1's cut) as a plot and a table."""
+    figure = new_figure(8.0, 4.5)
+    ax = figure.subplots()
+    rows = []
+    for label, (f, compliance) in compliances.items():
+        lobes = tool_tip_lobes(f, compliance)
+        ax.plot(lobes.spindle_rpm, lobes.depth * 1e3, lw=1.2, label=label)
+        k = int(np.argmin(lobes.depth))
+        rows.append((label, f"{lobes.min_depth * 1e3:.3f}", f"{lobes.spindle_rpm[k]:.0f}",
+                     f"{lobes.chatter_frequency[k]:.1f}"))
+    ax.set_xlabel("spindle speed (rpm)")
+    ax.set_ylabel("critical depth a_lim (mm)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    cut = TABLE_5_1
+    ax.set_title(f"ZOA, Table 5.1: D {cut.D * 1e3:g} mm, Z {cut.Z}, a_e {cut.a_e * 1e3:g} mm "
+                 f"{cut.mode}-milling, K_tc {cut.K_tc * 1e-6:g}, K_rc {cut.K_rc * 1e-6:g} N/mm²",
+                 fontsize=9)
+    section.plots.append(Plot("stability lobes from the measured tool-tip FRF", png_of(figure)))
+    section.tables.append(Table("stability lobes (Table 5.1 cut, y taken rigid)",
+                                ("FRF", "min a_lim (mm)", "at (rpm)", "chatter (Hz)"),
+                                tuple(rows)))
+
+
+def _extremes(compliances: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict:
+    """The lowest and the highest feed's compliance (idle and in motion, Fig. 5.25)."""
+    labels = list(compliances)
+    return {labels[i]: compliances[labels[i]] for i in sorted({0, len(labels) - 1})}
+
+
+@report_result("impact_hammer")
+def hammer_results(recording: Recording, result: dict, section: RunSection) -> None:
+    """Quasi-FRF per feed (Eq. 5.3) as compliance with coherence, the feed comparison
+    (Fig. 5.12) and the stability lobes of the lowest and highest feed (Fig. 5.25)."""
+    feeds = result["feeds"]
+    series = [FrfSeries(f"{x['feed_mm_min']:g} mm/min", np.array(x["frf"]["f_hz"]),
+                        np.array(x["frf"]["compliance_abs"]), np.array(x["frf"]["coherence"]))
+              for x in feeds]
+    section.plots.append(Plot("tool-tip compliance per feed (quasi-FRF, Eq. 5.3) with "
+                              "coherence", png_of(frf_figure(series, "|x/F| (m/N)"))))
+    section.tables.append(Table("impact hammer per feed", (
+        "feed (mm/min)", "peak (Hz)", "peak |x/F| (µm/N)", "hits used", "min coherence",
+        "distance to highest feed"), tuple(
+        (f"{x['feed_mm_min']:g}", f"{x['peak_hz']:.2f}", f"{x['peak_compliance_m_N'] * 1e6:.3f}",
+         f"{x['hits_used']} of {x['hits']}", f"{x['min_coherence']:.4f}",
+         f"{100 * x['distance_to_highest_feed']:.0f} %") for x in feeds)))
+    compliances = {s.label: (s.f, np.array(x["frf"]["compliance_abs"])
+                             * np.exp(1j * np.array(x["frf"]["compliance_phase_rad"])))
+                   for s, x in zip(series, feeds)}
+    lobes_results(_extremes(compliances), section)
+    low = min((x["min_coherence"] for x in feeds), default=float("nan"))
+    section.quality += [
+        Indicator("min coherence in the band", f"{low:.4f}", low >= MIN_COHERENCE),
+        Indicator("hits left out", str(sum(x["hits"] - x["hits_used"] for x in feeds)),
+                  all(x["hits"] == x["hits_used"] for x in feeds)),
+        Indicator("notes", "; ".join(result["notes"]) or "none", not result["notes"]),
+    ]
+    invariant = result["invariant_from_mm_min"]
+    section.headline = (f"invariant from {invariant:g} mm/min" if invariant is not None
+                        else "no feed range invariant")
+
+
+@report_result("shaker_chirp")
+def shaker_chirp_results(recording: Recording, result: dict, section: RunSection) -> None:
+    """Tool-tip compliance per feed (H1 over the sweeps) with coherence, and its lobes."""
+    feeds = result["feeds"]
+    series, compliances = [], {}
+    for x in feeds:
+        f = np.array(x["frf"]["f_hz"])
+        accelerance = np.array(x["frf"]["H1_abs"]) * np.exp(1j * np.array(x["frf"]["H1_phase_rad"]))
+        label = f"{x['feed_mm_min']:g} mm/min"
+        compliances[label] = (f, -accelerance / (2 * np.pi * f) ** 2)
+        series.append(FrfSeries(label, f, np.array(x["frf"]["compliance_abs"]),
+                                np.array(x["frf"]["coherence"])))
+    section.plots.append(Plot("tool-tip compliance per feed (H1 over the sweeps) with coherence",
+                              png_of(frf_figure(series, "|x/F| (m/N)"))))
+    section.tables.append(Table("shaker chirp per feed", (
+        "feed (mm/min)", "sweeps averaged", "peak (Hz)", "min coherence", "warnings"), tuple(
+        (f"{x['feed_mm_min']:g}", str(x["n_averages"]), f"{x['peak_hz']:.2f}",
+         f"{x['min_coherence']:.4f}", "; ".join(x["warnings"]) or "none") for x in feeds)))
+    lobes_results(_extremes(compliances), section)
+    low = min((x["min_coherence"] for x in feeds), default=float("nan"))
+    section.quality += [
+        Indicator("min coherence in the band", f"{low:.4f}", low >= MIN_COHERENCE),
+        Indicator("FRF warnings", "; ".join(w for x in feeds for w in x["warnings"]) or "none",
+                  not any(x["warnings"] for x in feeds)),
+        Indicator("notes", "; ".join(result["notes"]) or "none", not result["notes"]),
+    ]
+    section.headline = ", ".join(f"{x['feed_mm_min']:g} mm/min: peak {x['peak_hz']:.1f} Hz"
+                                 for x in feeds)
+
+
+@report_result("sine_stream")
+def sine_stream_results(recording: Recording, result: dict, section: RunSection) -> None:
+    """Sine-stream FRF points per feed and force amplitude with the R² of each step
+    (Figs. 5.21, 5.22), the quality gate and the spread between amplitudes."""
+    gate = float(recording.config["experiment"].get("r_squared_min", 0.99))
+    streams = result["streams"]
+    series = [FrfSeries(f"{x['feed_mm_min']:g} mm/min, {x['amplitude_N']:g} N",
+                        np.array(x["frf"]["f_hz"]), np.array(x["frf"]["compliance_abs"]),
+                        np.array(x["frf"]["r_squared"])) for x in streams]
+    section.plots.append(Plot("sine-stream compliance points with the R² of each step",
+                              png_of(frf_figure(series, "|x/F| (m/N)", "R² of the sine fits",
+                                                gate, points=True))))
+    section.tables.append(Table("sine-stream per feed and amplitude", (
+        "feed (mm/min)", "amplitude (N)", "steps used", "peak (Hz)", "min R²",
+        "force limited at (Hz)", "force not held at (Hz)"), tuple(
+        (f"{x['feed_mm_min']:g}", f"{x['amplitude_N']:g}", f"{x['steps_used']} of {x['steps']}",
+         f"{x['peak_hz']:.2f}", f"{x['min_r_squared']:.4f}", _hz_list(x["limited_hz"]),
+         _hz_list(x["not_held_hz"])) for x in streams)))
+    low = min((x["min_r_squared"] for x in streams), default=float("nan"))
+    spread = result["amplitude_spread"]
+    section.quality += [
+        Indicator("steps flagged (quality gate)", str(result["steps_flagged"]),
+                  result["steps_flagged"] == 0),
+        Indicator("min R² of the steps used", f"{low:.5f}", low >= gate),
+        Indicator("spread between amplitudes (of the peak)", ", ".join(
+            f"{feed} mm/min: {100 * value:.1f} %" for feed, value in spread.items())),
+    ]
+    section.headline = "; ".join(f"{s.label}: peak {x['peak_hz']:.2f} Hz"
+                                 for s, x in zip(series, streams))
+
+
+def _hz_list(values: Sequence[float]) -> str:
+    return ", ".join(f"{v:g}" for v in values) or "none"
+
+
+@report_result("closed_loop_bode")
+def closed_loop_bode_results(recording: Recording, result: dict, section: RunSection) -> None:
+    """Closed-loop FRF points with R² and −3 dB bandwidth; for the velocity loop the
+    open-loop mobility of Eq. (4.20) with f_t and f_r (Eqs. 4.13, 4.14)."""
+    frf = result["frf"]
+    f = np.array(frf["f_hz"])
+    gate = float(recording.config["experiment"].get("r_squared_min", 0.99))
+    series = [FrfSeries(f"{result['loop']} loop at {result['feed_mm_min']:g} mm/min", f,
+                        np.array(frf["abs"]), np.array(frf["r_squared"]))]
+    section.plots.append(Plot(f"closed {result['loop']} loop: points with R²", png_of(
+        frf_figure(series, "|H| closed loop (–)", "R² of the sine fits", gate, points=True))))
+    rows = [("−3 dB bandwidth", f"{result['bandwidth_hz']:.1f} Hz"),
+            ("frequencies flagged (R²)", str(len(result["flagged"])))]
+    mobility = result.get("mobility")
+    if mobility:
+        section.plots.append(Plot("open-loop mobility by Eq. (4.20)", png_of(
+            _mobility_figure(f, np.array(mobility["abs"]), mobility))))
+        rows += [("anti-resonance f_t (Eq. 4.13)", f"{mobility['antiresonance_hz']:.2f} Hz"),
+                 ("resonance f_r (Eq. 4.14)", f"{mobility['resonance_hz']:.2f} Hz")]
+        section.headline = (f"f_t {mobility['antiresonance_hz']:.1f} Hz, "
+                            f"f_r {mobility['resonance_hz']:.1f} Hz")
+    else:
+        section.headline = f"bandwidth {result['bandwidth_hz']:.1f} Hz"
+    section.tables.append(Table(f"closed {result['loop']} loop", ("quantity", "value"),
+                                tuple(rows)))
+    low = result["min_r_squared"]
+    section.quality += [
+        Indicator("min R² of the points used", "none" if low is None else f"{low:.5f}",
+                  low is not None and low >= gate),
+        Indicator("frequencies flagged", ", ".join(f"{x['frequency_hz']:g} Hz"
+                                                   for x in result["flagged"]) or "none",
+                  not result["flagged"]),
+    ]
+
+
+def _mobility_figure(f: np.ndarray, magnitude: np.ndarray, mobility: dict) -> MplFigure:
+    figure = new_figure(8.0, 4.0)
+    ax = figure.subplots()
+    ax.semilogy(f, magnitude, "o-", ms=3, lw=0.8, label="|G| open-loop mobility")
+    for key, name in (("antiresonance_hz", "f_t"), ("resonance_hz", "f_r")):
+        ax.axvline(mobility[key], color="k", ls="--", lw=0.8)
+        ax.annotate(f"{name} {mobility[key]:.1f} Hz", (mobility[key], 1.0),
+                    xycoords=("data", "axes fraction"), ha="left", va="top", fontsize=8)
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel("|G| ((m/s)/N)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, loc="lower left")
+    return figure
+
+
+# stepped loading (rack-and-pinion axis)
+
+@report_result("stepped_loading")
+def stepped_loading_results(recording: Recording, result: dict, section: RunSection) -> None:
+    """Load against displacement with the fitted stiffness (Eq. 3.26, Fig. 3.8), the
+    backlash strokes (Fig. 3.9), the coupled loadings with the preload loss per level
+    (Figs. 3.10–3.11) and their table."""
+    from feedbench.experiments import stepped_loading
+
+    params = validate_table(recording.config["experiment"], stepped_loading.SCHEMA,
+                            "experiment")
+    toward = stepped_loading.SIGNS[params["direction"]]
+    tests: dict[str, list] = {}
+    for window in recorded_windows(recording, "measure"):
+        tests.setdefault(window.info["test"], []).append(window)
+
+    def samples(test: str) -> dict[str, np.ndarray]:
+        # the analysis's own selection of the rows (measure windows, load cell read)
+        return stepped_loading._test_samples(recording, tests[test], toward)
+
+    if result["stiffness"] or result["backlash"]:
+        section.plots.append(Plot("single-motor loading and backlash", png_of(
+            _single_motor_figure(recording, result, tests, samples))))
+    if result["preload"]:
+        section.plots.append(Plot("coupled loading per preload level: master displacement "
+                                  "against load", png_of(_coupled_figure(result, samples))))
+    section.tables += _stepped_loading_tables(result)
+    r2 = [x["r_squared"] for x in result["stiffness"].values()]
+    failed = [t for t in result["preload"] if "error" in t]
+    section.quality += [
+        Indicator("min R² of the stiffness fits", f"{min(r2, default=float('nan')):.5f}",
+                  all(v >= MIN_R_SQUARED for v in r2)),
+        Indicator("preload levels analysed", f"{len(result['preload']) - len(failed)} of "
+                  f"{len(result['preload'])}" + "".join(f"; {t['preload_pct']:g} %: {t['error']}"
+                                                        for t in failed), not failed),
+    ]
+    section.headline = ", ".join(f"k_{m[0]} {x['k_N_m'] / 1e6:.1f} N/µm"
+                                 for m, x in result["stiffness"].items())
+
+
+def _single_motor_figure(recording: Recording, result: dict, tests: dict, samples) -> MplFigure:
+    """Left: load against δ = x_motor − x_load per motor with the line of Eq. (3.26);
+    right: δ against the motor position in the backlash strokes (lost motion)."""
+    figure = new_figure(10.0, 4.5)
+    loading, strokes = figure.subplots(1, 2)
+    for motor, fit in result["stiffness"].items():
+        s = samples(f"single {motor}")
+        delta = s[motor] - s["load"]
+        loading.plot(delta * 1e6, s["force"], ".", ms=2, label=f"{motor} alone")
+        force = np.linspace(*fit["force_range_N"], 50)
+        loading.plot((force / fit["k_N_m"] + fit["offset_m"]) * 1e6, force, lw=1.2,
+                     label=f"k {fit['k_N_m'] / 1e6:.1f} N/µm (R² {fit['r_squared']:.4f})")
+    loading.set_xlabel("δ = x_motor − x_load (µm)")
+    loading.set_ylabel("load cell (N)")
+    for motor, backlash in result["backlash"].items():
+        rows = np.concatenate([np.arange(w.start, w.stop) for w in tests[f"backlash {motor}"]])
+        x_motor = recording.channels[f"{motor}.motor_position"][rows]
+        delta = x_motor - recording.channels["load_position"][rows]
+        strokes.plot(x_motor * 1e3, delta * 1e6, ".", ms=1.5,
+                     label=f"{motor}: backlash {backlash['value_m'] * 1e6:.1f} µm")
+    strokes.set_xlabel("motor position (mm)")
+    strokes.set_ylabel("δ = x_motor − x_load (µm)")
+    for ax in (loading, strokes):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    return figure
+
+
+def _coupled_figure(result: dict, samples) -> MplFigure:
+    """Per preload level δ_m = x_master − x_load against the load, the loss and the
+    recovery force marked (Fig. 3.11-a)."""
+    levels = result["preload"]
+    figure = new_figure(10.0, 4.0)
+    axes = np.atleast_1d(figure.subplots(1, len(levels), sharey=True))
+    for ax, level in zip(axes, levels):
+        s = samples(f"coupled {level['preload_pct']:g} %")
+        ax.plot(s["force"], (s["master"] - s["load"]) * 1e6, ".", ms=2)
+        if "error" not in level:
+            for key, style in (("loss_force_N", "--"), ("recovery_force_N", ":")):
+                ax.axvline(level[key], color="r", ls=style, lw=0.8)
+            ax.set_title(f"{level['preload_pct']:g} %: loss {level['loss_force_N']:.0f} N, "
+                         f"jump {level['jump_m'] * 1e6:.0f} µm", fontsize=9)
+        ax.set_xlabel("load (N)")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("δ_m = x_master − x_load (µm)")
+    return figure
+
+
+def _stepped_loading_tables(result: dict) -> list[Table]:
+    motors = [m for m in ("master", "slave") if m in result["stiffness"] or m in result["backlash"]]
+    stiffness = Table("drive-train stiffness (Eq. 3.26) and backlash", (
+        "motor", "k (N/µm)", "R²", "backlash (µm)", "friction wind-up taken out"),
+        tuple((motor, *_stiffness_cells(result["stiffness"].get(motor)),
+               *_backlash_cells(result["backlash"].get(motor))) for motor in motors))
+    preload = Table("preload loss per level (Ch. 3.4.3)", (
+        "preload (%)", "loss (N)", "loss from torques (N)", "recovery (N)", "jump (µm)",
+        "slave k contact → lost (N/µm)", "torque share"), tuple(
+        (f"{t['preload_pct']:g}", *(("—",) * 6)) if "error" in t else
+        (f"{t['preload_pct']:g}", f"{t['loss_force_N']:.0f}",
+         f"{t['loss_force_from_torques_N']:.0f}", f"{t['recovery_force_N']:.0f}",
+         f"{t['jump_m'] * 1e6:.1f}",
+         f"{t['k_slave_contact_N_m'] / 1e6:.1f} → {t['k_slave_lost_N_m'] / 1e6:.1f}",
+         f"{t['torque_share']:.3f}") for t in result["preload"]))
+    return [stiffness, preload]
+
+
+def _stiffness_cells(fit: dict | None) -> tuple[str, str]:
+    if fit is None:
+        return "—", "—"
+    return (f"{fit['k_N_m'] / 1e6:.2f} ± {fit['k_std_N_m'] / 1e6:.2f}",
+            f"{fit['r_squared']:.5f}")
+
+
+def _backlash_cells(backlash: dict | None) -> tuple[str, str]:
+    if backlash is None:
+        return "—", "—"
+    return f"{backlash['value_m'] * 1e6:.1f}", str(backlash["corrected"])
+
+
+# SMFE
+
+@report_result("smfe")
+def smfe_results(recording: Recording, result: dict, section: RunSection) -> None:
+    """Direct receptances Φ_tt and Φ_ww (Eq. 6.13), the condition number of the measured
+    force-spectrum matrix (Eq. 6.14) against the planned C_th, and the coherence of every
+    direct response/force pair per cut (Eq. 6.15)."""
+    f = np.array(result["f_hz"])
+    figure = new_figure(10.0, 4.5)
+    for ax, side, name in zip(figure.subplots(1, 2, sharey=True), ("tool", "workpiece"),
+                              ("Φ_tt", "Φ_ww")):
+        for axis, magnitude in result[side]["abs_m_N"].items():
+            ax.semilogy(f, magnitude, lw=1.0, label=f"|{name},{axis}{axis}|")
+        ax.set_xlabel("frequency (Hz)")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    figure.axes[0].set_ylabel("receptance (m/N)")
+    section.plots.append(Plot("SMFE direct receptances at the tool and the workpiece",
+                              png_of(figure)))
+    section.plots.append(Plot("condition number (Eq. 6.14) and coherence (Eq. 6.15)",
+                              png_of(_smfe_quality_figure(recording, result))))
+    section.tables.append(Table("SMFE peaks", ("side", "direction", "peak (Hz)", "|Φ| (m/N)",
+                                               "min coherence at the peak"), tuple(
+        (side, f"{axis}{axis}", f"{p['f_hz']:.2f}", f"{p['abs_m_N']:.3g}",
+         f"{p['coherence_min']:.3f}")
+        for side in ("tool", "workpiece") for axis, p in result[side]["peaks"].items())))
+    cond = result["condition_number"]
+    coherence = min(p["coherence_min"] for side in ("tool", "workpiece")
+                    for p in result[side]["peaks"].values())
+    section.quality += [
+        Indicator("condition number (median / max / planned C_th)",
+                  f"{cond['median']:.1f} / {cond['max']:.1f} / {cond['planned_C_th']:.1f}"),
+        Indicator("min coherence at the peaks", f"{coherence:.3f}", coherence >= MIN_COHERENCE),
+        Indicator("warnings", "; ".join(result["warnings"]) or "none", not result["warnings"]),
+    ]
+    section.headline = "Φ_tt peaks " + ", ".join(
+        f"{axis}{axis} {p['f_hz']:.1f} Hz" for axis, p in result["tool"]["peaks"].items())
+
+
+def _smfe_quality_figure(recording: Recording, result: dict) -> MplFigure:
+    """C(f) with the planned C_th, and per direction the lowest coherence over the cuts of
+    the direct pair at the tool, over the analysis band (recomputed with the analysis's
+    records and Welch settings)."""
+    from feedbench.analysis.smfe import OVERLAP, smfe_estimate
+    from feedbench.experiments import smfe
+
+    p = validate_table(recording.config["experiment"], smfe.SCHEMA, "experiment")
+    fs = recording.streams["daq"].rate_hz
+    forces, tools, _, _ = smfe.cut_records(recording, len(p["cuts"]))
+    band = result["band_hz"]
+    est = smfe_estimate(list(zip(forces, tools)), fs, int(round(p["segment_s"] * fs)), OVERLAP,
+                        f_max=band[1])
+    inside = (est.f >= band[0]) & (est.f <= band[1])
+    figure = new_figure(10.0, 4.0)
+    condition, coherence = figure.subplots(1, 2)
+    condition.semilogy(est.f[inside], est.condition_number[inside], lw=1.0)
+    condition.axhline(result["condition_number"]["planned_C_th"], color="r", ls="--", lw=0.8,
+                      label="planned C_th")
+    condition.set_ylabel("condition number C")
+    for i, axis in enumerate("xyz"[:est.Phi.shape[1]]):
+        coherence.plot(est.f[inside], est.coherence[:, inside, i, i].min(axis=0), lw=1.0,
+                       label=f"γ²_{axis}{axis}")
+    coherence.axhline(MIN_COHERENCE, color="r", ls=":", lw=0.8)
+    coherence.set_ylim(0.0, 1.05)
+    coherence.set_ylabel("coherence, lowest over the cuts")
+    for ax in (condition, coherence):
+        ax.set_xlabel("frequency (Hz)")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    return figure
+
+
 # assembly
 
 def analyze(recording: Recording) -> dict:
@@ -315,10 +824,66 @@ def run_section(recording: Recording) -> RunSection:
     return section
 
 
+def closure_section(report: Any) -> RunSection:
+    """A closure result (`analysis.closure.ClosureReport`) as a section: the held-out force
+    residual before and after, the effects added with their evidence and parameters, the
+    error before/after and the closed-loop replay errors."""
+    from feedbench.analysis.closure import report_dict
+
+    data = report_dict(report)
+    section = RunSection(f"closure: {report.name or 'model'}", "closure",
+                         " + ".join(data["effects"]) or "nothing added")
+    section.plots.append(Plot("held-out force residual before and after",
+                              png_of(_residual_figure(report))))
+    section.tables.append(Table("effects added", (
+        "effect", "evidence", "ΔBIC", "explained", "held-out error", "parameters"), tuple(
+        (step["effect"], step["evidence"], f"{step['delta_bic']:.0f}",
+         f"{100 * step['explained']:.1f} %",
+         f"{100 * step['error_before']:.2f} → {100 * step['error_after']:.2f} %",
+         ", ".join(f"{key} {p['value']:.4g}" for key, p in step["params"].items()))
+        for step in data["steps"])))
+    replay = data["replay"]
+    if replay is not None:
+        section.tables.append(Table("closed-loop replay on the held-out data", (
+            "quantity", "before", "after"), tuple(
+            (name, f"{replay['before'][key]:.4g}", f"{replay['after'][key]:.4g}")
+            for name, key in (("force NRMSE", "force"), ("position NRMSE", "position"),
+                              ("tracking error NRMSE", "tracking"),
+                              ("FRF |H| error (dB RMS)", "frf_magnitude_db"),
+                              ("FRF phase error (° RMS)", "frf_phase_deg")))))
+    section.quality += [
+        Indicator("held-out force NRMSE before → after",
+                  f"{100 * data['error_before']:.2f} % → {100 * data['error_after']:.2f} %",
+                  data["error_after"] <= data["error_before"]),
+        Indicator("fit on / judged on", f"{data['fit_data']} / {data['holdout_data']}"),
+        Indicator("stopped", data["stopped"]),
+    ]
+    section.headline = (f"{', '.join(data['effects']) or 'nothing'} added: "
+                        f"{100 * data['error_before']:.2f} % → {100 * data['error_after']:.2f} %")
+    return section
+
+
+def _residual_figure(report: Any) -> MplFigure:
+    time_s, before, after = report.held_out_residuals()
+    result = report.result
+    figure = new_figure(10.0, 4.5)
+    ax = figure.subplots()
+    ax.plot(time_s, before, ".", ms=1.5, label=f"before: NRMSE {result.error_before:.2%}")
+    ax.plot(time_s, after, ".", ms=1.5, label=f"after (+ {', '.join(result.effects) or 'nothing'})"
+            f": NRMSE {result.error_after:.2%}")
+    ax.set_xlabel("time in the held-out data (s)")
+    ax.set_ylabel("force residual (N)")
+    ax.grid(alpha=0.3)
+    ax.legend(markerscale=6, fontsize=8)
+    return figure
+
+
 def write_report(runs: Sequence[str | Path], path: str | Path,
-                 title: str = "feedbench campaign report") -> Path:
-    """Write the HTML report of recordings `runs` to `path`; returns the path."""
+                 title: str = "feedbench campaign report", closures: Sequence[Any] = ()) -> Path:
+    """Write the HTML report of recordings `runs` (and of `closures`, closure results) to
+    `path`; returns the path."""
     sections = [run_section(open_recording(run)) for run in runs]
+    sections += [closure_section(report) for report in closures]
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(render_html(sections, title), encoding="utf-8")

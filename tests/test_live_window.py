@@ -1,8 +1,10 @@
 """The live window, headless (Qt offscreen), on simulated bench runs and a replay.
 
-Each run goes through the real drivers over a virtual CAN bus to the simulated drive in a
-worker thread, exactly as ``feedbench run CONFIG --live``. Set FEEDBENCH_SCREENSHOT_DIR to
-keep the screenshot for the README (docs/img/live_window.png).
+Each run goes through the real drivers over a virtual CAN bus to the simulated bench in a
+worker thread, exactly as ``feedbench run CONFIG --live``: the sine-stream's exciter through
+the CiA 401 I/O module, its force and the tool-tip acceleration back through the serial DAQ.
+Set FEEDBENCH_SCREENSHOT_DIR to keep the screenshot taken during the sine-stream for the
+README (docs/img/live_window.png).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
 from feedbench.drivers.cia402 import decode_state
 from feedbench.daq.live import LiveStream
+from feedbench.experiments import sine_stream
 from feedbench.experiments.runner import StopRequest
 from feedbench.gui.live_window import (
     STOP_REASON, LiveWindow, Worker, bench_session, qt_app, replay_session, sticky_range,
@@ -66,34 +69,41 @@ def finish(app, session) -> dict:
     return session.worker.result
 
 
+SINE_STREAM = dict(feeds_mm_min=[1000.0], amplitudes_N=[20.0], f_start_Hz=30.0,
+                   f_stop_Hz=70.0, f_step_Hz=2.0, cycles_per_step=4, settle_cycles=4,
+                   settle_s=0.2)
+"""21 frequency steps around the moving bench's 47 Hz mode, 4 settle + 4 fitted periods."""
+
+
 @pytest.fixture(scope="module")
-def chirp_run(app, tmp_path_factory):
-    """A 2-sweep chirp watched live; a screenshot is taken during the second sweep."""
+def stream_run(app, tmp_path_factory):
+    """A short sine-stream watched live; a screenshot is taken half-way through the steps."""
     directory = tmp_path_factory.mktemp("live")
-    session = bench_session(config("chirp", directory, repetitions=2, duration_s=1.5,
-                                   settle_s=0.3), span_s=2.0, progress=False)
+    session = bench_session(config("sine_stream", directory, **SINE_STREAM), span_s=2.0,
+                            progress=False)
     session.start()
-    progress = pump(app, session, until=lambda s: s.segment_index >= 6 and s.kind == "excite")
+    progress = pump(app, session, until=lambda s: s.fraction > 0.55)
     shot = directory / "live_window.png"
-    pump(app, session, until=lambda s: s.fraction > 0.85)
     assert session.window.grab().save(str(shot))
+    points_at_shot = len(session.window.result_plots.curves[0]["1000 mm/min, 20 N"].getData()[0])
     progress += pump(app, session)
     row = finish(app, session)
     if os.environ.get("FEEDBENCH_SCREENSHOT_DIR"):
         shutil.copy(shot, os.path.join(os.environ["FEEDBENCH_SCREENSHOT_DIR"], shot.name))
-    return session, row, progress, shot
+    return session, row, progress, shot, points_at_shot
 
 
-def test_traces_show_the_recorded_samples(chirp_run):
-    session, row, _, _ = chirp_run
+def test_traces_show_the_recorded_samples(stream_run):
+    session, row, *_ = stream_run
     recording = open_recording(row["file"])
     window = session.window
     assert row["status"] == "complete" and recording.n_gaps == 0
     assert window.stream.n_received == recording.n_samples
     assert window.frames >= 10 and window.paints >= 10
     x, y = window.traces.curves["position"].getData()
-    shown = int(round(-x[0] / recording.metadata["cycle_s"])) + 1
-    assert x[-1] == pytest.approx(0.0, abs=0.01) and -x[0] == pytest.approx(2.0, abs=0.01)
+    shown = int(round((x[-1] - x[0]) / recording.metadata["cycle_s"])) + 1
+    assert -0.06 < x[-1] <= 0.0  # now: the newest sample, rows come in 50-cycle blocks
+    assert x[-1] - x[0] == pytest.approx(2.0, abs=0.01)
     tail = recording.channels["position"][-shown:] * 1e3
     assert (y.min(), y.max()) == (pytest.approx(tail.min(), abs=1e-9),
                                   pytest.approx(tail.max(), abs=1e-9))
@@ -102,36 +112,63 @@ def test_traces_show_the_recorded_samples(chirp_run):
         np.max(np.abs(recording.channels["force"][-shown:])), abs=1e-9)
 
 
-def test_limit_lines_are_the_configured_limits(chirp_run):
-    session, *_ = chirp_run
+def test_the_daq_stream_reaches_its_own_traces_without_a_sample_lost(stream_run):
+    """Every DAQ sample the recorder wrote went through the live stream too; the
+    accelerations group shows the tool-tip accelerometer, a group of its own the exciter's
+    load cell, both with the recorded extremes of the last 2 s."""
+    session, row, *_ = stream_run
+    daq = open_recording(row["file"]).streams["daq"]
+    window = session.window
+    assert daq.n_dropped == 0 and window.stream.sources["daq"].written == daq.n_samples
+    groups = {g.title: names for g, names in window.traces.groups}
+    assert groups["accelerations"] == ["acc_tool_x"]
+    assert groups["DAQ forces"] == ["actuator_force"]
+    assert "excitation" in groups["forces / torques"]
+    for name in ("acc_tool_x", "actuator_force"):
+        x, y = window.traces.curves[name].getData()
+        shown = daq.channels[name][-int(round((x[-1] - x[0]) * daq.rate_hz)) - 1:]
+        assert x[-1] - x[0] == pytest.approx(2.0, abs=0.01) and -0.06 < x[-1] <= 0.0
+        assert (y.min(), y.max()) == (pytest.approx(shown.min(), abs=1e-9),
+                                      pytest.approx(shown.max(), abs=1e-9))
+
+
+def test_limit_lines_are_the_configured_limits(stream_run):
+    session, *_ = stream_run
     lines = dict(zip([g.title for g, _ in session.window.traces.groups],
                      session.window.traces.lines))
     assert lines["positions"] == (-250.0, 250.0)
     assert lines["forces / torques"] == (-1500.0, 1500.0)
 
 
-def test_progress_advances_to_the_end_and_the_header_says_complete(chirp_run):
-    session, _, progress, _ = chirp_run
+def test_progress_advances_to_the_end_and_the_header_says_complete(stream_run):
+    session, _, progress, *_ = stream_run
     assert all(b >= a for a, b in zip(progress, progress[1:]))
     assert len(set(progress)) >= 5 and progress[-1] == 1000
     assert "complete" in session.window.state_label.text()
     assert not session.window.stop_button.isEnabled()
 
 
-def test_the_mobility_builds_up_sweep_by_sweep(chirp_run):
-    session, *_ = chirp_run
+def test_the_frf_builds_up_point_by_point_and_equals_the_analysis(stream_run):
+    """The window drew one point per completed step; the screenshot half-way shows part of
+    them. Each point is the compliance the analysis finds in the recording (same DAQ
+    samples, same sine fits), its R² the analysis's."""
+    session, row, _, _, points_at_shot = stream_run
     result = session.window.result
-    assert result.version == 2
+    analysis = sine_stream.analyze_recording(open_recording(row["file"]))["streams"][0]
+    assert result.version == analysis["steps"] == 21 and analysis["steps_used"] == 21
+    assert 5 <= points_at_shot <= 16
+    f, log_compliance = session.window.result_plots.curves[0]["1000 mm/min, 20 N"].getData()
+    np.testing.assert_allclose(f, analysis["frf"]["f_hz"])
+    np.testing.assert_allclose(10**log_compliance, analysis["frf"]["compliance_abs"], rtol=1e-9)
+    _, r2 = session.window.result_plots.curves[2]["1000 mm/min, 20 N"].getData()
+    np.testing.assert_allclose(r2, analysis["frf"]["r_squared"], rtol=1e-12)
     assert session.window.result_plots.summary.text().startswith(
-        "<b>servo mobility of the sweeps so far</b>: 2 sweeps (")
-    f, log_H = session.window.result_plots.curves[0]["H1"].getData()
-    view = result.view().panels[0].curves[0]
-    assert f[0] >= 20.0 and f[-1] <= 150.0
-    np.testing.assert_allclose(10**log_H, view.y, rtol=1e-12)
+        "<b>sine-stream FRF point by point</b>: step 21 of 21; 1000 mm/min, 20 N: 21 points, "
+        f"peak {max(analysis['frf']['compliance_abs']):.3g} m/N at {analysis['peak_hz']:g} Hz")
 
 
-def test_screenshot_during_the_run_is_a_full_window_image(chirp_run):
-    _, _, _, shot = chirp_run
+def test_screenshot_during_the_run_is_a_full_window_image(stream_run):
+    shot = stream_run[3]
     from PySide6.QtGui import QImage
 
     image = QImage(str(shot))
@@ -191,15 +228,15 @@ def test_closing_the_window_does_not_stop_the_run(app, tmp_path):
     assert recording.n_gaps == 0 and recording.n_samples == session.window.stream.n_received
 
 
-def test_replay_shows_the_recording_in_the_same_window(app, chirp_run):
-    live, row, _, _ = chirp_run
+def test_replay_shows_the_recording_in_the_same_window(app, stream_run):
+    live, row, *_ = stream_run
     session = replay_session(row["file"], speed=0.0, span_s=2.0)
     session.start()
     pump(app, session)
     assert finish(app, session) == "complete"
     assert "replay" in session.window.windowTitle()
     assert session.window.stream.n_received == open_recording(row["file"]).n_samples
-    for name in ("position", "force"):
+    for name in ("position", "force", "acc_tool_x"):
         np.testing.assert_array_equal(session.window.traces.curves[name].getData()[1],
                                       live.window.traces.curves[name].getData()[1])
     replayed, original = session.window.result.view(), live.window.result.view()

@@ -18,12 +18,17 @@ import numpy as np
 import pytest
 import scipy.signal
 
-from feedbench.daq.recorder import Recorder
+from feedbench.analysis.stability import directional_matrix
+from feedbench.daq.recorder import Recorder, StreamSpec
 from feedbench.daq.recording import open_recording
-from feedbench.experiments import chirp
+from feedbench.experiments import chirp, impact_hammer, smfe
 from feedbench.experiments.runner import CHANNELS, UNITS
 from feedbench.models.friction import AnderssonFriction
-from feedbench.report import run_section, write_report
+from feedbench.models.milling import engagement_angles
+from feedbench.models.structure import SMFE_TOOL_STRUCTURE, ModalStructure
+from feedbench.report import (
+    TABLE_5_1, closure_section, render_html, run_section, tool_tip_lobes, write_report,
+)
 from feedbench.units import MM_PER_MIN
 
 CYCLE_S = 1e-3
@@ -34,11 +39,13 @@ COLUMN = {name: i for i, name in enumerate(CHANNELS)}
 
 
 def record(path, experiment: str, steps, status: str = "complete", reason: str = "",
-           skip_after: int | None = None) -> None:
+           skip_after: int | None = None, config: dict | None = None,
+           metadata: dict | None = None) -> None:
     """A recording of `steps` = [(label, kind, info, rows n × CHANNELS)], as the runner
     writes it (one JSON segment event per step); `skip_after` drops 5 cycles there."""
     metadata = {"experiment": experiment, "cycle_s": CYCLE_S, "run_id": path.stem,
-                "config": {"limits": LIMITS, "experiment": {"type": experiment}}}
+                "config": {"limits": LIMITS, "experiment": config or {"type": experiment}},
+                **(metadata or {})}
     with Recorder(path, CHANNELS, UNITS, metadata) as recorder:
         cycle = 1
         for label, kind, info, rows in steps:
@@ -233,3 +240,373 @@ def test_report_renders_in_headless_chromium_with_every_image_decoded(report, tm
     assert (width, height) == (1200, 1600)
     if os.environ.get("FEEDBENCH_SCREENSHOT_DIR"):
         shutil.copy(shot, os.path.join(os.environ["FEEDBENCH_SCREENSHOT_DIR"], "report.png"))
+
+
+# -- the other experiment families ---------------------------------------------------------
+# Recordings as the runner and the serial DAQ write them (rows per bus cycle, the DAQ's
+# samples with their cycle and counter), from structures whose FRF is known; the stepped
+# loading is a short run on the simulated rack-and-pinion axis.
+
+DAQ_RATE = 10_000.0
+PER_CYCLE = 10
+
+
+def record_with_daq(path, experiment: dict, steps, daq_channels: tuple[str, ...],
+                    metadata: dict | None = None) -> None:
+    """Steps [(label, kind, info, rows n × CHANNELS, daq n·PER_CYCLE × channels)]."""
+    spec = StreamSpec(daq_channels, {c: ("N" if "force" in c or c.startswith("dyn")
+                                         else "m/s^2") for c in daq_channels}, DAQ_RATE)
+    meta = {"experiment": experiment["type"], "cycle_s": CYCLE_S, "run_id": path.stem,
+            "config": {"limits": LIMITS, "experiment": experiment}, **(metadata or {})}
+    with Recorder(path, CHANNELS, UNITS, meta, streams={"daq": spec}) as recorder:
+        cycle, sample = 1, 0
+        for label, kind, info, rows, daq in steps:
+            recorder.event(cycle, "segment", json.dumps({"label": label, "kind": kind, **info}))
+            cycles = cycle + np.arange(len(rows))
+            recorder.append_block(cycles, rows)
+            recorder.append_stream("daq", np.repeat(cycles, PER_CYCLE),
+                                   sample + np.arange(len(daq)), daq)
+            cycle, sample = cycle + len(rows), sample + len(daq)
+
+
+def daq_step(label: str, kind: str, info: dict, daq: np.ndarray):
+    return (label, kind, info, rows_of(len(daq) // PER_CYCLE), daq)
+
+
+SDOF = {"idle": ModalStructure(60.0, 0.05, 2.0e6, [[1.0]]),
+        "moving": ModalStructure(47.0, 0.15, 1.0e6, [[1.0]])}
+"""Tool tips along the feed: idle (motor locked by stiction) and moving (the servo damps the
+mode), as on the lab bench (Fig. 5.12)."""
+
+
+def compliance(structure: ModalStructure, f) -> np.ndarray:
+    return structure.receptance(f)[:, 0, 0]
+
+
+def compliance_peak_hz(structure: ModalStructure) -> float:
+    """Where |x/F| of a single mode peaks: f_n √(1 − 2ζ²)."""
+    return float(structure.f_n[0] * np.sqrt(1 - 2 * structure.zeta[0] ** 2))
+
+
+def hammer_steps():
+    """Three 1 s hits at each of two feeds: a 1 ms half-sine of 25 N, the structure's
+    acceleration from rest (`ModalStructure.simulate`) with 1e-3 m/s² noise."""
+    rng = np.random.default_rng(12)
+    force = np.zeros(int(DAQ_RATE))
+    force[500:511] = 25.0 * np.sin(np.pi * np.arange(11) / 10)
+    steps = []
+    for feed, structure in ((0.0, SDOF["idle"]), (500.0, SDOF["moving"])):
+        acc = structure.simulate(force[None], DAQ_RATE).acceleration[0]
+        steps.append(daq_step("settle", "settle", {"feed_mm_min": feed}, np.zeros((500, 2))))
+        for hit in range(3):
+            noisy = acc + 1e-3 * rng.normal(size=acc.size)
+            steps.append(daq_step(f"hit {hit + 1}", "excite", {"feed_mm_min": feed, "hit": hit},
+                                  np.column_stack([force, noisy])))
+    return steps
+
+
+def sine_stream_steps():
+    """Steady-state sines at 40…60 Hz (1 Hz steps, 5 + 5 periods) on the moving tip, 20 N."""
+    steps = []
+    for i, f in enumerate(np.arange(40.0, 61.0)):
+        n = int(round(10 / (f * CYCLE_S))) * PER_CYCLE
+        t = np.arange(n) / DAQ_RATE
+        a_over_f = -(2 * np.pi * f) ** 2 * compliance(SDOF["moving"], [f])[0]
+        force = 20.0 * np.sin(2 * np.pi * f * t)
+        acc = 20.0 * abs(a_over_f) * np.sin(2 * np.pi * f * t + np.angle(a_over_f))
+        steps.append(daq_step(f"{f:g} Hz", "excite", {
+            "feed_mm_min": 1000.0, "amplitude_N": 20.0, "step": i, "repeat": 0,
+            "frequency_hz": f, "held_N": 20.0, "limited": False}, np.column_stack([force, acc])))
+    return steps
+
+
+def shaker_chirp_steps():
+    """Two 20–100 Hz sweeps of 2 s with 0.5 s ring-down on the moving tip."""
+    t = np.arange(int(2.0 * DAQ_RATE)) / DAQ_RATE
+    force = np.r_[20.0 * scipy.signal.chirp(t, 20.0, t[-1], 100.0), np.zeros(int(0.5 * DAQ_RATE))]
+    acc = SDOF["moving"].simulate(force[None], DAQ_RATE).acceleration[0]
+    return [daq_step(f"sweep {i + 1}", "excite", {"feed_mm_min": 1000.0, "repetition": i},
+                     np.column_stack([force, acc])) for i in range(2)]
+
+
+K_P, T_I = 12_968.0, 0.01
+
+
+def lab_bench_mobility(f) -> np.ndarray:
+    """Motor velocity / motor force of the lab bench's two masses (DIGEST §3: M_mot 23.1 kg,
+    M_tip 11.3 kg, k 1.68 N/µm, c 104 N·s/m): f_t 61.4 Hz, f_r 74.9 Hz (Eqs. 4.13, 4.14)."""
+    s = 2j * np.pi * np.asarray(f)
+    m1, m2, k, c = 23.1, 11.3, 1.68e6, 104.0
+    tip = m2 * s**2 + c * s + k
+    return tip / (s * (m1 * tip + m2 * (c * s + k)))
+
+
+def bode_steps():
+    """Closed velocity loop (Eq. 4.21 with K_P, T_I) as steady sines at 20…120 Hz, 1 Hz
+    steps, 5 + 10 periods of a 60 mm/min reference at a 500 mm/min feed."""
+    from feedbench.analysis.servo import closed_velocity_loop
+
+    steps = []
+    for f in np.arange(20.0, 121.0):
+        n = int(round(15 / (f * CYCLE_S)))
+        t = np.arange(n) * CYCLE_S
+        H = closed_velocity_loop([f], lab_bench_mobility([f]), K_P, T_I)[0]
+        reference = 60 * MM_PER_MIN * np.sin(2 * np.pi * f * t)
+        velocity = 500 * MM_PER_MIN + 60 * MM_PER_MIN * abs(H) * np.sin(2 * np.pi * f * t
+                                                                         + np.angle(H))
+        steps.append((f"{f:g} Hz", "excite", {"feed_mm_min": 500.0, "frequency_hz": f},
+                      rows_of(n, velocity_offset=reference, velocity=velocity)))
+    return steps
+
+
+SMFE_DIRECTIONS = {"down": (1.0, 0.4, 0.2), "up": (0.3, 1.0, -0.3), "central": (0.2, -0.4, 1.0)}
+"""Force direction of each cut: as in milling, every force component of a cut is coherent
+with its F_x (the analysis's reference), the cuts point different ways."""
+
+
+def smfe_steps():
+    """Three 12 s 'cuts', each a broadband force along its own direction, on Table 6.2's
+    tool structure (DAQ: the dynamometer reads −F); the workpiece side moves as −½ the tool."""
+    rng = np.random.default_rng(21)
+    steps = []
+    for k, (mode, direction) in enumerate(SMFE_DIRECTIONS.items()):
+        signal = scipy.signal.lfilter(*scipy.signal.butter(4, 300.0, fs=DAQ_RATE),
+                                      100.0 * rng.normal(size=int(12 * DAQ_RATE)))
+        force = np.outer(direction, signal)
+        acc = SMFE_TOOL_STRUCTURE.simulate(force, DAQ_RATE).acceleration
+        daq = np.vstack([-force, acc, -0.5 * acc]).T
+        steps += [daq_step(f"approach {mode}", "move", {"cut": k}, np.zeros((100, 9))),
+                  daq_step(f"{mode} milling ramp", "measure", {"cut": k, "mode": mode}, daq)]
+    return steps
+
+
+@pytest.fixture(scope="module")
+def family_runs(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("families")
+    paths = {name: directory / f"{name}.h5" for name in (
+        "impact_hammer", "sine_stream", "shaker_chirp", "closed_loop_bode", "smfe")}
+    record_with_daq(paths["impact_hammer"], {"type": "impact_hammer"}, hammer_steps(),
+                    ("hammer_force", "acc_tool_x"))
+    record_with_daq(paths["sine_stream"], {"type": "sine_stream", "amplitudes_N": [20.0]},
+                    sine_stream_steps(), ("actuator_force", "acc_tool_x"))
+    record_with_daq(paths["shaker_chirp"], {"type": "shaker_chirp", "f_start_Hz": 20.0,
+                                            "f_stop_Hz": 100.0}, shaker_chirp_steps(),
+                    ("shaker_force", "acc_tool_x"))
+    record(paths["closed_loop_bode"], "closed_loop_bode", bode_steps(),
+           config={"type": "closed_loop_bode", "f_start_Hz": 20.0, "f_stop_Hz": 120.0},
+           metadata={"drive_gains": {"K_p": K_P, "T_i": T_I}})
+    record_with_daq(paths["smfe"], {"type": "smfe", "segment_s": 2.0, "ramp_s": 12.0},
+                    smfe_steps(), smfe.DAQ_CHANNELS)
+    return paths
+
+
+@pytest.fixture(scope="module")
+def family_sections(family_runs):
+    return {name: run_section(open_recording(path)) for name, path in family_runs.items()}
+
+
+def plot_sizes(section) -> dict[str, tuple[int, int]]:
+    return {plot.title: png_size(plot.png) for plot in section.plots}
+
+
+def test_every_family_section_has_its_plots_and_no_failed_analysis(family_sections):
+    expected = {
+        "impact_hammer": {"key time traces": (1000, 950),
+                          "tool-tip compliance per feed (quasi-FRF, Eq. 5.3) with coherence":
+                              (800, 550),
+                          "stability lobes from the measured tool-tip FRF": (800, 450)},
+        "sine_stream": {"key time traces": (1000, 950),
+                        "sine-stream compliance points with the R² of each step": (800, 550)},
+        "shaker_chirp": {"key time traces": (1000, 950),
+                         "tool-tip compliance per feed (H1 over the sweeps) with coherence":
+                             (800, 550),
+                         "stability lobes from the measured tool-tip FRF": (800, 450)},
+        "closed_loop_bode": {"key time traces": (1000, 700),
+                             "closed velocity loop: points with R²": (800, 550),
+                             "open-loop mobility by Eq. (4.20)": (800, 400)},
+        "smfe": {"key time traces": (1000, 950),
+                 "SMFE direct receptances at the tool and the workpiece": (1000, 450),
+                 "condition number (Eq. 6.14) and coherence (Eq. 6.15)": (1000, 400)},
+    }
+    for name, section in family_sections.items():
+        assert plot_sizes(section) == expected[name], name
+        assert not [q for q in section.quality if q.name in ("analysis", "results")], name
+
+
+def test_hammer_section_shows_each_feeds_compliance_and_the_lobes_it_predicts(family_runs,
+                                                                              family_sections):
+    section = family_sections["impact_hammer"]
+    feeds = table(section, "impact hammer per feed")
+    assert value(feeds["0"][0]) == pytest.approx(compliance_peak_hz(SDOF["idle"]), abs=1.0)
+    assert value(feeds["500"][0]) == pytest.approx(compliance_peak_hz(SDOF["moving"]), abs=1.0)
+    assert feeds["0"][2] == "3 of 3"
+    # peak |x/F| = 1/(2ζ√(1−ζ²) k); the exponential window (τ 0.5 s) adds 1/(ωτ) to ζ
+    for feed, structure in (("0", SDOF["idle"]), ("500", SDOF["moving"])):
+        zeta = structure.zeta[0] + 1 / (2 * np.pi * structure.f_n[0] * 0.5)
+        peak = 1e6 / (2 * zeta * np.sqrt(1 - zeta**2) * structure.k[0])
+        assert value(feeds[feed][1]) == pytest.approx(peak, rel=0.03)
+    lobes = table(section, "stability lobes (Table 5.1 cut, y taken rigid)")
+    result = impact_hammer.analyze_recording(open_recording(family_runs["impact_hammer"]))
+    for label, feed in (("0 mm/min", result["feeds"][0]), ("500 mm/min", result["feeds"][1])):
+        frf = feed["frf"]
+        measured = (np.array(frf["compliance_abs"])
+                    * np.exp(1j * np.array(frf["compliance_phase_rad"])))
+        expected = tool_tip_lobes(np.array(frf["f_hz"]), measured)
+        assert value(lobes[label][0]) == pytest.approx(expected.min_depth * 1e3, abs=5e-4)
+    assert value(lobes["500 mm/min"][0]) > 1.3 * value(lobes["0 mm/min"][0])  # Fig. 5.25
+    assert section.headline == "invariant from 500 mm/min"
+
+
+def test_tool_tip_lobes_reach_the_single_direction_limit_of_the_zoa():
+    """With y rigid the ZOA's one eigenvalue is α_xx Φ_xx: the lowest lobe minimum is
+    a = 2π / (Z K_tc α_xx min Re Φ_xx) (Altintas & Budak); Table 5.1's cut."""
+    f = np.linspace(20.0, 150.0, 2601)
+    phi = compliance(SDOF["moving"], f)
+    lobes = tool_tip_lobes(f, phi)
+    start, stop = engagement_angles(TABLE_5_1.a_e, TABLE_5_1.D, TABLE_5_1.mode)
+    alpha = directional_matrix(TABLE_5_1.K_rc / TABLE_5_1.K_tc, start, stop)[0, 0]
+    real_part = phi.real.max() if alpha > 0 else phi.real.min()
+    limit = 2 * np.pi / (TABLE_5_1.Z * TABLE_5_1.K_tc * alpha * real_part)
+    assert lobes.min_depth == pytest.approx(limit, rel=0.01)
+    assert 0.2e-3 < limit < 2e-3
+
+
+def test_sine_stream_section_has_the_true_points_and_their_r_squared(family_sections):
+    section = family_sections["sine_stream"]
+    rows = table(section, "sine-stream per feed and amplitude")["1000"]
+    assert rows[:2] == ("20", "21 of 21")
+    f = np.arange(40.0, 61.0)
+    assert value(rows[2]) == f[np.argmax(np.abs(compliance(SDOF["moving"], f)))]
+    quality = {q.name: q for q in section.quality}
+    assert quality["steps flagged (quality gate)"].value == "0"
+    assert float(quality["min R² of the steps used"].value) > 0.99999
+    n = sum(int(round(10 / (f * CYCLE_S))) * PER_CYCLE for f in np.arange(40.0, 61.0))
+    assert quality["daq stream"].value == f"{n} samples at 10000 Hz, 0 lost"
+
+
+def test_shaker_chirp_section_finds_the_resonance(family_sections):
+    section = family_sections["shaker_chirp"]
+    row = table(section, "shaker chirp per feed")["1000"]
+    assert row[0] == "2"  # 2.5 s records: 0.4 Hz resolution
+    assert value(row[1]) == pytest.approx(compliance_peak_hz(SDOF["moving"]), abs=0.4)
+    assert value(row[2]) > 0.99
+    lobes = table(section, "stability lobes (Table 5.1 cut, y taken rigid)")
+    assert list(lobes) == ["1000 mm/min"]
+
+
+def test_closed_loop_bode_section_gives_the_flexure_frequencies(family_sections):
+    section = family_sections["closed_loop_bode"]
+    rows = table(section, "closed velocity loop")
+    assert value(rows["anti-resonance f_t (Eq. 4.13)"][0]) == pytest.approx(61.4, abs=1.0)
+    assert value(rows["resonance f_r (Eq. 4.14)"][0]) == pytest.approx(74.9, abs=1.0)
+    assert rows["frequencies flagged (R²)"] == ("0",)
+    assert section.headline.startswith("f_t 61")
+
+
+def test_smfe_section_recovers_the_tool_receptance_peaks(family_sections):
+    """Table 6.2's tool: |Φ_tt| peaks within 10 % of the truth at ±1 Hz (1 s segments)."""
+    section = family_sections["smfe"]
+    peaks = {(row[0], row[1]): row[2:] for row in
+             next(t for t in section.tables if t.title == "SMFE peaks").rows}
+    f = np.arange(20.0, 100.0, 0.01)
+    truth = np.abs(SMFE_TOOL_STRUCTURE.receptance(f))
+    for i, axis in enumerate("xyz"):
+        f_peak, magnitude, coherence = peaks[("tool", f"{axis}{axis}")]
+        k = np.argmax(truth[:, i, i])
+        assert float(f_peak) == pytest.approx(f[k], abs=1.0)
+        assert float(magnitude) == pytest.approx(truth[k, i, i], rel=0.1)
+        assert float(coherence) > 0.9
+        assert float(peaks[("workpiece", f"{axis}{axis}")][1]) == pytest.approx(
+            0.5 * float(magnitude), rel=5e-3)  # three digits in the table
+    quality = {q.name: q for q in section.quality}
+    median, worst, planned = (float(v) for v in quality[
+        "condition number (median / max / planned C_th)"].value.split(" / "))
+    assert 1.0 <= median < worst and planned == pytest.approx(9.1, abs=0.1)
+
+
+@pytest.fixture(scope="module")
+def stepped_loading_run(tmp_path_factory):
+    """A short stepped loading on the simulated rack-and-pinion axis (≈ 8 s): master only,
+    one backlash stroke, single-motor loading, coupled loading at 20 % preload."""
+    from feedbench.bench import parse_run_config, run_config
+    from feedbench.demo import example_config
+
+    raw = example_config("stepped_loading")
+    raw["bench"].update(output_dir=str(tmp_path_factory.mktemp("stepped")),
+                        channel=f"report-stepped-{os.getpid()}", load_cell_every=5)
+    raw["experiment"].update(backlash=["master"], single_motor=["master"], preload_pct=[20.0],
+                             unload=False, settle_s=0.03, measure_s=0.06, ramp_s=0.01,
+                             depth_um=250.0, step_um=10.0, single_depth_um=350.0,
+                             single_step_um=20.0, strokes=1, setup_s=0.5, dwell_s=0.1)
+    row = run_config(parse_run_config(raw), progress=False)
+    assert row["status"] == "complete", row["reason"]
+    return row["file"], run_section(open_recording(row["file"]))
+
+
+def test_stepped_loading_section_shows_stiffness_backlash_and_preload_loss(stepped_loading_run):
+    """Truth of the simulated axis (DIGEST §3): k_m 81 N/µm, backlash 314 µm; preload loss
+    at 20 %: 2 τ_p K_tr = 5320 N, the jump equals the backlash."""
+    _, section = stepped_loading_run
+    assert plot_sizes(section) == {
+        "key time traces": (1000, 700), "single-motor loading and backlash": (1000, 450),
+        "coupled loading per preload level: master displacement against load": (1000, 400)}
+    stiffness = table(section, "drive-train stiffness (Eq. 3.26) and backlash")["master"]
+    assert value(stiffness[0]) == pytest.approx(81.0, rel=0.02)
+    assert value(stiffness[2]) == pytest.approx(314.0, abs=3.0)
+    loss = table(section, "preload loss per level (Ch. 3.4.3)")["20"]
+    assert value(loss[0]) == pytest.approx(5320.0, rel=0.05)
+    assert value(loss[3]) == pytest.approx(314.0, rel=0.05)
+    quality = {q.name: q for q in section.quality}
+    assert quality["peak |force|"].ok and quality["preload levels analysed"].value == "1 of 1"
+    assert section.headline.startswith("k_m 8")
+
+
+@pytest.fixture(scope="module")
+def closure_result():
+    from feedbench.closure_command import EXAMPLES, closure_report
+
+    return closure_report(EXAMPLES / "sample_axis.csv", EXAMPLES / "bench_coulomb_viscous.toml")
+
+
+def test_closure_section_shows_the_residual_before_and_after(closure_result):
+    from feedbench.analysis.closure import report_dict
+
+    section = closure_section(closure_result)
+    data = report_dict(closure_result)
+    assert plot_sizes(section) == {"held-out force residual before and after": (1000, 450)}
+    effects = table(section, "effects added")
+    assert list(effects) == data["effects"] == ["ripple"]
+    assert effects["ripple"][3] == (f"{100 * data['error_before']:.2f} → "
+                                    f"{100 * data['error_after']:.2f} %")
+    assert data["error_after"] < 0.5 * data["error_before"]
+    quality = {q.name: q for q in section.quality}
+    assert quality["held-out force NRMSE before → after"].ok
+    replay = table(section, "closed-loop replay on the held-out data")
+    assert float(replay["force NRMSE"][1]) < float(replay["force NRMSE"][0])
+
+
+@pytest.fixture(scope="module")
+def campaign(family_sections, stepped_loading_run, closure_result, tmp_path_factory):
+    """Every family's section and the closure's in one report."""
+    sections = [*family_sections.values(), stepped_loading_run[1],
+                closure_section(closure_result)]
+    path = tmp_path_factory.mktemp("campaign") / "campaign.html"
+    path.write_text(render_html(sections, "every family"), encoding="utf-8")
+    return path, sections
+
+
+def test_campaign_report_holds_every_family_and_the_closure_offline(campaign):
+    path, sections = campaign
+    text = path.read_text(encoding="utf-8")
+    images = re.findall(r"<img alt='[^']*' src='data:image/png;base64,([^']+)'>", text)
+    assert len(images) == sum(len(s.plots) for s in sections) == 3 + 2 + 3 + 3 + 3 + 3 + 1
+    assert [png_size(base64.b64decode(data)) for data in images] == [
+        png_size(plot.png) for s in sections for plot in s.plots]
+    assert "http:" not in text and "https:" not in text and "<link" not in text
+    assert text.count("<h2 ") == len(sections) and "closure: bench" in text
+
+
+def test_write_report_takes_closure_results(closure_result, tmp_path):
+    path = write_report([], tmp_path / "closure.html", "closure", closures=[closure_result])
+    text = path.read_text(encoding="utf-8")
+    assert text.count("<img") == 1 and "held-out force residual before and after" in text

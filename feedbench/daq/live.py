@@ -1,14 +1,17 @@
 """The live stream: what a live plot reads while a run acquires, without ever slowing it.
 
-`LiveStream` is a runner observer. The cycle loop hands it blocks of rows; it copies them
-into a bounded ring buffer (one column-major row per channel) and counts them — nothing
-else, so the producer never waits for a reader and never allocates. A reader (the live
-window, on its own timer) asks for a `frame`: the last `span_s` seconds, reduced by min/max
+`LiveStream` is a runner observer. The cycle loop hands it blocks of rows, and the cycle
+devices' high-rate streams (the serial DAQ's forces and accelerations, `on_stream`) as they
+reach the recorder; it copies each into a bounded ring buffer of its own (one column-major
+row per channel) and counts them — nothing else, so the producer never waits for a reader
+and never allocates. A reader (the live window, on its own timer) asks for a `frame` of a
+source (the rows, or a stream by name): the last `span_s` seconds, reduced by min/max
 decimation to a few thousand points per channel so a one-sample spike stays visible. The
 reader copies before it reduces and drops any bucket the producer overwrote meanwhile, so a
 slow reader skips frames, never corrupts them, and the recorder keeps every sample.
 
-`replay` feeds a recording through the same observer calls (``feedbench live RUN``).
+`replay` feeds a recording, streams included, through the same observer calls
+(``feedbench live RUN``).
 """
 
 from __future__ import annotations
@@ -17,17 +20,22 @@ import json
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from feedbench.daq.recorder import StreamSpec
 from feedbench.experiments.plan import Plan, Segment
 from feedbench.experiments.runner import BLOCK_CYCLES, Observer, StopRequest
+
+ROWS = ""
+"""Source name of the per-cycle rows (streams are named by their recording name, e.g. daq)."""
 
 SLACK = 0.25
 """Extra ring capacity beyond the longest span, so a reader's copy is rarely overwritten."""
 
-UNIT_SUFFIXES = {"_mm_min": "mm/min", "_Hz": "Hz", "_mm": "mm", "_N": "N", "_s": "s"}
+UNIT_SUFFIXES = {"_mm_min": "mm/min", "_Hz": "Hz", "_hz": "Hz", "_mm": "mm", "_N": "N",
+                 "_s": "s"}
 """Info keys carry their engineering unit as a suffix (config convention): feed_mm_min → mm/min."""
 
 
@@ -141,9 +149,26 @@ def info_text(info: dict[str, Any]) -> str:
             if key.endswith(suffix):
                 name, unit = key[: -len(suffix)], " " + symbol
                 break
-        shown = f"{value:g}" if isinstance(value, (int, float)) else str(value)
+        if isinstance(value, bool):
+            shown = "yes" if value else "no"
+        else:
+            shown = f"{value:g}" if isinstance(value, (int, float)) else str(value)
         parts.append(f"{name.replace('_', ' ')} {shown}{unit}")
     return ", ".join(parts)
+
+
+@dataclass(frozen=True)
+class Timebase:
+    """Time of a ring's ticks (bus cycles, or a stream's sample counter), s of bench time:
+    t = offset + (tick − origin) · period."""
+
+    origin: int
+    period: float
+    offset: float = 0.0
+
+    def times(self, ticks: np.ndarray) -> np.ndarray:
+        """Bench times (s) of `ticks`."""
+        return self.offset + (ticks - self.origin) * self.period
 
 
 @dataclass(frozen=True)
@@ -212,15 +237,21 @@ class LiveFrame:
 
 
 class LiveStream:
-    """Runner observer feeding a bounded ring buffer; readers take decimated frames.
+    """Runner observer feeding bounded ring buffers; readers take decimated frames.
 
-    `span_max_s` is the longest window a reader may ask for (s of bench time); the ring
-    holds that span plus `SLACK`. Memory: channels × span_max_s / cycle_s × 8 bytes.
+    `span_max_s` is the longest window a reader may ask for (s of bench time); each ring
+    (the rows, and every high-rate stream the devices declare) holds that span plus `SLACK`.
+    Memory: channels × span_max_s × rate × 8 bytes per ring (9 DAQ channels at 10 kHz,
+    60 s: 54 MB).
     """
 
     def __init__(self, span_max_s: float = 60.0) -> None:
         self.span_max_s = span_max_s
         self._ring = RingBuffer(1, ())
+        self._streams: dict[str, RingBuffer] = {}
+        self._specs: dict[str, StreamSpec] = {}
+        self._stream_timebases: dict[str, Timebase] = {}
+        self._units: dict[str, str] = {}
         self._state = LiveState()
         self._first_cycle: int | None = None
         self._plan_start: int | None = None
@@ -230,14 +261,22 @@ class LiveStream:
     # observer side: called from the cycle loop, never blocks
     def on_start(self, plan: Plan, channels: Sequence[str]) -> None:
         """Size the ring for the plan's cycle time and reset the state."""
-        capacity = math.ceil(self.span_max_s / plan.cycle_s * (1.0 + SLACK))
-        self._ring = RingBuffer(capacity, channels)
+        self._ring = RingBuffer(self._capacity(1.0 / plan.cycle_s), channels)
+        self._streams, self._specs, self._stream_timebases, self._units = {}, {}, {}, {}
         self._first_cycle = self._plan_start = None
         self._last_cycle = -1
         self._wall_start = time.monotonic()
         self._state = LiveState(experiment=plan.experiment, status="running",
                                 n_segments=len(plan.segments), cycles_total=plan.n_cycles,
                                 cycle_s=plan.cycle_s)
+
+    def on_layout(self, units: Mapping[str, str], streams: Mapping[str, StreamSpec]) -> None:
+        """Learn the units of the rows and open a ring per high-rate stream."""
+        self._units = dict(units)
+        for name, spec in streams.items():
+            self._units.update({c: spec.units.get(c, "") for c in spec.channels})
+            self._specs[name] = spec
+            self._streams[name] = RingBuffer(self._capacity(spec.rate_hz), spec.channels)
 
     def on_segment(self, index: int, segment: Segment, cycle: int) -> None:
         """Remember the step; progress counts from the first step's cycle."""
@@ -254,25 +293,63 @@ class LiveStream:
         if len(cycles):
             self._last_cycle = int(cycles[-1])
 
+    def on_stream(self, name: str, cycles: np.ndarray, sequence: np.ndarray,
+                  samples: np.ndarray) -> None:
+        """Copy a device's block of stream `name` into its ring (ticks: the sample counter)."""
+        ring = self._streams.get(name)
+        if ring is None or not len(sequence):
+            return
+        if self._first_cycle is None:
+            self._first_cycle = int(cycles[0])
+        if name not in self._stream_timebases:
+            self._stream_timebases[name] = Timebase(
+                int(sequence[0]), 1.0 / self._specs[name].rate_hz,
+                (int(cycles[0]) - self._first_cycle) * self._state.cycle_s)
+        ring.write(sequence, samples)
+
     def on_stop(self, status: str, reason: str) -> None:
         """Record the final status."""
         self._state = replace(self._state, status=status, reason=reason)
 
+    def _capacity(self, rate_hz: float) -> int:
+        return math.ceil(self.span_max_s * rate_hz * (1.0 + SLACK))
+
     # reader side
     @property
     def channels(self) -> tuple[str, ...]:
-        """Channel names of the current run, in the runner's column order."""
+        """Channel names of the rows, in the runner's column order."""
         return self._ring.channels
 
     @property
     def n_received(self) -> int:
-        """Samples received since `on_start`."""
+        """Rows received since `on_start`."""
         return self._ring.written
 
     @property
     def cycle_s(self) -> float:
         """Bus cycle of the current run (s)."""
         return self._state.cycle_s
+
+    @property
+    def units(self) -> dict[str, str]:
+        """SI unit of every row and stream channel (from `on_layout`; empty without it)."""
+        return dict(self._units)
+
+    @property
+    def sources(self) -> dict[str, RingBuffer]:
+        """The rings by source: `ROWS` and each high-rate stream's name."""
+        return {ROWS: self._ring, **self._streams}
+
+    def timebase(self, source: str = ROWS) -> Timebase:
+        """How a source's ticks map to bench time (t = 0: the run's first cycle)."""
+        if source == ROWS:
+            return Timebase(self.first_cycle, self.cycle_s)
+        spec = self._specs[source]
+        return self._stream_timebases.get(source, Timebase(0, 1.0 / spec.rate_hz))
+
+    def rate_hz(self, source: str = ROWS) -> float:
+        """Sample rate of a source (Hz)."""
+        return 1.0 / self.cycle_s if source == ROWS else self._specs[source].rate_hz
 
     def state(self) -> LiveState:
         """A snapshot of the run's state and progress."""
@@ -283,7 +360,7 @@ class LiveStream:
 
     @property
     def ring(self) -> RingBuffer:
-        """The current run's ring buffer (a new one at every `on_start`)."""
+        """The current run's ring of rows (a new one at every `on_start`)."""
         return self._ring
 
     @property
@@ -292,13 +369,14 @@ class LiveStream:
         return self._first_cycle or 0
 
     def frame(self, span_s: float, n_buckets: int = 2000,
-              channels: Sequence[str] | None = None) -> LiveFrame:
-        """The last `span_s` seconds of `channels` (default all), min/max-decimated, once.
+              channels: Sequence[str] | None = None, source: str = ROWS) -> LiveFrame:
+        """The last `span_s` seconds of `channels` (default all) of a source, min/max-
+        decimated, once.
 
         A reader that asks every frame keeps a `Decimator` instead: it reduces each sample
         only once.
         """
-        return Decimator(self, span_s, n_buckets, channels).frame()
+        return Decimator(self, span_s, n_buckets, channels, source).frame()
 
 
 class Decimator:
@@ -312,11 +390,12 @@ class Decimator:
     """
 
     def __init__(self, stream: LiveStream, span_s: float, n_buckets: int = 2000,
-                 channels: Sequence[str] | None = None) -> None:
+                 channels: Sequence[str] | None = None, source: str = ROWS) -> None:
         self.stream = stream
         self.span_s = min(span_s, stream.span_max_s)
         self.n_buckets = n_buckets
         self.names = tuple(channels) if channels is not None else None
+        self.source = source
         self._ring: RingBuffer | None = None
 
     def _reset(self, ring: RingBuffer) -> None:
@@ -324,7 +403,7 @@ class Decimator:
         self._ring = ring
         self._names = self.names if self.names is not None else ring.channels
         self._columns = [ring.channels.index(name) for name in self._names]
-        span = max(int(round(self.span_s / self.stream.cycle_s)), 1)
+        span = max(int(round(self.span_s * self.stream.rate_hz(self.source))), 1)
         self.k = bucket_size(span, self.n_buckets)
         self._slots = -(-span // self.k)
         self._t = np.zeros(self._slots)
@@ -335,7 +414,7 @@ class Decimator:
 
     def frame(self) -> LiveFrame:
         """The current decimated window (`samples_per_point` = k)."""
-        ring = self.stream.ring
+        ring = self.stream.sources[self.source]
         if ring is not self._ring:
             self._reset(ring)
         stop = ring.written
@@ -355,8 +434,8 @@ class Decimator:
         """Time (s) of the newest sample in the ring (0 before any)."""
         if not ring.written:
             return 0.0
-        cycle = int(ring.cycles[(ring.written - 1) % ring.capacity])
-        return (cycle - self.stream.first_cycle) * self.stream.cycle_s
+        tick = ring.cycles[(ring.written - 1) % ring.capacity]
+        return float(self.stream.timebase(self.source).times(tick))
 
     def _reduce_new(self, ring: RingBuffer, begin: int, end: int) -> None:
         """Reduce complete buckets [begin, end) into the store."""
@@ -376,7 +455,7 @@ class Decimator:
         cycles, values, first = ring.copy_rows(start, stop, self._columns)
         cut = -(-(first - start) // self.k) * self.k - (first - start)
         cycles, values = cycles[cut:], values[:, cut:]
-        t = (cycles[:: self.k] - self.stream.first_cycle) * self.stream.cycle_s
+        t = self.stream.timebase(self.source).times(cycles[:: self.k])
         if self.k == 1:
             return t, values, values
         return (t, *minmax_buckets(values, self.k))
@@ -407,8 +486,11 @@ def replay(recording, observers: Sequence[Observer], speed: float = 1.0,
            stop: StopRequest | None = None, block_rows: int = BLOCK_CYCLES) -> str:
     """Feed a recording to `observers` as the runner fed them, paced at `speed` × real time.
 
-    `speed` ≤ 0 replays as fast as possible; `stop` (a `StopRequest`) ends it early.
-    Returns the status passed to `on_stop`: the recording's own, or ``stopped``.
+    Stream observers (`on_layout`, `on_stream`) also get the units and each recorded stream,
+    its samples up to a block's last cycle handed over before the block (the rest at the
+    end). `speed` ≤ 0 replays
+    as fast as possible; `stop` (a `StopRequest`) ends it early. Returns the status passed
+    to `on_stop`: the recording's own, or ``stopped``.
     """
     plan, starts = recorded_plan(recording)
     names = list(recording.channels)
@@ -416,8 +498,11 @@ def replay(recording, observers: Sequence[Observer], speed: float = 1.0,
     cycles = recording.cycle
     for obs in observers:
         obs.on_start(plan, names)
+        if hasattr(obs, "on_layout"):
+            obs.on_layout(recording.units, recorded_streams(recording))
     pace = _Pacer(plan.cycle_s / speed if speed > 0 else 0.0)
     boundaries = np.searchsorted(cycles, starts)
+    handed = dict.fromkeys(recording.streams, 0)
     next_segment, status = 0, recording.status
     for begin in range(0, len(cycles), block_rows):
         end = min(begin + block_rows, len(cycles))
@@ -425,15 +510,38 @@ def replay(recording, observers: Sequence[Observer], speed: float = 1.0,
             for obs in observers:
                 obs.on_segment(next_segment, plan.segments[next_segment], starts[next_segment])
             next_segment += 1
+        _replay_streams(recording, observers, handed, int(cycles[end - 1]))
         for obs in observers:
             obs.on_block(cycles[begin:end], rows[begin:end])
         if stop is not None and stop.reason is not None:
             status = "stopped"
             break
         pace.wait(end)
+    if status != "stopped":  # samples the instrument sent after the last bus cycle
+        _replay_streams(recording, observers, handed, np.iinfo(np.int64).max)
     for obs in observers:
         obs.on_stop(status, stop.reason if status == "stopped" else recording.reason)
     return status
+
+
+def recorded_streams(recording) -> dict[str, StreamSpec]:
+    """The high-rate streams of a recording as the devices declared them."""
+    return {name: StreamSpec(tuple(stream.channels), stream.units, stream.rate_hz)
+            for name, stream in recording.streams.items()}
+
+
+def _replay_streams(recording, observers: Sequence[Observer], handed: dict[str, int],
+                    last_cycle: int) -> None:
+    """Hand each stream's samples up to bus cycle `last_cycle` that were not handed yet."""
+    watching = [obs for obs in observers if hasattr(obs, "on_stream")]
+    for name, stream in recording.streams.items():
+        begin = handed[name]
+        end = int(np.searchsorted(stream.cycle, last_cycle, side="right"))
+        if end > begin and watching:
+            samples = np.column_stack([values[begin:end] for values in stream.channels.values()])
+            for obs in watching:
+                obs.on_stream(name, stream.cycle[begin:end], stream.sequence[begin:end], samples)
+        handed[name] = max(end, begin)
 
 
 class _Pacer:

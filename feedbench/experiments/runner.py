@@ -18,7 +18,7 @@ import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Iterator, Mapping, Protocol, Sequence
+from typing import Any, Iterator, Mapping, Protocol, Sequence
 
 import numpy as np
 
@@ -67,6 +67,53 @@ class Observer(Protocol):
     def on_block(self, cycles: np.ndarray, block: np.ndarray) -> None: ...
 
     def on_stop(self, status: str, reason: str) -> None: ...
+
+
+class StreamObserver(Observer, Protocol):
+    """An observer that also watches what the cycle devices acquire (live window, live
+    results): `on_layout` right after `on_start` with every row channel's unit and the
+    devices' high-rate streams (name → `StreamSpec`), then `on_stream` with each block a
+    device records (bus cycles, sample counters, n × channels samples; not to be modified).
+    """
+
+    def on_layout(self, units: Mapping[str, str], streams: Mapping[str, Any]) -> None: ...
+
+    def on_stream(self, name: str, cycles: np.ndarray, sequence: np.ndarray,
+                  samples: np.ndarray) -> None: ...
+
+
+class StreamTap:
+    """The recorder as the cycle devices see it: each high-rate block goes to the recorder
+    first, unchanged, then to the stream observers; everything else is the recorder's.
+
+    An observer that raises is dropped with a ``fault`` event: a watcher never stops the
+    acquisition."""
+
+    def __init__(self, recorder, observers: Sequence[StreamObserver]) -> None:
+        self.recorder = recorder
+        self.observers = list(observers)
+
+    def append_stream(self, name: str, cycles: np.ndarray, sequence: np.ndarray,
+                      samples: np.ndarray) -> None:
+        """Record the block, then hand it to every stream observer."""
+        self.recorder.append_stream(name, cycles, sequence, samples)
+        for obs in list(self.observers):
+            try:
+                obs.on_stream(name, cycles, sequence, samples)
+            except Exception as exc:  # a broken watcher must not abort the measurement
+                self.observers.remove(obs)
+                self.recorder.event(int(cycles[-1]), "fault", f"{type(obs).__name__} stopped "
+                                    f"watching stream {name}: {type(exc).__name__}: {exc}")
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.recorder, name)
+
+
+def devices_recorder(recorder, observers: Sequence[Observer]):
+    """What the devices write to: a `StreamTap` if an observer watches streams, else the
+    recorder itself."""
+    watching = [obs for obs in observers if hasattr(obs, "on_stream")]
+    return StreamTap(recorder, watching) if watching else recorder
 
 
 class CycleDevice(Protocol):
@@ -130,6 +177,7 @@ class Runner:
         own_channels, own_units = drive_channels(tuple(self.drives))
         self.channels = own_channels + tuple(c for d in self.devices for c in d.channels)
         self.units = {**own_units, **{c: u for d in self.devices for c, u in d.units.items()}}
+        self.streams = {name: spec for d in self.devices for name, spec in d.streams.items()}
         self._offsets = [0.0] * len(self.drives)
         self._block = np.zeros((BLOCK_CYCLES, len(self.channels)))
         self._block_cycles = np.zeros(BLOCK_CYCLES, dtype=np.int64)
@@ -165,13 +213,16 @@ class Runner:
         target_velocities = plan.concatenated("target_velocity")
         for obs in self.observers:
             obs.on_start(plan, self.channels)
+            if hasattr(obs, "on_layout"):
+                obs.on_layout(self.units, self.streams)
+        device_recorder = devices_recorder(recorder, self.observers)
         status, reason = "complete", ""
         last_target = start
         i = 0
         with self._interrupts_request_stop():
             try:
                 for device in self.devices:
-                    device.start(plan, recorder)
+                    device.start(plan, device_recorder)
                 self._enable(plan.mode, start, recorder)
                 for index, segment in enumerate(plan.segments):
                     recorder.event(self._next_cycle(), "segment", _segment_text(segment))
@@ -192,7 +243,7 @@ class Runner:
                 self._safe_stop(recorder, last_target, velocity, plan.cycle_s)
             else:
                 self._disable(recorder, last_target)
-            self._stop_devices(recorder)
+            self._stop_devices(device_recorder)
         self._flush_block()
         recorder.close(status, reason)
         for obs in self.observers:

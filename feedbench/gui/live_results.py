@@ -6,25 +6,35 @@ fit. The live window calls `view()` on its own timer; the fit or FRF is computed
 per completed step, and handed over as plain arrays (`ResultView`), so the window draws any
 experiment the same way.
 
+Results of experiments whose signals come through the serial DAQ also watch the devices'
+high-rate streams (`on_layout`, `on_stream`, see `experiments.runner.StreamObserver`): the
+cycle loop copies the samples they need and hands completed records to the reader through a
+bounded queue (`RecordQueue`).
+
 The registry `LIVE_RESULTS` maps an experiment name to its result class; a new experiment
-family adds one class with ``@live_result("name")``. Present: ``friction_sweep`` (friction
-point per measure step and the Andersson fit, Eq. 5.2), ``chirp`` (servo mobility FRF of the
-sweeps so far, H1 with coherence), ``sine_stream`` (FRF point per frequency step with the R²
-of its sine fits; its channel names wait for the sine-stream plan of issue 4). Slots still
-open: ``hammer`` (FRF of the hits so far), ``smfe`` (spindle speed and force spectrogram).
+family adds one class with ``@live_result("name")``. Here, the drive-side families:
+``friction_sweep`` (friction point per measure step and the Andersson fit, Eq. 5.2),
+``chirp`` (servo mobility FRF of the sweeps so far, H1 with coherence), ``closed_loop_bode``
+(closed-loop FRF point per frequency with the R² of its sine fits), ``stepped_loading`` (load
+against displacement per loading step). The tool-tip and SMFE families (sine-stream FRF
+point by point, quasi-FRF of the hits so far, shaker-chirp FRF of the sweeps so far, spindle
+speed and force spectrogram) are in `feedbench.gui.live_structure`.
 """
 
 from __future__ import annotations
 
+import importlib
 from bisect import bisect_right
+from collections import deque
 from dataclasses import dataclass
-from typing import Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
 from feedbench.analysis.frf import estimate_frf
 from feedbench.analysis.friction import FrictionFit, fit_andersson
-from feedbench.analysis.sinefit import SineFit, fit_sine
+from feedbench.analysis.sinefit import stepped_sine_frf
+from feedbench.experiments import closed_loop_bode, stepped_loading
 from feedbench.experiments.chirp import mobility_extrema
 from feedbench.experiments.plan import Plan, Segment
 from feedbench.units import MM_PER_MIN
@@ -38,20 +48,43 @@ MOBILITY_BAND_HZ = (20.0, 150.0)
 MIN_POINTS_PER_FIT = 5
 """Andersson has 4 parameters: fit a direction once it has one point more."""
 
+MAX_QUEUED_VALUES = 4_000_000
+"""Values (32 MB) completed records may hold while the reader has not taken them; beyond,
+the oldest record is dropped (a window that falls behind skips results, never samples)."""
+
+STRUCTURE_MODULE = "feedbench.gui.live_structure"
+"""Registers the tool-tip and SMFE results (imported on first lookup)."""
+
 
 @dataclass(frozen=True)
 class Curve:
-    """One named x/y series of a panel; `points` draws markers instead of a line."""
+    """One named x/y series of a panel; `points` draws markers instead of a line; `color`
+    (a Qt colour name) overrides the panel's colour sequence."""
 
     name: str
     x: np.ndarray
     y: np.ndarray
     points: bool = False
+    color: str | None = None
+
+
+@dataclass(frozen=True)
+class Image:
+    """A colour map over a panel: `z` (n_x × n_y) on a regular grid from (x0, y0) with
+    steps (dx, dy), NaN where nothing is known; drawn between `levels` (low, high)."""
+
+    z: np.ndarray
+    x0: float
+    dx: float
+    y0: float
+    dy: float
+    levels: tuple[float, float]
 
 
 @dataclass(frozen=True)
 class Panel:
-    """One plot of a result: axis labels (with units), log axes, its curves."""
+    """One plot of a result: axis labels (with units), log axes, its curves (drawn over
+    its `image`, if any)."""
 
     title: str
     x_label: str
@@ -60,6 +93,7 @@ class Panel:
     log_x: bool = False
     log_y: bool = False
     y_range: tuple[float, float] | None = None
+    image: Image | None = None
 
 
 @dataclass(frozen=True)
@@ -103,27 +137,82 @@ class StepTracker:
                 return
 
 
+class RecordQueue:
+    """Completed records from the cycle loop to the reader, bounded by `max_values`.
+
+    One producer (`put`, never blocks: beyond the bound it drops the oldest record and
+    counts it in `dropped`) and one reader (`take`). Both use only `deque.append` /
+    `popleft`, which are atomic, and counters each side writes alone.
+    """
+
+    def __init__(self, max_values: int = MAX_QUEUED_VALUES) -> None:
+        self.max_values = max_values
+        self.dropped = 0
+        self._records: deque[tuple[Any, np.ndarray]] = deque()
+        self._put_values = 0
+        self._dropped_values = 0
+        self._taken_values = 0
+
+    def put(self, key: Any, record: np.ndarray) -> None:
+        """Queue a record (producer)."""
+        self._records.append((key, record))
+        self._put_values += record.size
+        while (self._put_values - self._dropped_values - self._taken_values > self.max_values
+               and len(self._records) > 1):
+            try:
+                _, old = self._records.popleft()
+            except IndexError:  # the reader took it meanwhile
+                break
+            self._dropped_values += old.size
+            self.dropped += 1
+
+    def take(self) -> list[tuple[Any, np.ndarray]]:
+        """Every queued record, oldest first (reader)."""
+        out = []
+        while True:
+            try:
+                out.append(self._records.popleft())
+            except IndexError:
+                break
+            self._taken_values += out[-1][1].size
+        return out
+
+
 class LiveResult:
     """Base of every building-up result: observer plumbing, per-step rows, cached view.
 
     Subclasses implement `collect` (cycle loop thread: cheap accumulation, bump `version`
-    when something new is complete) and `build` (reader thread: fits, FRFs).
+    when something new is complete) and `build` (reader thread: fits, FRFs); results that
+    use a device's high-rate stream also `collect_stream`. `params` are the plan's (in a
+    replay: the recorded experiment config, defaults not filled in: use `param`).
     """
 
     title = ""
+    SCHEMA: Mapping[str, Any] = {}
+    """The family's config schema, for the defaults of `param`."""
 
     def __init__(self) -> None:
         self.version = 0
         self.cycle_s = 1e-3
+        self.params: dict[str, Any] = {}
+        self.segments: list[Segment] = []
         self.columns: dict[str, int] = {}
+        self.streams: dict[str, Any] = {}
+        self.origin_cycle: int | None = None
         self.steps = StepTracker()
         self._parts: dict[int, list[np.ndarray]] = {}
         self._cached: tuple[int, ResultView] | None = None
 
     def on_start(self, plan: Plan, channels: Sequence[str]) -> None:
-        """Learn the cycle time and the column of each channel."""
+        """Learn the cycle time, the plan and the column of each channel."""
         self.cycle_s = plan.cycle_s
+        self.params = dict(plan.params)
+        self.segments = list(plan.segments)
         self.columns = {name: i for i, name in enumerate(channels)}
+
+    def on_layout(self, units: Mapping[str, str], streams: Mapping[str, Any]) -> None:
+        """Learn the devices' high-rate streams (name → `StreamSpec`)."""
+        self.streams = dict(streams)
 
     def on_segment(self, index: int, segment: Segment, cycle: int) -> None:
         """Remember where the step starts."""
@@ -131,11 +220,33 @@ class LiveResult:
 
     def on_block(self, cycles: np.ndarray, block: np.ndarray) -> None:
         """Hand each step's rows of the block to `collect`."""
+        self._origin(cycles)
         for index, segment, rows in self.steps.split(cycles):
             self.collect(index, segment, block[rows])
 
+    def on_stream(self, name: str, cycles: np.ndarray, sequence: np.ndarray,
+                  samples: np.ndarray) -> None:
+        """Hand a device's block of stream `name` to `collect_stream`."""
+        self._origin(cycles)
+        self.collect_stream(name, cycles, samples)
+
     def on_stop(self, status: str, reason: str) -> None:
         """Nothing to finish: only completed steps count."""
+
+    def _origin(self, cycles: np.ndarray) -> None:
+        if self.origin_cycle is None and len(cycles):
+            self.origin_cycle = int(cycles[0])
+
+    def time_of(self, cycles: np.ndarray | int) -> np.ndarray | float:
+        """Bench time (s) of bus cycles, from the run's first cycle."""
+        return (np.asarray(cycles) - (self.origin_cycle or 0)) * self.cycle_s
+
+    def param(self, key: str) -> Any:
+        """A plan parameter, or its schema default."""
+        return self.params.get(key, self.SCHEMA[key].default if key in self.SCHEMA else None)
+
+    def collect_stream(self, name: str, cycles: np.ndarray, samples: np.ndarray) -> None:
+        """Accumulate a stream block (cycle loop); results that need no stream ignore it."""
 
     def column(self, rows: np.ndarray, name: str) -> np.ndarray:
         """One channel of a block of rows."""
@@ -183,6 +294,7 @@ def live_result(name: str) -> Callable[[type[LiveResult]], type[LiveResult]]:
 
 def live_result_for(experiment: str) -> LiveResult | None:
     """A fresh result for `experiment`, or None if the family has none registered."""
+    importlib.import_module(STRUCTURE_MODULE)
     cls = LIVE_RESULTS.get(experiment)
     return cls() if cls else None
 
@@ -295,51 +407,126 @@ def _empty_frf_panels() -> tuple[Panel, Panel]:
     return _frf_panels(empty, empty.astype(complex), empty)
 
 
-@live_result("sine_stream")
-class SineStreamFrf(LiveResult):
-    """Stepped-sine FRF (Ch. 5.5.3) point by point: at each completed excite step a sine at
-    the step's frequency is fitted to input and response; H = response / input phasor,
-    with the smaller R² of the two fits as quality (Figs. 5.21, 5.22).
+def point_frf_panels(series: Mapping[str, Sequence[tuple[float, complex, float]]],
+                     magnitude_label: str, r_squared_min: float) -> tuple[Panel, ...]:
+    """|H|, phase and R² of FRF points (f Hz, H, R²) per named series; points below the
+    R² gate, if any, are drawn again in red as their own series."""
+    magnitude, phase, quality = [], [], []
+    below = [point for points in series.values() for point in points if point[2] < r_squared_min]
+    named = [(name, points, None) for name, points in series.items()]
+    flagged = [(f"R² below {r_squared_min:g}", below, "r")] if below else []
+    for name, points, color in [*named, *flagged]:
+        f, H, r2 = (np.array(v) for v in zip(*points)) if points else (np.zeros(0),) * 3
+        H = H.astype(complex)
+        magnitude.append(Curve(name, f, np.abs(H), True, color))
+        phase.append(Curve(name, f, np.degrees(np.angle(H)), True, color))
+        quality.append(Curve(name, f, r2.astype(float), True, color))
+    return (Panel("magnitude", "frequency (Hz)", magnitude_label, tuple(magnitude), log_y=True),
+            Panel("phase", "frequency (Hz)", "phase (°)", tuple(phase)),
+            Panel("R² of the sine fits", "frequency (Hz)", "R²", tuple(quality),
+                  y_range=(0.0, 1.05)))
 
-    The channel names, the info key of the step frequency and the settle periods left out
-    of each fit are class attributes, for the sine-stream plan to match.
-    """
 
-    title = "sine-stream FRF point by point"
-    INPUT = "force"
-    RESPONSE = "velocity"
-    FREQUENCY_KEY = "frequency_Hz"
-    SETTLE_CYCLES = 1.0
+def sine_point(reference: np.ndarray, response: np.ndarray, fs: float, f: float,
+               settle_cycles: float) -> tuple[complex, float]:
+    """One stepped-sine FRF point (Ch. 5.5.3): H = response / reference phasor and the
+    smaller R² of the two sine fits after `settle_cycles` periods, `analysis.sinefit`."""
+    fit = stepped_sine_frf(reference, response, fs, [(f, 0, len(reference))], settle_cycles)
+    return complex(fit.H[0]), float(fit.r_squared[0])
+
+
+@live_result("closed_loop_bode")
+class ClosedLoopPoints(LiveResult):
+    """The closed-loop Bode (Ch. 4.3.1) point by point: at each completed frequency step a
+    sine is fitted to reference and response after the settle periods, as
+    `experiments.closed_loop_bode` does: velocity offset → velocity (velocity loop), or the
+    per-cycle increments of target and position (position loop; here from the step's own
+    first cycle on, one increment fewer than the analysis)."""
+
+    title = "closed-loop FRF point by point"
+    SCHEMA = closed_loop_bode.SCHEMA
 
     def __init__(self) -> None:
         super().__init__()
-        self.steps_done: list[tuple[float, np.ndarray]] = []
-        self.fits: list[tuple[SineFit, SineFit]] = []
+        self.done: list[tuple[float, np.ndarray]] = []
+        self.points: list[tuple[float, complex, float]] = []
+
+    def on_start(self, plan: Plan, channels: Sequence[str]) -> None:
+        super().on_start(plan, channels)
+        self.loop = self.param("loop")
+        self.signals = (("velocity_offset", "velocity") if self.loop == "velocity"
+                        else ("x_ref", "position"))
 
     def collect(self, index: int, segment: Segment, rows: np.ndarray) -> None:
-        if segment.kind != "excite" or self.FREQUENCY_KEY not in segment.info:
+        if segment.kind != "excite" or "frequency_hz" not in segment.info:
             return
-        step = self.gather(index, segment, rows, (self.INPUT, self.RESPONSE))
+        step = self.gather(index, segment, rows, self.signals)
         if step is not None:
-            self.steps_done.append((float(segment.info[self.FREQUENCY_KEY]), step))
+            self.done.append((float(segment.info["frequency_hz"]), step))
             self.version += 1
 
     def build(self) -> ResultView:
-        fs = 1.0 / self.cycle_s
-        for f, step in list(self.steps_done)[len(self.fits):]:
-            self.fits.append((fit_sine(step[:, 0], fs, f, self.SETTLE_CYCLES),
-                              fit_sine(step[:, 1], fs, f, self.SETTLE_CYCLES)))
-        f = np.array([fin.frequency for fin, _ in self.fits])
-        H = np.array([out.phasor / fin.phasor for fin, out in self.fits], dtype=complex)
-        r2 = np.array([min(fin.r_squared, out.r_squared) for fin, out in self.fits])
-        panels = (
-            Panel("|H|", "frequency (Hz)", f"|H| ({self.RESPONSE} / {self.INPUT})",
-                  (Curve("H", f, np.abs(H), points=True),), log_y=True),
-            Panel("phase", "frequency (Hz)", "phase (°)",
-                  (Curve("phase", f, np.degrees(np.angle(H)), points=True),)),
-            Panel("R² of the sine fits", "frequency (Hz)", "R²",
-                  (Curve("R²", f, r2, points=True),), y_range=(0.0, 1.05)),
-        )
-        summary = (f"{len(f)} points, min R² {r2.min():.4f}" if len(f)
-                   else "waiting for the first frequency step")
+        for f, step in list(self.done)[len(self.points):]:
+            signals = step if self.loop == "velocity" else np.diff(step, axis=0)
+            self.points.append((f, *sine_point(signals[:, 0], signals[:, 1], 1.0 / self.cycle_s,
+                                               f, self.param("settle_cycles"))))
+        gate = self.param("r_squared_min")
+        panels = point_frf_panels({f"{self.loop} loop": self.points}, "|H| (–)", gate)
+        total = sum(s.kind == "excite" for s in self.segments)
+        r2 = [point[2] for point in self.points]
+        summary = (f"{len(r2)} of {total} frequencies, min R² {min(r2):.4f}, "
+                   f"{sum(v < gate for v in r2)} below {gate:g}" if r2
+                   else "waiting for the first frequency")
         return ResultView(self.title, panels, summary)
+
+
+@live_result("stepped_loading")
+class LoadDisplacement(LiveResult):
+    """Stepped loading (Ch. 3.4.1, 3.4.3, Fig. 3.8): per completed measure step of a loading
+    test the mean load-cell force against the mean displacement δ = x_motor − x_load of the
+    loaded motor (the master when coupled), positive towards the bumper as the analysis
+    orients it; one series per test."""
+
+    title = "load against displacement, Eq. (3.26)"
+    SCHEMA = stepped_loading.SCHEMA
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._sums: dict[int, list[float]] = {}
+        self.points: dict[str, list[tuple[float, float]]] = {}
+
+    def on_start(self, plan: Plan, channels: Sequence[str]) -> None:
+        super().on_start(plan, channels)
+        self.toward = -1.0 if self.param("direction") == "negative" else 1.0
+
+    def collect(self, index: int, segment: Segment, rows: np.ndarray) -> None:
+        test = str(segment.info.get("test", ""))
+        if segment.kind != "measure" or "phase" not in segment.info:
+            return
+        motor = "slave" if test == "single slave" else "master"
+        force = self.column(rows, "load_cell.force")
+        read = np.isfinite(force)
+        delta = (self.column(rows, f"{motor}.motor_position")
+                 - self.column(rows, "load_position"))[read]
+        acc = self._sums.setdefault(index, [0, 0, 0.0, 0.0])
+        acc[0] += len(rows)
+        acc[1] += int(read.sum())
+        acc[2] += float(force[read].sum())
+        acc[3] += float(delta.sum())
+        if acc[0] == segment.n_cycles and acc[1]:
+            self.points.setdefault(test, []).append(
+                (self.toward * acc[3] / acc[1], acc[2] / acc[1]))
+            self.version += 1
+
+    def build(self) -> ResultView:
+        curves = []
+        for test, points in list(self.points.items()):
+            delta, force = np.array(points).T
+            curves.append(Curve(test, delta * 1e6, force, points=True))
+        panel = Panel("load cell against δ = x_motor − x_load", "δ (µm)", "load (N)",
+                      tuple(curves))
+        n = sum(len(c.x) for c in curves)
+        summary = (f"{n} steps; " + ", ".join(f"{c.name}: {c.y.max():.0f} N at "
+                                             f"{c.x[np.argmax(c.y)]:.1f} µm" for c in curves)
+                   if n else "waiting for the first loading step")
+        return ResultView(self.title, (panel,), summary)

@@ -24,11 +24,13 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
-from feedbench.daq.live import Decimator, LiveFrame, LiveState, LiveStream, replay
+from feedbench.daq.live import ROWS, Decimator, LiveFrame, LiveState, LiveStream, replay
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.runner import StopRequest
-from feedbench.gui.live_results import Curve, LiveResult, Panel, ResultView, live_result_for
-from feedbench.units import MM_PER_MIN
+from feedbench.gui.live_results import (
+    Curve, Image, LiveResult, Panel, ResultView, live_result_for,
+)
+from feedbench.units import MM_PER_MIN, RPM
 
 
 SPANS_S = (1.0, 2.0, 5.0, 10.0, 20.0, 60.0)
@@ -39,28 +41,38 @@ STOP_REASON = "stop button in the live window"
 
 @dataclass(frozen=True)
 class ChannelGroup:
-    """Channels of one SI unit drawn in one plot, shown in `display_unit` (× `scale`)."""
+    """Channels of one SI unit drawn in one plot, shown in `display_unit` (× `scale`).
+
+    `limit`: the watched limit drawn as lines; `source`: ``rows`` (per-cycle channels),
+    ``streams`` (the devices' high-rate streams, e.g. the DAQ) or ``any``.
+    """
 
     title: str
     si_units: tuple[str, ...]
     display_unit: str
     scale: float
     limit: str = ""
+    source: str = "any"
 
 
 CHANNEL_GROUPS = (
     ChannelGroup("positions", ("m",), "mm", 1e3, "position"),
     ChannelGroup("velocities", ("m/s",), "mm/min", 1.0 / MM_PER_MIN, "velocity"),
-    ChannelGroup("forces / torques", ("N", "N·m", "Nm"), "N, N·m", 1.0, "force"),
+    ChannelGroup("forces / torques", ("N", "N·m", "Nm"), "N, N·m", 1.0, "force", "rows"),
+    ChannelGroup("spindle speed", ("rad/s",), "rpm", 1.0 / RPM),
+    ChannelGroup("DAQ forces", ("N",), "N", 1.0, source="streams"),
     ChannelGroup("accelerations", ("m/s²", "m/s^2"), "m/s²", 1.0),
 )
 
 
-def group_channels(units: Mapping[str, str]) -> list[tuple[ChannelGroup, list[str]]]:
-    """The groups that have channels, each with its channels in stream order."""
+def group_channels(units: Mapping[str, str],
+                   streamed: Sequence[str] = ()) -> list[tuple[ChannelGroup, list[str]]]:
+    """The groups that have channels, each with its channels in stream order; `streamed`
+    names the channels that come from a high-rate stream."""
     out = []
     for group in CHANNEL_GROUPS:
-        names = [name for name, unit in units.items() if unit in group.si_units]
+        names = [name for name, unit in units.items() if unit in group.si_units
+                 and group.source in ("any", "streams" if name in streamed else "rows")]
         if names:
             out.append((group, names))
     return out
@@ -76,10 +88,10 @@ def limit_lines(group: ChannelGroup, limits: Limits | None) -> tuple[float, ...]
     return (-bound, bound)
 
 
-def headroom_text(frame: LiveFrame, names: Sequence[str], group: ChannelGroup,
-                  lines: tuple[float, ...]) -> str:
+def headroom_text(channels: Mapping[str, np.ndarray], names: Sequence[str],
+                  group: ChannelGroup, lines: tuple[float, ...]) -> str:
     """Peak |value| of the group in the frame and its share of the limit (min/max keeps it)."""
-    values = [frame.channels[n] for n in names if len(frame.channels[n])]
+    values = [channels[n] for n in names if n in channels and len(channels[n])]
     if not values:
         return ""
     peak = float(np.max(np.abs(np.concatenate(values)))) * group.scale
@@ -176,10 +188,12 @@ class TracePlots:
         self.ranges: list[tuple[float, float] | None] = []
         self._title_time = 0.0
 
-    def build(self, units: Mapping[str, str], limits: Limits | None, span_s: float) -> None:
-        """(Re)create the plots for the stream's channels."""
+    def build(self, units: Mapping[str, str], limits: Limits | None, span_s: float,
+              streamed: Sequence[str] = ()) -> None:
+        """(Re)create the plots for the channels (`streamed`: those of high-rate streams)."""
         self.layout.clear()
-        self.groups, self.plots, self.curves, self.lines = group_channels(units), [], {}, []
+        self.groups = group_channels(units, streamed)
+        self.plots, self.curves, self.lines = [], {}, []
         for row, (group, names) in enumerate(self.groups):
             plot = self.layout.addPlot(row=row, col=0)
             plot.setLabel("left", group.title)
@@ -212,18 +226,20 @@ class TracePlots:
         if self.plots:
             self.plots[0].setXRange(-span_s, 0.0, padding=0)
 
-    def draw(self, frame: LiveFrame, fit_limits: bool, now: float) -> None:
-        """Put a frame on the plots, newest sample at x = 0."""
-        x = frame.t - frame.t_end
+    def draw(self, frames: Sequence[LiveFrame], fit_limits: bool, now: float) -> None:
+        """Put frames (the rows', each stream's) on the plots, newest sample at x = 0."""
+        t_end = max((f.t_end for f in frames if f.n_received), default=0.0)
+        xs = {name: frame.t - t_end for frame in frames for name in frame.channels}
+        channels = {name: y for frame in frames for name, y in frame.channels.items()}
         retitle = now - self._title_time >= self.TITLE_PERIOD_S
         for i, ((group, names), plot, lines) in enumerate(zip(self.groups, self.plots, self.lines)):
-            ys = [frame.channels[name] * group.scale for name in names]
-            for name, y in zip(names, ys):
-                self.curves[name].setData(x, y)
+            ys = [channels[name] * group.scale for name in names if name in channels]
+            for name, y in zip((n for n in names if n in channels), ys):
+                self.curves[name].setData(xs[name], y)
             self._set_y_range(i, ys, lines if fit_limits else ())
             if retitle:
                 plot.setTitle(f"{group.title} ({group.display_unit}) — "
-                              f"{headroom_text(frame, names, group, lines)}", size="9pt")
+                              f"{headroom_text(channels, names, group, lines)}", size="9pt")
         if retitle:
             self._title_time = now
 
@@ -245,21 +261,36 @@ class ResultPlots:
         self.summary = summary
         self.plots: list[pg.PlotItem] = []
         self.curves: list[dict[str, pg.PlotDataItem]] = []
+        self.images: list[pg.ImageItem | None] = []
 
     def draw(self, view: ResultView) -> None:
         """Update (or first create) the plots of a result view."""
         if len(self.plots) != len(view.panels):
             self._create(view.panels)
-        for plot, curves, panel in zip(self.plots, self.curves, view.panels):
+        for i, (plot, curves, panel) in enumerate(zip(self.plots, self.curves, view.panels)):
+            if panel.image is not None:
+                self._draw_image(i, plot, panel.image)
             for curve in panel.curves:
                 if curve.name not in curves:
                     curves[curve.name] = self._new_curve(plot, curve, len(curves))
                 curves[curve.name].setData(curve.x, curve.y)
         self.summary.setText(f"<b>{view.title}</b>: {view.summary}")
 
+    def _draw_image(self, i: int, plot: pg.PlotItem, image: Image) -> None:
+        """The colour map behind the panel's curves; unknown cells at the lowest level."""
+        item = self.images[i]
+        if item is None:
+            item = self.images[i] = pg.ImageItem(colorMap=pg.colormap.get("viridis"))
+            item.setZValue(-10)
+            plot.addItem(item)
+        z = np.nan_to_num(image.z, nan=image.levels[0])
+        item.setImage(z, levels=image.levels, autoLevels=False)
+        item.setRect(QtCore.QRectF(image.x0, image.y0, image.dx * z.shape[0],
+                                   image.dy * z.shape[1]))
+
     def _create(self, panels: Sequence[Panel]) -> None:
         self.layout.clear()
-        self.plots, self.curves = [], []
+        self.plots, self.curves, self.images = [], [], [None] * len(panels)
         for row, panel in enumerate(panels):
             plot = self.layout.addPlot(row=row, col=0, title=panel.title)
             plot.setLabel("bottom", panel.x_label)
@@ -275,7 +306,7 @@ class ResultPlots:
 
     @staticmethod
     def _new_curve(plot: pg.PlotItem, curve: Curve, index: int) -> pg.PlotDataItem:
-        color = pg.intColor(index, hues=6)
+        color = pg.mkColor(curve.color) if curve.color else pg.intColor(index, hues=6)
         if curve.points:
             return plot.plot([], [], pen=None, symbol="o", symbolSize=6, symbolBrush=color,
                              name=curve.name)
@@ -301,8 +332,8 @@ class LiveWindow(QtWidgets.QMainWindow):
         self.span_s = span_s
         self.frames = 0
         self.paints = 0
-        self._seen = (-1, ())
-        self._decimator: Decimator | None = None
+        self._seen: tuple = ((), ())
+        self._decimators: dict[str, Decimator] = {}
         self._result_version = -1
         self.setWindowTitle(title)
         self.resize(1280, 800)
@@ -375,17 +406,18 @@ class LiveWindow(QtWidgets.QMainWindow):
     def _span_changed(self) -> None:
         self.span_s = float(self.span_box.currentData())
         self.traces.set_span(self.span_s)
-        self._decimator = None
+        self._decimators = {}
 
     def refresh(self) -> None:
         """One timer tick: header, traces if new samples arrived, result if it grew."""
         state = self.stream.state()
         self._show_state(state)
-        seen = (self.stream.n_received, self.stream.channels)
-        if seen != self._seen and seen[0] > 0:
+        sources = self.stream.sources
+        seen = (tuple(r.written for r in sources.values()),
+                tuple((name, r.channels) for name, r in sources.items()))
+        if seen != self._seen and self.stream.n_received > 0:
             if seen[1] != self._seen[1]:
-                self.traces.build({n: self.units.get(n, "") for n in seen[1]}, self.limits,
-                                  self.span_s)
+                self._build_traces(sources)
             self._seen = seen
             self.traces.draw(self._decimated(), self.fit_limits.isChecked(), time.monotonic())
             self.frames += 1
@@ -393,12 +425,26 @@ class LiveWindow(QtWidgets.QMainWindow):
             self._result_version = self.result.version
             self.result_plots.draw(self.result.view())
 
-    def _decimated(self) -> LiveFrame:
-        """The newest frame; about two points per horizontal pixel of the plots."""
+    def _build_traces(self, sources: Mapping[str, Any]) -> None:
+        """Plots for every channel of the rows and the streams, grouped by unit."""
+        units = {**self.stream.units, **self.units}
+        names = [c for ring in sources.values() for c in ring.channels]
+        streamed = [c for name, ring in sources.items() if name != ROWS for c in ring.channels]
+        self.traces.build({n: units.get(n, "") for n in names}, self.limits, self.span_s,
+                          streamed)
+        self._decimators = {}
+
+    def _decimated(self) -> list[LiveFrame]:
+        """The newest frame of every source; about two points per horizontal pixel."""
         width = max(int(self.trace_view.width()), 200)
-        if self._decimator is None or self._decimator.n_buckets != width:
-            self._decimator = Decimator(self.stream, self.span_s, width)
-        return self._decimator.frame()
+        frames = []
+        for source in self.stream.sources:
+            decimator = self._decimators.get(source)
+            if decimator is None or decimator.n_buckets != width:
+                decimator = self._decimators[source] = Decimator(self.stream, self.span_s,
+                                                                 width, source=source)
+            frames.append(decimator.frame())
+        return frames
 
     def _show_state(self, state: LiveState) -> None:
         text = state_text(state)
@@ -453,7 +499,6 @@ def qt_app() -> QtWidgets.QApplication:
 def bench_session(config, span_s: float = 10.0, progress: bool = True) -> LiveSession:
     """A live window on a bench run of `config` (a `feedbench.bench.RunConfig`)."""
     from feedbench.bench import run_config
-    from feedbench.experiments.runner import UNITS
 
     qt_app()
     stream, stop = LiveStream(), StopRequest()
@@ -461,7 +506,7 @@ def bench_session(config, span_s: float = 10.0, progress: bool = True) -> LiveSe
     observers = [stream, *([result] if result else [])]
     worker = Worker(lambda: run_config(config, observers=observers, progress=progress,
                                        stop=stop))
-    window = LiveWindow(stream, UNITS, config.limits, result, stop, worker, span_s,
+    window = LiveWindow(stream, {}, config.limits, result, stop, worker, span_s,
                         title=f"feedbench live — {config.plan.experiment}")
     return LiveSession(window, worker, stop)
 
