@@ -408,6 +408,22 @@ def test_friction_curve_fits_a_direction_only_with_enough_points():
     assert [c.name for c in curve.view().panels[0].curves] == ["measured"]
 
 
+def test_friction_curve_of_a_master_slave_axis_sums_the_motor_forces():
+    """Rack-and-pinion rows (``master.*``, ``slave.*``): the point is the master's mean
+    velocity and the mean of the summed forces, as `friction_sweep.axis_signals` takes them."""
+    channels = ("x_ref", "master.position", "master.velocity", "master.force",
+                "slave.position", "slave.velocity", "slave.force", "master.statusword",
+                "slave.statusword")
+    plan, rows = friction_run([100, 200])
+    wide = np.zeros((len(rows), len(channels)))
+    wide[:, 2], wide[:, 5] = rows[:, 2], 0.9 * rows[:, 2]
+    wide[:, 3], wide[:, 6] = 0.7 * rows[:, 3], 0.3 * rows[:, 3]
+    single, master_slave = FrictionCurve(), FrictionCurve()
+    feed_like_runner([single], plan, rows)
+    feed_like_runner([master_slave], plan, wide, channels=channels)
+    np.testing.assert_allclose(master_slave.points, single.points, rtol=1e-12)
+
+
 def mobility_filter(fs: float):
     """A discrete single-DOF mobility (velocity/force, 60 Hz, ζ = 0.15, 8 kg)."""
     m, f_n, zeta = 8.0, 60.0, 0.15

@@ -223,17 +223,22 @@ def chromium(*args: str) -> subprocess.CompletedProcess:
                           timeout=120)
 
 
-@pytest.mark.skipif(CHROMIUM is None, reason="headless Chromium is not installed")
-def test_report_renders_in_headless_chromium_with_every_image_decoded(report, tmp_path):
-    probe = tmp_path / "probe.html"
+def decoded_images(report, directory) -> list[str]:
+    """Width × height of every image Chromium decoded once the page loaded."""
+    probe = directory / "probe.html"
     probe.write_text(report.read_text(encoding="utf-8").replace(
         "</body>", "<script>window.addEventListener('load', () => {document.body.dataset"
         ".decoded = [...document.images].filter(i => i.complete && i.naturalWidth > 0)"
         ".map(i => i.naturalWidth + 'x' + i.naturalHeight).join(' ');});</script></body>"),
         encoding="utf-8")
     dom = chromium("--virtual-time-budget=5000", "--dump-dom", probe.as_uri()).stdout
-    decoded = re.search(r'data-decoded="([^"]*)"', dom).group(1).split()
-    assert decoded == ["1000x700", "800x450", "1000x700", "800x550", "1000x700"]
+    return re.search(r'data-decoded="([^"]*)"', dom).group(1).split()
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="headless Chromium is not installed")
+def test_report_renders_in_headless_chromium_with_every_image_decoded(report, tmp_path):
+    assert decoded_images(report, tmp_path) == [
+        "1000x700", "800x450", "1000x700", "800x550", "1000x700"]
     shot = tmp_path / "report.png"
     chromium("--window-size=1200,1600", f"--screenshot={shot}", report.as_uri())
     width, height = png_size(shot.read_bytes())
@@ -610,3 +615,10 @@ def test_write_report_takes_closure_results(closure_result, tmp_path):
     path = write_report([], tmp_path / "closure.html", "closure", closures=[closure_result])
     text = path.read_text(encoding="utf-8")
     assert text.count("<img") == 1 and "held-out force residual before and after" in text
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="headless Chromium is not installed")
+def test_every_family_renders_in_headless_chromium(campaign, tmp_path):
+    path, sections = campaign
+    assert decoded_images(path, tmp_path) == [
+        "x".join(map(str, png_size(plot.png))) for s in sections for plot in s.plots]

@@ -36,6 +36,7 @@ from feedbench.analysis.friction import FrictionFit, fit_andersson
 from feedbench.analysis.sinefit import stepped_sine_frf
 from feedbench.experiments import closed_loop_bode, stepped_loading
 from feedbench.experiments.chirp import mobility_extrema
+from feedbench.experiments.friction_sweep import axis_signals
 from feedbench.experiments.plan import Plan, Segment
 from feedbench.units import MM_PER_MIN
 
@@ -302,7 +303,9 @@ def live_result_for(experiment: str) -> LiveResult | None:
 @live_result("friction_sweep")
 class FrictionCurve(LiveResult):
     """Friction point (mean velocity, mean motor force) per completed measure step, and
-    the Andersson fit, Eq. (5.2), of each direction once it has enough points."""
+    the Andersson fit, Eq. (5.2), of each direction once it has enough points. The axis's
+    velocity and force as the analysis takes them (`friction_sweep.axis_signals`: with
+    master and slave, the master's velocity and the sum of the forces)."""
 
     title = "friction curve, Eq. (5.2)"
 
@@ -314,10 +317,11 @@ class FrictionCurve(LiveResult):
     def collect(self, index: int, segment: Segment, rows: np.ndarray) -> None:
         if segment.kind != "measure":
             return
+        velocity, force = axis_signals({name: rows[:, i] for name, i in self.columns.items()})
         acc = self._sums.setdefault(index, [0, 0.0, 0.0])
         acc[0] += len(rows)
-        acc[1] += float(self.column(rows, "velocity").sum())
-        acc[2] += float(self.column(rows, "force").sum())
+        acc[1] += float(velocity.sum())
+        acc[2] += float(force.sum())
         if acc[0] == segment.n_cycles:
             self.points.append((acc[1] / acc[0], acc[2] / acc[0]))
             self.version += 1

@@ -306,7 +306,8 @@ class ResultPlots:
 
     @staticmethod
     def _new_curve(plot: pg.PlotItem, curve: Curve, index: int) -> pg.PlotDataItem:
-        color = pg.mkColor(curve.color) if curve.color else pg.intColor(index, hues=6)
+        # the palette starts after red, which marks points below a quality gate
+        color = pg.mkColor(curve.color) if curve.color else pg.intColor(index + 1, hues=6)
         if curve.points:
             return plot.plot([], [], pen=None, symbol="o", symbolSize=6, symbolBrush=color,
                              name=curve.name)
