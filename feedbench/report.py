@@ -913,7 +913,8 @@ def render_html(sections: Sequence[RunSection], title: str) -> str:
 
 
 def _section_html(section: RunSection) -> str:
-    out = [f"<h2 id='{html.escape(section.run_id)}'>{html.escape(section.run_id)} — "
+    anchor = "-".join(section.run_id.split())  # an HTML id has no white space
+    out = [f"<h2 id='{html.escape(anchor)}'>{html.escape(section.run_id)} — "
            f"{html.escape(section.experiment)}</h2>", "<h3>quality</h3>",
            _quality_html(section.quality)]
     for plot in section.plots:

@@ -622,3 +622,21 @@ def test_every_family_renders_in_headless_chromium(campaign, tmp_path):
     path, sections = campaign
     assert decoded_images(path, tmp_path) == [
         "x".join(map(str, png_size(plot.png))) for s in sections for plot in s.plots]
+
+
+def test_closure_command_writes_its_report(tmp_path, capsys):
+    """``feedbench closure DATA --model M --report FILE --json``: the JSON names the report,
+    which holds the closure's section and its residual plot."""
+    from feedbench.cli import main
+    from feedbench.closure_command import EXAMPLES
+
+    path = tmp_path / "closure.html"
+    assert main(["closure", str(EXAMPLES / "sample_axis.csv"), "--model",
+                 str(EXAMPLES / "bench_coulomb_viscous.toml"), "--report", str(path),
+                 "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["report"] == str(path) and data["effects"] == ["ripple"]
+    text = path.read_text(encoding="utf-8")
+    assert ("<h2 id='closure:-bench:-rigid-body-+-Coulomb-+-viscous-friction'>closure: "
+            "bench: rigid body + Coulomb + viscous friction — closure</h2>") in text
+    assert text.count("<img") == 1

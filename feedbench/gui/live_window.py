@@ -317,7 +317,8 @@ class ResultPlots:
 class LiveWindow(QtWidgets.QMainWindow):
     """Reads a `LiveStream` (and a `LiveResult`) on a timer and draws them.
 
-    `units` maps channel → SI unit (groups the traces); `limits` draws the watched limits;
+    `units` maps channel → SI unit (groups the traces), over what the stream learned from
+    the runner (`LiveStream.units`: rows and DAQ streams); `limits` draws the watched limits;
     `stop` is the runner's `StopRequest` the Stop button uses; `worker` (optional) lets the
     window show a run that ended with an error. `fps` is the redraw timer's target rate.
     `frames` counts trace redraws (each with new data), `paints` the repaints Qt did.
