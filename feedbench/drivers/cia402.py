@@ -29,7 +29,7 @@ from canopen.emcy import EmcyError
 from canopen.pdo import PdoMap
 from canopen.profiles.p402 import OperationMode, State402
 
-from feedbench.protocols.canbus import pdo_codec
+from feedbench.protocols.canbus import pdo_codec, remote_node
 
 Entry = int | tuple[int, int]
 """A mapped object: index (sub-index 0) or (index, sub-index)."""
@@ -142,8 +142,7 @@ class Cia402Drive:
 
     def __init__(self, network: canopen.Network, node_id: int, eds_path: Path | str,
                  pdo_config: PdoConfig | None = None) -> None:
-        self.node = canopen.RemoteNode(node_id, str(eds_path))
-        network.add_node(self.node)
+        self.node = remote_node(network, node_id, str(eds_path))
         self.network = network
         self.pdo_config = pdo_config or PdoConfig()
         self.emcy_code: int | None = None

@@ -10,6 +10,7 @@ from __future__ import annotations
 import canopen
 
 from feedbench.protocols import cia401
+from feedbench.protocols.canbus import remote_node
 
 
 class IoModuleError(RuntimeError):
@@ -21,8 +22,7 @@ class IoModule:
 
     def __init__(self, network: canopen.Network, node_id: int) -> None:
         self.network = network
-        self.node = canopen.RemoteNode(node_id, canopen.ObjectDictionary())
-        network.add_node(self.node)
+        self.node = remote_node(network, node_id, canopen.ObjectDictionary())
         self._analog = [0] * cia401.ANALOG_CHANNELS
         self._digital = 0
         self._sent: dict[int, bytes] = {}

@@ -15,6 +15,10 @@ import canopen
 from canopen.objectdictionary import ODVariable
 from canopen.pdo import PdoMap
 
+SDO_TIMEOUT_S = 2.0
+"""How long an SDO request waits for its answer (canopen's default 0.3 s is short for a peer
+busy for a moment, e.g. a simulated world compiling its physics on first use)."""
+
 NOTIFIER_POLL_S = 0.05
 """Receive-thread poll period: bounds how long `Network.disconnect` waits (canopen: 1 s)."""
 
@@ -60,3 +64,12 @@ def pdo_codec(pdo_map: PdoMap) -> PdoCodec:
         offsets.append(var.offset // 8)
     return PdoCodec(struct.Struct("<" + "".join(formats)),
                     tuple(var.index for var in pdo_map.map), tuple(offsets), tuple(formats))
+
+
+def remote_node(network: canopen.Network, node_id: int,
+                object_dictionary: str | canopen.ObjectDictionary) -> canopen.RemoteNode:
+    """A RemoteNode added to `network`, its SDO client waiting `SDO_TIMEOUT_S` per answer."""
+    node = canopen.RemoteNode(node_id, object_dictionary)
+    node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
+    network.add_node(node)
+    return node
