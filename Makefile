@@ -16,7 +16,7 @@ $(VENV)/.bench: $(STAMP)
 	touch $(VENV)/.bench
 
 demo: $(STAMP)
-	$(BIN)/feedbench demo
+	$(BIN)/feedbench demo --quick
 
 test: $(STAMP)
 	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -q

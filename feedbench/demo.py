@@ -71,7 +71,7 @@ QUICK_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
 }
 """`--quick`: per example, the keys of its tables that shorten it (and what it still shows)."""
 
-REPORT_AXES = ("lab",)
+REPORT_AXES = ("lab", "rack_pinion")
 """Axes whose recordings go into the report: `report.headroom` reads the single drive's
 `force` channel, which a rack-and-pinion recording (`master.*`, `slave.*`) lacks (KeyError)."""
 
