@@ -25,7 +25,7 @@ def test_tip_acceleration_trace_integrates_to_the_tip_velocity_change():
     a linear acceleration; the trace is smooth at 8 kHz, so within 0.05 % of the largest)."""
     sim = AxisSimulator()
     tip_force = np.random.default_rng(1).normal(0.0, 30.0, 2000)
-    out = sim.simulate(CSV, 0.0, 0.01, 0.0, tip_force=tip_force)
+    out = sim.simulate(CSV, 0.0, 0.01, 0.0, tip_force=tip_force, keep_trace=True)
     dv = np.diff(out["tip_velocity"], prepend=0.0)
     integral = np.trapezoid(out["tip_acceleration_trace"], dx=1e-3 / sim.substeps_per_cycle,
                             axis=1)
@@ -52,7 +52,8 @@ def test_tip_force_ramps_over_the_first_cycle_and_deflects_the_flexure_staticall
 
 def test_step_cycle_and_simulate_give_the_same_tip_acceleration():
     tip_force = np.random.default_rng(2).normal(0.0, 20.0, 200)
-    batch = AxisSimulator().simulate(CSP, 0.0, 0.0, 0.0, tip_force=tip_force)
+    batch = AxisSimulator().simulate(CSP, 0.0, 0.0, 0.0, tip_force=tip_force,
+                                     keep_trace=True)
     stepped = AxisSimulator()
     traces = []
     for value in tip_force:
@@ -215,3 +216,17 @@ def test_io_module_outputs_reach_the_world_at_the_sync_they_precede():
     finally:
         network.disconnect()
         drive.close()
+
+
+def test_simulate_keeps_the_trace_only_when_asked_and_ends_in_the_same_state():
+    """Without keep_trace no per-cycle trace is returned, yet every output and the last
+    cycle's trace are those of the run that keeps it."""
+    tip_force = np.random.default_rng(2).normal(0.0, 30.0, 300)
+    kept_sim, lean_sim = AxisSimulator(), AxisSimulator()
+    kept = kept_sim.simulate(CSV, 0.0, 0.01, 0.0, tip_force=tip_force, keep_trace=True)
+    lean = lean_sim.simulate(CSV, 0.0, 0.01, 0.0, tip_force=tip_force)
+    assert "tip_acceleration_trace" not in lean
+    for name in ("position", "velocity", "force", "tip_acceleration", "mean_force"):
+        np.testing.assert_array_equal(lean[name], kept[name])
+    np.testing.assert_array_equal(lean_sim.tip_acceleration_trace,
+                                  kept["tip_acceleration_trace"][-1])

@@ -51,8 +51,6 @@ class CycleSimulator:
         self._params[kernel.P_PHYSICS_STEPS] = physics_substeps
         self._params[kernel.P_FEEDFORWARD] = 1.0 if velocity_feedforward else 0.0
         self._state = np.zeros(kernel.STATE_SIZE)
-        self._inputs = np.zeros((1, kernel.INPUT_COLUMNS))
-        self._outputs = np.zeros((1, kernel.OUTPUT_COLUMNS))
         self._modes = np.zeros(1, dtype=np.int64)
         self._cycle_count = 0
 
@@ -83,8 +81,9 @@ class CycleSimulator:
         if modes.ndim != 1:
             raise ValueError("simulate needs 1-D per-cycle arrays (at least one of them)")
         modes = np.ascontiguousarray(modes, dtype=np.int64)
-        for each in np.unique(modes):
-            check_mode(int(each))
+        known = (modes == CSP) | (modes == CSV) | (modes == CST)
+        if not known.all():
+            check_mode(int(modes[np.argmin(known)]))
         return modes, columns
 
     def _end_times(self, cycles: int) -> np.ndarray:

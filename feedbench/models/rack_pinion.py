@@ -252,6 +252,8 @@ class RackPinionSimulator(CycleSimulator):
         """torque_limit: the drives' peak torque as a multiple of the rated torque."""
         positive("physics_substeps", physics_substeps)
         super().__init__(timing, int(physics_substeps), velocity_feedforward)
+        self._inputs = np.zeros((1, kernel.INPUT_COLUMNS))
+        self._outputs = np.zeros((1, kernel.OUTPUT_COLUMNS))
         self.axis = axis
         self._mechanics = axis.mechanics_vector()
         self._friction_table = axis.friction.table()
