@@ -109,7 +109,8 @@ class Recorder:
 
     def append(self, cycle: int, values: Sequence[float]) -> None:
         """Add one sample (values in channel order); flushes when a chunk is full."""
-        self._require_open()
+        if self._closed:  # `_require_open` inlined: this runs every bus cycle
+            self._require_open()
         if cycle != self._next_cycle:
             self._check_step(cycle)
         row = self._buffered

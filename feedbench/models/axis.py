@@ -307,6 +307,13 @@ class AxisSimulator(CycleSimulator):
         """Motor force averaged over the last cycle (N), as a drive's filtered force actual."""
         return float(self._outputs[_kernel.O_MEAN_FORCE, 0])
 
+    def reported(self) -> tuple[float, float, float]:
+        """(position m, mean velocity m/s, mean force N) in one call: what a drive publishes
+        every cycle (`position`, `mean_velocity`, `mean_force`)."""
+        outputs = self._outputs[:, 0].tolist()
+        return (float(self._state[_kernel.S_X_MOT]), outputs[_kernel.O_MEAN_VELOCITY],
+                outputs[_kernel.O_MEAN_FORCE])
+
     @property
     def tip_acceleration(self) -> float:
         """Tool-tip acceleration at the end of the last cycle (m/s²)."""

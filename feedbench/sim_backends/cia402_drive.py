@@ -184,7 +184,7 @@ class SimulatedCia402Drive:
         self.simulator = simulator
         self.noise = noise
         self._rng = np.random.default_rng(noise.seed)
-        self._noise_block = np.zeros((0, 2))
+        self._noise_block: list[list[float]] = []
         self._objects = objects
         self._owns_network = network is None
         self.tip_force = 0.0
@@ -439,19 +439,19 @@ class SimulatedCia402Drive:
 
     def _next_noise(self) -> tuple[float, float]:
         """This cycle's measurement noise (force N, velocity m/s) from the pre-drawn block."""
-        if not len(self._noise_block):
+        if not self._noise_block:  # drawn in blocks, kept as a reversed list: pop() is O(1)
             scale = (self.noise.force, self.noise.velocity)
-            self._noise_block = self._rng.normal(size=(NOISE_BLOCK, 2)) * scale
-        sample, self._noise_block = self._noise_block[0], self._noise_block[1:]
-        return float(sample[0]), float(sample[1])
+            self._noise_block = (self._rng.normal(size=(NOISE_BLOCK, 2)) * scale).tolist()[::-1]
+        force, velocity = self._noise_block.pop()
+        return force, velocity
 
     def _publish_actual_values(self) -> None:
         v = self.values
-        sim = self.simulator
+        position, mean_velocity, mean_force = self.simulator.reported()
         force_noise, velocity_noise = self._next_noise()
-        force = sim.mean_force + force_noise  # cycle means, as a drive filters them
-        v[0x6064] = position = _int32_wrapped(sim.position * 1e9)
-        v[0x606C] = _saturated((sim.mean_velocity + velocity_noise) * 1e9, INT32_MAX)
+        force = mean_force + force_noise  # cycle means, as a drive filters them
+        v[0x6064] = position = _int32_wrapped(position * 1e9)
+        v[0x606C] = _saturated((mean_velocity + velocity_noise) * 1e9, INT32_MAX)
         v[0x2010] = _saturated(force * 1e3, INT32_MAX)
         v[0x6077] = _saturated(force / self._newton_per_mille, INT16_MAX)
         if self._objects is not None:

@@ -242,6 +242,10 @@ class MotorPort:
     mean_velocity = velocity
     mean_force = force
 
+    def reported(self) -> tuple[float, float, float]:
+        """(position, velocity, force) as the drive publishes them (see the class)."""
+        return self.position, self.velocity, self.force
+
     def step_cycle(self, mode: int, target_position: float, target_velocity: float,
                    target_force: float, velocity_offset: float, force_offset: float,
                    tip_force: float = 0.0) -> None:
