@@ -24,7 +24,7 @@ import math
 import numpy as np
 from numba import njit
 
-from feedbench.models.effects import E_FORCE_LEVEL, acting_force, effect_forces
+from feedbench.models.effects import E_FORCE_LEVEL, acting_force, effect_forces, has_extra_forces
 
 CSP, CSV, CST = 8, 9, 10
 """CiA 402 modes of operation: cyclic synchronous position / velocity / torque (force)."""
@@ -218,9 +218,17 @@ def physics_step(mechanics: tuple, linearisations: tuple, motor_force: float,
 
 
 @njit(**_HOT)
-def tip_acceleration(mechanics: tuple, tip_force: float, rows: tuple, effects: tuple) -> float:
+def extra_forces(mechanics: tuple, effects: tuple, active: bool) -> tuple[float, float]:
+    """`effect_forces`, or (0, 0) without evaluating it when `active` is False
+    (`has_extra_forces` of the effects)."""
+    return effect_forces(mechanics, effects) if active else (0.0, 0.0)
+
+
+@njit(**_HOT)
+def tip_acceleration(mechanics: tuple, tip_force: float, rows: tuple, effects: tuple,
+                     active: bool) -> float:
     """Tip acceleration (m/s²) in state `mechanics` under `tip_force` (N) and the effects."""
-    tip_extra = effect_forces(mechanics, effects)[1]
+    tip_extra = extra_forces(mechanics, effects, active)[1]
     return free_update(rows[ACCELERATION_ROW], mechanics, 0.0, tip_force + tip_extra)
 
 
@@ -256,18 +264,19 @@ def clear_controller(state: np.ndarray, delay_line: np.ndarray, keep_delay_line:
 @njit(**_JIT)
 def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positive: tuple,
                   negative: tuple, params: np.ndarray, effects: tuple, mode: int,
-                  enabled: bool, inputs: np.ndarray, trace: np.ndarray) -> None:
+                  enabled: bool, inputs: tuple, trace: np.ndarray, full_trace: bool) -> None:
     """Advance one bus cycle: position ticks, velocity ticks inside them, physics substeps
     inside those. The force command passes the delay line, then the force limit; the force
     acting on the carriage is the one behind that (reported) force, plus the world's extra
     forces (`effects`: ripple, backlash, see `feedbench.models.effects`).
 
     inputs: the cycle's column of the input table as a tuple (target position m, target
-    velocity m/s, target force N, velocity offset m/s, force offset N, tip force N). The tip force ramps from the
-    previous cycle's value to this one's over the cycle (first-order hold); each physics
-    substep holds the ramp's value at its midpoint. trace (substeps + 1): the tip
-    acceleration (m/s²) at the start of the cycle and at the end of every physics substep,
-    under the ramp's value at that instant.
+    velocity m/s, target force N, velocity offset m/s, force offset N, tip force N). The
+    tip force ramps from the previous cycle's value to this one's over the cycle
+    (first-order hold); each physics substep holds the ramp's value at its midpoint.
+    trace (substeps + 1): the tip acceleration (m/s²) at the start of the cycle and at the
+    end of every physics substep, under the ramp's value at that instant; without
+    `full_trace` only its last point (the end of the cycle) is computed.
     """
     if not enabled:
         clear_controller(state, delay_line, False)
@@ -288,7 +297,10 @@ def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positi
     linearisations = (last, last)  # a cycle's first substep starts from the newest one
     integral, previous_error = state[S_INTEGRAL], state[S_PREVIOUS_ERROR]
     index, applied = int(state[S_DELAY_INDEX]), state[S_FORCE]
-    trace[0] = tip_acceleration(mechanics, tip_start, rows, effects)
+    active = has_extra_forces(effects)
+    last = trace.size - 1
+    if full_trace:
+        trace[0] = tip_acceleration(mechanics, tip_start, rows, effects, active)
     substep = 0
     force_sum = 0.0
     for tick in range(position_ticks):
@@ -312,15 +324,16 @@ def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positi
             acting = acting_force(applied, effects[E_FORCE_LEVEL])
             force_sum += applied
             for _ in range(int(params[P_PHYSICS_STEPS])):
-                motor_extra, tip_extra = effect_forces(mechanics, effects)
+                motor_extra, tip_extra = extra_forces(mechanics, effects, active)
                 tip_force = tip_start + (substep + 0.5) * tip_step
                 mechanics, linearisations = physics_step(mechanics, linearisations,
                                                          acting + motor_extra,
                                                          tip_force + tip_extra, rows, positive,
                                                          negative)
                 substep += 1
-                trace[substep] = tip_acceleration(mechanics, tip_start + substep * tip_step,
-                                                  rows, effects)
+                if full_trace or substep == last:
+                    trace[substep] = tip_acceleration(
+                        mechanics, tip_start + substep * tip_step, rows, effects, active)
     state[S_X_MOT], state[S_V_MOT], state[S_X_TIP], state[S_V_TIP] = mechanics
     state[S_FRICTION_VELOCITY], state[S_FRICTION_FORCE], state[S_NEWTON_GAIN] = \
         linearisations[1]
@@ -340,8 +353,9 @@ def run_cycles(state: np.ndarray, delay_line: np.ndarray, model: np.ndarray,
     """Advance len(modes) bus cycles; column k of `inputs` (INPUT_COUNT × cycles) drives
     cycle k, column k of `outputs` (OUTPUT_COUNT × cycles) gets the state after it (and the
     motor velocity and force averaged over it, as a drive reports them), row k of `traces`
-    the tip acceleration through it (see `advance_cycle`). A `traces` of one row is a
-    scratch row that every cycle overwrites (the trace is not kept)."""
+    the tip acceleration through it (see `advance_cycle`). A `traces` of one row (with
+    more than one cycle) is a scratch row: cycles before the last compute only its last
+    point, the tip acceleration at their end; the last cycle leaves its whole trace."""
     rows = model_rows(model)
     positive, negative = friction_side(table, 0), friction_side(table, 1)
     effects = (effect_vector[0], effect_vector[1], effect_vector[2], effect_vector[3],
@@ -355,7 +369,7 @@ def run_cycles(state: np.ndarray, delay_line: np.ndarray, model: np.ndarray,
         cycle_inputs = (inputs[0, k], inputs[1, k], inputs[2, k], inputs[3, k], inputs[4, k],
                         inputs[5, k])
         advance_cycle(state, delay_line, rows, positive, negative, params, effects, modes[k],
-                      enabled, cycle_inputs, trace)
+                      enabled, cycle_inputs, trace, keep_traces or k == modes.size - 1)
         outputs[O_POSITION, k] = state[S_X_MOT]
         outputs[O_VELOCITY, k] = state[S_V_MOT]
         outputs[O_FORCE, k] = state[S_FORCE]

@@ -110,6 +110,14 @@ def dead_zone(gap: float, width: float) -> float:
 
 
 @njit(**_HOT)
+def has_extra_forces(effects: tuple) -> bool:
+    """True if `effect_forces` can be non-zero for this effect tuple (the kernel skips it
+    otherwise)."""
+    return (effects[E_LOAD_COULOMB] != 0.0 or effects[E_RIPPLE_AMPLITUDE] != 0.0
+            or effects[E_BACKLASH] > 0.0)
+
+
+@njit(**_HOT)
 def effect_forces(mechanics: tuple, effects: tuple) -> tuple[float, float]:
     """Extra forces (N) on carriage and tip for the state (x_mot, v_mot, x_tip, v_tip).
 
