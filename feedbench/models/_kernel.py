@@ -261,7 +261,7 @@ def clear_controller(state: np.ndarray, delay_line: np.ndarray, keep_delay_line:
         state[S_HAS_PREVIOUS_TARGET] = 0.0
 
 
-@njit(**_JIT)
+@njit(**_HOT)  # merged into run_cycles: no per-cycle call passing ~60 values (measured 1.2–1.6×)
 def advance_cycle(state: np.ndarray, delay_line: np.ndarray, rows: tuple, positive: tuple,
                   negative: tuple, params: np.ndarray, effects: tuple, mode: int,
                   enabled: bool, inputs: tuple, trace: np.ndarray, full_trace: bool) -> None:
