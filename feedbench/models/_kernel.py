@@ -13,8 +13,12 @@ floating-point operations, so its cost is latency, not arithmetic. What keeps th
 short: the friction solve starts from a linearisation two substeps old, so the law's exp is
 evaluated beside the chain, not in it (`physics_step`); Newton divides by a derivative from
 the previous evaluation (`implicit_motor_velocity`); the linear updates are summed as trees
-(`free_update`); and multiply–adds are fused (fastmath "contract" only: no reassociation,
-no approximations, IEEE NaN/inf semantics kept).
+(`free_update`); multiply–adds are fused (fastmath "contract" only: no reassociation,
+no approximations, IEEE NaN/inf semantics kept). Around the chain: a whole `simulate` is
+one loop (`advance_cycle` is inlined into `run_cycles`), the effect laws are skipped when
+the world has none, and the per-substep tip-acceleration trace is computed only where it
+is kept. Measured over a 60 s run with holds and reversals: 2175–2532× real time in quiet
+phases of this VM, ≈ 1.6× the previous kernel in interleaved runs.
 """
 
 from __future__ import annotations
