@@ -18,8 +18,11 @@ $(VENV)/.bench: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/feedbench demo --quick
 
+# two workers, whole files each (module fixtures run once), in conftest.SLOW_FIRST order
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -q
+	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -q -n $(TEST_WORKERS) \
+		--dist loadfile --no-loadscope-reorder
 
 bench: $(VENV)/.bench
 	QT_QPA_PLATFORM=offscreen $(BIN)/python benchmarks/run_all.py

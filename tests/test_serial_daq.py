@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import binascii
+import threading
 import time
 
 import numpy as np
@@ -186,7 +187,7 @@ def test_bench_locked_samples_carry_the_bench_time(instrument):
 def test_overrun_when_the_host_stops_reading_shows_as_a_counted_gap():
     """A small FIFO and a host that does not read: new frames are lost, and the host sees
     exactly that many missing counter values once it reads again."""
-    with SimulatedSerialDaq(fifo_bytes=100 * FRAME_12) as sim, \
+    with SimulatedSerialDaq(fifo_bytes=100 * FRAME_12, host_stall_s=0.2) as sim, \
             serial.Serial(sim.port, timeout=0.2) as port:
         parser = FrameParser(len(CHANNELS))
         port.write(b"START\n")
@@ -200,6 +201,35 @@ def test_overrun_when_the_host_stops_reading_shows_as_a_counted_gap():
         assert received == sim.frames_sent == 10_010 - sim.overruns
         assert parser.dropped_frames == sim.overruns
         assert parser.crc_errors == 0
+
+
+def test_bench_locked_instrument_waits_for_a_host_that_is_behind_but_reading():
+    """The bench pushes 276 kB at once, a host reading 4 kB every 5 ms is behind (the FIFO
+    and the pty hold a quarter of it): the instrument waits for it, no frame overruns."""
+    with SimulatedSerialDaq(fifo_bytes=1000 * FRAME_12) as sim, \
+            serial.Serial(sim.port, timeout=0.2) as port:
+        parser = FrameParser(len(CHANNELS))
+        port.write(b"START\n")
+        assert parser.feed(port.read(8))[1] == ["OK"]
+        received, done = [0], threading.Event()
+
+        def slow_host() -> None:
+            while not done.is_set() or port.in_waiting:
+                received[0] += len(parser.feed(port.read(min(4096, port.in_waiting or 1)))[0]
+                                   .sequence)
+                time.sleep(5e-3)
+
+        host = threading.Thread(target=slow_host)
+        host.start()
+        for _ in range(600):  # 6000 frames, 276 kB
+            sim.push(np.zeros((10, len(CHANNELS))))
+        deadline = time.monotonic() + 10.0
+        while received[0] < 6000 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        done.set()
+        host.join()
+    assert sim.overruns == 0 and sim.frames_sent == 6000
+    assert received[0] == 6000 and parser.dropped_frames == 0
 
 
 def drain(port: serial.Serial, parser: FrameParser) -> int:

@@ -16,6 +16,13 @@ instrument emulates the real link: a stream is accepted only if it fits the USB 
 budget (`LINK_BYTES_PER_S`), frames leave at the sample rate of their clock, and a bounded
 transmit FIFO drops whole frames (counted in `overruns`, visible to the host as counter
 gaps) when the host stops reading. `corrupt_next_frame` damages the wire on purpose.
+
+Host behind. A simulated bench can outrun a host that is reading, which the real-time
+instrument never does: on a busy machine the host's read of the pty stalls in the kernel for
+seconds (measured 2 s, waiting for the tty flip-buffer work) while the bench goes on.
+Bench-locked, while more than a quarter of the FIFO waits and the host took bytes within
+`host_stall_s`, each `push` waits up to `HOST_WAIT_S` for it; a host that stopped reading
+overruns the FIFO as before.
 """
 
 from __future__ import annotations
@@ -38,6 +45,10 @@ from feedbench.protocols.serial_frames import (
 IDENTITY = "FEEDBENCH,SIM-DAQ12,0,1.0"
 DEFAULT_FIFO_BYTES = 1 << 20
 """Transmit FIFO of the instrument (≈ 2.3 s of all 12 inputs at 10 kHz)."""
+HOST_WAIT_S = 0.02
+"""Longest wait of one bench cycle for a host that is behind (well below a cycle's timeout)."""
+HOST_STALL_S = 10.0
+"""A host that took nothing for this long has stopped reading: not waited for."""
 GARBAGE_BYTES = 64
 Corruption = Literal["flip", "truncate", "garbage"]
 Waveform = Callable[[np.ndarray], np.ndarray]
@@ -95,13 +106,15 @@ class SimulatedSerialDaq:
     """The instrument on a fresh pty (`port` is the slave path), stopped, all inputs on.
 
     `cycle_s` is the bench bus cycle its sample clock locks to (s), `rate_hz` the power-on
-    sample rate, `fifo_bytes` the transmit FIFO that overruns when the host stops reading.
+    sample rate, `fifo_bytes` the transmit FIFO that overruns when the host stops reading
+    (took nothing for `host_stall_s`).
     """
 
     def __init__(self, cycle_s: float = 1e-3, rate_hz: int = 10_000,
-                 fifo_bytes: int = DEFAULT_FIFO_BYTES) -> None:
+                 fifo_bytes: int = DEFAULT_FIFO_BYTES, host_stall_s: float = HOST_STALL_S) -> None:
         self.cycle_s = cycle_s
         self.fifo_bytes = fifo_bytes
+        self.host_stall_s = host_stall_s
         self.rate_hz = rate_hz
         self.mask = ALL_INPUTS
         self._check_stream(rate_hz, ALL_INPUTS)
@@ -114,6 +127,7 @@ class SimulatedSerialDaq:
         self._clock_samples = 0
         self._corruption: Corruption | None = None
         self._fifo = bytearray()
+        self._host_took_at = time.monotonic()
         self._commands = bytearray()
         self._lock = threading.Lock()
         self._master, self._slave = os.openpty()
@@ -151,6 +165,7 @@ class SimulatedSerialDaq:
             if self.streaming:
                 self._queue(first, samples)
         self._flush_or_wake()
+        self._wait_for_host()
 
     def free_run(self, waveform: Waveform) -> None:
         """Clock the instrument from the wall clock at `rate_hz`, sampling `waveform(t)`."""
@@ -297,6 +312,17 @@ class SimulatedSerialDaq:
             except BlockingIOError:
                 return
             del self._fifo[:written]
+            if written:
+                self._host_took_at = time.monotonic()
+
+    def _wait_for_host(self) -> None:
+        """Hold this bench cycle (≤ `HOST_WAIT_S`) while a host that is reading is behind."""
+        deadline = time.monotonic() + HOST_WAIT_S
+        while (len(self._fifo) > self.fifo_bytes // 4
+               and time.monotonic() - self._host_took_at < self.host_stall_s
+               and time.monotonic() < deadline):
+            time.sleep(1e-3)
+            self._flush()
 
     def _flush_or_wake(self) -> None:
         self._flush()
