@@ -40,18 +40,24 @@ def app():
 
 def config(name: str, directory, **experiment):
     raw = example_config(name)
-    raw["bench"].update(output_dir=str(directory), channel=f"fb-live-{uuid.uuid4().hex[:8]}")
+    raw["bench"].update(output_dir=str(directory), channel=f"fb-live-{uuid.uuid4().hex[:8]}",
+                        timeout_s=10.0)  # not about bus timeouts: a busy CI machine stalls
     raw["experiment"].update(experiment)
     return parse_run_config(raw)
 
 
-def pump(app, session, until=lambda state: False, timeout_s: float = 90.0) -> list[int]:
-    """Run the Qt loop until the worker ends (or `until(state)`); the progress bar values."""
+def pump(app, session, until=None, timeout_s: float = 90.0) -> list[int]:
+    """Run the Qt loop until the worker ends (or `until(state)`); the progress bar values.
+    A run that ends before `until` came fails with the window's state line (aborted: why)."""
     progress, deadline = [], time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
+    while not (until and until(session.window.stream.state())):
         app.processEvents()
         progress.append(session.window.progress.value())
-        if not session.worker.alive or until(session.window.stream.state()):
+        assert time.monotonic() < deadline, f"the run went on for more than {timeout_s} s"
+        if not session.worker.alive:
+            session.window.refresh()
+            assert until is None or until(session.window.stream.state()), \
+                f"the run ended early: {session.window.state_label.text()}"
             break
         time.sleep(0.005)
     for _ in range(3):
