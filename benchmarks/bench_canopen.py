@@ -34,7 +34,7 @@ from typing import Iterator, NamedTuple
 import canopen
 import numpy as np
 
-from feedbench.daq.clock import LockstepClock
+from feedbench.daq.clock import LockstepClock, one_core
 from feedbench.protocols.canbus import connect, open_bus, open_network
 from feedbench.drivers.cia402 import Cia402Drive, CycleSignal
 from feedbench.daq.recorder import Recorder
@@ -169,14 +169,22 @@ def _paired(rounds: list[tuple[Timing, ...]], column: int) -> list[float]:
     return sorted(r[column].cycles_per_s / r[0].cycles_per_s for r in rounds)
 
 
+def _runner_loop_on_one_core(n_cycles: int) -> Timing:
+    """`_runner_loop` with its threads on one CPU, as a simulated `Bench` runs it
+    (`bench.one_core`)."""
+    with one_core():
+        return _runner_loop(n_cycles)
+
+
 def run() -> dict[str, float]:
     _full_loop(10)  # compile the physics, import everything: not part of any round
-    rounds = [(_bare_loop(N_CYCLES), _full_loop(N_CYCLES), _runner_loop(N_CYCLES))
-              for _ in range(ROUNDS)]
-    bare, full, stack = (Timing(*(statistics.median(column)
-                                  for column in zip(*(r[i] for r in rounds))))
-                         for i in range(3))
+    rounds = [(_bare_loop(N_CYCLES), _full_loop(N_CYCLES), _runner_loop(N_CYCLES),
+               _runner_loop_on_one_core(N_CYCLES)) for _ in range(ROUNDS)]
+    bare, full, stack, stack_one_core = (
+        Timing(*(statistics.median(column) for column in zip(*(r[i] for r in rounds))))
+        for i in range(4))
     full_ratios, stack_ratios = _paired(rounds, 1), _paired(rounds, 2)
+    one_core_ratios = sorted(r[3].cycles_per_s / r[2].cycles_per_s for r in rounds)
     figures = {
         "bare_canopen_cycles_per_s": bare.cycles_per_s,
         "driver_sim_physics_cycles_per_s": full.cycles_per_s,
@@ -187,6 +195,8 @@ def run() -> dict[str, float]:
         "full_stack_cycles_per_s": stack.cycles_per_s,
         "full_stack_over_bare": statistics.median(stack_ratios),
         "full_stack_cpu_us_per_cycle": stack.cpu_us_per_cycle,
+        "full_stack_one_core_cycles_per_s": stack_one_core.cycles_per_s,
+        "full_stack_one_core_over_all_cpus": statistics.median(one_core_ratios),
     }
     print(f"bare python-can + canopen lockstep loop (SYNC, 3 RPDO, 2 TPDO): "
           f"{bare.cycles_per_s:7.0f} cycles/s, {bare.cpu_us_per_cycle:5.0f} us CPU/cycle "
@@ -201,6 +211,9 @@ def run() -> dict[str, float]:
           f"{figures['driver_sim_physics_cpu_over_bare']:.2f} and "
           f"{bare.cpu_us_per_cycle / stack.cpu_us_per_cycle:.2f}; rounds of {N_CYCLES} "
           f"cycles, load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
+    print(f"full stack on one CPU (bench.one_core, the simulated bench's default):   "
+          f"{stack_one_core.cycles_per_s:7.0f} cycles/s, {stack_one_core.cpu_us_per_cycle:5.0f} "
+          f"us CPU/cycle; over the full stack on all CPUs {_quartiles(one_core_ratios)}")
     return figures
 
 

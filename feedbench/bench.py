@@ -15,7 +15,7 @@ from typing import Any, Mapping, Sequence
 
 from feedbench.config import ConfigError, Field, one_of, positive, read_toml, validate_table
 from feedbench.daq.catalog import Catalog
-from feedbench.daq.clock import LockstepClock, RealtimeClock
+from feedbench.daq.clock import LockstepClock, RealtimeClock, one_core
 from feedbench.daq.recorder import Recorder
 from feedbench.protocols.canbus import open_network
 from feedbench.drivers.cia402 import Cia402Drive
@@ -48,6 +48,8 @@ BENCH_SCHEMA = {
     "clock": Field(str, "lockstep", "lockstep (simulation) or realtime (hardware)",
                    one_of("lockstep", "realtime")),
     "timeout_s": Field(float, 1.0, "how long a cycle may wait for its TPDOs (s)", positive),
+    "one_core": Field(bool, True, "simulated lockstep bench: its threads on one CPU "
+                      "(faster, same results; `feedbench.daq.clock.one_core`)"),
     "eds": Field(str, "", "EDS file of the drive (empty: the packaged simulated drive's)"),
     "output_dir": Field(str, "runs", "where recordings and the catalog go"),
     "gains": Field(dict, {}, "servo gains written to the drive by SDO before the run"),
@@ -200,6 +202,8 @@ class Bench:
         cfg = self.config
         cycle_s = cfg["cycle_ms"] * 1e-3
         try:
+            if cfg["one_core"] and cfg["simulated"] and cfg["clock"] == "lockstep":
+                self._stack.enter_context(one_core())  # first: every thread below inherits it
             if cfg["axis"] == "rack_pinion":
                 self._open_rack_pinion(cycle_s)
                 return self

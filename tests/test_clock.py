@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import os
+import threading
 import time
 
 import can
+import numpy as np
 import pytest
 
-from feedbench.daq.clock import BusTimeout, LockstepClock, RealtimeClock
+from feedbench.bench import parse_run_config, run_config
+from feedbench.daq.clock import BusTimeout, LockstepClock, RealtimeClock, one_core
+from feedbench.daq.recording import open_recording
+from feedbench.demo import example_config
 from feedbench.protocols.canbus import open_network
 from feedbench.drivers.cia402 import Cia402Drive
 from feedbench.models.axis import CSV
@@ -110,3 +116,63 @@ def test_realtime_clock_times_out_without_answers(can_channel):
             for _ in range(200):
                 clock.tick()
     assert clock.missed >= 1
+
+
+TWO_CPUS = hasattr(os, "sched_getaffinity") and len(os.sched_getaffinity(0)) >= 2
+needs_two_cpus = pytest.mark.skipif(not TWO_CPUS, reason="needs Linux and two allowed CPUs")
+
+
+@needs_two_cpus
+def test_one_core_pins_the_thread_and_the_threads_it_starts_then_restores():
+    before = os.sched_getaffinity(0)
+    started = {}
+    with one_core() as cpu:
+        inside = os.sched_getaffinity(0)
+        thread = threading.Thread(target=lambda: started.update(cpus=os.sched_getaffinity(0)))
+        thread.start()
+        thread.join()
+    assert cpu in before and inside == started["cpus"] == {cpu}
+    assert os.sched_getaffinity(0) == before
+
+
+class _ThreadCpus:
+    """Observer: the CPUs allowed to each thread started since `before`, seen mid-run."""
+
+    def __init__(self) -> None:
+        self.before = {t.native_id for t in threading.enumerate()}
+        self.cpus: list[set[int]] = []
+
+    def on_start(self, plan, channels) -> None: ...
+
+    def on_segment(self, index, segment, cycle) -> None:
+        self.cpus += [os.sched_getaffinity(t.native_id) for t in threading.enumerate()
+                      if t.native_id not in self.before]
+
+    def on_block(self, cycles, block) -> None: ...
+
+    def on_stop(self, status, reason) -> None: ...
+
+
+@needs_two_cpus
+def test_simulated_run_on_one_core_records_exactly_the_same_samples(tmp_path, can_channel):
+    """`bench.one_core` (the default for a simulated lockstep bench): the run's threads
+    (bus receive threads, heartbeat, simulated drive) share one CPU during the run, the
+    caller gets its CPUs back after it, and the recording equals the one on all CPUs."""
+    recordings, observers, cpus_before = {}, {}, os.sched_getaffinity(0)
+    for pinned in (True, False):
+        raw = example_config("chirp")
+        raw["bench"].update(output_dir=str(tmp_path / str(pinned)), channel=can_channel,
+                            one_core=pinned)
+        raw["experiment"].update(repetitions=1, duration_s=0.5, settle_s=0.2)
+        observers[pinned] = _ThreadCpus()
+        row = run_config(parse_run_config(raw), [observers[pinned]], progress=False)
+        recordings[pinned] = open_recording(row["file"])
+    assert os.sched_getaffinity(0) == cpus_before
+    pinned_cpus = {frozenset(c) for c in observers[True].cpus}
+    assert len(observers[True].cpus) >= 3 and len(pinned_cpus) == 1
+    assert len(next(iter(pinned_cpus))) == 1
+    assert all(len(c) >= 2 for c in observers[False].cpus)
+    pinned, free = recordings[True], recordings[False]
+    assert pinned.status == free.status == "complete" and pinned.n_samples == free.n_samples
+    for name, values in free.channels.items():
+        np.testing.assert_array_equal(pinned.channels[name], values, err_msg=name)
