@@ -164,9 +164,10 @@ def _runner_loop(n_cycles: int) -> Timing:
         return Timing(cycles / wall, cpu / cycles * 1e6)
 
 
-def _paired(rounds: list[tuple[Timing, ...]], column: int) -> list[float]:
-    """Per-round cycles/s of loop `column` over the bare loop's in the same round, sorted."""
-    return sorted(r[column].cycles_per_s / r[0].cycles_per_s for r in rounds)
+def _paired(rounds: list[tuple[Timing, ...]], column: int, over: int = 0) -> list[float]:
+    """Per-round cycles/s of loop `column` over loop `over`'s (the bare loop) in the same
+    round, sorted."""
+    return sorted(r[column].cycles_per_s / r[over].cycles_per_s for r in rounds)
 
 
 def _runner_loop_on_one_core(n_cycles: int) -> Timing:
@@ -184,7 +185,7 @@ def run() -> dict[str, float]:
         Timing(*(statistics.median(column) for column in zip(*(r[i] for r in rounds))))
         for i in range(4))
     full_ratios, stack_ratios = _paired(rounds, 1), _paired(rounds, 2)
-    one_core_ratios = sorted(r[3].cycles_per_s / r[2].cycles_per_s for r in rounds)
+    one_core_ratios = _paired(rounds, 3, over=2)
     figures = {
         "bare_canopen_cycles_per_s": bare.cycles_per_s,
         "driver_sim_physics_cycles_per_s": full.cycles_per_s,
