@@ -192,7 +192,7 @@ def one_core() -> Iterator[int | None]:
 
     A lockstep cycle hands the GIL from the host to the device's receive thread to the
     host's receive thread and back, so the threads never run at once; across two cores each
-    hand-over is a cross-core wake-up. On one core the quick demo campaign took 100 s instead
+    hand-over is a cross-core wake-up. On one core the quick demo campaign took 98 s instead
     of 161 s (40 % less CPU) with identical results, on this 2-core VM.
     """
     cpu = _current_cpu()
