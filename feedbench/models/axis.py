@@ -16,12 +16,13 @@ controller is sampled, zero-order hold), so the linear two-mass part is advanced
 x⁺ = A_d x + B_d u with A_d = e^{A h}, B_d = ∫₀ʰ e^{A s} ds B, computed once with
 `scipy.linalg.expm`. The friction force enters as one more motor force held over the
 period and is evaluated at the END-of-period motor velocity (backward Euler in the friction
-only): v⁺ = v_free − β F(v⁺), a scalar equation solved by (chord) Newton from the
-linearisation of two periods back, with a bisection safeguard, to 1e-9 m/s (measured 1.05
-evaluations of the law per period over holds, starts and reversals; `_kernel` says why
-two periods back). Backward Euler is L-stable, so the stiff friction mode is damped, never
-amplified, at any slope and step; the root is bracketed by 0 and v_free, so a reversal
-cannot overshoot. The error is first order in the friction's change over one period:
+only): v⁺ = v_free − β F(v⁺), a scalar equation solved to 1e-9 m/s: by the root of the
+law's tangent at its latest evaluation where a curvature bound proves that root close
+enough (no evaluation at all), else by (chord) Newton from that root with a bisection
+safeguard (measured 0.30 evaluations of the law per period over holds, starts and
+reversals; `_kernel.proven_tangent_root`). Backward Euler is L-stable, so the stiff
+friction mode is damped, never amplified, at any slope and step; the root is bracketed by
+0 and v_free, so a reversal cannot overshoot. The error is first order in the friction's change over one period:
 nil in steady sliding, largest at break-away. Measured against Radau (tests): open-loop
 stick-slip with reversals ≈ 10 µm over 1.5 mm of travel, closed-loop CSP with reversals
 ≈ 0.3 µm. `physics_substeps` splits each period into equal substeps (error ∝ 1/substeps).
