@@ -251,6 +251,18 @@ def implicit_motor_velocity(v_free: float, beta: float, linearisation: tuple,
     return v, (v, force, gain)
 
 
+@njit(**_HOT)
+def friction_velocity(v_free: float, beta: float, linearisation: tuple, positive: tuple,
+                      negative: tuple, proof: tuple) -> tuple:
+    """Velocity (m/s) at the end of a substep with the friction taken at it, and the
+    linearisation for the next substep: the tangent's root where it is proven close enough
+    (`proven_tangent_root`: the law is not evaluated), else `implicit_motor_velocity`."""
+    proven, v = proven_tangent_root(v_free, beta, linearisation, proof)
+    if proven:
+        return v, linearisation
+    return implicit_motor_velocity(v_free, beta, linearisation, positive, negative)
+
+
 def kernel_model(discrete: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The 5 × 7 kernel model from [A_d | B_d] (4 × 6) and the continuous (A, B).
 
@@ -296,18 +308,14 @@ def physics_step(mechanics: tuple, linearisation: tuple, motor_force: float,
     rows: `model_rows` of the exact zero-order-hold discretisation of the linear axis,
     inputs (motor force, tip force). Friction enters as a motor force held over the substep
     and evaluated at the end-of-substep motor velocity: the root of the law's tangent at
-    the latest evaluation when that root is proven close enough (`proven_tangent_root`,
-    no evaluation), else `implicit_motor_velocity`.
+    the latest evaluation when that root is proven close enough (`friction_velocity`).
     """
     v_free = free_update(rows[1], mechanics, motor_force, tip_force)
     x_mot = free_update(rows[0], mechanics, motor_force, tip_force)
     x_tip = free_update(rows[2], mechanics, motor_force, tip_force)
     v_tip = free_update(rows[3], mechanics, motor_force, tip_force)
-    beta = rows[1][4]
-    proven, v_mot = proven_tangent_root(v_free, beta, linearisation, proof)
-    if not proven:
-        v_mot, linearisation = implicit_motor_velocity(v_free, beta, linearisation, positive,
-                                                       negative)
+    v_mot, linearisation = friction_velocity(v_free, rows[1][4], linearisation, positive,
+                                             negative, proof)
     drop = v_free - v_mot
     return ((x_mot - rows[0][6] * drop, v_mot, x_tip - rows[2][6] * drop,
              v_tip - rows[3][6] * drop), linearisation)

@@ -8,7 +8,7 @@ the dead zone is `models.effects.dead_zone`: one definition of each law.
 Physics per substep h (semi-implicit Euler): spring and bumper forces from the positions at
 the start of the substep, motor velocities from them (the motor's viscous drag implicit),
 the load velocity with the guideway friction taken at the end-of-substep velocity (backward
-Euler, `implicit_motor_velocity`), then positions from the new velocities. The scheme's
+Euler, `friction_velocity`), then positions from the new velocities. The scheme's
 fixed point is the exact static equilibrium, so the static stiffness, backlash and preload
 figures carry no discretisation error; the highest mode (a motor on its drive train,
 ≈ 80 Hz by default) is resolved with ω h ≈ 0.06 at 8 kHz.
@@ -19,7 +19,14 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from feedbench.models._kernel import CSP, CST, friction_side, implicit_motor_velocity, velocity_pi
+from feedbench.models._kernel import (
+    CSP,
+    CST,
+    friction_side,
+    friction_velocity,
+    proof_coefficients,
+    velocity_pi,
+)
 from feedbench.models.effects import dead_zone
 
 COUPLED, MASTER_ALONE, SLAVE_ALONE = 0, 1, 2
@@ -91,7 +98,7 @@ def bumper_force(x_load: float, v_load: float, mechanics: tuple) -> float:
 @njit(**_HOT)
 def physics_step(bodies: tuple, linearisation: tuple, force_m: float, force_s: float,
                  load_force: float, mechanics: tuple, h: float, positive: tuple,
-                 negative: tuple) -> tuple:
+                 negative: tuple, proof: tuple) -> tuple:
     """Advance (x_m, v_m, x_s, v_s, x_l, v_l) by one substep h (s); returns it and the
     friction linearisation. force_m, force_s: motor forces at the rack (N)."""
     x_m, v_m, x_s, v_s, x_l, v_l = bodies
@@ -106,8 +113,8 @@ def physics_step(bodies: tuple, linearisation: tuple, force_m: float, force_s: f
     beta_load = h / mechanics[M_LOAD]
     v_free = v_l + beta_load * (spring_m + spring_s + bumper_force(x_l, v_l, mechanics)
                                 + load_force)
-    v_l, linearisation = implicit_motor_velocity(v_free, beta_load, linearisation, positive,
-                                                 negative)
+    v_l, linearisation = friction_velocity(v_free, beta_load, linearisation, positive, negative,
+                                           proof)
     return (x_m + h * v_m, v_m, x_s + h * v_s, v_s, x_l + h * v_l, v_l), linearisation
 
 
@@ -201,6 +208,7 @@ def advance_cycle(state: np.ndarray, delay_lines: np.ndarray, params: np.ndarray
     steps, cycle = int(params[P_PHYSICS_STEPS]), params[P_CYCLE]
     period = cycle / (position_ticks * velocity_ticks)
     h = period / steps
+    proof = proof_coefficients(positive, negative, h / mechanics[M_LOAD])
     limit = params[P_FORCE_LIMIT]
     pi_m = (params[P_K_P_M], params[P_INV_T_I_M], limit, period)
     pi_s = (params[P_K_P_S], params[P_INV_T_I_S], limit, period)
@@ -249,7 +257,7 @@ def advance_cycle(state: np.ndarray, delay_lines: np.ndarray, params: np.ndarray
             for _ in range(steps):
                 bodies, linearisation = physics_step(bodies, linearisation, applied_m, applied_s,
                                                      inputs[I_LOAD_FORCE], mechanics, h,
-                                                     positive, negative)
+                                                     positive, negative, proof)
     (state[S_X_M], state[S_V_M], state[S_X_S], state[S_V_S], state[S_X_L],
      state[S_V_L]) = bodies
     state[S_FRICTION_VELOCITY], state[S_FRICTION_FORCE], state[S_NEWTON_GAIN] = linearisation
