@@ -23,10 +23,10 @@ safeguard (measured 0.30 evaluations of the law per period over holds, starts an
 reversals; `_kernel.proven_tangent_root`). Backward Euler is L-stable, so the stiff
 friction mode is damped, never amplified, at any slope and step; the root is bracketed by
 0 and v_free, so a reversal cannot overshoot. The error is first order in the friction's
-change over one period: nil in steady sliding, largest at break-away. Measured against Radau (tests): open-loop
-stick-slip with reversals ≈ 10 µm over 1.5 mm of travel, closed-loop CSP with reversals
-≈ 0.3 µm. `physics_substeps` splits each period into equal substeps (error ∝ 1/substeps).
-The loop runs in one compiled numba call per `simulate` or `step_cycle`.
+change over one period: nil in steady sliding, largest at break-away. Measured against
+Radau (tests): open-loop stick-slip with reversals ≈ 10 µm over 1.5 mm of travel,
+closed-loop CSP with reversals ≈ 0.3 µm. `physics_substeps` splits each period into equal
+substeps (error ∝ 1/substeps). The loop runs in one compiled numba call per `simulate` or `step_cycle`.
 """
 
 from __future__ import annotations
