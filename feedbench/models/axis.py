@@ -26,7 +26,8 @@ friction mode is damped, never amplified, at any slope and step; the root is bra
 change over one period: nil in steady sliding, largest at break-away. Measured against
 Radau (tests): open-loop stick-slip with reversals ≈ 10 µm over 1.5 mm of travel,
 closed-loop CSP with reversals ≈ 0.3 µm. `physics_substeps` splits each period into equal
-substeps (error ∝ 1/substeps). The loop runs in one compiled numba call per `simulate` or `step_cycle`.
+substeps (error ∝ 1/substeps). The loop runs in one compiled numba call per `simulate` or
+`step_cycle`.
 """
 
 from __future__ import annotations
