@@ -303,12 +303,16 @@ def _backward_euler_root(v_free: float, beta: float) -> float:
                   max(0.0, v_free), xtol=1e-20, rtol=4 * np.finfo(float).eps)
 
 
+LAB_BETA = TwoMassAxis().discrete_model(ServoTiming().velocity_period)[1, 4]
+"""β of the lab bench: motor velocity gained per newton over one 8 kHz period (m/(N·s))."""
+
+
 def _tangent_cases(speeds: tuple[float, float], count: int, seed: int = 7):
     """Random (v_free, linearisation) pairs: the law linearised at l (|l| log-uniform in
     `speeds`, either sign) and v_free placed so that the tangent's root is l + step,
     |step| log-uniform in 1e-9 … 1e-4 m/s."""
     rng = np.random.default_rng(seed)
-    beta = TwoMassAxis().discrete_model(ServoTiming().velocity_period)[1, 4]
+    beta = LAB_BETA
     for _ in range(count):
         l = rng.choice([-1.0, 1.0]) * math.exp(rng.uniform(*np.log(speeds)))
         step = rng.choice([-1.0, 1.0]) * math.exp(rng.uniform(np.log(1e-9), np.log(1e-4)))
@@ -328,9 +332,9 @@ def test_a_proven_tangent_root_is_within_the_solve_tolerance(regime, speeds, lea
     common (the speed-up is real). Measured: 2562 of 3000 accepted sliding, worst 7.1e-10
     m/s; 1303 creeping, worst 1.8e-10 m/s; with the bound 100× too loose the worst is 2e-8."""
     positive, negative = (_kernel.friction_side(LAB_BENCH_FRICTION.table(), row) for row in (0, 1))
+    proof = _kernel.proof_coefficients(positive, negative, LAB_BETA)
     accepted, worst = 0, 0.0
     for v_free, beta, linearisation in _tangent_cases(speeds, 3000):
-        proof = _kernel.proof_coefficients(positive, negative, beta)
         proven, root = _kernel.proven_tangent_root(v_free, beta, linearisation, proof)
         if proven:
             accepted += 1
@@ -344,11 +348,11 @@ def test_no_proof_without_an_evaluated_linearisation_or_for_other_exponents():
     both always go to the Newton solve."""
     table = LAB_BENCH_FRICTION.table()
     positive, negative = _kernel.friction_side(table, 0), _kernel.friction_side(table, 1)
-    proof = _kernel.proof_coefficients(positive, negative, 5e-6)
-    assert not _kernel.proven_tangent_root(1e-3, 5e-6, (0.0, 0.0, 0.0), proof)[0]
+    proof = _kernel.proof_coefficients(positive, negative, LAB_BETA)
+    assert not _kernel.proven_tangent_root(1e-3, LAB_BETA, (0.0, 0.0, 0.0), proof)[0]
     table[:, _kernel.DELTA] = 0.5
     other = _kernel.proof_coefficients(_kernel.friction_side(table, 0),
-                                       _kernel.friction_side(table, 1), 5e-6)
+                                       _kernel.friction_side(table, 1), LAB_BETA)
     cases = list(_tangent_cases((1.3e-3, 3e-2), 200))
     assert sum(_kernel.proven_tangent_root(*case, proof)[0] for case in cases) > 100
     assert not any(_kernel.proven_tangent_root(*case, other)[0] for case in cases)
