@@ -60,12 +60,19 @@ def root_locus(numerator: ArrayLike, denominator: ArrayLike, gains: ArrayLike) -
 
 
 def match_branches(roots: ArrayLike) -> ComplexArray:
-    """Reorder each row's roots so that every column follows one continuous branch."""
+    """Reorder each row's roots so that every column follows one continuous branch.
+
+    Row 0 keeps its order; each later row is assigned to the previous one by the least total
+    distance. Each row is first sorted by value, so that ties (a conjugate pair leaving the
+    real axis is equidistant from the real root before it) are broken the same way whatever
+    order the eigenvalue solver returned the roots in.
+    """
     matched = np.array(roots, dtype=complex)
     for row in range(1, matched.shape[0]):
-        distance = np.abs(matched[row - 1][:, None] - matched[row][None, :])
+        candidates = np.sort_complex(matched[row])
+        distance = np.abs(matched[row - 1][:, None] - candidates[None, :])
         _, order = optimize.linear_sum_assignment(distance)
-        matched[row] = matched[row, order]
+        matched[row] = candidates[order]
     return matched
 
 
