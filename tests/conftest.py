@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from prerequisites import check_requirements
+
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 _WORKER = os.environ.get("PYTEST_XDIST_WORKER")
@@ -38,6 +40,11 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """`SLOW_FIRST` files first, the rest in collection order; each file's tests stay together."""
     rank = {name: i for i, name in enumerate(SLOW_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(SLOW_FIRST)))
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """Tests marked `requires(available, reason)` skip, or fail in CI (`prerequisites.py`)."""
+    check_requirements(item)
 
 
 @pytest.fixture

@@ -19,6 +19,7 @@ from feedbench.drivers.cia402 import Cia402Drive
 from feedbench.models.axis import CSV
 from feedbench.sim_backends.bench import start_simulated_axis
 from feedbench.sim_backends.eds import packaged_eds_path
+from prerequisites import requires
 from test_cia402_sim import NODE_ID, enable, loopback
 
 
@@ -119,7 +120,7 @@ def test_realtime_clock_times_out_without_answers(can_channel):
 
 
 TWO_CPUS = hasattr(os, "sched_getaffinity") and len(os.sched_getaffinity(0)) >= 2
-needs_two_cpus = pytest.mark.skipif(not TWO_CPUS, reason="needs Linux and two allowed CPUs")
+needs_two_cpus = requires(TWO_CPUS, "needs Linux and two allowed CPUs")
 
 
 @needs_two_cpus

@@ -8,19 +8,17 @@ F_v = 203.5034 N·s/m, F_c = 20.3935 N, offset = −3.1648 N.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
 from feedbench.analysis.closure import report_text
 from feedbench.closure_command import closure_report
+from prerequisites import SHARED_DATA, requires
 
-EMPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "emps"
+EMPS = SHARED_DATA / "emps"
 PUBLISHED = {("inertia", "M_kg"): 95.1089, ("viscous", "F_v_Ns_m"): 203.5034,
              ("coulomb", "F_c_N"): 20.3935, ("offset", "offset_N"): -3.1648}
 
-pytestmark = pytest.mark.skipif(not (EMPS / "DATA_EMPS.mat").exists(),
-                                reason="EMPS data not available")
+pytestmark = requires((EMPS / "DATA_EMPS.mat").exists(), f"EMPS data not in {EMPS}")
 
 
 @pytest.fixture(scope="module")

@@ -12,9 +12,10 @@ from feedbench.analysis.closure import Trace
 from feedbench.cli import main
 from feedbench.closure_io import read_csv_trace, read_emps, write_csv_trace
 from feedbench.config import ConfigError
+from prerequisites import SHARED_DATA, requires
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "feedbench" / "examples" / "closure"
-EMPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "emps"
+EMPS = SHARED_DATA / "emps"
 
 
 def small_trace() -> Trace:
@@ -61,7 +62,7 @@ def test_sidecar_errors_name_the_field(tmp_path, sidecar, message):
         read_csv_trace(tmp_path / "a.csv", sidecar)
 
 
-@pytest.mark.skipif(not (EMPS / "DATA_EMPS_PULSES.mat").exists(), reason="EMPS data missing")
+@requires((EMPS / "DATA_EMPS_PULSES.mat").exists(), f"EMPS data not in {EMPS}")
 def test_emps_reader_scales_voltage_by_the_drive_gain():
     import scipy.io
 

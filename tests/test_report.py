@@ -30,6 +30,7 @@ from feedbench.report import (
     TABLE_5_1, closure_section, render_html, run_section, tool_tip_lobes, write_report,
 )
 from feedbench.units import MM_PER_MIN
+from prerequisites import CHROMIUM, requires
 
 CYCLE_S = 1e-3
 LIMITS = {"position_mm": [-250.0, 250.0], "velocity_mm_min": 3000.0, "force_N": 1500.0}
@@ -214,9 +215,6 @@ def test_quality_flags_an_aborted_run_with_missing_samples(sections):
     assert quality["peak |force|"].value == f"{peak:.1f} N = 6 % of the limit"
 
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-
-
 def chromium(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu",
                            "--hide-scrollbars", *args], capture_output=True, text=True,
@@ -235,7 +233,7 @@ def decoded_images(report, directory) -> list[str]:
     return re.search(r'data-decoded="([^"]*)"', dom).group(1).split()
 
 
-@pytest.mark.skipif(CHROMIUM is None, reason="headless Chromium is not installed")
+@requires(CHROMIUM is not None, "headless Chromium is not installed")
 def test_report_renders_in_headless_chromium_with_every_image_decoded(report, tmp_path):
     assert decoded_images(report, tmp_path) == [
         "1000x700", "800x450", "1000x700", "800x550", "1000x700"]
@@ -617,7 +615,7 @@ def test_write_report_takes_closure_results(closure_result, tmp_path):
     assert text.count("<img") == 1 and "held-out force residual before and after" in text
 
 
-@pytest.mark.skipif(CHROMIUM is None, reason="headless Chromium is not installed")
+@requires(CHROMIUM is not None, "headless Chromium is not installed")
 def test_every_family_renders_in_headless_chromium(campaign, tmp_path):
     path, sections = campaign
     assert decoded_images(path, tmp_path) == [
