@@ -9,32 +9,52 @@ The best candidate is added when its ΔBIC is below −`bic_threshold` (very str
 the Kass–Raftery scale) and it explains at least `min_explained` of the residual; the
 augmented model is refitted jointly. The loop stops when no candidate is significant. Every
 error that judges a step is measured on the held-out kinematics.
+
+Declared values are a start, not a constraint: each round also tries every declared (fixed)
+parameter freed alone, a *recalibration*, scored by the same ΔBIC and share; the best of
+effects and recalibrations is taken. A step is kept only if the same test passes on the
+held-out data too (ΔBIC there, the model's parameters as fitted: a prediction, not a fit), so
+an effect that merely soaks up the fit part's leftovers is not added (parsimony). A candidate
+whose fit fails (non-finite residuals from its start, an optimiser failure) is rejected with
+its reason and the search goes on.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from feedbench.analysis.closure.effects import CANDIDATES, EFFECTS, Context, Effect
 from feedbench.analysis.closure.model import (
-    Fit, Model, Term, design, fit_model, held_out_error, least_squares_solution, output_slope,
+    Fit, FitError, Model, Term, check_identifiable, design, fit_model, held_out_error,
+    least_squares_solution, output_slope,
 )
 from feedbench.analysis.closure.trace import Kinematics
+from feedbench.config import ConfigError
+
+MAX_FAILED_STARTS = 3
+"""Further starts tried, best screened first, when a candidate's fits fail."""
+
+RECALIBRATION_ALIASES = {("inertia", "M_kg"): "inertia_mismatch"}
+"""Declared parameters whose recalibration an effect of the library already is (ΔM a): that
+effect is tried instead, under its name."""
 
 
 @dataclass(frozen=True)
 class ClosureOptions:
     """Search settings. bic_threshold: ΔBIC an effect must beat (−10: very strong evidence);
     min_explained: share of the fit-part residual it must explain; max_effects: stop after
-    this many; candidates: effect names the search may add; starts: fits per candidate."""
+    this many; candidates: effect names the search may add; starts: fits per candidate;
+    recalibrate: also try freeing each declared parameter."""
 
     bic_threshold: float = 10.0
     min_explained: float = 0.15
     max_effects: int = 6
     candidates: tuple[str, ...] = CANDIDATES
     starts: int = 1
+    recalibrate: bool = True
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.candidates) - set(CANDIDATES))
@@ -45,10 +65,12 @@ class ClosureOptions:
 
 @dataclass(frozen=True)
 class Candidate:
-    """One effect tried against the current model.
+    """One effect (or recalibration) tried against the current model.
 
-    screened: share of the residual its signature explains; explained: share of the fit-part
-    SSR removed after fitting it; delta_bic: BIC change; rejected: why it cannot be added.
+    name: the effect, or "term.key" of a recalibrated declared parameter; screened: share of
+    the residual its signature explains; explained: share of the fit-part SSR removed after
+    fitting it; delta_bic: BIC change; rejected: why it cannot be added; freed: (term index,
+    key) of a recalibration, None for an effect.
     """
 
     name: str
@@ -58,6 +80,12 @@ class Candidate:
     explained: float
     delta_bic: float
     rejected: str | None = None
+    freed: tuple[int, str] | None = None
+
+    @property
+    def kind(self) -> str:
+        """"effect" or "recalibration"."""
+        return "effect" if self.freed is None else "recalibration"
 
     def significant(self, options: ClosureOptions) -> bool:
         """Whether this candidate pays for its parameters."""
@@ -67,13 +95,25 @@ class Candidate:
 
 @dataclass(frozen=True)
 class Step:
-    """One effect added: why (the ranking), the refitted model, held-out error before/after."""
+    """One effect added or declared parameter recalibrated: why (the ranking), the refitted
+    model, held-out error before/after, ΔBIC on the held-out data."""
 
     chosen: Candidate
     ranking: tuple[Candidate, ...]
     fit: Fit
     error_before: float
     error_after: float
+    holdout_delta_bic: float = math.nan
+    declared: float = math.nan
+
+    @property
+    def recalibration(self) -> tuple[float, float, float] | None:
+        """(declared, fitted, one-sigma) SI value of a recalibrated parameter, else None."""
+        if self.chosen.freed is None:
+            return None
+        i, key = self.chosen.freed
+        term = self.fit.model.terms[i]
+        return self.declared, term.values[key], self.fit.std.get((term.name, key), math.nan)
 
 
 @dataclass(frozen=True)
@@ -95,30 +135,93 @@ class ClosureResult:
     @property
     def effects(self) -> tuple[str, ...]:
         """Names of the added effects, in the order added."""
-        return tuple(step.chosen.name for step in self.steps)
+        return tuple(step.chosen.name for step in self.steps if step.chosen.freed is None)
+
+    @property
+    def recalibrated(self) -> tuple[str, ...]:
+        """"term.key" of the recalibrated declared parameters, in the order found."""
+        return tuple(step.chosen.name for step in self.steps if step.chosen.freed is not None)
+
+    @property
+    def rejected(self) -> tuple[Candidate, ...]:
+        """Candidates that could not be added, once each (the last round's reason)."""
+        rounds = [step.ranking for step in self.steps] + [self.final_ranking]
+        seen = {c.name: c for ranking in rounds for c in ranking if c.rejected is not None}
+        return tuple(seen.values())
 
 
 def close_the_loop(model: Model, fit_kin: Kinematics, holdout_kin: Kinematics,
                    options: ClosureOptions = ClosureOptions()) -> ClosureResult:
     """Fit `model` on `fit_kin`, then add effects while one is significant.
 
-    Errors before/after are NRMSE of the force reading on `holdout_kin`.
+    Errors before/after are NRMSE of the force reading on `holdout_kin`. Raises
+    `ConfigError` when the declared model cannot be fitted on the data.
     """
-    base = fit_model(model, fit_kin)
-    current, steps = base, []
-    while True:
+    base = base_fit(model, fit_kin)
+    current, steps, ranking = base, [], []
+    while len(steps) < options.max_effects:
         ranking = rank_candidates(current, fit_kin, options)
-        best = ranking[0] if ranking else None
-        if best is None or not best.significant(options) or len(steps) >= options.max_effects:
+        if options.recalibrate:
+            ranking = sorted(ranking + rank_recalibrations(current, fit_kin, options), key=_order)
+        step, ranking = _first_passing(current, ranking, fit_kin, holdout_kin, options)
+        if step is None:
             break
-        refit = fit_model(_free_again(best.fit.model, current.model), fit_kin)
-        steps.append(Step(best, tuple(ranking), refit,
-                          held_out_error(current.model, holdout_kin),
-                          held_out_error(refit.model, holdout_kin)))
-        current = refit
+        steps.append(step)
+        current = step.fit
     return ClosureResult(base, tuple(steps), tuple(ranking),
                          held_out_error(base.model, holdout_kin),
                          held_out_error(current.model, holdout_kin), options)
+
+
+def base_fit(model: Model, kin: Kinematics) -> Fit:
+    """The declared model fitted on `kin`; `ConfigError` in one line when it cannot be."""
+    try:
+        check_identifiable(model, kin)
+        return fit_model(model, kin)
+    except FitError as exc:
+        raise ConfigError(f"model {model.name or '(declared)'}: cannot be fitted on this "
+                          f"data: {exc}") from None
+
+
+def _first_passing(current: Fit, ranking: list[Candidate], fit_kin: Kinematics,
+                   holdout_kin: Kinematics, options: ClosureOptions
+                   ) -> tuple[Step | None, list[Candidate]]:
+    """The step of the best significant candidate whose joint refit runs and that passes on
+    the held-out data too; the ranking with the ones that failed marked rejected."""
+    ranking = list(ranking)
+    before = held_out_error(current.model, holdout_kin)
+    for j, candidate in enumerate(ranking):
+        if not candidate.significant(options):
+            break
+        try:
+            refit = fit_model(_free_again(candidate.fit.model, current.model, candidate.freed),
+                              fit_kin)
+        except FitError as exc:
+            ranking[j] = replace(candidate, rejected=f"joint refit failed: {exc}")
+            continue
+        after = held_out_error(refit.model, holdout_kin)
+        evidence = holdout_delta_bic(before, after, refit.k - current.k, holdout_kin)
+        if not evidence < -options.bic_threshold:
+            ranking[j] = replace(candidate, rejected=f"not confirmed on the held-out data "
+                                 f"(ΔBIC {evidence:.0f}: {before:.2%} → {after:.2%})")
+            continue
+        declared = (math.nan if candidate.freed is None else
+                    current.model.terms[candidate.freed[0]].values[candidate.freed[1]])
+        return Step(candidate, tuple(ranking), refit, before, after, evidence, declared), ranking
+    return None, ranking
+
+
+def holdout_delta_bic(before: float, after: float, added: int, kin: Kinematics) -> float:
+    """ΔBIC of two predictions on held-out data from their NRMSEs (same measured force):
+    n_eff ln(SSR_after/SSR_before) + Δk ln n_eff."""
+    n_eff = kin.effective_n
+    return float(2.0 * n_eff * np.log(max(after, 1e-300) / max(before, 1e-300))
+                 + added * np.log(n_eff))
+
+
+def _order(candidate: Candidate) -> tuple[bool, float]:
+    """Ranking key: usable candidates first, lowest ΔBIC first."""
+    return candidate.rejected is not None, candidate.delta_bic
 
 
 def rank_candidates(current: Fit, kin: Kinematics, options: ClosureOptions) -> list[Candidate]:
@@ -128,23 +231,67 @@ def rank_candidates(current: Fit, kin: Kinematics, options: ClosureOptions) -> l
     basis = _free_basis(current, kin)
     tried = [try_effect(EFFECTS[name], current, kin, context, basis, options.starts)
              for name in options.candidates if EFFECTS[name].applicable(present, fixed)]
-    return sorted(tried, key=lambda c: (c.rejected is not None, c.delta_bic))
+    return sorted(tried, key=_order)
+
+
+def rank_recalibrations(current: Fit, kin: Kinematics,
+                        options: ClosureOptions) -> list[Candidate]:
+    """Every declared (fixed) parameter of `current` freed alone from its declared value,
+    the model's other nonlinear parameters held; best first."""
+    held = _hold_nonlinear(current.model)
+    tried = []
+    for i, term in enumerate(current.model.terms):
+        for p in term.effect.parameters:
+            alias = RECALIBRATION_ALIASES.get((term.name, p.key))
+            if p.setting or p.key in term.free or alias in options.candidates:
+                continue
+            terms = list(held.terms)
+            terms[i] = replace(term, free=terms[i].free | {p.key})
+            tried.append(_scored(f"{term.name}.{p.key}", current, replace(held, terms=tuple(terms)),
+                                 kin, (i, p.key)))
+    return sorted(tried, key=_order)
+
+
+def _scored(name: str, current: Fit, model: Model, kin: Kinematics,
+            freed: tuple[int, str]) -> Candidate:
+    """A recalibration candidate: `model` fitted and scored against `current`."""
+    evidence = f"declared {name} freed"
+    try:
+        fit = fit_model(model, kin, with_std=False)
+    except FitError as exc:
+        return Candidate(name, 0.0, evidence, None, 0.0, 0.0, f"fit failed: {exc}", freed)
+    return Candidate(name, 0.0, evidence, fit, float(1.0 - fit.ssr / current.ssr),
+                     float(fit.bic - current.bic), None, freed)
 
 
 def try_effect(effect: Effect, current: Fit, kin: Kinematics, context: Context,
                basis: np.ndarray, n_starts: int) -> Candidate:
-    """Screen `effect` on the residual, fit it from its best starts, score it."""
+    """Screen `effect` on the residual, fit it from its best starts, score it. Starts whose
+    signature is not finite are skipped; a candidate none of whose fits runs is rejected
+    with the reason."""
     starts = effect.starts(kin, context)
-    if not starts:
+    rows = kin.rows
+    with np.errstate(all="ignore"):
+        shares = [_explained_share(effect.probe(kin, context, s)[rows], context.residual, basis)
+                  for s in starts]
+    usable = [j for j, share in enumerate(shares) if np.isfinite(share)]
+    if not usable:
         return Candidate(effect.name, 0.0, "no start in the data's range", None, 0.0, 0.0,
                          "not testable on this data")
-    rows = kin.rows
-    shares = [_explained_share(effect.probe(kin, context, s)[rows], context.residual, basis)
-              for s in starts]
-    order = np.argsort(shares)[::-1][:n_starts]
-    fits = [_fit_candidate(effect, current, kin, starts[i]) for i in order]
-    fit = min(fits, key=lambda f: f.ssr)
+    order = sorted(usable, key=lambda j: -shares[j])
+    fits, failures = [], []
+    for j in order[:n_starts + MAX_FAILED_STARTS]:
+        try:
+            fits.append(_fit_candidate(effect, current, kin, starts[j]))
+        except FitError as exc:
+            failures.append(str(exc))
+        if len(fits) >= n_starts:
+            break
     evidence = f"{effect.signature}: explains {shares[order[0]]:.0%} of the residual"
+    if not fits:
+        return Candidate(effect.name, float(shares[order[0]]), evidence, None, 0.0, 0.0,
+                         f"fit failed: {failures[0]}")
+    fit = min(fits, key=lambda f: f.ssr)
     explained = 1.0 - fit.ssr / current.ssr
     delta_bic = fit.bic - current.bic
     term = fit.model.terms[-1]
@@ -165,9 +312,11 @@ def _hold_nonlinear(model: Model) -> Model:
     return replace(model, terms=terms)
 
 
-def _free_again(augmented: Model, before: Model) -> Model:
-    """Restore the free sets the held terms had before the candidate was fitted."""
-    terms = tuple(replace(t, free=b.free) for t, b in zip(augmented.terms, before.terms))
+def _free_again(augmented: Model, before: Model, freed: tuple[int, str] | None = None) -> Model:
+    """Restore the free sets the held terms had before the candidate was fitted, plus the
+    recalibrated parameter `freed` (term index, key)."""
+    terms = tuple(replace(t, free=b.free | ({freed[1]} if freed and freed[0] == i else set()))
+                  for i, (t, b) in enumerate(zip(augmented.terms, before.terms)))
     return replace(augmented, terms=terms + augmented.terms[len(before.terms):])
 
 

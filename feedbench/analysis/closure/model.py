@@ -24,6 +24,15 @@ MAX_NONLINEAR_EVALUATIONS = 40
 NONLINEAR_TOLERANCE = 1e-6
 """Relative change of cost and η that ends a refinement (the ranking needs no more)."""
 
+SINGULAR_TOLERANCE = 1e-8
+"""Free columns whose unit-norm QR pivot falls below this cannot be told apart (the
+relative precision of a least-squares solve in double precision, √ε)."""
+
+
+class FitError(ValueError):
+    """A fit that cannot run: non-finite residuals at its start, columns the data cannot
+    tell apart, or an optimiser failure. The message says which, in one line."""
+
 
 @dataclass(frozen=True)
 class Term:
@@ -285,6 +294,8 @@ def fit_model(model: Model, kin: Kinematics, with_std: bool = True) -> Fit:
     prediction = predict(model, kin)
     rows = kin.rows
     residual = kin.force[rows] - prediction.reading[rows]
+    if not np.all(np.isfinite(residual)):
+        raise FitError("the fitted prediction is not finite")
     k = sum(len(t.free_linear) + len(t.free_nonlinear) for t in model.terms)
     std = _standard_deviations(model, kin, prediction, residual, k) if with_std else {}
     return Fit(model, residual, prediction.acting, float(residual @ residual), kin.n_used,
@@ -310,10 +321,37 @@ def _refine_nonlinear(model: Model, kin: Kinematics, x0: np.ndarray,
     def residual(x: np.ndarray) -> np.ndarray:
         return measured - _solve(model.with_nonlinear(x, slots), kin, rows, cache)[1]
 
-    result = least_squares(residual, x0, bounds=(lower, upper), x_scale="jac",
-                           ftol=NONLINEAR_TOLERANCE, xtol=NONLINEAR_TOLERANCE,
-                           max_nfev=MAX_NONLINEAR_EVALUATIONS * len(slots))
+    if not np.all(np.isfinite(residual(x0))):
+        start = ", ".join(f"{model.terms[i].name}.{k} = {v:.3g}" for (i, k), v in zip(slots, x0))
+        raise FitError(f"residuals not finite at the start ({start}, SI)")
+    with np.errstate(all="ignore"):
+        try:
+            result = least_squares(residual, x0, bounds=(lower, upper), x_scale="jac",
+                                   ftol=NONLINEAR_TOLERANCE, xtol=NONLINEAR_TOLERANCE,
+                                   max_nfev=MAX_NONLINEAR_EVALUATIONS * len(slots))
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            raise FitError(f"nonlinear refinement failed: {exc}") from None
     return model.with_nonlinear(result.x, slots)
+
+
+def check_identifiable(model: Model, kin: Kinematics) -> None:
+    """Raise `FitError` naming the free linear parameters the data cannot determine: a
+    column that is zero on the used samples, or one that the others already span."""
+    d = design(model, kin, rows=kin.rows)
+    names = [f"{model.terms[i].name}.{key}" for (i, key), f in zip(d.owners, d.free) if f]
+    columns = d.columns[:, d.free]
+    if not np.all(np.isfinite(columns)):
+        raise FitError("the data give non-finite regressors (check for jumps in position)")
+    norms = np.linalg.norm(columns, axis=0)
+    for name, norm in zip(names, norms):
+        if norm == 0.0:
+            raise FitError(f"{name} cannot be determined: its regressor is zero on every "
+                           f"used sample (the axis never shows it)")
+    for j in range(1, len(names)):
+        r = np.linalg.qr(columns[:, :j + 1] / norms[:j + 1], mode="r")
+        if abs(r[j, j]) < SINGULAR_TOLERANCE:
+            raise FitError(f"{names[j]} cannot be told apart from "
+                           f"{', '.join(names[:j])} on this data (collinear regressors)")
 
 
 def _stride(kin: Kinematics) -> int:

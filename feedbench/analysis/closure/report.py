@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from feedbench.analysis.closure.diagnosis import Candidate, ClosureResult
+from feedbench.analysis.closure.diagnosis import Candidate, ClosureResult, Step
 from feedbench.analysis.closure.model import Fit, Term
 from feedbench.analysis.closure.replay import ReplayErrors
 from feedbench.analysis.closure.run import ClosureReport
@@ -37,7 +37,7 @@ def model_params(fit: Fit) -> dict[str, dict[str, dict[str, float | bool]]]:
 
 def candidate_dict(candidate: Candidate) -> dict[str, Any]:
     """One ranked candidate: its evidence and score."""
-    return {"effect": candidate.name, "evidence": candidate.evidence,
+    return {"effect": candidate.name, "kind": candidate.kind, "evidence": candidate.evidence,
             "signature_share": candidate.screened, "explained": candidate.explained,
             "delta_bic": candidate.delta_bic, "rejected": candidate.rejected}
 
@@ -65,24 +65,43 @@ def stop_reason(result: ClosureResult) -> str:
             f"(needs ≥ {options.min_explained:.0%})")
 
 
+def recalibration_dict(step: Step) -> dict[str, Any]:
+    """A recalibrated declared parameter in its config unit: declared → fitted ± std, and by
+    how many standard deviations it moved."""
+    i, key = step.chosen.freed
+    p = step.fit.model.terms[i].effect.parameter(key)
+    declared, value, std = (v / p.to_si for v in step.recalibration)
+    return {"parameter": step.chosen.name, "unit": p.unit, "declared": declared,
+            "value": value, "std": std,
+            "sigmas": abs(value - declared) / std if std > 0.0 else math.inf}
+
+
+def _step_dict(step: Step) -> dict[str, Any]:
+    """One step of the search: an effect added or a declared parameter recalibrated."""
+    out = {"kind": step.chosen.kind, "effect": step.chosen.name,
+           "evidence": step.chosen.evidence, "delta_bic": step.chosen.delta_bic,
+           "holdout_delta_bic": step.holdout_delta_bic, "explained": step.chosen.explained,
+           "error_before": step.error_before, "error_after": step.error_after,
+           "runners_up": [candidate_dict(c) for c in step.ranking[1:1 + RUNNERS_UP]],
+           "model_params": model_params(step.fit)}
+    if step.chosen.freed is not None:
+        recalibration = recalibration_dict(step)
+        return {**out, "description": _recalibration_text(recalibration),
+                "recalibration": recalibration}
+    term = step.fit.model.term(step.chosen.name)
+    return {**out, "description": term.effect.describe(term.values),
+            "params": term_params(term, step.fit)}
+
+
+def _recalibration_text(r: dict[str, Any]) -> str:
+    return (f"declared {r['declared']:.4g} → {r['value']:.4g} ± {r['std']:.2g} {r['unit']}, "
+            f"moved {r['sigmas']:.3g} σ")
+
+
 def report_dict(report: ClosureReport) -> dict[str, Any]:
     """The machine-readable report (`feedbench closure --json`)."""
     result = report.result
-    steps = []
-    for step in result.steps:
-        term = step.fit.model.term(step.chosen.name)
-        steps.append({
-            "effect": step.chosen.name,
-            "description": term.effect.describe(term.values),
-            "evidence": step.chosen.evidence,
-            "delta_bic": step.chosen.delta_bic,
-            "explained": step.chosen.explained,
-            "error_before": step.error_before,
-            "error_after": step.error_after,
-            "params": term_params(term, step.fit),
-            "runners_up": [candidate_dict(c) for c in step.ranking[1:1 + RUNNERS_UP]],
-            "model_params": model_params(step.fit),
-        })
+    steps = [_step_dict(step) for step in result.steps]
     final = result.final
     return {
         "model": report.name,
@@ -91,6 +110,9 @@ def report_dict(report: ClosureReport) -> dict[str, Any]:
         "bandwidth_Hz": report.bandwidth,
         "standstill_mm_s": report.standstill * 1e3,
         "effects": list(result.effects),
+        "recalibrations": [{**s["recalibration"], "error_before": s["error_before"],
+                            "error_after": s["error_after"]}
+                           for s in steps if s["kind"] == "recalibration"],
         "error_before": result.error_before,
         "error_after": result.error_after,
         "fit_error_before": result.base.error,
@@ -101,6 +123,7 @@ def report_dict(report: ClosureReport) -> dict[str, Any]:
         "final_params": model_params(final),
         "stopped": stop_reason(result),
         "final_ranking": [candidate_dict(c) for c in result.final_ranking],
+        "rejected": [{"effect": c.name, "reason": c.rejected} for c in result.rejected],
         "replay": None if report.replay_before is None else {
             "before": replay_dict(report.replay_before),
             "after": replay_dict(report.replay_after)},
@@ -147,14 +170,18 @@ def report_text(report: ClosureReport) -> str:
         runners = "; ".join(f"{c['effect']} ΔBIC {c['delta_bic']:.0f}, {c['explained']:.1%}"
                             + (f" [{c['rejected']}]" if c["rejected"] else "")
                             for c in step["runners_up"]) or "none"
+        action = "recalibrate" if step["kind"] == "recalibration" else "+"
         lines += [
-            f"step {i}: + {step['effect']} ({step['description']}) — held-out "
+            f"step {i}: {action} {step['effect']} ({step['description']}) — held-out "
             f"{step['error_before']:.2%} → {step['error_after']:.2%}",
             f"    signature: {step['evidence']}",
-            f"    why: ΔBIC {step['delta_bic']:.0f}, removes {step['explained']:.1%} of the "
-            f"fit residual; runners-up: {runners}",
-            _params_text(step["params"]),
+            f"    why: ΔBIC {step['delta_bic']:.0f} (held-out {step['holdout_delta_bic']:.0f}), "
+            f"removes {step['explained']:.1%} of the fit residual; runners-up: {runners}",
         ]
+        if "params" in step:
+            lines.append(_params_text(step["params"]))
+    for r in data["rejected"]:
+        lines.append(f"rejected: {r['effect']}: {r['reason']}")
     if not result.steps:
         lines.append("no missing effect found: nothing added, the declared model stands")
     lines.append(f"stop: {data['stopped']}")
