@@ -1,11 +1,12 @@
 """The `feedbench closure` command: run the closure on a trace, or the table of simulated
 cases with undeclared effects.
 
-    feedbench closure DATA [--model M.toml] [--validation DATA2] [--json] [--plots DIR]
-                           [--report FILE]
+    feedbench closure DATA [--model M.toml] [--validation DATA2] [--axis N] [--json]
+                           [--plots DIR] [--report FILE]
     feedbench closure --cases [CASES.toml] [--json]
 
-DATA: a CSV file with its TOML sidecar, an EMPS .mat file, or a feedbench .h5 recording.
+DATA: a CSV file with its TOML sidecar, an EMPS or KUKA robot .mat file (--axis: the
+joint), or a feedbench .h5 recording.
 This module composes the room that simulates (`sim_backends.effects`) with the one that
 analyses (`analysis.closure`); the analysis never sees a world table. The numerical
 packages are imported where used, so that registering the command costs nothing.
@@ -29,6 +30,7 @@ if TYPE_CHECKING:
 EXAMPLES = Path(__file__).parent / "examples" / "closure"
 CASES_PATH = EXAMPLES / "cases.toml"
 EMPS_MODEL = EXAMPLES / "emps_rigid_viscous.toml"
+KUKA_MODEL = EXAMPLES / "kuka_joint.toml"
 
 WORLD_TO_VOCABULARY = {"sensor_offset": "offset"}
 """World effects the closure names differently (a force-reading offset is an offset)."""
@@ -54,15 +56,24 @@ def load_model_spec(path: str | Path) -> ModelSpec:
     return parse_model_config(read_toml(path))
 
 
+def default_model(data: str | Path, axis: int | None = None) -> Path | None:
+    """The packaged model config of a .mat trace: EMPS, or a KUKA joint (given an axis)."""
+    if Path(data).suffix.lower() != ".mat":
+        return None
+    return EMPS_MODEL if axis is None else KUKA_MODEL
+
+
 def closure_report(data: str | Path, model: str | Path | None = None,
                    validation: str | Path | None = None,
-                   holdout: float | None = None) -> ClosureReport:
-    """Read the traces and the model config, run the closure; returns the report."""
+                   holdout: float | None = None, axis: int | None = None) -> ClosureReport:
+    """Read the traces (joint `axis` of a KUKA file) and the model config, run the
+    closure; returns the report."""
     from feedbench.analysis.closure import parse_model_config, run_closure
-    from feedbench.closure_io import read_trace
 
-    trace, controller = read_trace(data)
-    model_path = model or (EMPS_MODEL if Path(data).suffix.lower() == ".mat" else None)
+    if holdout is not None and not 0.0 < holdout < 1.0:
+        raise ConfigError(f"--holdout: must lie between 0 and 1 (got {holdout:g})")
+    trace, controller = read_checked(data, axis)
+    model_path = model or default_model(data, axis)
     if model_path is None:
         raise ConfigError("--model: required (a model config TOML, see docs/closure.md)")
     raw = read_toml(model_path)
@@ -71,12 +82,27 @@ def closure_report(data: str | Path, model: str | Path | None = None,
     spec = parse_model_config(raw)
     if holdout is not None:
         spec = replace(spec, holdout_fraction=holdout)
-    second = read_trace(validation)[0] if validation else None
+    second = read_checked(validation, axis)[0] if validation else None
     try:
         with single_blas_thread():
             return run_closure(spec, trace, second)
     except ValueError as exc:  # data the closure cannot use: too short, too slow, no reference
         raise ConfigError(f"{data}: {exc}") from None
+
+
+def read_checked(path: str | Path, axis: int | None = None) -> tuple[Trace, dict[str, Any]]:
+    """`closure_io.read_trace`; a file its reader or `Trace` refuses (NaN or inf samples, time
+    not increasing, not a MATLAB file) raises `ConfigError` naming the file."""
+    from scipy.io.matlab import MatReadError
+
+    from feedbench.closure_io import read_trace
+
+    try:
+        return read_trace(path, axis)
+    except ConfigError:
+        raise
+    except (ValueError, MatReadError) as exc:
+        raise ConfigError(f"{path}: {exc}") from None
 
 
 # -- simulated cases -----------------------------------------------------------------------
@@ -211,7 +237,7 @@ def cmd_closure(args: argparse.Namespace) -> int:
         return 0
     if not args.data:
         raise ConfigError("closure: give a trace (CSV + sidecar, .mat or .h5) or --cases")
-    report = closure_report(args.data, args.model, args.validation, args.holdout)
+    report = closure_report(args.data, args.model, args.validation, args.holdout, args.axis)
     plots = save_plots(report, args.plots) if args.plots else []
     html = None
     if args.report:
@@ -239,7 +265,8 @@ def add_closure_parser(sub: Any) -> None:
                              "error before/after, on a trace or on simulated cases")
     closure.add_argument("data", nargs="?", help="trace: .csv (+ .toml sidecar), .mat, .h5")
     closure.add_argument("--model", help="model config TOML (default for .mat: EMPS rigid "
-                         "body + viscous)")
+                         "body + viscous; KUKA: motor inertia + viscous, link side)")
+    closure.add_argument("--axis", type=int, help="joint of a KUKA robot .mat file (1–6)")
     closure.add_argument("--validation", help="second trace to judge on (else the end of DATA)")
     closure.add_argument("--holdout", type=float, help="share of DATA held out (0–1)")
     closure.add_argument("--plots", help="directory for PNG plots")

@@ -1,5 +1,5 @@
-"""Reading traces for the closure (CSV + sidecar, EMPS .mat, feedbench HDF5) and plotting
-its report. The analysis itself (`feedbench.analysis.closure`) does no I/O.
+"""Reading traces for the closure (CSV + sidecar, EMPS and KUKA .mat, feedbench HDF5) and
+plotting its report. The analysis itself (`feedbench.analysis.closure`) does no I/O.
 
 CSV + sidecar: a header row of channel names, one row per sample, a time column or a sample
 rate; the sidecar (TOML, same stem) says which column is which channel and its unit:
@@ -15,6 +15,8 @@ rate; the sidecar (TOML, same stem) says which column is which channel and its u
     force = "F_N"
     reference = "x_ref_mm"       # optional: commanded position (needed for the replay)
     excitation = "exc_N"         # optional: force added to the controller's output
+    external_force = "F_ext_N"   # optional: known force the motor works against (gravity…)
+    tip_acceleration = "a_tip"   # optional: load-side acceleration (m/s², unit "m/s2")
     [units]                      # unit of each channel's column (default: SI)
     time = "s"
     position = "mm"
@@ -33,17 +35,16 @@ from typing import Any, Mapping
 import numpy as np
 import scipy.io
 
-from feedbench.analysis.closure.trace import Trace, lowpass
+from feedbench.analysis.closure.trace import SIGNALS, Trace, lowpass
 from feedbench.config import ConfigError, Field, read_toml, validate_table
 
 UNITS_TO_SI = {
     "s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6,
     "m": 1.0, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "nm": 1e-9, "rad": 1.0,
     "deg": math.pi / 180.0, "N": 1.0, "kN": 1e3, "Nm": 1.0, "N·m": 1.0, "kNm": 1e3,
+    "m/s2": 1.0, "mm/s2": 1e-3, "g": 9.80665, "rad/s2": 1.0,
 }
-"""Units a sidecar may name, and their SI factor (m, rad, N, N·m, s)."""
-
-CHANNELS = ("time", "position", "force", "reference", "excitation")
+"""Units a sidecar may name, and their SI factor (m, rad, N, N·m, s, m/s², rad/s²)."""
 
 SIDECAR_SCHEMA = {
     "name": Field(str, "", "what the trace is"),
@@ -77,13 +78,15 @@ def read_csv_trace(path: str | Path, sidecar: Mapping[str, Any] | None = None
         "force": Field(str, None, "motor force or torque column"),
         "reference": Field(str, "", "commanded position column"),
         "excitation": Field(str, "", "excitation force column"),
+        "external_force": Field(str, "", "known external force column"),
+        "tip_acceleration": Field(str, "", "load-side acceleration column"),
     }, "sidecar.columns")
     for required in ("position", "force"):
         if not columns[required]:
             raise ConfigError(f"sidecar.columns.{required}: required (the CSV column holding it)")
     header, data = _read_table(path, side["delimiter"], side["decimal"])
     signals = {}
-    for channel in CHANNELS:
+    for channel in SIGNALS:
         name = columns[channel]
         if not name:
             continue
@@ -98,7 +101,8 @@ def read_csv_trace(path: str | Path, sidecar: Mapping[str, Any] | None = None
         time = np.arange(data.shape[0]) / side["sample_rate_Hz"]
     trace = Trace(time, signals["position"], signals["force"], signals.get("reference"),
                   signals.get("excitation"), side["name"] or path.name,
-                  side["force_lag_ms"] * 1e-3)
+                  side["force_lag_ms"] * 1e-3, signals.get("external_force"),
+                  signals.get("tip_acceleration"))
     return trace, side["controller"]
 
 
@@ -119,6 +123,9 @@ def _read_table(path: Path, delimiter: str, decimal: str) -> tuple[list[str], np
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such file") from None
     lines = text.splitlines()
+    if len(lines) < 2:
+        raise ConfigError(f"{path}: no data rows (a header row of column names, then one row "
+                          f"per sample)")
     header = [h.strip() for h in next(csv.reader([lines[0]], delimiter=delimiter))]
     body = "\n".join(lines[1:])
     if decimal != ".":
@@ -137,13 +144,16 @@ def write_csv_trace(path: str | Path, trace: Trace, sidecar_extra: Mapping[str, 
     (e.g. the controller) as ready-made text lines under their header."""
     path = Path(path)
     names = {"time": "t_s", "position": "x_mm", "force": "F_N", "reference": "x_ref_mm",
-             "excitation": "excitation_N"}
-    scale = {"time": 1.0, "position": 1e3, "force": 1.0, "reference": 1e3, "excitation": 1.0}
-    present = [c for c in CHANNELS if getattr(trace, c) is not None]
+             "excitation": "excitation_N", "external_force": "external_N",
+             "tip_acceleration": "a_tip_m_s2"}
+    scale = {"time": 1.0, "position": 1e3, "force": 1.0, "reference": 1e3, "excitation": 1.0,
+             "external_force": 1.0, "tip_acceleration": 1.0}
+    present = [c for c in SIGNALS if getattr(trace, c) is not None]
     table = np.column_stack([getattr(trace, c) * scale[c] for c in present])
     np.savetxt(path, table, delimiter=",", header=",".join(names[c] for c in present),
                comments="", fmt="%.9g")
-    units = {"time": "s", "position": "mm", "force": "N", "reference": "mm", "excitation": "N"}
+    units = {"time": "s", "position": "mm", "force": "N", "reference": "mm", "excitation": "N",
+             "external_force": "N", "tip_acceleration": "m/s2"}
     lines = [f'name = "{trace.name}"', f"force_lag_ms = {trace.force_lag * 1e3:g}", "",
              "[columns]"] + [f'{c} = "{names[c]}"' for c in present] + ["", "[units]"]
     lines += [f'{c} = "{units[c]}"' for c in present]
@@ -168,10 +178,7 @@ def read_emps(path: str | Path) -> Trace:
     controller's output (5 V ≈ 176 N), whatever their name says.
     """
     path = Path(path)
-    try:
-        raw = scipy.io.loadmat(path)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such file") from None
+    raw = _load_mat(path)
     data = {k: np.asarray(v, dtype=float).ravel() for k, v in raw.items() if not k.startswith("__")}
     missing = [k for k in ("t", "qm", "qg", "vir", EMPS_GAIN_KEY) if k not in data]
     if missing:
@@ -179,6 +186,63 @@ def read_emps(path: str | Path) -> Trace:
     gain = float(data[EMPS_GAIN_KEY][0])
     excitation = gain * data["pulses_N"] if "pulses_N" in data else None
     return Trace(data["t"], data["qm"], gain * data["vir"], data["qg"], excitation, path.name)
+
+
+def read_kuka(path: str | Path, axis: int) -> Trace:
+    """One joint (1–6) of a KUKA robot recording (Weigand, Robot_Identification: struct
+    `rec`, `para`, the torques precomputed along the trajectory) as a link-side trace.
+
+    position and reference: the motor encoder and the reference, both in link degrees
+    (`act_pos_mot_deg`, `ref_pos_deg`), as rad; force: the motor torque times the gear
+    ratio u (`act_torque_abs_nm` · `para.u`, link-side N·m, the unit of `para`'s friction);
+    external force: the link-side torques the authors computed along the reference —
+    `m_all` · q̈_r (the joint's own link inertia), `tau_a_all` (inertia coupling from the
+    other joints), `tau_c_all` (Coriolis and centrifugal), `tau_g_all` + `tau_g_init`
+    (gravity with the counterbalance; the recorded series starts at 0). What is left for the
+    model: the motor's inertia J_mr u² and the friction of `para`.
+    """
+    path = Path(path)
+    raw = _load_mat(path, squeeze_me=True, struct_as_record=False)
+    rec, para = raw["rec"], raw["para"]
+    count = int(raw["n_axis"])
+    if not 1 <= axis <= count:
+        raise ConfigError(f"{path}: axis must lie in 1–{count} (got {axis})")
+    i, ratio = axis - 1, float(para.u[axis - 1])
+    deg = math.pi / 180.0
+    external = (raw["m_all"][i] * raw["ref_kin"].phi_r_all_d2[:, i] + raw["tau_a_all"][i]
+                + raw["tau_c_all"][i] + raw["tau_g_all"][i] + raw["tau_g_init"][i])
+    return Trace(rec.time_cont, deg * rec.act_pos_mot_deg[i], ratio * rec.act_torque_abs_nm[i],
+                 deg * rec.ref_pos_deg[i], None, f"{path.name} axis {axis}",
+                 external_force=external)
+
+
+def kuka_parameters(path: str | Path, axis: int) -> dict[str, float]:
+    """The authors' own parameters of one joint (`para`), link side: friction f_coul,
+    f_vis, f_asym, f_a, f_b (N·m, N·m·s/rad, 1/(rad/s)) and s_f_ff, stiffness c_rad (N·m/rad),
+    backlash q_back (rad), gear ratio u, motor inertia J_mr (kg·m², motor side)."""
+    para = _load_mat(Path(path), squeeze_me=True, struct_as_record=False)["para"]
+    keys = ("f_coul", "f_vis", "f_asym", "f_a", "f_b", "s_f_ff", "c_rad_ff", "q_back", "u",
+            "J_mr")
+    return {k: float(getattr(para, k)[axis - 1]) for k in keys}
+
+
+def _load_mat(path: Path, **options: Any) -> dict[str, Any]:
+    """The variables of a MATLAB file; a missing file is a one-line ConfigError."""
+    try:
+        return scipy.io.loadmat(path, **options)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file") from None
+
+
+def read_mat(path: str | Path, axis: int | None = None) -> Trace:
+    """A .mat trace: a KUKA robot recording (needs `axis`) or an EMPS benchmark file."""
+    if {"rec", "para"} <= set(_load_mat(Path(path), variable_names=("rec", "para"))):
+        if axis is None:
+            raise ConfigError(f"{path}: a multi-axis KUKA recording; give the axis (--axis 1–6)")
+        return read_kuka(path, axis)
+    if axis is not None:
+        raise ConfigError(f"{path}: a single-axis file; --axis is for the KUKA recordings")
+    return read_emps(path)
 
 
 def read_recording(path: str | Path) -> Trace:
@@ -197,14 +261,16 @@ def read_recording(path: str | Path) -> Trace:
                  0.5 * cycle)
 
 
-def read_trace(path: str | Path) -> tuple[Trace, dict[str, Any]]:
+def read_trace(path: str | Path, axis: int | None = None) -> tuple[Trace, dict[str, Any]]:
     """Any supported trace by its suffix (.csv, .mat, .h5), with the controller table it
-    carries (CSV sidecars only; empty otherwise)."""
+    carries (CSV sidecars only; empty otherwise); axis: the joint of a KUKA .mat file."""
     suffix = Path(path).suffix.lower()
+    if axis is not None and suffix != ".mat":
+        raise ConfigError(f"{path}: --axis is for the KUKA .mat recordings")
     if suffix == ".csv":
         return read_csv_trace(path)
     if suffix == ".mat":
-        return read_emps(path), {}
+        return read_mat(path, axis), {}
     if suffix in (".h5", ".hdf5"):
         return read_recording(path), {}
     raise ConfigError(f"{path}: unknown trace format {suffix!r} (.csv + .toml sidecar, .mat, .h5)")

@@ -27,6 +27,10 @@ EDGE_PERIODS = 3.0
 UNIFORM_TOLERANCE = 0.01
 """Largest allowed deviation of a time step from the median step, as a fraction of it."""
 
+SIGNALS = ("time", "position", "force", "reference", "excitation", "external_force",
+           "tip_acceleration")
+"""The sampled channels of a trace (the optional ones may be None)."""
+
 
 @dataclass(frozen=True)
 class Trace:
@@ -36,7 +40,10 @@ class Trace:
     (N; N·m); reference: commanded position (m) or None; excitation: force added to the
     controller's output (N) or None, e.g. a chirp into the force offset or the EMPS pulses;
     force_lag: how far the force samples lag the position samples (s), e.g. half a cycle
-    when each force sample is the force held over the cycle that ends at its time stamp.
+    when each force sample is the force held over the cycle that ends at its time stamp;
+    external_force: a known force the motor works against besides the model's terms (N;
+    N·m), e.g. a robot joint's gravity and coupling torques, or None: the model explains
+    force − external_force; tip_acceleration: acceleration of the load side (m/s²) or None.
     """
 
     time: np.ndarray
@@ -46,10 +53,12 @@ class Trace:
     excitation: np.ndarray | None = None
     name: str = ""
     force_lag: float = 0.0
+    external_force: np.ndarray | None = None
+    tip_acceleration: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = np.shape(self.time)[0] if np.ndim(self.time) == 1 else -1
-        for field in ("time", "position", "force", "reference", "excitation"):
+        for field in SIGNALS:
             value = getattr(self, field)
             if value is None:
                 continue
@@ -82,9 +91,7 @@ class Trace:
         def cut(a: np.ndarray | None) -> np.ndarray | None:
             return None if a is None else a[start:stop]
 
-        return replace(self, time=self.time[start:stop], position=self.position[start:stop],
-                       force=self.force[start:stop], reference=cut(self.reference),
-                       excitation=cut(self.excitation))
+        return replace(self, **{field: cut(getattr(self, field)) for field in SIGNALS})
 
 
 @dataclass(frozen=True)
@@ -92,9 +99,10 @@ class Kinematics:
     """Band-limited signals of one trace, edges trimmed.
 
     x (m), v (m/s), a (m/s²): filtered motor position and its derivatives; force: the
-    filtered measured force (N); used: samples that fits and errors count (the axis moving
-    faster than the standstill speed: in stiction the friction force is a constraint
-    force no friction law predicts); dt: sample period (s); bandwidth: cut-off (Hz).
+    filtered measured force less the trace's known external force (N); used: samples that
+    fits and errors count (the axis moving faster than the standstill speed: in stiction
+    the friction force is a constraint force no friction law predicts); dt: sample period
+    (s); bandwidth: cut-off (Hz).
     """
 
     x: np.ndarray
@@ -172,6 +180,8 @@ def kinematics(trace: Trace, bandwidth: float, standstill: float = 0.0) -> Kinem
         raise ValueError(f"bandwidth must lie in (0, {0.5 / dt:g}) Hz, got {bandwidth}")
     x, v, a = lowpass_derivatives(trace.position, bandwidth, dt, (0, 1, 2))
     force = lowpass(trace.force, bandwidth, dt, lead=trace.force_lag)
+    if trace.external_force is not None:
+        force = force - lowpass(trace.external_force, bandwidth, dt)
     edge = edge_samples(bandwidth, dt)
     if trace.n_samples <= 4 * edge:
         raise ValueError(f"{trace.name or 'trace'}: {trace.n_samples} samples are too few for "
