@@ -1,13 +1,16 @@
 """The `feedbench` command: run, runs, analyze, live, report, demo, sim.
 
-Errors the user can fix (a config key, a limit, an unknown run) print one line
-``feedbench: error: …`` and exit with status 2, before anything moves.
+Errors the user can fix (a config key, a limit, an unknown run, a file that is not what it
+should be) print one line ``feedbench: error: <file or field>: <reason>`` and exit with
+status 2, before anything moves; any other failure prints one line naming its type (status 2),
+Ctrl-C outside a run one line (status 130). ``--debug`` shows the traceback instead.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sqlite3
 import sys
 import time
 from pathlib import Path
@@ -17,6 +20,16 @@ from feedbench.config import ConfigError
 from feedbench.experiments.limits import LimitError
 
 USER_ERRORS = (ConfigError, LimitError, KeyError, FileNotFoundError)
+INTERRUPTED = 130
+"""Exit status after Ctrl-C outside a run (128 + SIGINT, as a shell reports it)."""
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line (status 2)."""
+
+    def error(self, message: str) -> None:
+        """Print ``<prog>: error: <message>`` and exit with status 2."""
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def _print_json(data: dict) -> None:
@@ -44,9 +57,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_runs(args: argparse.Namespace) -> int:
     """List the run catalog."""
-    from feedbench.daq.catalog import Catalog
-
-    rows = Catalog(Path(args.dir) / "catalog.sqlite").list()
+    rows = open_catalog(args.dir).list()
     if args.json:
         _print_json({"runs": [vars(r) for r in rows]})
         return 0
@@ -66,7 +77,13 @@ def analyze_file(path: str | Path) -> dict:
     recording = open_recording(path)
     if recording.experiment not in EXPERIMENTS:
         raise ConfigError(f"{path}: no analysis for experiment {recording.experiment!r}")
-    result = EXPERIMENTS[recording.experiment].analyze_recording(recording)
+    try:
+        result = EXPERIMENTS[recording.experiment].analyze_recording(recording)
+    except ConfigError:
+        raise
+    except (ValueError, KeyError) as exc:  # the recorded data do not fit the analysis
+        reason = f"no {exc.args[0]!r} recorded" if isinstance(exc, KeyError) else exc
+        raise ConfigError(f"{path}: {recording.experiment} analysis: {reason}") from exc
     result["run"] = {"file": str(path), "status": recording.status, "reason": recording.reason,
                      "n_samples": recording.n_samples, "n_gaps": recording.n_gaps}
     return result
@@ -74,22 +91,60 @@ def analyze_file(path: str | Path) -> dict:
 
 def resolve_run(run: str, directory: str) -> str:
     """A recording path from a file path or a run id (or unique id prefix) in the catalog."""
-    if Path(run).is_file():
+    if Path(run).is_file() or Path(run).suffix.lower() in (".h5", ".hdf5"):
         return run
+    return open_catalog(directory).get(run).file
+
+
+def output_directory(directory: str | Path) -> Path:
+    """`--dir` as a path; an existing file there raises `ConfigError`."""
+    path = Path(directory)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"--dir: {path} is not a directory")
+    return path
+
+
+def open_catalog(directory: str | Path):
+    """The run catalog of an output directory; a file that is not one raises `ConfigError`."""
     from feedbench.daq.catalog import Catalog
 
-    return Catalog(Path(directory) / "catalog.sqlite").get(run).file
+    path = output_directory(directory) / "catalog.sqlite"
+    try:
+        return Catalog(path)
+    except sqlite3.DatabaseError as exc:
+        raise ConfigError(f"{path}: not a run catalog ({exc})") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot open the run catalog ({exc.strerror})") from None
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
-    """Analyse one recorded run."""
-    result = analyze_file(resolve_run(args.run, args.dir))
-    if args.json:
-        _print_json(result)
+    """Analyse one recorded run, or the FRFs of a UFF58 file."""
+    from feedbench.exchange import UFF_SUFFIXES, analyze_uff58, describe_uff58
+
+    if Path(args.run).suffix.lower() in UFF_SUFFIXES:
+        result, describe = analyze_uff58(args.run), describe_uff58
     else:
         from feedbench.demo import describe_analysis
 
-        print(describe_analysis(result))
+        result, describe = analyze_file(resolve_run(args.run, args.dir)), describe_analysis
+    if args.json:
+        _print_json(result)
+    else:
+        print(describe(result))
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    """Export a run: its FRFs as UFF58, its drive channels as CSV + closure sidecar."""
+    from feedbench import exchange
+
+    if not (args.uff58 or args.csv):
+        raise ConfigError("export: give --uff58 FILE and/or --csv FILE")
+    path = resolve_run(args.run, args.dir)
+    if args.uff58:
+        print(exchange.export_uff58(path, args.uff58, analyze_file))
+    if args.csv:
+        print(exchange.export_csv(path, args.csv))
     return 0
 
 
@@ -115,7 +170,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from feedbench.demo import describe_demo, run_demo
 
     t0 = time.monotonic()
-    result = run_demo(Path(args.dir), quiet=args.json, quick=args.quick)
+    result = run_demo(output_directory(args.dir), quiet=args.json, quick=args.quick)
     result["elapsed_s"] = time.monotonic() - t0
     if args.json:
         _print_json(result)
@@ -129,14 +184,20 @@ def cmd_sim(args: argparse.Namespace) -> int:
     """Serve the simulated bench of a config as its own process until Ctrl-C / SIGTERM."""
     from feedbench.bench import sim_config
     from feedbench.sim_backends.process import serve
+    from feedbench.sim_backends.socketcand_hub import HubError
 
-    serve(*sim_config(args.config))
+    try:
+        serve(*sim_config(args.config))
+    except HubError as exc:
+        raise ConfigError(f"bench.socketcand: {exc}") from exc
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every sub-command."""
-    parser = argparse.ArgumentParser(prog="feedbench", description=__doc__.splitlines()[0])
+    parser = Parser(prog="feedbench", description=__doc__.splitlines()[0])
+    parser.add_argument("--debug", action="store_true",
+                        help="show the traceback of an error instead of its one line")
     sub = parser.add_subparsers(dest="command", required=True)
 
     run = sub.add_parser("run", help="run an experiment config (TOML)")
@@ -150,7 +211,8 @@ def build_parser() -> argparse.ArgumentParser:
     runs.add_argument("--json", action="store_true")
     runs.set_defaults(func=cmd_runs)
 
-    analyze = sub.add_parser("analyze", help="analyse a recorded run (id, id prefix or .h5)")
+    analyze = sub.add_parser("analyze", help="analyse a recorded run (id, id prefix or .h5) "
+                             "or the FRFs of a UFF58 file (.uff, .unv)")
     analyze.add_argument("run")
     analyze.add_argument("--dir", default="runs")
     analyze.add_argument("--json", action="store_true")
@@ -184,22 +246,53 @@ def build_parser() -> argparse.ArgumentParser:
                      "workpiece of an SMFE plan)")
     sim.set_defaults(func=cmd_sim)
 
+    export = sub.add_parser("export", help="export a run (id, id prefix or .h5): FRFs as "
+                            "UFF58, drive channels as CSV with the closure's TOML sidecar")
+    export.add_argument("run")
+    export.add_argument("--dir", default="runs")
+    export.add_argument("--uff58", metavar="FILE", help="binary UFF dataset 58 file of the "
+                        "run's FRFs (with coherence)")
+    export.add_argument("--csv", metavar="FILE", help="CSV file (FILE.toml: its sidecar)")
+    export.set_defaults(func=cmd_export)
+
     from feedbench.closure_command import add_closure_parser
 
     add_closure_parser(sub)
+    for command in sub.choices.values():  # `--debug` after the sub-command too
+        command.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                             help=argparse.SUPPRESS)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `feedbench` console script."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except USER_ERRORS as exc:
-        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        print(f"feedbench: error: {message}", file=sys.stderr)
+    except Exception as exc:
+        if args.debug:
+            raise
+        user = isinstance(exc, USER_ERRORS) or isinstance(exc, OSError) and exc.filename
+        _error_line(_user_message(exc) if user else
+                    f"{type(exc).__name__}: {exc} (run with --debug for the traceback)")
         return 2
+    except KeyboardInterrupt:
+        if args.debug:
+            raise
+        _error_line("interrupted")
+        return INTERRUPTED
+
+
+def _user_message(exc: Exception) -> str:
+    """A user error's text (a KeyError's is its argument, unquoted; a file's error names it)."""
+    if isinstance(exc, OSError) and exc.filename:
+        return f"{exc.filename}: {exc.strerror}"
+    return str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc)
+
+
+def _error_line(message: str) -> None:
+    """``feedbench: error: <message>`` as one line on stderr."""
+    print(f"feedbench: error: {' '.join(message.split())}", file=sys.stderr)
 
 
 if __name__ == "__main__":

@@ -187,7 +187,7 @@ def test_screenshot_during_the_run_is_a_full_window_image(stream_run):
 def stopped_run(app, tmp_path_factory):
     """A friction sweep stopped with the Stop button at 40 %."""
     directory = tmp_path_factory.mktemp("stop")
-    session = bench_session(config("friction_sweep", directory, feeds_mm_min=[100, 200, 400, 800],
+    session = bench_session(config("friction_sweep", directory, feeds_mm_min=[100, 200, 400, 800, 1200],
                                    settle_s=0.3, measure_s=0.3), progress=False)
     session.start()
     pump(app, session, until=lambda s: s.fraction > 0.4)

@@ -67,7 +67,7 @@ def test_friction_sweep_runs_across_processes_with_true_values(bench_process):
     cycle lost over socketcand."""
     host = bench_process["directory"] / "host.toml"
     host.write_text(_host_bench(bench_process) + '\n[experiment]\ntype = "friction_sweep"\n'
-                    "feeds_mm_min = [100, 500, 1000]\nsettle_s = 0.4\nmeasure_s = 0.2\n")
+                    "feeds_mm_min = [100, 250, 500, 750, 1000]\nsettle_s = 0.4\nmeasure_s = 0.2\n")
     proc = subprocess.run([sys.executable, "-m", "feedbench.cli", "run", str(host), "--json"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
@@ -76,7 +76,8 @@ def test_friction_sweep_runs_across_processes_with_true_values(bench_process):
     velocity, force = friction_points(recording.channels["velocity"],
                                       recording.channels["force"],
                                       recorded_windows(recording, "measure"))
-    assert np.abs(velocity) * 60e3 == pytest.approx([100, 100, 500, 500, 1000, 1000], rel=1e-3)
+    assert np.abs(velocity) * 60e3 == pytest.approx(np.repeat([100, 250, 500, 750, 1000], 2),
+                                                    rel=1e-3)
     np.testing.assert_allclose(force, LAB_BENCH_FRICTION.force(velocity), rtol=1e-3)
 
 

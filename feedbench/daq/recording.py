@@ -29,6 +29,8 @@ from typing import Any
 import h5py
 import numpy as np
 
+from feedbench.config import ConfigError
+
 CYCLE = "cycle"
 DATA = "data"
 EVENTS = "events"
@@ -145,8 +147,28 @@ class Recording:
 
 
 def open_recording(path: str | Path) -> Recording:
-    """Read a recording (complete, aborted, still being written or left by a crashed writer)."""
+    """Read a recording (complete, aborted, still being written or left by a crashed writer).
+
+    A missing, empty, truncated or foreign file raises `ConfigError` naming the file.
+    """
     path = Path(path)
+    try:
+        return _read_recording(path)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such recording") from None
+    except (OSError, RuntimeError) as exc:  # h5py: not HDF5, truncated, damaged, unreadable
+        raise ConfigError(f"{path}: not a readable HDF5 file ({_first_line(exc)})") from None
+    except (KeyError, ValueError) as exc:  # a dataset or attribute missing or of another kind
+        raise ConfigError(f"{path}: not a feedbench recording ({_first_line(exc)})") from None
+
+
+def _first_line(exc: BaseException) -> str:
+    """The first line of an exception's message (KeyError: its argument, unquoted)."""
+    text = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _read_recording(path: Path) -> Recording:
     with h5py.File(path, "r", libver="latest", swmr=True) as file:
         attrs = dict(file.attrs)
         names = json.loads(attrs["channels"])

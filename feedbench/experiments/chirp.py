@@ -141,7 +141,7 @@ def analyze_recording(recording, band: tuple[float, float] = (20.0, 150.0)) -> d
     response starts and ends inside it, so nothing leaks); spectra are averaged over the
     records, and the coherence tells how well the repetitions agree.
     """
-    windows = recorded_windows(recording, "excite")
+    windows = recorded_windows(recording, "excite", at_least=1)
     force, velocity = sweep_records(recording, windows)
     fs = 1.0 / float(recording.metadata["cycle_s"])
     n = len(force) // len(windows)
@@ -156,5 +156,6 @@ def analyze_recording(recording, band: tuple[float, float] = (20.0, 150.0)) -> d
         "n_sweeps": len(windows),
         "warnings": list(est.warnings),
         "frf": {"f_hz": est.f[inside].tolist(), "H1_abs": np.abs(est.H1[inside]).tolist(),
+                "H1_phase_rad": np.angle(est.H1[inside]).tolist(),
                 "coherence": est.coherence[inside].tolist()},
     }

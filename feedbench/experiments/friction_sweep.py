@@ -14,7 +14,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from feedbench.analysis.friction import FrictionFit, fit_andersson_directional
-from feedbench.config import Field, one_of, positive, validate_table
+from feedbench.config import ConfigError, Field, one_of, positive, validate_table
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import constant_feed_move
 from feedbench.models.axis import CSP
@@ -41,11 +41,27 @@ SCHEMA = {
 }
 
 SIGNS = {"positive": 1.0, "negative": -1.0}
+MIN_FEEDS = 5
+"""Distinct feeds per direction the analysis needs: Eq. (5.2)'s fit has 4 free parameters
+(F_c, F_s, v_s, σ) and needs at least one point more (`analysis.friction`)."""
+
+
+def _validated(params: Mapping[str, Any]) -> dict:
+    """The checked params: what the analysis needs is known before anything moves."""
+    p = validate_table(params, SCHEMA, "experiment")
+    feeds = len(set(p["feeds_mm_min"]))
+    if feeds < MIN_FEEDS:
+        raise ConfigError(f"experiment.feeds_mm_min: the Andersson fit (Eq. 5.2) needs at "
+                          f"least {MIN_FEEDS} different feeds per direction (got {feeds})")
+    if set(p["directions"]) != set(SIGNS):
+        raise ConfigError(f"experiment.directions: the analysis fits Eq. (5.2) per direction "
+                          f"and needs both positive and negative (got {p['directions']})")
+    return p
 
 
 def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
     """Back-and-forth constant-feed moves, one pair per feed (measured where asked)."""
-    p = validate_table(params, SCHEMA, "experiment")
+    p = _validated(params)
     segments: list[Segment] = []
     x = 0.0
     for feed_mm_min in p["feeds_mm_min"]:
@@ -110,6 +126,11 @@ def analyze_recording(recording) -> dict:
     params = validate_table(recording.config["experiment"], SCHEMA, "experiment")
     windows = recorded_windows(recording, "measure")
     v, f = friction_points(*axis_signals(recording.channels), windows)
+    for direction, sign in SIGNS.items():
+        feeds = int(np.sum(np.sign(v) == sign))
+        if feeds < MIN_FEEDS:
+            raise ConfigError(f"{recording.path}: {feeds} feeds measured in the {direction} "
+                              f"direction; the Andersson fit (Eq. 5.2) needs at least {MIN_FEEDS}")
     fit = fit_andersson_directional(v, f, k_tanh=params["k_tanh_min_mm"] * MIN_PER_MM)
     return {
         "experiment": NAME,

@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from feedbench.config import ConfigError
+
 
 @dataclass(frozen=True)
 class Segment:
@@ -86,11 +88,12 @@ class Window:
     info: dict[str, Any]
 
 
-def recorded_windows(recording, kind: str) -> list[Window]:
+def recorded_windows(recording, kind: str, at_least: int = 0) -> list[Window]:
     """The recorded segments of one `kind` (``measure``, ``excite``…) as sample windows.
 
     `recording` is a `feedbench.daq.recording.Recording`; segment events carry JSON text
-    with ``label``, ``kind`` and the segment's info (written by the runner).
+    with ``label``, ``kind`` and the segment's info (written by the runner). Fewer than
+    `at_least` of them raise `ConfigError` naming the file (what the analysis needs).
     """
     windows = []
     for seg in recording.segments("segment"):
@@ -101,4 +104,7 @@ def recorded_windows(recording, kind: str) -> list[Window]:
         if len(rows):
             info = {k: v for k, v in meta.items() if k not in ("label", "kind")}
             windows.append(Window(int(rows[0]), int(rows[-1]) + 1, meta["label"], kind, info))
+    if len(windows) < at_least:
+        raise ConfigError(f"{recording.path}: {len(windows)} {kind} segment(s) recorded, the "
+                          f"analysis needs at least {at_least}")
     return windows

@@ -76,6 +76,9 @@ QUICK = {"preload_pct": [4.0, 20.0], "unload": False, "settle_s": 0.05, "measure
 loading without unloading, coarser single-motor steps, one back-and-forth move per motor."""
 
 SIGNS = {"negative": -1.0, "positive": 1.0}
+MIN_LEVELS = 3
+"""Load levels a staircase needs per direction: the stiffness fits of Eq. (3.26) and of the
+contact lines take at least 3 points (`analysis.stiffness`)."""
 SHARING_START, SHARING_END = 0.05, 0.8
 """Torque sharing (Eq. 3.1) is fitted on the loading from this fraction of the loss force
 until the load first reaches the second: both motors carry and the preload PI is settled."""
@@ -139,9 +142,22 @@ def _strokes(test: str, p: Mapping[str, Any], away: float, cycle_s: float) -> li
     return segments
 
 
+def _validated(params: Mapping[str, Any]) -> dict:
+    """The checked params: every staircase the run holds has enough load levels."""
+    p = validate_table(params, SCHEMA, "experiment")
+    for tests, depth, step in ((p["single_motor"], "single_depth_um", "single_step_um"),
+                               (p["preload_pct"], "depth_um", "step_um")):
+        levels = math.ceil(p[depth] / p[step])
+        if tests and levels < MIN_LEVELS:
+            raise ConfigError(f"experiment.{step}: {depth} / {step} gives {levels} load "
+                              f"level(s) per direction; the stiffness fit (Eq. 3.26) needs "
+                              f"at least {MIN_LEVELS}")
+    return p
+
+
 def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
     """Backlash strokes, single-motor loadings, then coupled loadings per preload level."""
-    p = validate_table(params, SCHEMA, "experiment")
+    p = _validated(params)
     toward = SIGNS[p["direction"]]
     segments: list[Segment] = []
     for motor in p["backlash"]:

@@ -1,0 +1,369 @@
+"""Bad input to every command ends in one line on stderr that names the file, field or
+channel and what is wrong, exit status 2, never a traceback — and nothing already recorded
+or catalogued is touched (issue 12, item 3). `--debug` shows the traceback instead.
+
+Each case builds its bad input in a copy of a small run directory (one good recording and
+its catalog row, made once per module) and runs `feedbench.cli.main` in-process.
+"""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import warnings
+from pathlib import Path
+from typing import Callable
+
+import h5py
+import numpy as np
+import pytest
+
+from feedbench.cli import main
+from feedbench.closure_io import write_csv_trace
+from feedbench.analysis.closure import Trace
+from feedbench.daq.catalog import Catalog
+from test_report import chirp_steps, friction_steps, record
+
+GOOD = "good.h5"
+FEEDS = [25, 50, 75, 100, 150, 200, 300, 400, 500, 700, 900, 1200, 1500]
+STEPS_PER_FEED = 6
+"""`friction_steps`: accelerate, measure and stop, in each direction."""
+
+
+@pytest.fixture(scope="module")
+def template(tmp_path_factory) -> Path:
+    """A run directory: a good friction-sweep recording and its catalog row."""
+    directory = tmp_path_factory.mktemp("runs")
+    record(directory / GOOD, "friction_sweep", friction_steps(),
+           config={"type": "friction_sweep", "feeds_mm_min": FEEDS})
+    catalog = Catalog(directory / "catalog.sqlite")
+    run_id = catalog.new_run_id("friction_sweep")
+    catalog.add(run_id, "friction_sweep", str(directory / GOOD), {"feeds": len(FEEDS)})
+    catalog.finish(run_id, "complete", "", 1)
+    return directory
+
+
+@pytest.fixture
+def runs(template: Path, tmp_path: Path) -> Path:
+    """This case's copy of the template run directory."""
+    return Path(shutil.copytree(template, tmp_path / "runs"))
+
+
+# -- the bad inputs: each writes its files into `d` and returns the command line -----------
+
+def config(d: Path, text: str, name: str = "bad.toml") -> str:
+    """A run config file: `text` plus a [bench] table writing into `d` (unless it has one)."""
+    path = d / name
+    bench = "" if "[bench]" in text else f"[bench]\noutput_dir = '{d}'\n"
+    path.write_text(bench + text)
+    return str(path)
+
+
+def run(text: str) -> Callable[[Path], list[str]]:
+    return lambda d: ["run", config(d, text)]
+
+
+def friction(extra: str) -> Callable[[Path], list[str]]:
+    return run(f"[experiment]\ntype = 'friction_sweep'\n{extra}\n")
+
+
+def stepped(extra: str) -> Callable[[Path], list[str]]:
+    return run(f"[bench]\naxis = 'rack_pinion'\n[experiment]\ntype = 'stepped_loading'\n{extra}\n")
+
+
+def recording_file(write: Callable[[Path], None], command: str = "analyze",
+                   name: str = "bad.h5") -> Callable[[Path], list[str]]:
+    def make(d: Path) -> list[str]:
+        write(d / name)
+        return [command, str(d / name), "--dir", str(d)]
+    return make
+
+
+def empty(path: Path) -> None:
+    path.write_bytes(b"")
+
+
+def truncated(path: Path) -> None:
+    data = (path.parent / GOOD).read_bytes()
+    path.write_bytes(data[: len(data) // 3])
+
+
+def foreign(path: Path) -> None:
+    with h5py.File(path, "w") as f:
+        f["x"] = np.arange(3.0)
+
+
+def text_file(path: Path) -> None:
+    path.write_text("t,x\n0,1\n")
+
+
+def family(experiment: str, steps: Callable[[], list], **config) -> Callable[[Path], None]:
+    return lambda path: record(path, experiment, steps(), config={"type": experiment, **config})
+
+
+def three_feeds() -> list:
+    return friction_steps()[: 3 * STEPS_PER_FEED]
+
+
+def trace(d: Path, n: int = 400, edit: Callable[[dict], None] | None = None) -> Path:
+    """A small closure trace (CSV + sidecar) whose columns `edit` may spoil."""
+    t = np.arange(1, n + 1) * 1e-3
+    x = 0.01 * np.sin(2 * np.pi * 2 * t)
+    path = d / "trace.csv"
+    write_csv_trace(path, Trace(t, x, 100 * np.cos(2 * np.pi * 2 * t), x), {})
+    if edit:
+        columns = dict(zip(["t_s", "x_mm", "F_N", "x_ref_mm"],
+                           np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2).T))
+        edit(columns)
+        np.savetxt(path, np.column_stack(list(columns.values())), delimiter=",",
+                   header=",".join(columns), comments="")
+    return path
+
+
+def model(d: Path, text: str = "[model]\nname = 'm'\n[terms.inertia]\nM_kg = 'free'\n") -> str:
+    path = d / "model.toml"
+    path.write_text(text)
+    return str(path)
+
+
+def closure(edit_csv: Callable[[Path], None] | None = None,
+            edit_columns: Callable[[dict], None] | None = None,
+            model_text: str | None = None, extra: tuple[str, ...] = ()
+            ) -> Callable[[Path], list[str]]:
+    def make(d: Path) -> list[str]:
+        path = trace(d, edit=edit_columns)
+        if edit_csv:
+            edit_csv(path)
+        m = model(d) if model_text is None else model(d, model_text)
+        return ["closure", str(path), "--model", m, *extra]
+    return make
+
+
+def sidecar(old: str, new: str) -> Callable[[Path], None]:
+    def edit(path: Path) -> None:
+        side = path.with_suffix(".toml")
+        side.write_text(side.read_text().replace(old, new))
+    return edit
+
+
+def csv_text(change: Callable[[str], str]) -> Callable[[Path], None]:
+    return lambda path: path.write_text(change(path.read_text()))
+
+
+def set_sample(column: str, index: int, value: float) -> Callable[[dict], None]:
+    def edit(columns: dict) -> None:
+        columns[column][index] = value
+    return edit
+
+
+def garbage_catalog(command: list[str]) -> Callable[[Path], list[str]]:
+    def make(d: Path) -> list[str]:
+        bad = d / "other"
+        bad.mkdir()
+        (bad / "catalog.sqlite").write_text("not a database\n" * 20)
+        return [*command, "--dir", str(bad)]
+    return make
+
+
+def sim(text: str) -> Callable[[Path], list[str]]:
+    return lambda d: ["sim", config(d, text, "sim.toml")]
+
+
+CASES: dict[str, tuple[Callable[[Path], list[str]], str]] = {
+    # recordings given to analyze, report, live, closure
+    "analyze empty h5": (recording_file(empty), "bad.h5: not a readable HDF5 file"),
+    "analyze truncated h5": (recording_file(truncated), "bad.h5: not a readable HDF5 file"),
+    "analyze foreign h5": (recording_file(foreign), "bad.h5: not a feedbench recording"),
+    "analyze text as h5": (recording_file(text_file), "bad.h5: not a readable HDF5 file"),
+    "analyze missing h5": (lambda d: ["analyze", str(d / "gone.h5")], "gone.h5: no such recording"),
+    "analyze unknown family": (recording_file(family("dance", friction_steps)),
+                               "bad.h5: no analysis for experiment 'dance'"),
+    "analyze another family's data": (recording_file(family("chirp", friction_steps)),
+                                      "bad.h5: 0 excite segment(s) recorded"),
+    "analyze friction with 3 feeds": (recording_file(family("friction_sweep", three_feeds,
+                                                            feeds_mm_min=FEEDS[:3])),
+                                      "bad.h5: 3 feeds measured in the positive direction"),
+    "analyze unknown run id": (lambda d: ["analyze", "nosuchrun", "--dir", str(d)],
+                               "no run id starts with 'nosuchrun'"),
+    "analyze garbage catalog": (garbage_catalog(["analyze", "someid"]),
+                                "catalog.sqlite: not a run catalog"),
+    "runs garbage catalog": (garbage_catalog(["runs"]), "catalog.sqlite: not a run catalog"),
+    "runs dir is a file": (lambda d: ["runs", "--dir", str(d / GOOD)],
+                           f"/{GOOD} is not a directory"),
+    "report foreign h5": (recording_file(foreign, "report"), "bad.h5: not a feedbench recording"),
+    "report empty h5": (recording_file(empty, "report"), "bad.h5: not a readable HDF5 file"),
+    "live truncated h5": (recording_file(truncated, "live"), "bad.h5: not a readable HDF5 file"),
+    "closure foreign h5": (lambda d: (foreign(d / "x.h5"), ["closure", str(d / "x.h5"),
+                                                           "--model", model(d)])[1],
+                           "x.h5: not a feedbench recording"),
+    "closure text as mat": (lambda d: ((d / "x.mat").write_text("no"),
+                                       ["closure", str(d / "x.mat")])[1], "x.mat: "),
+    "closure unknown format": (lambda d: ["closure", str(trace(d).with_suffix(".toml"))],
+                               "trace.toml: unknown trace format"),
+    # run configs: TOML, keys, types, units, ranges, what the analysis needs
+    "toml syntax error": (run("[experiment\ntype = 'chirp'\n"), "bad.toml: not valid TOML"),
+    "config file missing": (lambda d: ["run", str(d / "none.toml")],
+                            "none.toml: no such config file"),
+    "experiment table missing": (run("[limits]\n"), "config.experiment: required"),
+    "unknown family": (run("[experiment]\ntype = 'dance'\n"), "experiment.type: must be one of"),
+    "unknown key": (friction("feeds = [100]"), "experiment.feeds: unknown key"),
+    "wrong unit suffix": (friction("settle_ms = 400"), "experiment.settle_ms: unknown key"),
+    "unit in the value": (friction("settle_s = '0.4 s'"), "experiment.settle_s: must be a number"),
+    "nan in config": (friction("settle_s = nan"), "experiment.settle_s: must be finite"),
+    "inf in config": (friction("measure_s = inf"), "experiment.measure_s: must be finite"),
+    "friction 3 feeds": (friction("feeds_mm_min = [100, 500, 1000]"),
+                         "experiment.feeds_mm_min: the Andersson fit (Eq. 5.2) needs at least 5"),
+    "friction repeated feeds": (friction("feeds_mm_min = [100, 100, 100, 100, 200]"),
+                                "experiment.feeds_mm_min: the Andersson fit"),
+    "friction one direction": (friction("directions = ['positive']"),
+                               "experiment.directions: the analysis fits Eq. (5.2) per direction"),
+    "unknown direction": (friction("directions = ['up', 'down']"),
+                          "experiment.directions: must be one of positive, negative"),
+    "chirp above nyquist": (run("[experiment]\ntype = 'chirp'\nf_stop_Hz = 600.0\n"),
+                            "experiment.f_stop_Hz: must be below the bus Nyquist"),
+    "chirp band reversed": (run("[experiment]\ntype = 'chirp'\nf_start_Hz = 300.0\n"),
+                            "experiment.f_start_Hz: must be below f_stop_Hz"),
+    "sine stream above quarter rate": (
+        run("[experiment]\ntype = 'sine_stream'\nf_stop_Hz = 300.0\n"),
+        "experiment.f_stop_Hz: must be below 250 Hz"),
+    "stepped loading 2 levels": (stepped("step_um = 150.0"),
+                                 "experiment.step_um: depth_um / step_um gives 2 load level(s)"),
+    "stepped loading 1 single level": (
+        stepped("single_step_um = 500.0"),
+        "experiment.single_step_um: single_depth_um / single_step_um gives 1 load level(s)"),
+    "stepped loading on the lab axis": (run("[experiment]\ntype = 'stepped_loading'\n"),
+                                        "bench.axis: experiment stepped_loading needs axis"),
+    "negative gain": (run("[bench.gains]\nK_p_Ns_m = -5.0\n[experiment]\ntype = 'chirp'\n"),
+                      "bench.gains.K_p_Ns_m: must be > 0"),
+    "unknown gain": (run("[bench.gains]\nKp = 5.0\n[experiment]\ntype = 'chirp'\n"),
+                     "bench.gains.Kp: unknown key"),
+    "zero cycle": (run("[bench]\ncycle_ms = 0.0\n[experiment]\ntype = 'chirp'\n"),
+                   "bench.cycle_ms: must be > 0"),
+    "limits reversed": (run("[limits]\nposition_mm = [100.0, -100.0]\n"
+                            "[experiment]\ntype = 'chirp'\n"), "limits.position_mm: must be"),
+    "excitation above force limit": (
+        run("[limits]\nforce_N = 500.0\nexcitation_N = 5000.0\n"
+            "[experiment]\ntype = 'chirp'\namplitude_N = 800.0\n"),
+        "experiment.amplitude_N: 800 N exceeds the force limit limits.force_N"),
+    "smfe one cut": (run("[experiment]\ntype = 'smfe'\ncuts = ['down']\n"), "experiment.cuts: "),
+    # closure traces: CSV, sidecar, units, samples, model config
+    "csv missing column": (closure(sidecar('reference = "x_ref_mm"', 'reference = "x_cmd_mm"')),
+                           "sidecar.columns.reference: no column 'x_cmd_mm' in trace.csv"),
+    "csv misnamed header": (closure(csv_text(lambda s: s.replace("F_N", "force", 1))),
+                            "sidecar.columns.force: no column 'F_N' in trace.csv"),
+    "sidecar missing": (closure(lambda p: p.with_suffix(".toml").unlink()),
+                        "trace.toml: no such config file"),
+    "sidecar key misspelled": (closure(sidecar("[columns]", "[colums]")),
+                               "sidecar.colums: unknown key"),
+    "sidecar column key misspelled": (closure(sidecar("position =", "postion =")),
+                                      "sidecar.columns.postion: unknown key"),
+    "wrong unit": (closure(sidecar('position = "mm"', 'position = "inch"')),
+                   "sidecar.units.position: unknown unit 'inch'"),
+    "nan sample": (closure(edit_columns=set_sample("F_N", 7, np.nan)),
+                   "trace.csv: force: contains NaN or inf"),
+    "inf sample": (closure(edit_columns=set_sample("x_mm", 9, np.inf)),
+                   "trace.csv: position: contains NaN or inf"),
+    "time not monotonic": (closure(edit_columns=set_sample("t_s", 50, 0.01)),
+                           "trace.csv: time: samples must be uniformly spaced and increasing"),
+    "empty csv": (closure(csv_text(lambda s: "")), "trace.csv: no data rows"),
+    "header only csv": (closure(csv_text(lambda s: s.splitlines()[0] + "\n")),
+                        "trace.csv: no data rows"),
+    "truncated csv": (closure(csv_text(lambda s: s[: len(s) // 2].rsplit(",", 1)[0])),
+                      "trace.csv: "),
+    "text in csv": (closure(csv_text(lambda s: s.replace("\n0.01,", "\nten,", 1))),
+                    "trace.csv: not a numeric table"),
+    "unknown effect name": (closure(model_text="[model]\nname = 'm'\n[terms.inertia]\n"
+                                    "M_kg = 'free'\n[terms.ripplez]\n"),
+                            "terms.ripplez: unknown term"),
+    "model toml syntax": (closure(model_text="[model\n"), "model.toml: not valid TOML"),
+    "model missing": (lambda d: ["closure", str(trace(d))], "--model: required"),
+    "holdout out of range": (closure(extra=("--holdout", "1.5")), "holdout"),
+    # sim, demo and the command line itself
+    "sim toml syntax": (sim("[bench\n"), "sim.toml: not valid TOML"),
+    "sim unknown bench key": (sim("[bench]\nnode = 3\n"), "bench.node: unknown key"),
+    "demo dir is a file": (lambda d: ["demo", "--quick", "--dir", str(d / GOOD)], GOOD),
+    "unknown option": (lambda d: ["analyze", "x", "--jsn"], "unrecognized arguments: --jsn"),
+}
+
+
+def snapshot(directory: Path) -> tuple[bytes, list]:
+    """The good recording's bytes and the catalog's rows."""
+    return ((directory / GOOD).read_bytes(),
+            [vars(r) for r in Catalog(directory / "catalog.sqlite").list()])
+
+
+def written(directory: Path) -> set[Path]:
+    """Every file under `directory` but the catalog's SQLite journal."""
+    return {p for p in directory.rglob("*") if "-wal" not in p.name and "-shm" not in p.name}
+
+
+def run_main(argv: list[str], capsys) -> tuple[int, list[str]]:
+    """`feedbench ARGV` in-process: exit status and the lines on stderr, a warning (which
+    the command line would print) counted as a line."""
+    with warnings.catch_warnings(record=True) as warned:
+        warnings.simplefilter("always")
+        try:
+            status = main(argv)
+        except SystemExit as exc:  # argparse
+            status = exc.code
+    lines = capsys.readouterr().err.strip().splitlines()
+    return status, [f"warning: {w.message}" for w in warned] + lines
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_bad_input_is_one_line_and_corrupts_nothing(case, runs, template, capsys):
+    make, expected = CASES[case]
+    argv = make(runs)
+    files = written(runs)
+    status, lines = run_main(argv, capsys)
+    assert status == 2, lines
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("feedbench") and ": error: " in lines[0], lines[0]
+    assert expected in lines[0], lines[0]
+    assert "Traceback" not in lines[0] and "--debug" not in lines[0], lines[0]
+    assert snapshot(runs) == snapshot(template), "the recording and the catalog are untouched"
+    assert written(runs) == files, "nothing new is written"
+
+
+def test_port_in_use_names_the_address(runs, capsys):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        status, lines = run_main(["sim", config(runs, f"[bench]\nsocketcand = "
+                                                     f"'127.0.0.1:{port}'\n", "sim.toml")],
+                                 capsys)
+    assert (status, len(lines)) == (2, 1), lines
+    assert f"bench.socketcand: socketcand hub cannot listen on 127.0.0.1:{port}" in lines[0]
+
+
+def test_debug_shows_the_traceback(runs):
+    (runs / "bad.h5").write_bytes(b"")
+    with pytest.raises(Exception, match="not a readable HDF5 file"):
+        main(["--debug", "analyze", str(runs / "bad.h5")])
+    with pytest.raises(Exception, match="not a readable HDF5 file"):
+        main(["analyze", str(runs / "bad.h5"), "--debug"])
+
+
+def test_an_unexpected_error_is_one_line_naming_its_type(runs, capsys, monkeypatch):
+    """The last resort: any other exception is one line with its type and the hint."""
+    import feedbench.cli
+
+    def broken(args):
+        raise ZeroDivisionError("float division by zero")
+
+    monkeypatch.setattr(feedbench.cli, "cmd_runs", broken)
+    status, lines = run_main(["runs", "--dir", str(runs)], capsys)
+    assert (status, lines) == (2, ["feedbench: error: ZeroDivisionError: float division by "
+                                   "zero (run with --debug for the traceback)"])
+
+
+def test_ctrl_c_outside_a_run_is_one_line_and_status_130(runs, capsys, monkeypatch):
+    import feedbench.cli
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(feedbench.cli, "cmd_runs", interrupted)
+    assert run_main(["runs", "--dir", str(runs)], capsys) == (130, ["feedbench: error: "
+                                                                    "interrupted"])
