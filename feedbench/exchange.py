@@ -1,0 +1,423 @@
+"""The field's exchange formats: FRFs as Universal File Format dataset 58, time traces as CSV
+with the closure's sidecar.
+
+UFF58 (written and read by pyuff): one dataset per FRF (function type 4, complex double,
+ordinate data type 6) and one per coherence (function type 6, real double) right after it,
+frequency abscissa in Hz, SI units. Record 6 names the response and reference node and
+direction (node 1 the motor, node 2 the tool tip; direction 1 = +X, the feed axis); records 9
+and 10 give the ordinate numerator and denominator as specific data types (8 displacement,
+11 velocity, 12 acceleration, 13 excitation force) with their length and force exponents and
+unit labels; ID line 1 says what the FRF is, 2 the run, 3 when it was recorded, 4 the
+response / reference channels, 5 the condition (feed, amplitude). The files are binary 58b:
+the values are the IEEE doubles themselves, so a round trip is bit-exact (ASCII 58 keeps 12
+digits). The abscissa is stored evenly spaced (minimum and increment) when those two numbers
+reproduce it, otherwise value by value (uneven).
+
+CSV: the recording's drive channels as the closure reads them (`closure_io.read_recording`),
+written with its sidecar (`closure_io.write_csv_trace`), so `feedbench closure FILE.csv`
+reads an export.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from datetime import datetime
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+import pyuff
+import scipy.signal
+
+from feedbench.analysis.frf import convert_frf
+from feedbench.analysis.modal import fit_modes
+from feedbench.config import ConfigError
+
+UFF_SUFFIXES = (".uff", ".unv", ".uf")
+FRF, COHERENCE = 4, 6
+"""UFF58 function types."""
+
+QUANTITIES = {
+    "displacement": (8, 1, 0, "m"),
+    "velocity": (11, 1, 0, "m/s"),
+    "acceleration": (12, 1, 0, "m/s^2"),
+    "force": (13, 0, 1, "N"),
+}
+"""Quantity → UFF58 specific data type, length and force unit exponents, SI unit label."""
+
+FORMS = {"displacement": "receptance", "velocity": "mobility", "acceleration": "accelerance"}
+"""Response quantity of a force-referenced FRF → its form (`analysis.frf.FRF_FORMS`)."""
+
+UNIT_LABELS = {
+    "m": 1.0, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "m/s": 1.0, "mm/s": 1e-3,
+    "m/s^2": 1.0, "m/s2": 1.0, "m/s²": 1.0, "g": 9.80665, "N": 1.0, "kN": 1e3,
+}
+"""Unit labels read in a UFF58 file, and their SI factor."""
+
+ENTITY_CHARS = 10
+"""UFF58 record 6: entity names are at most 10 characters."""
+
+HEADER_BYTES_FIELD = (38, 12)
+"""Offset and width of the byte count in a 58b dataset's first two lines ("    -1", the
+58b ID line): pyuff writes one value's bytes per point there, for complex or uneven data
+too, so the count is set afterwards to what follows, as readers that trust it need."""
+
+MAX_MODES = 6
+"""`analyze` fits at most this many modes (the most prominent peaks) per FRF."""
+
+
+@dataclass(frozen=True)
+class Dof:
+    """One end of an FRF: the recorded channel, the UFF node and direction, the quantity."""
+
+    channel: str
+    entity: str
+    node: int
+    direction: int
+    quantity: str
+
+
+@dataclass(frozen=True)
+class ExchangeFrf:
+    """One FRF H = response / reference over f (Hz), SI units, with its coherence if any."""
+
+    description: str
+    condition: str
+    f: np.ndarray
+    H: np.ndarray
+    response: Dof
+    reference: Dof
+    coherence: np.ndarray | None = None
+
+
+MOTOR_FORCE = Dof("force", "motor", 1, 1, "force")
+MOTOR_VELOCITY = Dof("velocity", "motor", 1, 1, "velocity")
+TIP_ACCELERATION = Dof("acc_tool_x", "tool_tip", 2, 1, "acceleration")
+
+
+def _tip_force(channel: str) -> Dof:
+    return Dof(channel, "tool_tip", 2, 1, "force")
+
+
+def _polar(block: dict, magnitude: str, phase: str) -> np.ndarray:
+    """Complex values from an analysis result's magnitude and phase (rad) lists."""
+    return np.asarray(block[magnitude]) * np.exp(1j * np.asarray(block[phase]))
+
+
+def _chirp(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
+    frf = result["frf"]
+    yield ExchangeFrf("chirp: servo mobility H1", f"{result['n_sweeps']} sweeps",
+                      np.asarray(frf["f_hz"]), _polar(frf, "H1_abs", "H1_phase_rad"),
+                      MOTOR_VELOCITY, MOTOR_FORCE, np.asarray(frf["coherence"]))
+
+
+def _shaker_chirp(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
+    from feedbench.experiments.tool_tip import FORCE_CHANNELS
+
+    force = _tip_force(FORCE_CHANNELS[recording.config["experiment"].get("exciter", "shaker")])
+    for feed in result["feeds"]:
+        frf = feed["frf"]
+        yield ExchangeFrf("shaker_chirp: tool-tip accelerance H1",
+                          f"feed {feed['feed_mm_min']:g} mm/min", np.asarray(frf["f_hz"]),
+                          _polar(frf, "H1_abs", "H1_phase_rad"), TIP_ACCELERATION, force,
+                          np.asarray(frf["coherence"]))
+
+
+def _sine_stream(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
+    from feedbench.experiments.tool_tip import FORCE_CHANNELS
+
+    force = _tip_force(FORCE_CHANNELS[recording.config["experiment"].get("exciter", "actuator")])
+    for stream in result["streams"]:
+        frf = stream["frf"]
+        yield ExchangeFrf("sine_stream: tool-tip accelerance (sine fits)",
+                          f"feed {stream['feed_mm_min']:g} mm/min, "
+                          f"{stream['amplitude_N']:g} N", np.asarray(frf["f_hz"]),
+                          _polar(frf, "accelerance_abs", "accelerance_phase_rad"),
+                          TIP_ACCELERATION, force)
+
+
+def _impact_hammer(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
+    for feed in result["feeds"]:
+        frf = feed["frf"]
+        yield ExchangeFrf("impact_hammer: tool-tip compliance (Eq. 5.3)",
+                          f"feed {feed['feed_mm_min']:g} mm/min", np.asarray(frf["f_hz"]),
+                          _polar(frf, "compliance_abs", "compliance_phase_rad"),
+                          Dof("acc_tool_x", "tool_tip", 2, 1, "displacement"),
+                          _tip_force("hammer_force"), np.asarray(frf["coherence"]))
+
+
+def _closed_loop_bode(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
+    frf, condition = result["frf"], f"feed {result['feed_mm_min']:g} mm/min"
+    f = np.asarray(frf["f_hz"])
+    if result["loop"] == "velocity":
+        reference = Dof("velocity_offset", "motor", 1, 1, "velocity")
+        response = MOTOR_VELOCITY
+    else:
+        reference = Dof("x_ref", "motor", 1, 1, "displacement")
+        response = Dof("position", "motor", 1, 1, "displacement")
+    yield ExchangeFrf(f"closed_loop_bode: closed {result['loop']} loop", condition, f,
+                      _polar(frf, "abs", "phase_rad"), response, reference)
+    if "mobility" in result:
+        yield ExchangeFrf("closed_loop_bode: open-loop mobility (Eq. 4.20)", condition, f,
+                          _polar(result["mobility"], "abs", "phase_rad"), MOTOR_VELOCITY,
+                          MOTOR_FORCE)
+
+
+RUN_FRFS: dict[str, Callable[[dict, Any], Iterator[ExchangeFrf]]] = {
+    "chirp": _chirp, "shaker_chirp": _shaker_chirp, "sine_stream": _sine_stream,
+    "impact_hammer": _impact_hammer, "closed_loop_bode": _closed_loop_bode,
+}
+"""Experiment family → the FRFs of its analysis result (`analyze_recording`)."""
+
+
+def export_uff58(recording_path: str | Path, path: str | Path,
+                 analyze: Callable[[str | Path], dict]) -> Path:
+    """Write the FRFs of a run to a UFF58 file; `analyze` is its analysis step
+    (`cli.analyze_file`), run only for a family with FRFs (RUN_FRFS)."""
+    from feedbench.daq.recording import open_recording
+
+    recording = open_recording(recording_path)
+    if recording.experiment not in RUN_FRFS:
+        raise ConfigError(f"{recording_path}: a {recording.experiment} run has no FRF to "
+                          f"export (FRFs come from {', '.join(RUN_FRFS)})")
+    frfs = list(RUN_FRFS[recording.experiment](analyze(recording_path), recording))
+    started = datetime.fromisoformat(recording.started_at)
+    return write_uff58(path, frfs, Path(recording_path).stem,
+                       started.strftime("%d-%b-%y %H:%M:%S"))
+
+
+def export_csv(recording_path: str | Path, path: str | Path) -> Path:
+    """Write a recording's drive channels (time s, position and reference mm, force and
+    excitation N) as CSV with the sidecar `closure_io.read_csv_trace` reads; returns path."""
+    from feedbench.closure_io import read_recording, sidecar_path, write_csv_trace
+
+    path = Path(path)
+    if path.suffix.lower() != ".csv":
+        raise ConfigError(f"{path}: a CSV export must end in .csv (its sidecar is "
+                          f"{sidecar_path(path.with_suffix('.csv')).name})")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_csv_trace(path, read_recording(recording_path), {})
+    return path
+
+
+def write_uff58(path: str | Path, frfs: list[ExchangeFrf], run: str = "NONE",
+                created: str = "NONE") -> Path:
+    """Write FRFs (each followed by its coherence) as binary UFF58 datasets; returns path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.unlink(missing_ok=True)
+    number = 0
+    for frf in frfs:
+        for function, values in ((FRF, frf.H), (COHERENCE, frf.coherence)):
+            if values is not None:
+                number += 1
+                _append_dataset(path, _dataset(frf, function, values, number, run, created))
+    return path
+
+
+def _dataset(frf: ExchangeFrf, function: int, values: np.ndarray, number: int, run: str,
+             created: str) -> dict:
+    """The pyuff dictionary of one FRF or coherence dataset."""
+    even = _even_spacing(frf.f)
+    numerator = _axis("ordinate", frf.response.quantity if function == FRF else "")
+    denominator = _axis("orddenom", frf.reference.quantity if function == FRF else "")
+    return {
+        "type": 58, "binary": 1, "func_type": function, "func_id": number,
+        "id1": _id_line(frf.description + (" coherence" if function == COHERENCE else "")),
+        "id2": _id_line(run), "id3": _id_line(created),
+        "id4": _id_line(f"{frf.response.channel} / {frf.reference.channel}"),
+        "id5": _id_line(frf.condition), "load_case_id": 0,
+        "rsp_ent_name": frf.response.entity[:ENTITY_CHARS], "rsp_node": frf.response.node,
+        "rsp_dir": frf.response.direction,
+        "ref_ent_name": frf.reference.entity[:ENTITY_CHARS], "ref_node": frf.reference.node,
+        "ref_dir": frf.reference.direction,
+        "abscissa_spacing": int(even), "abscissa_spec_data_type": 18,
+        "abscissa_axis_lab": "frequency", "abscissa_axis_units_lab": "Hz",
+        **numerator, **denominator,
+        "data": np.asarray(values, dtype=complex if function == FRF else float),
+        "x": np.asarray(frf.f, dtype=float),
+    }
+
+
+def _axis(record: str, quantity: str) -> dict:
+    """Record 9 ("ordinate") or 10 ("orddenom") fields of a quantity ("": dimensionless)."""
+    spec, length, force, unit = QUANTITIES.get(quantity, (0, 0, 0, "NONE"))
+    return {f"{record}_spec_data_type": spec, f"{record}_len_unit_exp": length,
+            f"{record}_force_unit_exp": force, f"{record}_axis_lab": quantity or "NONE",
+            f"{record}_axis_units_lab": unit}
+
+
+def _id_line(text: str) -> str:
+    """An ID line: at most 80 characters, "NONE" when empty (the format's rule)."""
+    return text[:80] or "NONE"
+
+
+def _even_spacing(f: np.ndarray) -> bool:
+    """Whether record 7's minimum and increment (E13.5) reproduce f to float precision."""
+    f = np.asarray(f, dtype=float)
+    if f.size < 2:
+        return False
+    start, step = float(f"{f[0]:.5e}"), float(f"{f[1] - f[0]:.5e}")
+    return bool(np.allclose(start + np.arange(f.size) * step, f, rtol=4 * np.finfo(float).eps,
+                            atol=0.0))
+
+
+def _append_dataset(path: Path, dataset: dict) -> None:
+    """Append one binary dataset and set its header's byte count (HEADER_BYTES_FIELD)."""
+    start = path.stat().st_size if path.exists() else 0
+    try:
+        pyuff.UFF(str(path)).write_sets(dataset, mode="add")
+    except Exception as exc:  # pyuff raises bare Exceptions, an OSError among them
+        raise ConfigError(f"{path}: cannot write ({exc})") from None
+    values_per_point = (1 + np.iscomplexobj(dataset["data"])
+                        + (dataset["abscissa_spacing"] == 0))
+    offset, width = HEADER_BYTES_FIELD
+    with path.open("r+b") as fh:
+        fh.seek(start + offset)
+        fh.write(b"%*d" % (width, 8 * values_per_point * len(dataset["data"])))
+
+
+def read_uff58(path: str | Path) -> list[ExchangeFrf]:
+    """The FRFs (function type 4) of a UFF file, in SI units, each with the coherence
+    (type 6) that follows it for the same nodes; other datasets are left out."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such file")
+    try:
+        sets = pyuff.UFF(str(path)).read_sets()
+    except Exception as exc:  # pyuff raises bare Exceptions for every malformed file
+        raise ConfigError(f"{path}: not a readable universal file ({exc})") from None
+    frfs: list[ExchangeFrf] = []
+    for number, dataset in enumerate(sets if isinstance(sets, list) else [sets], 1):
+        if dataset.get("type") != 58 or dataset.get("func_type") not in (FRF, COHERENCE):
+            continue
+        frf = _frf_of(dataset, f"{path.name} dataset {number}")
+        if dataset["func_type"] == FRF:
+            frfs.append(frf)
+        elif frfs and frfs[-1].coherence is None and _same_dofs(frfs[-1], frf):
+            frfs[-1] = replace(frfs[-1], coherence=frf.H.real)
+    if not frfs:
+        raise ConfigError(f"{path}: no FRF (dataset 58, function type 4) in the file")
+    return frfs
+
+
+def _frf_of(dataset: dict, where: str) -> ExchangeFrf:
+    """An ExchangeFrf of one dataset 58, its ordinate scaled to SI."""
+    response = _dof(dataset, "rsp", "ordinate")
+    reference = _dof(dataset, "ref", "orddenom")
+    scale = _si_factor(dataset, "ordinate", where) / _si_factor(dataset, "orddenom", where)
+    return ExchangeFrf(dataset.get("id1", ""), dataset.get("id5", ""),
+                       np.asarray(dataset["x"], dtype=float),
+                       np.asarray(dataset["data"]) * scale, response, reference)
+
+
+def _dof(dataset: dict, end: str, record: str) -> Dof:
+    spec = dataset.get(f"{record}_spec_data_type", 0)
+    quantity = next((q for q, v in QUANTITIES.items() if v[0] == spec), "")
+    if spec == 9:  # reaction force
+        quantity = "force"
+    entity = str(dataset.get(f"{end}_ent_name", "")).strip()
+    channels = str(dataset.get("id4", "")).split(" / ")
+    channel = channels[end == "ref"].strip() if len(channels) == 2 else entity
+    return Dof(channel, entity, int(dataset.get(f"{end}_node", 0)),
+               int(dataset.get(f"{end}_dir", 0)), quantity)
+
+
+def _si_factor(dataset: dict, record: str, where: str) -> float:
+    label = str(dataset.get(f"{record}_axis_units_lab", "")).strip()
+    if label in ("", "NONE"):
+        return 1.0
+    if label not in UNIT_LABELS:
+        raise ConfigError(f"{where}: {record} units {label!r} unknown "
+                          f"(known: {', '.join(UNIT_LABELS)})")
+    return UNIT_LABELS[label]
+
+
+def _same_dofs(a: ExchangeFrf, b: ExchangeFrf) -> bool:
+    """Same response and reference node and direction, same abscissa."""
+    return _ends(a) == _ends(b) and np.array_equal(a.f, b.f)
+
+
+def _ends(frf: ExchangeFrf) -> tuple[int, int, int, int]:
+    return (frf.response.node, frf.response.direction, frf.reference.node,
+            frf.reference.direction)
+
+
+
+def analyze_uff58(path: str | Path) -> dict:
+    """What feedbench identifies from the FRFs of a UFF58 file: per FRF its ends, units,
+    band, coherence, resonance peaks, and for force-referenced FRFs on an even grid the
+    modes (`analysis.modal.fit_modes` on the receptance: f_n Hz, ζ, k N/m, m kg)."""
+    frfs = read_uff58(path)
+    return {"experiment": "uff58", "file": str(path), "frfs": [_identified(frf) for frf in frfs]}
+
+
+def _identified(frf: ExchangeFrf) -> dict:
+    positive = frf.f > 0
+    f, H = frf.f[positive], frf.H[positive]
+    form = FORMS.get(frf.response.quantity) if frf.reference.quantity == "force" else None
+    shape = convert_frf(f, H, form, "receptance") if form else H
+    peaks = _peaks(np.abs(shape))
+    result = {
+        "description": frf.description, "condition": frf.condition,
+        "response": vars(frf.response), "reference": vars(frf.reference),
+        "units": _units(frf), "form": form or "ratio", "n_lines": int(frf.f.size),
+        "band_hz": [float(frf.f[0]), float(frf.f[-1])],
+        "min_coherence": None if frf.coherence is None else float(np.min(frf.coherence)),
+        "peaks": [{"f_hz": float(f[k]), "abs": float(np.abs(H[k]))} for k in peaks],
+    }
+    if form and peaks.size and _is_even(f):
+        fit = fit_modes(f, shape, (float(f[0]), float(f[-1])), int(peaks.size))
+        result["modes"] = [{"f_n_hz": m.f_n, "zeta": m.zeta, "k_N_m": m.modal_stiffness,
+                            "m_kg": m.modal_mass} for m in fit.modes]
+        result["fit_relative_error"] = fit.relative_error
+        result["warnings"] = list(fit.warnings)
+    return result
+
+
+def _peaks(magnitude: np.ndarray) -> np.ndarray:
+    """Indices of the resonance peaks of |H|: at least 1 dB prominent, the MAX_MODES most
+    prominent, in frequency order."""
+    level = 20 * np.log10(np.maximum(magnitude, np.finfo(float).tiny))
+    peaks, properties = scipy.signal.find_peaks(level, prominence=1.0)
+    strongest = np.argsort(properties["prominences"])[::-1][:MAX_MODES]
+    return np.sort(peaks[strongest])
+
+
+def _is_even(f: np.ndarray) -> bool:
+    return f.size > 2 and bool(np.allclose(np.diff(f), f[1] - f[0], rtol=1e-9, atol=0.0))
+
+
+def _units(frf: ExchangeFrf) -> str:
+    """The FRF's SI unit, e.g. "(m/s)/N"; "-" for a ratio of like quantities."""
+    numerator = QUANTITIES.get(frf.response.quantity, (0, 0, 0, "?"))[3]
+    denominator = QUANTITIES.get(frf.reference.quantity, (0, 0, 0, "?"))[3]
+    if numerator == denominator:
+        return "-"
+    return f"({numerator})/{denominator}" if "/" in numerator else f"{numerator}/{denominator}"
+
+
+def describe_uff58(result: dict) -> str:
+    """Human-readable summary of `analyze_uff58`."""
+    count = len(result["frfs"])
+    lines = [f"uff58: {result['file']} ({count} FRF{'s' * (count != 1)})"]
+    for number, frf in enumerate(result["frfs"], 1):
+        response, reference = frf["response"], frf["reference"]
+        lines.append(f"  {number}. {frf['description']}"
+                     + (f" ({frf['condition']})" if frf["condition"] else ""))
+        lines.append(f"     {response['channel']} (node {response['node']}, dir "
+                     f"{response['direction']}) / {reference['channel']} (node "
+                     f"{reference['node']}, dir {reference['direction']}): {frf['form']} in "
+                     f"{frf['units']}, {frf['band_hz'][0]:g}-{frf['band_hz'][1]:g} Hz, "
+                     f"{frf['n_lines']} lines"
+                     + ("" if frf["min_coherence"] is None
+                        else f", min coherence {frf['min_coherence']:.3f}"))
+        for mode in frf.get("modes", []):
+            lines.append(f"     mode {mode['f_n_hz']:.2f} Hz, zeta {100 * mode['zeta']:.2f} %, "
+                         f"k {mode['k_N_m'] * 1e-6:.4g} N/um, m {mode['m_kg']:.4g} kg")
+        if "modes" not in frf:
+            lines += [f"     peak {p['f_hz']:.2f} Hz, |H| {p['abs']:.4g} {frf['units']}"
+                      for p in frf["peaks"]]
+        lines += [f"     warning: {w}" for w in frf.get("warnings", [])]
+    return "\n".join(lines)
