@@ -29,7 +29,7 @@ import numpy as np
 from feedbench.analysis.closure.effects import CANDIDATES, EFFECTS, Context, Effect
 from feedbench.analysis.closure.model import (
     Fit, FitError, Model, Term, check_identifiable, design, fit_model, held_out_error,
-    least_squares_solution, output_slope,
+    least_squares_solution, output_slope, tip_error,
 )
 from feedbench.analysis.closure.trace import Kinematics
 from feedbench.config import ConfigError
@@ -201,6 +201,9 @@ def _first_passing(current: Fit, ranking: list[Candidate], fit_kin: Kinematics,
             continue
         after = held_out_error(refit.model, holdout_kin)
         evidence = holdout_delta_bic(before, after, refit.k - current.k, holdout_kin)
+        if holdout_kin.tip is not None:  # the second output's share of the evidence
+            evidence += holdout_delta_bic(tip_error(current.model, holdout_kin),
+                                          tip_error(refit.model, holdout_kin), 0, holdout_kin)
         if not evidence < -options.bic_threshold:
             ranking[j] = replace(candidate, rejected=f"not confirmed on the held-out data "
                                  f"(ΔBIC {evidence:.0f}: {before:.2%} → {after:.2%})")
@@ -260,7 +263,7 @@ def _scored(name: str, current: Fit, model: Model, kin: Kinematics,
         fit = fit_model(model, kin, with_std=False)
     except FitError as exc:
         return Candidate(name, 0.0, evidence, None, 0.0, 0.0, f"fit failed: {exc}", freed)
-    return Candidate(name, 0.0, evidence, fit, float(1.0 - fit.ssr / current.ssr),
+    return Candidate(name, 0.0, evidence, fit, float(1.0 - fit.cost / current.cost),
                      float(fit.bic - current.bic), None, freed)
 
 
@@ -291,8 +294,8 @@ def try_effect(effect: Effect, current: Fit, kin: Kinematics, context: Context,
     if not fits:
         return Candidate(effect.name, float(shares[order[0]]), evidence, None, 0.0, 0.0,
                          f"fit failed: {failures[0]}")
-    fit = min(fits, key=lambda f: f.ssr)
-    explained = 1.0 - fit.ssr / current.ssr
+    fit = min(fits, key=lambda f: f.cost)
+    explained = 1.0 - fit.cost / current.cost
     delta_bic = fit.bic - current.bic
     term = fit.model.terms[-1]
     return Candidate(effect.name, float(shares[order[0]]), evidence, fit, float(explained),

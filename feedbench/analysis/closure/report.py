@@ -11,7 +11,7 @@ import math
 from typing import Any
 
 from feedbench.analysis.closure.diagnosis import Candidate, ClosureResult, Step
-from feedbench.analysis.closure.model import Fit, Term
+from feedbench.analysis.closure.model import Fit, Term, tip_error
 from feedbench.analysis.closure.replay import ReplayErrors
 from feedbench.analysis.closure.run import ClosureReport
 
@@ -117,6 +117,7 @@ def report_dict(report: ClosureReport) -> dict[str, Any]:
         "error_after": result.error_after,
         "fit_error_before": result.base.error,
         "fit_error_after": final.error,
+        **_tip_errors(report),
         "base_params": model_params(result.base),
         "steps": steps,
         "params": {name: term_params(final.model.term(name), final) for name in result.effects},
@@ -128,6 +129,15 @@ def report_dict(report: ClosureReport) -> dict[str, Any]:
             "before": replay_dict(report.replay_before),
             "after": replay_dict(report.replay_after)},
     }
+
+
+def _tip_errors(report: ClosureReport) -> dict[str, float | None]:
+    """Held-out NRMSE of the load-side acceleration before and after (None without a tip
+    channel)."""
+    kin = report.holdout.kin
+    fits = {"tip_error_before": report.result.base, "tip_error_after": report.result.final}
+    return {key: None if kin.tip is None else tip_error(fit.model, kin)
+            for key, fit in fits.items()}
 
 
 def _params_text(params: dict[str, dict[str, float | bool]], indent: str = "    ") -> str:
@@ -187,6 +197,9 @@ def report_text(report: ClosureReport) -> str:
     lines.append(f"stop: {data['stopped']}")
     lines.append(f"held-out force NRMSE before → after: {result.error_before:.2%} → "
                  f"{result.error_after:.2%}")
+    if data["tip_error_before"] is not None:
+        lines.append(f"held-out tip acceleration NRMSE before → after: "
+                     f"{data['tip_error_before']:.2%} → {data['tip_error_after']:.2%}")
     if report.replay_before is not None:
         lines += _replay_text(report.replay_before, report.replay_after)
     return "\n".join(lines)

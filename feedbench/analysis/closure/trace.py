@@ -102,7 +102,7 @@ class Kinematics:
     filtered measured force less the trace's known external force (N); used: samples that
     fits and errors count (the axis moving faster than the standstill speed: in stiction
     the friction force is a constraint force no friction law predicts); dt: sample period
-    (s); bandwidth: cut-off (Hz).
+    (s); bandwidth: cut-off (Hz); tip: the filtered load-side acceleration (m/s²) or None.
     """
 
     x: np.ndarray
@@ -112,6 +112,7 @@ class Kinematics:
     used: np.ndarray
     dt: float
     bandwidth: float
+    tip: np.ndarray | None = None
 
     @property
     def rows(self) -> np.ndarray:
@@ -137,7 +138,8 @@ class Kinematics:
     def window(self, start: int, stop: int) -> Kinematics:
         """Samples [start, stop)."""
         return replace(self, x=self.x[start:stop], v=self.v[start:stop], a=self.a[start:stop],
-                       force=self.force[start:stop], used=self.used[start:stop])
+                       force=self.force[start:stop], used=self.used[start:stop],
+                       tip=None if self.tip is None else self.tip[start:stop])
 
 
 def lowpass(signal: np.ndarray, bandwidth: float, dt: float, derivative: int = 0,
@@ -186,7 +188,9 @@ def kinematics(trace: Trace, bandwidth: float, standstill: float = 0.0) -> Kinem
     if trace.n_samples <= 4 * edge:
         raise ValueError(f"{trace.name or 'trace'}: {trace.n_samples} samples are too few for "
                          f"a {bandwidth:g} Hz filter (need > {4 * edge})")
-    kin = Kinematics(x, v, a, force, np.abs(v) >= standstill, dt, bandwidth)
+    tip = (None if trace.tip_acceleration is None
+           else lowpass(trace.tip_acceleration, bandwidth, dt))
+    kin = Kinematics(x, v, a, force, np.abs(v) >= standstill, dt, bandwidth, tip)
     kin = kin.window(edge, trace.n_samples - edge)
     if kin.n_used < 16:
         raise ValueError(f"{trace.name or 'trace'}: only {kin.n_used} samples move faster "
