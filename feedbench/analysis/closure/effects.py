@@ -356,10 +356,14 @@ class AmplitudeNonlinearity(Effect):
         return (context.acting * np.abs(context.acting))[:, None]
 
     def starts(self, kin, context):
+        """β by regression on F|F|, kept where the reading stays invertible: a reading r
+        comes from an acting force only while 1 + 4β|r| > 0 (half of that margin kept)."""
         acting = context.acting[kin.rows]
         q = acting * np.abs(acting)
         beta = float(q @ context.residual / max(q @ q, 1e-300))
-        return [{"beta_per_kN": float(np.clip(beta, *_bounds(self, "beta_per_kN")))}]
+        lower, upper = _bounds(self, "beta_per_kN")
+        lower = max(lower, -0.5 / (4.0 * max(float(np.max(np.abs(kin.force))), 1e-300)))
+        return [{"beta_per_kN": float(np.clip(beta, lower, upper))}]
 
     def describe(self, values):
         return f"β = {values['beta_per_kN'] * 1e3:.3g} /kN"
