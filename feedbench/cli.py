@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import socket
 import sqlite3
 import sys
 import time
@@ -186,11 +187,32 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from feedbench.sim_backends.process import serve
     from feedbench.sim_backends.socketcand_hub import HubError
 
+    bench, workpiece = sim_config(args.config)
+    for key in SIM_LISTENS:
+        check_can_listen(f"bench.{key}", bench[key])
     try:
-        serve(*sim_config(args.config))
+        serve(bench, workpiece)
     except HubError as exc:
         raise ConfigError(f"bench.socketcand: {exc}") from exc
     return 0
+
+
+SIM_LISTENS = ("socketcand", "modbus")
+"""The [bench] addresses `feedbench sim` listens on."""
+
+
+def check_can_listen(field: str, address: str) -> None:
+    """A ``host:port`` to listen on must be free (port 0 or none: any free one); raises
+    `ConfigError` naming the field and the address, before anything starts."""
+    host, _, port = address.rpartition(":")
+    if not (port.isdigit() and int(port)):
+        return
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the servers do
+        try:
+            probe.bind((host or "127.0.0.1", int(port)))
+        except OSError as exc:
+            raise ConfigError(f"{field}: cannot listen on {address} ({exc.strerror})") from None
 
 
 def build_parser() -> argparse.ArgumentParser:

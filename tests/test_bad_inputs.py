@@ -22,7 +22,8 @@ from feedbench.cli import main
 from feedbench.closure_io import write_csv_trace
 from feedbench.analysis.closure import Trace
 from feedbench.daq.catalog import Catalog
-from test_report import chirp_steps, friction_steps, record
+from feedbench.experiments.impact_hammer import FORCE_CHANNEL, RESPONSE_CHANNEL
+from test_report import PER_CYCLE, daq_step, friction_steps, record, record_with_daq
 
 GOOD = "good.h5"
 FEEDS = [25, 50, 75, 100, 150, 200, 300, 400, 500, 700, 900, 1200, 1500]
@@ -99,6 +100,13 @@ def text_file(path: Path) -> None:
 
 def family(experiment: str, steps: Callable[[], list], **config) -> Callable[[Path], None]:
     return lambda path: record(path, experiment, steps(), config={"type": experiment, **config})
+
+
+def hammer_never_fired(path: Path) -> None:
+    """An impact-hammer recording with its DAQ stream but no hit (no excite segment)."""
+    record_with_daq(path, {"type": "impact_hammer"},
+                    [daq_step("settle", "settle", {}, np.zeros((50 * PER_CYCLE, 2)))],
+                    (FORCE_CHANNEL, RESPONSE_CHANNEL))
 
 
 def three_feeds() -> list:
@@ -180,6 +188,11 @@ CASES: dict[str, tuple[Callable[[Path], list[str]], str]] = {
                                "bad.h5: no analysis for experiment 'dance'"),
     "analyze another family's data": (recording_file(family("chirp", friction_steps)),
                                       "bad.h5: 0 excite segment(s) recorded"),
+    "analyze hammer run of friction data": (recording_file(family("impact_hammer",
+                                                                   friction_steps)),
+                                            "bad.h5: impact_hammer analysis: no 'daq' recorded"),
+    "analyze hammer that never fired": (recording_file(hammer_never_fired),
+                                        "bad.h5: no usable hammer hit recorded"),
     "analyze friction with 3 feeds": (recording_file(family("friction_sweep", three_feeds,
                                                             feeds_mm_min=FEEDS[:3])),
                                       "bad.h5: 3 feeds measured in the positive direction"),
@@ -325,16 +338,16 @@ def test_bad_input_is_one_line_and_corrupts_nothing(case, runs, template, capsys
     assert written(runs) == files, "nothing new is written"
 
 
-def test_port_in_use_names_the_address(runs, capsys):
+@pytest.mark.parametrize("key", ["socketcand", "modbus"])
+def test_port_in_use_names_the_field_and_address(key, runs, capsys):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
-        port = taken.getsockname()[1]
-        status, lines = run_main(["sim", config(runs, f"[bench]\nsocketcand = "
-                                                     f"'127.0.0.1:{port}'\n", "sim.toml")],
-                                 capsys)
-    assert (status, len(lines)) == (2, 1), lines
-    assert f"bench.socketcand: socketcand hub cannot listen on 127.0.0.1:{port}" in lines[0]
+        address = "127.0.0.1:{}".format(taken.getsockname()[1])
+        status, lines = run_main(["sim", config(runs, f"[bench]\n{key} = '{address}'\n",
+                                                "sim.toml")], capsys)
+    assert (status, lines) == (2, [f"feedbench: error: bench.{key}: cannot listen on "
+                                   f"{address} (Address already in use)"])
 
 
 def test_debug_shows_the_traceback(runs):

@@ -158,6 +158,9 @@ def analyze_recording(recording, force_window_s: float = 0.01, exp_decay_s: floa
         summaries.append(_feed_summary(feed, frf, band))
         compliances[feed] = np.array(summaries[-1]["frf"]["compliance_abs"])
     feeds = sorted(compliances)
+    if not feeds:
+        raise ConfigError(f"{recording.path}: no usable hammer hit recorded "
+                          f"({'; '.join(notes) or 'no excite segment'})")
     reference, idle = compliances[feeds[-1]], compliances[feeds[0]]
     to_reference = [frf_distance(reference, compliances[f]) for f in feeds]
     for summary, distance in zip(summaries, to_reference):
