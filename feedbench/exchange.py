@@ -20,7 +20,6 @@ reads an export.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 from datetime import datetime
 from pathlib import Path
@@ -32,7 +31,11 @@ import scipy.signal
 
 from feedbench.analysis.frf import convert_frf
 from feedbench.analysis.modal import fit_modes
-from feedbench.config import ConfigError
+from feedbench.closure_io import read_recording, sidecar_path, write_csv_trace
+from feedbench.config import ConfigError, validate_table
+from feedbench.daq.recording import open_recording
+from feedbench.experiments import impact_hammer, shaker_chirp, sine_stream
+from feedbench.experiments.tool_tip import FORCE_CHANNELS, RESPONSE_CHANNEL
 
 UFF_SUFFIXES = (".uff", ".unv", ".uf")
 FRF, COHERENCE = 4, 6
@@ -45,6 +48,9 @@ QUANTITIES = {
     "force": (13, 0, 1, "N"),
 }
 """Quantity → UFF58 specific data type, length and force unit exponents, SI unit label."""
+
+SPEC_QUANTITIES = {spec: quantity for quantity, (spec, *_) in QUANTITIES.items()} | {9: "force"}
+"""UFF58 specific data type → quantity (9, reaction force, read as a force too)."""
 
 FORMS = {"displacement": "receptance", "velocity": "mobility", "acceleration": "accelerance"}
 """Response quantity of a force-referenced FRF → its form (`analysis.frf.FRF_FORMS`)."""
@@ -93,11 +99,17 @@ class ExchangeFrf:
 
 MOTOR_FORCE = Dof("force", "motor", 1, 1, "force")
 MOTOR_VELOCITY = Dof("velocity", "motor", 1, 1, "velocity")
-TIP_ACCELERATION = Dof("acc_tool_x", "tool_tip", 2, 1, "acceleration")
+TIP_ACCELERATION = Dof(RESPONSE_CHANNEL, "tool_tip", 2, 1, "acceleration")
 
 
 def _tip_force(channel: str) -> Dof:
     return Dof(channel, "tool_tip", 2, 1, "force")
+
+
+def _exciter_force(recording: Any, family: Any) -> Dof:
+    """The tool-tip force of the run's exciter (its config with the family's defaults)."""
+    params = validate_table(recording.config["experiment"], family.SCHEMA, "experiment")
+    return _tip_force(FORCE_CHANNELS[params["exciter"]])
 
 
 def _polar(block: dict, magnitude: str, phase: str) -> np.ndarray:
@@ -113,9 +125,7 @@ def _chirp(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
 
 
 def _shaker_chirp(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
-    from feedbench.experiments.tool_tip import FORCE_CHANNELS
-
-    force = _tip_force(FORCE_CHANNELS[recording.config["experiment"].get("exciter", "shaker")])
+    force = _exciter_force(recording, shaker_chirp)
     for feed in result["feeds"]:
         frf = feed["frf"]
         yield ExchangeFrf("shaker_chirp: tool-tip accelerance H1",
@@ -125,9 +135,7 @@ def _shaker_chirp(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
 
 
 def _sine_stream(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
-    from feedbench.experiments.tool_tip import FORCE_CHANNELS
-
-    force = _tip_force(FORCE_CHANNELS[recording.config["experiment"].get("exciter", "actuator")])
+    force = _exciter_force(recording, sine_stream)
     for stream in result["streams"]:
         frf = stream["frf"]
         yield ExchangeFrf("sine_stream: tool-tip accelerance (sine fits)",
@@ -143,8 +151,8 @@ def _impact_hammer(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
         yield ExchangeFrf("impact_hammer: tool-tip compliance (Eq. 5.3)",
                           f"feed {feed['feed_mm_min']:g} mm/min", np.asarray(frf["f_hz"]),
                           _polar(frf, "compliance_abs", "compliance_phase_rad"),
-                          Dof("acc_tool_x", "tool_tip", 2, 1, "displacement"),
-                          _tip_force("hammer_force"), np.asarray(frf["coherence"]))
+                          replace(TIP_ACCELERATION, quantity="displacement"),
+                          _tip_force(impact_hammer.FORCE_CHANNEL), np.asarray(frf["coherence"]))
 
 
 def _closed_loop_bode(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
@@ -175,8 +183,6 @@ def export_uff58(recording_path: str | Path, path: str | Path,
                  analyze: Callable[[str | Path], dict]) -> Path:
     """Write the FRFs of a run to a UFF58 file; `analyze` is its analysis step
     (`cli.analyze_file`), run only for a family with FRFs (RUN_FRFS)."""
-    from feedbench.daq.recording import open_recording
-
     recording = open_recording(recording_path)
     if recording.experiment not in RUN_FRFS:
         raise ConfigError(f"{recording_path}: a {recording.experiment} run has no FRF to "
@@ -190,8 +196,6 @@ def export_uff58(recording_path: str | Path, path: str | Path,
 def export_csv(recording_path: str | Path, path: str | Path) -> Path:
     """Write a recording's drive channels (time s, position and reference mm, force and
     excitation N) as CSV with the sidecar `closure_io.read_csv_trace` reads; returns path."""
-    from feedbench.closure_io import read_recording, sidecar_path, write_csv_trace
-
     path = Path(path)
     if path.suffix.lower() != ".csv":
         raise ConfigError(f"{path}: a CSV export must end in .csv (its sidecar is "
@@ -306,27 +310,33 @@ def _frf_of(dataset: dict, where: str) -> ExchangeFrf:
     """An ExchangeFrf of one dataset 58, its ordinate scaled to SI."""
     response = _dof(dataset, "rsp", "ordinate")
     reference = _dof(dataset, "ref", "orddenom")
-    scale = _si_factor(dataset, "ordinate", where) / _si_factor(dataset, "orddenom", where)
-    return ExchangeFrf(dataset.get("id1", ""), dataset.get("id5", ""),
+    scale = 1.0
+    if dataset["func_type"] == FRF:
+        scale = _si_factor(dataset, "ordinate", where) / _si_factor(dataset, "orddenom", where)
+    return ExchangeFrf(_text(dataset, "id1") or where, _text(dataset, "id5"),
                        np.asarray(dataset["x"], dtype=float),
                        np.asarray(dataset["data"]) * scale, response, reference)
 
 
 def _dof(dataset: dict, end: str, record: str) -> Dof:
-    spec = dataset.get(f"{record}_spec_data_type", 0)
-    quantity = next((q for q, v in QUANTITIES.items() if v[0] == spec), "")
-    if spec == 9:  # reaction force
-        quantity = "force"
-    entity = str(dataset.get(f"{end}_ent_name", "")).strip()
-    channels = str(dataset.get("id4", "")).split(" / ")
+    quantity = SPEC_QUANTITIES.get(dataset.get(f"{record}_spec_data_type", 0), "")
+    entity = _text(dataset, f"{end}_ent_name")
+    channels = _text(dataset, "id4").split(" / ")
     channel = channels[end == "ref"].strip() if len(channels) == 2 else entity
+    channel = channel or ("reference" if end == "ref" else "response")
     return Dof(channel, entity, int(dataset.get(f"{end}_node", 0)),
                int(dataset.get(f"{end}_dir", 0)), quantity)
 
 
+def _text(dataset: dict, key: str) -> str:
+    """A text field of a dataset, "" for the format's "NONE"."""
+    text = str(dataset.get(key, "")).strip()
+    return "" if text == "NONE" else text
+
+
 def _si_factor(dataset: dict, record: str, where: str) -> float:
-    label = str(dataset.get(f"{record}_axis_units_lab", "")).strip()
-    if label in ("", "NONE"):
+    label = _text(dataset, f"{record}_axis_units_lab")
+    if not label:
         return 1.0
     if label not in UNIT_LABELS:
         raise ConfigError(f"{where}: {record} units {label!r} unknown "
@@ -342,7 +352,6 @@ def _same_dofs(a: ExchangeFrf, b: ExchangeFrf) -> bool:
 def _ends(frf: ExchangeFrf) -> tuple[int, int, int, int]:
     return (frf.response.node, frf.response.direction, frf.reference.node,
             frf.reference.direction)
-
 
 
 def analyze_uff58(path: str | Path) -> dict:
@@ -368,7 +377,11 @@ def _identified(frf: ExchangeFrf) -> dict:
         "peaks": [{"f_hz": float(f[k]), "abs": float(np.abs(H[k]))} for k in peaks],
     }
     if form and peaks.size and _is_even(f):
-        fit = fit_modes(f, shape, (float(f[0]), float(f[-1])), int(peaks.size))
+        try:
+            fit = fit_modes(f, shape, (float(f[0]), float(f[-1])), int(peaks.size))
+        except ValueError as exc:  # too few lines for the model order
+            result["warnings"] = [f"modes not fitted: {exc}"]
+            return result
         result["modes"] = [{"f_n_hz": m.f_n, "zeta": m.zeta, "k_N_m": m.modal_stiffness,
                             "m_kg": m.modal_mass} for m in fit.modes]
         result["fit_relative_error"] = fit.relative_error

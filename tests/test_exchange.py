@@ -91,14 +91,16 @@ def test_export_writes_every_frf_as_uff58_that_pyuff_reads_back(runs, family, tm
     coherence_sets = iter(s for s in sets if s["func_type"] == 6)
     for dataset, (f, H, coherence), ends in zip(frf_sets, expected, EXPECTED[family]):
         assert dataset["binary"] == 1 and dataset["ord_data_type"] == 6
-        assert (dataset["abscissa_spec_data_type"], dataset["abscissa_axis_units_lab"]) == (18, "Hz")
+        assert dataset["abscissa_spec_data_type"] == 18
+        assert dataset["abscissa_axis_units_lab"] == "Hz"
         for record_name, (spec, unit) in zip(("ordinate", "orddenom"), ends):
             assert dataset[f"{record_name}_spec_data_type"] == spec
             assert dataset[f"{record_name}_axis_units_lab"] == unit
             assert (dataset[f"{record_name}_len_unit_exp"],
                     dataset[f"{record_name}_force_unit_exp"]) == EXPONENTS[spec]
         assert dataset["rsp_dir"] == dataset["ref_dir"] == 1
-        assert dataset["rsp_node"] == dataset["ref_node"] == (1 if family in ("chirp", "closed_loop_bode") else 2)
+        node = 2 if family in TIP_DAQ else 1  # the tool tip, or the motor
+        assert dataset["rsp_node"] == dataset["ref_node"] == node
         assert dataset["id2"] == family and dataset["load_case_id"] == 0
         np.testing.assert_allclose(dataset["x"], f, rtol=4 * np.finfo(float).eps, atol=0)
         assert np.array_equal(dataset["data"], H)  # bit-exact: 58b stores the doubles
@@ -124,7 +126,8 @@ def frfs_on(f: np.ndarray) -> list[ExchangeFrf]:
     H = rng.normal(size=f.size) + 1j * rng.normal(size=f.size)
     tip = Dof("acc_tool_x", "tool_tip", 2, 1, "acceleration")
     force = Dof("shaker_force", "tool_tip", 2, 1, "force")
-    return [ExchangeFrf("accelerance", "feed 0 mm/min", f, H, tip, force, rng.uniform(size=f.size)),
+    return [ExchangeFrf("accelerance", "feed 0 mm/min", f, H, tip, force,
+                        rng.uniform(size=f.size)),
             ExchangeFrf("receptance", "feed 500 mm/min", f, H / 3, tip, force)]
 
 
@@ -221,6 +224,12 @@ def test_csv_export_goes_straight_into_the_closure_reader(runs, tmp_path, capsys
 def test_export_errors_are_one_line(runs, tmp_path, capsys):
     friction = tmp_path / "friction.h5"
     record(friction, "friction_sweep", friction_steps()[:3])
+    furlongs = tmp_path / "furlongs.uff"
+    pyuff.UFF(str(furlongs)).write_sets(pyuff.prepare_58(
+        binary=0, func_type=4, rsp_node=1, rsp_dir=1, ref_node=1, ref_dir=1,
+        data=np.ones(20, complex), x=np.arange(1.0, 21.0), abscissa_spacing=1,
+        ordinate_spec_data_type=8, orddenom_spec_data_type=13,
+        ordinate_axis_units_lab="furlong"), mode="overwrite")
     cases = [
         (["export", str(runs["chirp"])], "export: give --uff58 FILE and/or --csv FILE"),
         (["export", str(friction), "--uff58", str(tmp_path / "f.uff")],
@@ -229,6 +238,8 @@ def test_export_errors_are_one_line(runs, tmp_path, capsys):
         (["export", str(runs["chirp"]), "--csv", str(tmp_path / "c.txt")],
          f"{tmp_path / 'c.txt'}: a CSV export must end in .csv (its sidecar is c.toml)"),
         (["analyze", str(tmp_path / "missing.uff")], f"{tmp_path / 'missing.uff'}: no such file"),
+        (["analyze", str(furlongs)], "furlongs.uff dataset 1: ordinate units 'furlong' unknown "
+         "(known: m, mm, um, µm, m/s, mm/s, m/s^2, m/s2, m/s², g, N, kN)"),
     ]
     for argv, line in cases:
         assert main(argv) == 2
