@@ -258,6 +258,13 @@ CASES: dict[str, tuple[Callable[[Path], list[str]], str]] = {
         run("[limits]\nforce_N = 500.0\nexcitation_N = 5000.0\n"
             "[experiment]\ntype = 'chirp'\namplitude_N = 800.0\n"),
         "experiment.amplitude_N: 800 N exceeds the force limit limits.force_N"),
+    "unknown CAN interface": (run("[bench]\ninterface = 'nosuchbus'\n[experiment]\n"
+                                  "type = 'chirp'\n"), "bench.interface: Unknown interface type"),
+    "no drive on the bus": (lambda d: ["run", config(d, f"[bench]\noutput_dir = '{d}'\n"
+                                                     "simulated = false\nchannel = "
+                                                     f"'fb-nodrive-{d.parent.name}'\n"
+                                                     "[experiment]\ntype = 'chirp'\n")],
+                            "bench.node_id: no drive answers as node 1"),
     "smfe one cut": (run("[experiment]\ntype = 'smfe'\ncuts = ['down']\n"), "experiment.cuts: "),
     # closure traces: CSV, sidecar, units, samples, model config
     "csv missing column": (closure(sidecar('reference = "x_ref_mm"', 'reference = "x_cmd_mm"')),

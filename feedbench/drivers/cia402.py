@@ -17,6 +17,7 @@ velocity 1 nm/s, 0x6071 / 0x6077 / 0x60B2 in per mille of the rated force 0x6076
 
 from __future__ import annotations
 
+import logging
 import math
 import struct
 import threading
@@ -29,6 +30,7 @@ from canopen.emcy import EmcyError
 from canopen.pdo import PdoMap
 from canopen.profiles.p402 import OperationMode, State402
 
+from feedbench.config import ConfigError
 from feedbench.protocols.canbus import pdo_codec, remote_node
 
 Entry = int | tuple[int, int]
@@ -166,7 +168,7 @@ class Cia402Drive:
         """NMT pre-operational, heartbeat on, PDO maps by SDO, gains, NMT operational."""
         node = self.node
         node.nmt.state = "PRE-OPERATIONAL"
-        node.sdo[0x1017].raw = heartbeat_ms
+        self._first_contact(heartbeat_ms)
         self._wait_for_heartbeat(timeout_s)
         self._newton_per_mille = node.sdo[0x6076].raw * 1e-6
         self._supported_modes = node.sdo[0x6502].raw
@@ -175,6 +177,19 @@ class Cia402Drive:
         if gains:
             self.write_gains(**gains)
         node.nmt.state = "OPERATIONAL"
+
+    def _first_contact(self, heartbeat_ms: int) -> None:
+        """Switch the heartbeat on (0x1017): no answer is a `ConfigError` naming the node id,
+        and canopen's log line of the aborted transfer is not printed besides."""
+        log = logging.getLogger("canopen.sdo.client")
+        log.disabled = True
+        try:
+            self.node.sdo[0x1017].raw = heartbeat_ms
+        except canopen.SdoCommunicationError as exc:
+            raise ConfigError(f"bench.node_id: no drive answers as node {self.node.id} "
+                              f"({exc})") from None
+        finally:
+            log.disabled = False
 
     def _wait_for_heartbeat(self, timeout_s: float) -> None:
         nmt = self.node.nmt

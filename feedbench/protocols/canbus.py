@@ -15,6 +15,8 @@ import canopen
 from canopen.objectdictionary import ODVariable
 from canopen.pdo import PdoMap
 
+from feedbench.config import ConfigError
+
 SDO_TIMEOUT_S = 2.0
 """How long an SDO request waits for its answer (canopen's default 0.3 s is short for a peer
 busy for a moment, e.g. a simulated world compiling its physics on first use)."""
@@ -30,11 +32,22 @@ def connect(network: canopen.Network) -> canopen.Network:
 
 
 def open_bus(interface: str, channel: str, bitrate: int = 1_000_000, **options: Any) -> can.BusABC:
-    """A python-can bus; for ``socketcand`` the TCP tuning is on and its per-frame warnings off."""
+    """A python-can bus; for ``socketcand`` the TCP tuning is on and its per-frame warnings off.
+
+    An unknown interface, or a channel or server that cannot be opened, raises `ConfigError`
+    naming the [bench] key.
+    """
     if interface == "socketcand":
         logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)
         options.setdefault("tcp_tune", True)
-    return can.Bus(interface=interface, channel=channel, bitrate=bitrate, **options)
+    try:
+        return can.Bus(interface=interface, channel=channel, bitrate=bitrate, **options)
+    except can.CanInterfaceNotImplementedError as exc:
+        raise ConfigError(f"bench.interface: {exc}") from None
+    except (can.CanError, OSError) as exc:  # no such channel, no server, no permission
+        where = (f"bench.socketcand: {options.get('host')}:{options.get('port')}"
+                 if interface == "socketcand" else f"bench.channel: {interface} {channel!r}")
+        raise ConfigError(f"{where}: cannot open ({exc})") from None
 
 
 def open_network(interface: str, channel: str, bitrate: int = 1_000_000,
