@@ -11,12 +11,15 @@ import numpy as np
 import pytest
 import scipy.io
 
-from feedbench.analysis.closure import Trace
+from feedbench.analysis.closure import Trace, parse_model_config, run_closure
+from feedbench.analysis.closure.model import Model, new_term
+from feedbench.analysis.closure.replay import replay_axis, replay_effects
 from feedbench.analysis.closure.trace import kinematics, nrmse
 from feedbench.cli import main
 from feedbench.closure_command import closure_report
 from feedbench.closure_io import kuka_parameters, read_csv_trace, read_kuka, write_csv_trace
 from feedbench.config import ConfigError
+from feedbench.models.axis import CSP, AxisSimulator, CascadeGains, ServoTiming
 from prerequisites import SHARED_DATA, requires
 
 KUKA = SHARED_DATA / "kuka-robot"
@@ -222,3 +225,44 @@ def test_tip_acceleration_is_a_second_output(tmp_path, capsys):
     assert main(args) == 0
     data = json.loads(capsys.readouterr().out)
     assert data["effects"] == [] and data["tip_error_after"] is None
+
+
+LOADED_SPEC = {
+    "model": {"bandwidth_Hz": 50.0},
+    "terms": {"inertia": {"M_kg": "free"}, "viscous": {"F_v_Ns_m": "free"}},
+    "controller": {"K_p_Ns_m": 3000.0, "K_v_1_s": 60.0, "T_i_ms": 10.0},
+    "closure": {"candidates": ["coulomb", "offset"]},
+}
+
+
+def loaded_recording(seed: int, spec) -> Trace:
+    """8 s of a 30 kg, 400 N·s/m axis in closed loop (the replay's own kernel and cascade)
+    pushing against a known load of 150 + 300 sin(2π 0.25 t) N; mean force, 1 N noise."""
+    dt = 1e-3
+    t = np.arange(8000) * dt
+    reference = 0.05 * np.sin(2 * np.pi * 0.4 * t + seed) + 0.01 * np.sin(2 * np.pi * 1.7 * t)
+    world = Model((new_term("inertia", {"M_kg": 30.0}), new_term("viscous", {"F_v_Ns_m": 400.0})))
+    c = spec.controller
+    simulator = AxisSimulator(replay_axis(world, c), CascadeGains(K_p=c.K_p, T_i=c.T_i, K_v=c.K_v),
+                              ServoTiming(f_velocity=c.f_velocity, f_position=c.f_position,
+                                          delay=0.0, cycle=dt),
+                              force_limit=c.force_limit,
+                              velocity_feedforward=c.velocity_feedforward,
+                              effects=replay_effects(world))
+    simulator.reset(position=float(reference[0]))
+    external = 300.0 * np.sin(2 * np.pi * 0.25 * t) + 150.0
+    out = simulator.simulate(CSP, reference, 0.0, 0.0, tip_force=-external)
+    noise = np.random.default_rng(seed).normal(0.0, 1.0, t.size)
+    return Trace(t, out["position"], out["mean_force"] + noise, reference, None, f"loaded {seed}",
+                 0.5 * dt, external_force=external)
+
+
+def test_replay_carries_the_external_force():
+    spec = parse_model_config(LOADED_SPEC)
+    report = run_closure(spec, loaded_recording(1, spec), loaded_recording(2, spec))
+    model = report.result.final.model
+    assert report.result.effects == ()
+    assert model.term("inertia").values["M_kg"] == pytest.approx(30.0, rel=0.02)
+    assert model.term("viscous").values["F_v_Ns_m"] == pytest.approx(400.0, rel=0.01)
+    assert report.result.error_after < 0.01
+    assert report.replay_after.force < 0.005  # 0.13 %: the load is replayed too

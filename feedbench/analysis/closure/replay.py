@@ -115,7 +115,8 @@ def replay_effects(model: Model) -> AxisEffects:
 
 
 def replay(trace: Trace, model: Model, controller: ControllerSpec) -> Replay:
-    """Simulate `model` under `controller` with the trace's reference and excitation."""
+    """Simulate `model` under `controller` with the trace's reference and excitation; the
+    model's offset and the trace's known external force act on the load."""
     if trace.reference is None:
         raise ValueError(f"{trace.name or 'trace'}: no reference channel to replay")
     dt = 1.0 / trace.sample_rate
@@ -130,9 +131,10 @@ def replay(trace: Trace, model: Model, controller: ControllerSpec) -> Replay:
     )
     simulator.reset(position=float(trace.position[0]))
     excitation = 0.0 if trace.excitation is None else trace.excitation
-    offset = _values(model, "offset").get("offset_N", 0.0)
+    load = _values(model, "offset").get("offset_N", 0.0) + (
+        0.0 if trace.external_force is None else trace.external_force)
     out = simulator.simulate(CSP, trace.reference, 0.0, 0.0, force_offset=excitation,
-                             tip_force=-offset)
+                             tip_force=-load)
     return Replay(out["position"], _reading(model, out["mean_force"], dt), out["velocity"],
                   tuple(n for n in NOT_REPLAYED if n in model.names))
 
