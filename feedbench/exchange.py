@@ -64,10 +64,13 @@ UNIT_LABELS = {
 ENTITY_CHARS = 10
 """UFF58 record 6: entity names are at most 10 characters."""
 
+BINARY_START, DATASET_END, HEADER_LINES = b"    -1\n    58b", b"    -1\n", 13
+"""How a 58b dataset starts and ends, and its ASCII lines ("    -1", the ID line, 11 records)."""
+
 HEADER_BYTES_FIELD = (38, 12)
-"""Offset and width of the byte count in a 58b dataset's first two lines ("    -1", the
-58b ID line): pyuff writes one value's bytes per point there, for complex or uneven data
-too, so the count is set afterwards to what follows, as readers that trust it need."""
+"""Offset and width of the byte count in a 58b dataset's ID line: pyuff writes one value's
+bytes per point there, for complex or uneven data too, so the count is set afterwards to
+the bytes between the ASCII lines and the closing "    -1", as readers that trust it need."""
 
 MAX_MODES = 6
 """`analyze` fits at most this many modes (the most prominent peaks) per FRF."""
@@ -207,8 +210,13 @@ def export_csv(recording_path: str | Path, path: str | Path) -> Path:
 
 def write_uff58(path: str | Path, frfs: list[ExchangeFrf], run: str = "NONE",
                 created: str = "NONE") -> Path:
-    """Write FRFs (each followed by its coherence) as binary UFF58 datasets; returns path."""
+    """Write FRFs (each followed by its coherence) as binary UFF58 datasets; returns path.
+    An FRF of fewer than 2 lines (e.g. a sine stream whose steps were all flagged) is left
+    out: record 7 needs an increment."""
     path = Path(path)
+    frfs = [frf for frf in frfs if np.size(frf.f) >= 2]
+    if not frfs:
+        raise ConfigError(f"{path}: no FRF of 2 or more frequency lines to write")
     path.parent.mkdir(parents=True, exist_ok=True)
     path.unlink(missing_ok=True)
     number = 0
@@ -260,8 +268,6 @@ def _id_line(text: str) -> str:
 def _even_spacing(f: np.ndarray) -> bool:
     """Whether record 7's minimum and increment (E13.5) reproduce f to float precision."""
     f = np.asarray(f, dtype=float)
-    if f.size < 2:
-        return False
     start, step = float(f"{f[0]:.5e}"), float(f"{f[1] - f[0]:.5e}")
     return bool(np.allclose(start + np.arange(f.size) * step, f, rtol=4 * np.finfo(float).eps,
                             atol=0.0))
@@ -274,12 +280,17 @@ def _append_dataset(path: Path, dataset: dict) -> None:
         pyuff.UFF(str(path)).write_sets(dataset, mode="add")
     except Exception as exc:  # pyuff raises bare Exceptions, an OSError among them
         raise ConfigError(f"{path}: cannot write ({exc})") from None
-    values_per_point = (1 + np.iscomplexobj(dataset["data"])
-                        + (dataset["abscissa_spacing"] == 0))
-    offset, width = HEADER_BYTES_FIELD
     with path.open("r+b") as fh:
+        fh.seek(start)
+        block = fh.read()
+        if not block.startswith(BINARY_START):
+            raise ConfigError(f"{path}: pyuff {pyuff.__version__} did not write a 58b dataset")
+        header = 0
+        for _ in range(HEADER_LINES):
+            header = block.index(b"\n", header) + 1
+        offset, width = HEADER_BYTES_FIELD
         fh.seek(start + offset)
-        fh.write(b"%*d" % (width, 8 * values_per_point * len(dataset["data"])))
+        fh.write(b"%*d" % (width, len(block) - header - len(DATASET_END)))
 
 
 def read_uff58(path: str | Path) -> list[ExchangeFrf]:

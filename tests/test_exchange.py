@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -149,6 +150,12 @@ def test_uff58_round_trip_is_exact(f, tmp_path):
         assert (b.description, b.condition) == (a.description, a.condition)
     assert np.array_equal(read[0].coherence, written[0].coherence)
     assert read[1].coherence is None
+
+
+def test_an_frf_of_one_line_is_left_out(tmp_path):
+    one_line = replace(frfs_on(np.array([40.0]))[0], description="all steps flagged but one")
+    read = read_uff58(write_uff58(tmp_path / "frf.uff", [one_line] + frfs_on(np.arange(1.0, 9.0))))
+    assert [frf.description for frf in read] == ["accelerance", "receptance"]
 
 
 def test_binary_header_counts_the_bytes_that_follow(tmp_path):
