@@ -67,6 +67,9 @@ BENCH_SCHEMA = {
                        "(Modbus TCP; simulated: the bench starts one on 127.0.0.1)"),
     "load_cell_every": Field(int, 1, "rack_pinion: read the load cell every n bus cycles",
                              positive),
+    "io_node_id": Field(int, 10, "`feedbench sim`: CANopen node id of the tool-tip exciters' "
+                        "CiA 401 I/O module (a tool-tip [experiment] in the sim config sets "
+                        "it to its io_node_id)", positive),
 }
 
 RUN_SCHEMA = {
@@ -126,12 +129,15 @@ def load_run_config(path: str | Path) -> RunConfig:
 
 def sim_config(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """`feedbench sim`'s config: the validated [bench] table and, if the file has an
-    [experiment], the workpiece its plan prepares (SMFE lanes); else no workpiece."""
+    [experiment], the workpiece its plan prepares (SMFE lanes; else no workpiece) and the
+    node of the I/O module its exciter needs (``bench.io_node_id``)."""
     raw = read_toml(path)
-    if "experiment" in raw:
-        config = parse_run_config(raw)
-        return config.bench, list(config.plan.params.get("workpiece", ()))
-    return validate_table(raw.get("bench", {}), BENCH_SCHEMA, "bench"), []
+    if "experiment" not in raw:
+        return validate_table(raw.get("bench", {}), BENCH_SCHEMA, "bench"), []
+    config = parse_run_config(raw)
+    exciter = _device_needs(config.plan).get("exciter", {})
+    bench = {**config.bench, "io_node_id": exciter.get("node_id", config.bench["io_node_id"])}
+    return bench, list(config.plan.params.get("workpiece", ()))
 
 
 def host_config(raw: Mapping[str, Any]) -> dict[str, Any]:
@@ -261,7 +267,8 @@ class Bench:
 
         self.simulated = SimulatedBench(self.config, self.plan.params.get("workpiece", ()),
                                         bus_options=_bus_options(self.config),
-                                        exciter_node=exciter_node)
+                                        exciter_node=exciter_node,
+                                        milling=exciter_node is None)
         self._stack.callback(self.simulated.close)
         self.simulated_drive = self.simulated.drive
 

@@ -84,7 +84,9 @@ def test_friction_sweep_runs_across_processes_with_true_values(bench_process):
 def test_host_sync_advances_the_bench_process_world(bench_process):
     """Lockstep across processes: the inverter (Modbus TCP) ramps exactly ramp·k·cycle after k
     SYNCs and not at all while no SYNC comes; the DAQ (pty) streams exactly 10 samples per
-    SYNC with contiguous counters; idle accelerometer noise is Eq. (6.18)'s σ within 10 %."""
+    SYNC with contiguous counters; idle accelerometer noise is Eq. (6.18)'s σ within 10 % (in
+    the second second: x also carries the tool tip's ringing after the previous test's run,
+    which decays with the flexure's 0.2 s time constant)."""
     cfg = validate_table({"simulated": False, "interface": "socketcand",
                           "socketcand": bench_process["socketcand"],
                           "channel": bench_process["channel"]}, BENCH_SCHEMA, "bench")
@@ -112,7 +114,7 @@ def test_host_sync_advances_the_bench_process_world(bench_process):
         client.close()
     assert len(block.sequence) == 20_000
     assert np.all(np.diff(block.sequence) == 1) and daq.dropped_frames == 0
-    np.testing.assert_allclose(block.samples.std(axis=0), SMFE_SENSOR_NOISE, rtol=0.1)
+    np.testing.assert_allclose(block.samples[10_000:].std(axis=0), SMFE_SENSOR_NOISE, rtol=0.1)
 
 
 def test_hub_relays_frames_between_clients_of_one_bus_only():

@@ -18,7 +18,10 @@ Drive behaviour (CiA 402): quick-stop option code 2 (ramp down at 0x6085 in velo
 control, then switch on disabled once |v| < 0x606D); following-error fault in CSP
 (|0x607A − 0x6064| > 0x6065) with EMCY 0x8611; any EMCY code written to 0x2030 faults the
 drive at the next SYNC; fault reset on the rising edge of controlword bit 7. Faults go
-straight to FAULT (the reaction, "disable drive", takes no time).
+straight to FAULT (the reaction, "disable drive", takes no time). An exception inside the
+simulated world during a SYNC (`world_fault`) faults the drive with EMCY 0x6100 (internal
+software), is logged as one line, and the cycle's TPDOs still go out: the host sees the
+fault as from a real drive, never a missing cycle.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 from dataclasses import dataclass
+import logging
 import math
 import operator
 import struct
@@ -82,7 +86,10 @@ TRANSITIONS = {  # (state, command) -> next state; absent pairs leave the state 
 }
 POWERED = (OPERATION_ENABLED, QUICK_STOP_ACTIVE)
 
+LOGGER = logging.getLogger(__name__)
+
 EMCY_FOLLOWING_ERROR = 0x8611
+EMCY_INTERNAL_SOFTWARE = 0x6100
 EMCY_PDO_LENGTH = 0x8210
 ERROR_REGISTER_GENERIC = 0x01
 FOLLOWING_ERROR_OFF = 0xFFFFFFFF
@@ -332,8 +339,23 @@ class SimulatedCia402Drive:
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """One bus cycle: RPDOs in, state machine, physics, actual values, TPDOs out."""
-        self.begin_cycle()
-        self.end_cycle()
+        try:
+            self.begin_cycle()
+            self.end_cycle()
+        except Exception as error:  # answered as a drive fault, never a traceback
+            self.world_fault(error)
+
+    def world_fault(self, error: Exception) -> None:
+        """The world raised `error` during this SYNC: fault (EMCY 0x6100) and one log line on
+        entering the fault; the statusword and the cycle's TPDOs go out all the same."""
+        if self.state != FAULT:
+            LOGGER.error("CiA 402 node %d: fault inside the simulated world at SYNC %d: %s: %s;"
+                         " EMCY 0x%04X", self.node.id, self._count, type(error).__name__, error,
+                         EMCY_INTERNAL_SOFTWARE)
+            self._fault(EMCY_INTERNAL_SOFTWARE)
+        self.values[0x6041] = self._statusword()
+        if self._operational:
+            self._send_tpdos()
 
     def begin_cycle(self) -> None:
         """First half of a SYNC: count, latch the RPDOs, state machine, setpoints to the

@@ -46,11 +46,15 @@ class SimulatedDriveBus:
         return drive
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        for drive in self.drives:
-            drive.begin_cycle()
-        self._step_world()
-        for drive in self.drives:
-            drive.end_cycle()
+        try:
+            for drive in self.drives:
+                drive.begin_cycle()
+            self._step_world()
+            for drive in self.drives:
+                drive.end_cycle()
+        except Exception as error:  # every drive faults (EMCY), never a traceback
+            for drive in self.drives:
+                drive.world_fault(error)
 
     def close(self) -> None:
         """Stop every drive's heartbeat, the receive thread and the bus."""

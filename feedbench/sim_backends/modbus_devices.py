@@ -12,6 +12,12 @@ Servers run pymodbus's asyncio server in a background thread, so the synchronous
 them: `SimulatedModbusTcpServer` listens on 127.0.0.1 only (port 0 = a free port);
 `SimulatedModbusRtuServer` serves RTU on one end of a pseudo-terminal null modem and hands
 out the other end's path, which a host opens exactly like ``/dev/ttyUSB0``.
+
+Faults are answered with Modbus exceptions and logged as one line each (`AnsweringContext`):
+a request to a device id no device has → exception 0x0B (gateway target device failed to
+respond), an exception inside a device → 4 (server device failure); the exceptions the
+register maps prescribe (1, 2, 3) are logged too. pymodbus itself would answer the first two
+with a traceback on stderr.
 """
 
 from __future__ import annotations
@@ -19,13 +25,14 @@ from __future__ import annotations
 import abc
 import asyncio
 import concurrent.futures
+import logging
 import math
 import os
 import pty
 import select
 import threading
 import tty
-from typing import Callable, Sequence
+from typing import Awaitable, Callable, Sequence
 
 import numpy as np
 from pymodbus.constants import ExcCodes
@@ -51,6 +58,7 @@ from feedbench.protocols.modbus_registers import (
 )
 from feedbench.units import RPM
 
+LOGGER = logging.getLogger(__name__)
 LOOPBACK = "127.0.0.1"
 READ_HOLDING = 3
 WRITE_FUNCTIONS = (6, 16)
@@ -344,6 +352,58 @@ def _sim_devices(devices: Sequence[SimulatedModbusDevice]) -> list[SimDevice]:
     return [device.sim_device() for device in devices]
 
 
+class AnsweringContext:
+    """pymodbus's simulator context (`SimCore`) with every fault answered by a Modbus exception
+    and logged as one line (module logger): an unknown device id → 0x0B, an exception raised
+    inside a device → 4; exception answers of the devices (1, 2, 3) are logged as warnings."""
+
+    def __init__(self, core, devices: Sequence[SimulatedModbusDevice]) -> None:
+        self._core = core
+        self._names = {device.device_id: device.register_map.device for device in devices}
+
+    def device_ids(self) -> list[int]:
+        """The device ids served (pymodbus asks for broadcasts)."""
+        return list(self._names)
+
+    async def async_getValues(self, device_id: int, func_code: int, address: int,
+                              count: int = 1) -> list[int] | list[bool] | ExcCodes:
+        """A read (or the read-back of a write): the values, or the exception to answer."""
+        return await self._answer(device_id, func_code, address, lambda: self._core
+                                  .async_getValues(device_id, func_code, address, count))
+
+    async def async_setValues(self, device_id: int, func_code: int, address: int,
+                              values: list[int] | list[bool]) -> ExcCodes | None:
+        """A write: None, or the exception to answer."""
+        return await self._answer(device_id, func_code, address, lambda: self._core
+                                  .async_setValues(device_id, func_code, address, values))
+
+    async def _answer(self, device_id: int, func_code: int, address: int,
+                      request: Callable[[], Awaitable]):
+        if device_id not in self._names:
+            LOGGER.warning("modbus: device id %d: no such device (served: %s); function %d "
+                           "answered with exception 0x0B", device_id,
+                           ", ".join(map(str, self._names)), func_code)
+            return ExcCodes.GATEWAY_NO_RESPONSE
+        where = (f"modbus: {self._names[device_id]} (device id {device_id}): function "
+                 f"{func_code} at address {address}")
+        try:
+            result = await request()
+        except Exception as error:  # a fault inside the device: answered, never a traceback
+            LOGGER.error("%s: %s: %s; answered with exception 4", where,
+                         type(error).__name__, error)
+            return ExcCodes.DEVICE_FAILURE
+        if isinstance(result, ExcCodes):
+            LOGGER.warning("%s: answered with exception %d (%s)", where, result, result.name)
+        return result
+
+
+def _answering(server: ModbusBaseServer,
+               devices: Sequence[SimulatedModbusDevice]) -> ModbusBaseServer:
+    """`server` with its simulator context wrapped in `AnsweringContext`."""
+    server.context = AnsweringContext(server.context, devices)
+    return server
+
+
 class SimulatedModbusTcpServer:
     """Modbus TCP server on 127.0.0.1 for `devices` (each at its own device id)."""
 
@@ -353,7 +413,8 @@ class SimulatedModbusTcpServer:
         self._thread = _ServerThread(self._make_server, "modbus-tcp-sim")
 
     def _make_server(self) -> ModbusTcpServer:
-        return ModbusTcpServer(_sim_devices(self.devices), address=(LOOPBACK, self.port))
+        return _answering(ModbusTcpServer(_sim_devices(self.devices),
+                                          address=(LOOPBACK, self.port)), self.devices)
 
     def start(self) -> tuple[str, int]:
         """Listen; returns (host, port), the port chosen by the OS if 0 was asked."""
@@ -417,8 +478,9 @@ class SimulatedModbusRtuServer:
         self._thread = _ServerThread(self._make_server, "modbus-rtu-sim")
 
     def _make_server(self) -> ModbusSerialServer:
-        return ModbusSerialServer(_sim_devices(self.devices), port=self.modem.paths[0],
-                                  baudrate=self.baudrate)
+        return _answering(ModbusSerialServer(_sim_devices(self.devices),
+                                             port=self.modem.paths[0],
+                                             baudrate=self.baudrate), self.devices)
 
     def start(self) -> str:
         """Serve; returns the host-side device path (open it as a serial port, 8N1)."""

@@ -47,9 +47,10 @@ OBJECTS = (
     eds.Entry(objects.WEIGHT_SLAVE, "Torque weighting slave K_Ts", eds.F32, "rw", default=0.5),
     eds.Entry(objects.COUPLING, "Coupling", eds.U8, "rw", False, 0, "",
               "0 master-slave with preload, 1 master alone, 2 slave alone"),
-    eds.Entry(objects.PRELOAD_GAIN, "Preload PI gain", eds.F32, "rw", unit="(m/s)/N"),
+    eds.Entry(objects.PRELOAD_GAIN, "Preload PI gain", eds.F32, "rw",
+              default=TorqueEqualisation.K_p, unit="(m/s)/N"),
     eds.Entry(objects.PRELOAD_INTEGRAL_TIME, "Preload PI integral time", eds.F32, "rw",
-              unit="s"),
+              default=TorqueEqualisation.T_i, unit="s"),
     eds.Entry(objects.LOAD_POSITION, "Load position (linear scale)", eds.I32, "ro", True, 0,
               "nm"),
     eds.Entry(objects.MOTOR_POSITION, "Motor position at the rack", eds.I32, "ro", True, 0,
@@ -339,16 +340,17 @@ class SimulatedRackPinionAxis:
     """Master and slave drives on one bus channel, their world, the load cell's server.
 
     `close()` stops everything. `modbus_address` is where the load cell answers (device
-    id `load_cell_id`).
+    id `load_cell_id`; its server listens on 127.0.0.1:`modbus_port`, 0: a free port).
     """
 
     def __init__(self, simulator: RackPinionSimulator, interface: str = "virtual",
                  channel: str = "feedbench", node_ids: tuple[int, int] = (1, 2),
-                 load_cell: dict[str, Any] | None = None, **bus_options: Any) -> None:
+                 load_cell: dict[str, Any] | None = None, modbus_port: int = 0,
+                 **bus_options: Any) -> None:
         self.world = RackPinionWorld(simulator)
         self.load_cell = SimulatedLoadCell(lambda: simulator.bumper_force, **(load_cell or {}))
         self.world.sampled.append(self.load_cell)
-        self._server = SimulatedModbusTcpServer([self.load_cell])
+        self._server = SimulatedModbusTcpServer([self.load_cell], port=modbus_port)
         self.modbus_address = self._server.start()
         try:
             self.bus = SimulatedDriveBus(open_bus(interface, channel, **bus_options),

@@ -28,6 +28,7 @@ overruns the FIFO as before.
 from __future__ import annotations
 
 import binascii
+import logging
 import os
 import select
 import threading
@@ -38,10 +39,12 @@ from typing import Callable, Literal
 import numpy as np
 
 from feedbench.protocols.serial_frames import (
-    CHANNELS, CRC_BYTES, CRC_INIT, FULL_SCALE_COUNTS, HEADER_BYTES, MAX_RATE_HZ, MIN_RATE_HZ,
-    SAMPLE_BYTES, SEQ_BYTES, SYNC, TYPE_DATA, TYPE_REPLY, data_frame_bytes, link_load,
+    CHANNELS, CRC_BYTES, CRC_INIT, FULL_SCALE_COUNTS, HEADER_BYTES, MAX_RATE_HZ,
+    MAX_REPLY_BYTES, MIN_RATE_HZ, SAMPLE_BYTES, SEQ_BYTES, SYNC, TYPE_DATA, TYPE_REPLY,
+    data_frame_bytes, link_load,
 )
 
+LOGGER = logging.getLogger(__name__)
 IDENTITY = "FEEDBENCH,SIM-DAQ12,0,1.0"
 DEFAULT_FIFO_BYTES = 1 << 20
 """Transmit FIFO of the instrument (≈ 2.3 s of all 12 inputs at 10 kHz)."""
@@ -61,6 +64,11 @@ def encode_frame(kind: int, payload: bytes) -> bytes:
     """One frame: sync, type, length, payload, CRC-16/CCITT-FALSE (little-endian)."""
     body = bytes((kind, len(payload))) + payload
     return SYNC + body + binascii.crc_hqx(body, CRC_INIT).to_bytes(2, "little")
+
+
+def reply_payload(text: str) -> bytes:
+    """A reply frame's payload: ASCII (others as ``?``), at most `MAX_REPLY_BYTES` bytes."""
+    return text.encode("ascii", "replace")[:MAX_REPLY_BYTES]
 
 
 def encode_data_frames(sequence: np.ndarray, counts: np.ndarray) -> np.ndarray:
@@ -235,7 +243,7 @@ class SimulatedSerialDaq:
             with self._lock:
                 self._catch_up()  # a command takes effect at the sample clock's present
                 reply = self._execute(line.decode("ascii", "replace").strip())
-                self._fifo += encode_frame(TYPE_REPLY, reply.encode("ascii"))
+                self._fifo += encode_frame(TYPE_REPLY, reply_payload(reply))
 
     def _execute(self, line: str) -> str:
         word, _, argument = line.partition(" ")
@@ -243,11 +251,16 @@ class SimulatedSerialDaq:
                     "CHAN": self._set_channels, "START": self._start, "STOP": self._stop}
         handler = handlers.get(word.upper())
         if handler is None:
+            LOGGER.warning("serial DAQ: unknown command %r: answered ERR", word)
             return f"ERR unknown command {word!r}"
         try:
             return f"OK {handler(argument.strip())}".rstrip()
         except ValueError as error:
+            LOGGER.warning("serial DAQ: %r refused: %s", line, error)
             return f"ERR {error}"
+        except Exception as error:  # a fault inside the instrument: answered, never a traceback
+            LOGGER.error("serial DAQ: %r failed: %s: %s", line, type(error).__name__, error)
+            return f"ERR internal {type(error).__name__}"
 
     def _set_rate(self, argument: str) -> str:
         rate = int(argument)
