@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import socket
 import sqlite3
 import sys
@@ -215,6 +216,22 @@ def check_can_listen(field: str, address: str) -> None:
             raise ConfigError(f"{field}: cannot listen on {address} ({exc.strerror})") from None
 
 
+def finite(text: str) -> float:
+    """An argument that must be a finite number."""
+    value = float(text)
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number (got {text})")
+    return value
+
+
+def positive(text: str) -> float:
+    """An argument that must be a finite number > 0."""
+    value = finite(text)
+    if not value > 0.0:
+        raise argparse.ArgumentTypeError(f"must be > 0 (got {text})")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every sub-command."""
     parser = Parser(prog="feedbench", description=__doc__.splitlines()[0])
@@ -243,9 +260,9 @@ def build_parser() -> argparse.ArgumentParser:
     live = sub.add_parser("live", help="replay a recorded run in the live window")
     live.add_argument("run")
     live.add_argument("--dir", default="runs")
-    live.add_argument("--speed", type=float, default=1.0,
+    live.add_argument("--speed", type=finite, default=1.0,
                       help="replay speed × real time (0: as fast as possible)")
-    live.add_argument("--span", type=float, default=10.0, help="window length (s)")
+    live.add_argument("--span", type=positive, default=10.0, help="window length (s)")
     live.set_defaults(func=cmd_live)
 
     report = sub.add_parser("report", help="HTML report of recorded runs (ids or .h5 files)")

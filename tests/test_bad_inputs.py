@@ -8,8 +8,11 @@ its catalog row, made once per module) and runs `feedbench.cli.main` in-process.
 
 from __future__ import annotations
 
+import logging
 import shutil
 import socket
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 from typing import Callable
@@ -303,6 +306,12 @@ CASES: dict[str, tuple[Callable[[Path], list[str]], str]] = {
     "sim unknown bench key": (sim("[bench]\nnode = 3\n"), "bench.node: unknown key"),
     "demo dir is a file": (lambda d: ["demo", "--quick", "--dir", str(d / GOOD)], GOOD),
     "unknown option": (lambda d: ["analyze", "x", "--jsn"], "unrecognized arguments: --jsn"),
+    "live span zero": (lambda d: ["live", str(d / GOOD), "--span", "0"],
+                       "feedbench live: error: argument --span: must be > 0 (got 0)"),
+    "live speed nan": (lambda d: ["live", str(d / GOOD), "--speed", "nan"],
+                       "argument --speed: must be a finite number (got nan)"),
+    "live speed text": (lambda d: ["live", str(d / GOOD), "--speed", "fast"],
+                        "argument --speed: invalid finite value: 'fast'"),
 }
 
 
@@ -317,17 +326,33 @@ def written(directory: Path) -> set[Path]:
     return {p for p in directory.rglob("*") if "-wal" not in p.name and "-shm" not in p.name}
 
 
+class LogLines(logging.Handler):
+    """The log records the console script would print on stderr (warnings and errors)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(f"log: {record.name}: {record.getMessage()}")
+
+
 def run_main(argv: list[str], capsys) -> tuple[int, list[str]]:
-    """`feedbench ARGV` in-process: exit status and the lines on stderr, a warning (which
-    the command line would print) counted as a line."""
-    with warnings.catch_warnings(record=True) as warned:
-        warnings.simplefilter("always")
-        try:
-            status = main(argv)
-        except SystemExit as exc:  # argparse
-            status = exc.code
+    """`feedbench ARGV` in-process: exit status and the lines on stderr, each warning and
+    log record (which the command line would print) counted as a line."""
+    log = LogLines()
+    logging.getLogger().addHandler(log)
+    try:
+        with warnings.catch_warnings(record=True) as warned:
+            warnings.simplefilter("always")
+            try:
+                status = main(argv)
+            except SystemExit as exc:  # argparse
+                status = exc.code
+    finally:
+        logging.getLogger().removeHandler(log)
     lines = capsys.readouterr().err.strip().splitlines()
-    return status, [f"warning: {w.message}" for w in warned] + lines
+    return status, [f"warning: {w.message}" for w in warned] + log.lines + lines
 
 
 @pytest.mark.parametrize("case", list(CASES))
@@ -343,6 +368,15 @@ def test_bad_input_is_one_line_and_corrupts_nothing(case, runs, template, capsys
     assert "Traceback" not in lines[0] and "--debug" not in lines[0], lines[0]
     assert snapshot(runs) == snapshot(template), "the recording and the catalog are untouched"
     assert written(runs) == files, "nothing new is written"
+
+
+def test_the_command_line_prints_one_line_too(runs):
+    """As the user of issue 12 saw it: the console script's whole stderr is the one line."""
+    make, expected = CASES["analyze friction with 3 feeds"]
+    proc = subprocess.run([sys.executable, "-m", "feedbench.cli", *make(runs)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and expected in proc.stderr, proc.stderr
 
 
 @pytest.mark.parametrize("key", ["socketcand", "modbus"])
