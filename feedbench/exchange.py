@@ -8,10 +8,12 @@ direction (node 1 the motor, node 2 the tool tip; direction 1 = +X, the feed axi
 and 10 give the ordinate numerator and denominator as specific data types (8 displacement,
 11 velocity, 12 acceleration, 13 excitation force) with their length and force exponents and
 unit labels; ID line 1 says what the FRF is, 2 the run, 3 when it was recorded, 4 the
-response / reference channels, 5 the condition (feed, amplitude). The files are binary 58b:
-the values are the IEEE doubles themselves, so a round trip is bit-exact (ASCII 58 keeps 12
-digits). The abscissa is stored evenly spaced (minimum and increment) when those two numbers
-reproduce it, otherwise value by value (uneven).
+response / reference channels, 5 the condition (feed, amplitude). An FRF on an even grid (every
+FFT-based one, a stepped sine without flagged steps) is a binary 58b dataset with even
+abscissa: the values are the IEEE doubles themselves (a bit-exact round trip), the abscissa
+minimum and increment have record 7's 6 digits. An FRF on an uneven grid is an ASCII dataset
+(12 digits; the abscissa values 6): the format's binary uneven case stores the abscissa in
+single precision, which pyuff writes as doubles, so strict readers would misread it.
 
 CSV: the recording's drive channels as the closure reads them (`closure_io.read_recording`),
 written with its sidecar (`closure_io.write_csv_trace`), so `feedbench closure FILE.csv`
@@ -230,12 +232,12 @@ def write_uff58(path: str | Path, frfs: list[ExchangeFrf], run: str = "NONE",
 
 def _dataset(frf: ExchangeFrf, function: int, values: np.ndarray, number: int, run: str,
              created: str) -> dict:
-    """The pyuff dictionary of one FRF or coherence dataset."""
-    even = _even_spacing(frf.f)
+    """The pyuff dictionary of one FRF or coherence dataset: binary on an even grid."""
+    even = _is_even(frf.f)
     numerator = _axis("ordinate", frf.response.quantity if function == FRF else "")
     denominator = _axis("orddenom", frf.reference.quantity if function == FRF else "")
     return {
-        "type": 58, "binary": 1, "func_type": function, "func_id": number,
+        "type": 58, "binary": int(even), "func_type": function, "func_id": number,
         "id1": _id_line(frf.description + (" coherence" if function == COHERENCE else "")),
         "id2": _id_line(run), "id3": _id_line(created),
         "id4": _id_line(f"{frf.response.channel} / {frf.reference.channel}"),
@@ -265,21 +267,20 @@ def _id_line(text: str) -> str:
     return text[:80] or "NONE"
 
 
-def _even_spacing(f: np.ndarray) -> bool:
-    """Whether record 7's minimum and increment (E13.5) reproduce f to float precision."""
-    f = np.asarray(f, dtype=float)
-    start, step = float(f"{f[0]:.5e}"), float(f"{f[1] - f[0]:.5e}")
-    return bool(np.allclose(start + np.arange(f.size) * step, f, rtol=4 * np.finfo(float).eps,
-                            atol=0.0))
-
-
 def _append_dataset(path: Path, dataset: dict) -> None:
-    """Append one binary dataset and set its header's byte count (HEADER_BYTES_FIELD)."""
+    """Append one dataset; a binary one gets its header's byte count (HEADER_BYTES_FIELD)."""
     start = path.stat().st_size if path.exists() else 0
     try:
         pyuff.UFF(str(path)).write_sets(dataset, mode="add")
     except Exception as exc:  # pyuff raises bare Exceptions, an OSError among them
         raise ConfigError(f"{path}: cannot write ({exc})") from None
+    if dataset["binary"]:
+        _set_byte_count(path, start)
+
+
+def _set_byte_count(path: Path, start: int) -> None:
+    """Set the byte count of the 58b dataset written from `start` to what follows its
+    ASCII lines up to its closing "    -1"."""
     with path.open("r+b") as fh:
         fh.seek(start)
         block = fh.read()
@@ -410,6 +411,8 @@ def _peaks(magnitude: np.ndarray) -> np.ndarray:
 
 
 def _is_even(f: np.ndarray) -> bool:
+    """Whether f (Hz) is evenly spaced (to 1e-9 of its step, as FFT bins k·fs/n are)."""
+    f = np.asarray(f, dtype=float)
     return f.size > 2 and bool(np.allclose(np.diff(f), f[1] - f[0], rtol=1e-9, atol=0.0))
 
 

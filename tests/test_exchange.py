@@ -33,6 +33,9 @@ EXPECTED = {  # family → per FRF: (numerator, denominator) specific data types
 }
 EXPONENTS = {8: (1, 0), 11: (1, 0), 12: (1, 0), 13: (0, 1)}
 """UFF58 Addendum A: length and force unit exponents of each specific data type."""
+RECORD_7 = 1e-5
+"""Record 7 holds the abscissa minimum and increment (and ASCII 58 an uneven abscissa) in
+E13.5: 6 significant digits."""
 
 
 @pytest.fixture(scope="module")
@@ -103,23 +106,13 @@ def test_export_writes_every_frf_as_uff58_that_pyuff_reads_back(runs, family, tm
         node = 2 if family in TIP_DAQ else 1  # the tool tip, or the motor
         assert dataset["rsp_node"] == dataset["ref_node"] == node
         assert dataset["id2"] == family and dataset["load_case_id"] == 0
-        np.testing.assert_allclose(dataset["x"], f, rtol=4 * np.finfo(float).eps, atol=0)
+        np.testing.assert_allclose(dataset["x"], f, rtol=RECORD_7, atol=0)
         assert np.array_equal(dataset["data"], H)  # bit-exact: 58b stores the doubles
         if coherence is not None:
             assert np.array_equal(next(coherence_sets)["data"], coherence)
     if family in TIP_DAQ:
         response, reference = TIP_DAQ[family][1], TIP_DAQ[family][0]
         assert all(s["id4"] == f"{response} / {reference}" for s in sets)
-
-
-def test_chirp_grid_is_stored_uneven_and_the_shaker_grid_even(runs, tmp_path):
-    """0.1220703125 Hz lines do not survive record 7's E13.5; 0.4 Hz lines do."""
-    spacing = {}
-    for family in ("chirp", "shaker_chirp"):
-        out = tmp_path / f"{family}.uff"
-        main(["export", str(runs[family]), "--uff58", str(out)])
-        spacing[family] = pyuff.UFF(str(out)).read_sets(0)["abscissa_spacing"]
-    assert spacing == {"chirp": 0, "shaker_chirp": 1}
 
 
 def frfs_on(f: np.ndarray) -> list[ExchangeFrf]:
@@ -132,24 +125,38 @@ def frfs_on(f: np.ndarray) -> list[ExchangeFrf]:
             ExchangeFrf("receptance", "feed 500 mm/min", f, H / 3, tip, force)]
 
 
-@pytest.mark.parametrize("f", [np.arange(1, 400) * (1000 / 8192),  # uneven in the file
-                               20.0 + 0.25 * np.arange(300),       # even in the file
-                               np.sort(np.random.default_rng(3).uniform(5, 500, 77))],
-                         ids=["rfft-grid", "even", "random"])
-def test_uff58_round_trip_is_exact(f, tmp_path):
+@pytest.mark.parametrize("f", [np.arange(164, 1229) * (1000 / 8192),  # the chirp's FFT bins
+                               20.0 + 0.25 * np.arange(300)],           # a stepped sine
+                         ids=["fft-bins", "steps"])
+def test_uff58_round_trip_is_exact_on_an_even_grid(f, tmp_path):
     written = frfs_on(f)
     path = write_uff58(tmp_path / "frf.uff", written, "run-1", "25-Nov-26 12:00:00")
+    assert [s["binary"] for s in pyuff.UFF(str(path)).read_sets()] == [1, 1, 1]  # 58b
     read = read_uff58(path)
     assert len(read) == 2
     for a, b in zip(written, read):
         assert np.array_equal(a.H, b.H)
-        np.testing.assert_allclose(b.f, a.f, rtol=4 * np.finfo(float).eps, atol=0)
+        np.testing.assert_allclose(b.f, a.f, rtol=RECORD_7, atol=0)
         assert (b.response.channel, b.response.node, b.response.quantity) == \
             ("acc_tool_x", 2, "acceleration")
         assert (b.reference.channel, b.reference.quantity) == ("shaker_force", "force")
         assert (b.description, b.condition) == (a.description, a.condition)
     assert np.array_equal(read[0].coherence, written[0].coherence)
     assert read[1].coherence is None
+
+
+def test_an_uneven_grid_is_ascii_to_12_digits(tmp_path):
+    """A stepped sine with flagged steps: ASCII 58 (the binary uneven case wants a single-
+    precision abscissa, which pyuff writes as doubles)."""
+    f = np.delete(20.0 + 0.25 * np.arange(100), [7, 30, 31])
+    written = frfs_on(f)
+    path = write_uff58(tmp_path / "frf.uff", written)
+    sets = pyuff.UFF(str(path)).read_sets()
+    assert [(s["binary"], s["abscissa_spacing"], s["ord_data_type"]) for s in sets] == \
+        [(0, 0, 6), (0, 0, 4), (0, 0, 6)]
+    for a, b in zip(written, read_uff58(path)):
+        np.testing.assert_allclose(b.H, a.H, rtol=5e-12)
+        np.testing.assert_allclose(b.f, a.f, rtol=RECORD_7, atol=0)
 
 
 def test_an_frf_of_one_line_is_left_out(tmp_path):
