@@ -52,17 +52,18 @@ def test_a_candidate_whose_fit_fails_is_rejected_with_its_reason():
     assert not candidate.significant(ClosureOptions())
 
 
-def test_a_nonlinear_candidate_with_a_non_finite_start_is_rejected_not_raised():
+def test_amplitude_nonlinearity_is_finite_for_every_beta_and_starts_invertible():
+    """The issue's "Residuals are not finite in the initial point": a reading beyond the
+    law's largest, 1/(4|β|), had no acting force behind it."""
     kin = kin_of(synthetic_trace())
     current = fit_model(base_model(), kin)
-    context = Context(current.residual, current.acting)
-    start = -1.0 / float(np.max(np.abs(kin.force)))   # beyond the invertible reading
-    model = base_model().with_term(new_term("amplitude_nonlinearity", {"beta_per_kN": start}))
-    with pytest.raises(ValueError, match="residuals not finite at the start"):
-        fit_model(model, kin)
-    # the library's own start stays where the reading is invertible
-    beta = EFFECTS["amplitude_nonlinearity"].starts(kin, context)[0]["beta_per_kN"]
-    assert 1.0 + 4.0 * beta * np.max(np.abs(kin.force)) >= 0.5
+    peak = float(np.max(np.abs(kin.force)))
+    effect = EFFECTS["amplitude_nonlinearity"]
+    acting = effect.inverse(kin.force, {"beta_per_kN": -1.0 / peak})
+    assert np.all(np.isfinite(acting))
+    assert np.max(np.abs(acting)) == pytest.approx(0.5 * peak)   # the law's peak, 1/(2|β|)
+    beta = effect.starts(kin, Context(current.residual, current.acting))[0]["beta_per_kN"]
+    assert 1.0 + 4.0 * beta * peak >= 0.5
 
 
 def test_a_base_fit_that_cannot_run_is_one_config_error_line():
@@ -145,3 +146,13 @@ def test_report_lists_rejected_candidates_with_reasons():
     assert data["rejected"] and all(set(r) == {"effect", "reason"} and r["reason"]
                                     for r in data["rejected"])
     assert data["recalibrations"] == []
+
+
+def test_a_ripple_longer_than_half_the_stroke_is_not_a_ripple():
+    kin = kin_of(synthetic_trace())
+    ripple = EFFECTS["ripple"]
+    half_stroke = float(np.ptp(kin.x)) / 2.0
+    values = {"A_sin_N": 1.0, "A_cos_N": 0.0}
+    assert ripple.implausible({**values, "pitch_mm": 0.5 * half_stroke}, 30.0, kin) is None
+    reason = ripple.implausible({**values, "pitch_mm": 10.0}, 30.0, kin)
+    assert reason.startswith("pitch 1e+04 mm longer than half the stroke")

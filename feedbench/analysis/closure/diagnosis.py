@@ -298,8 +298,9 @@ def try_effect(effect: Effect, current: Fit, kin: Kinematics, context: Context,
     explained = 1.0 - fit.cost / current.cost
     delta_bic = fit.bic - current.bic
     term = fit.model.terms[-1]
+    implausible = effect.implausible(term.values, fit.model.total_mass, kin)
     return Candidate(effect.name, float(shares[order[0]]), evidence, fit, float(explained),
-                     float(delta_bic), effect.implausible(term.values, fit.model.total_mass))
+                     float(delta_bic), implausible)
 
 
 def _fit_candidate(effect: Effect, current: Fit, kin: Kinematics, start: dict) -> Fit:

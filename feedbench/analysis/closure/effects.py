@@ -140,8 +140,10 @@ class Effect:
         """d forward / d force at `force`."""
         return 1.0
 
-    def implausible(self, values: Mapping[str, float], total_mass: float) -> str | None:
-        """Why fitted values cannot be physical (None if they can)."""
+    def implausible(self, values: Mapping[str, float], total_mass: float,
+                    kin: Kinematics) -> str | None:
+        """Why fitted values cannot be physical, or cannot be told on the data `kin` (None if
+        they can)."""
         return None
 
     def describe(self, values: Mapping[str, float]) -> str:
@@ -195,7 +197,7 @@ class Stribeck(Effect):
         return _andersson(kin, values, F_c=0.0, F_s=1.0, v_s=values["v_s_mm_min"],
                           sigma=0.0, delta=values["delta"])[:, None]
 
-    def implausible(self, values, total_mass):
+    def implausible(self, values, total_mass, kin):
         return None if values["dF_s_N"] > 0.0 else "static level below the Coulomb level"
 
     def starts(self, kin, context):
@@ -253,6 +255,13 @@ class Ripple(Effect):
         best = peaks[np.argsort(power[peaks])[::-1][:3]]
         return [{"pitch_mm": 2 * np.pi / wavenumbers[i]} for i in best]
 
+    def implausible(self, values, total_mass, kin):
+        longest = _pitch_range(kin)[1]
+        if values["pitch_mm"] > longest:
+            return (f"pitch {values['pitch_mm'] * 1e3:.3g} mm longer than half the stroke "
+                    f"({longest * 1e3:.3g} mm): not a periodic force on this data")
+        return None
+
     def describe(self, values):
         amplitude = math.hypot(values["A_sin_N"], values["A_cos_N"])
         return f"amplitude {amplitude:.3g} N at pitch {values['pitch_mm'] * 1e3:.4g} mm"
@@ -272,7 +281,7 @@ class StructuralMode(Effect):
     def columns(self, kin, values):
         return _mode_column(kin, values["f_n_Hz"], values["zeta"])[:, None]
 
-    def implausible(self, values, total_mass):
+    def implausible(self, values, total_mass, kin):
         if not 0.0 < values["m_kg"] < total_mass:
             return f"modal mass {values['m_kg']:.3g} kg outside (0, {total_mass:.3g}) kg"
         return None
@@ -347,7 +356,13 @@ class AmplitudeNonlinearity(Effect):
         return laws.reported_forces(force, values["beta_per_kN"])
 
     def inverse(self, reading, values):
-        return laws.acting_forces(reading, values["beta_per_kN"])
+        """The acting force; for β < 0 a reading beyond the law's largest, 1/(4|β|), is
+        taken at that largest (the force at the peak, 1/(2|β|)): finite for every β the
+        search may try."""
+        beta = values["beta_per_kN"]
+        if beta < 0.0:
+            reading = np.clip(reading, 0.25 / beta, -0.25 / beta)
+        return laws.acting_forces(reading, beta)
 
     def slope(self, force, values):
         return 1.0 + 2.0 * values["beta_per_kN"] * np.abs(force)
@@ -424,14 +439,18 @@ class Backlash(Effect):
                 - _andersson(kin, values, **coulomb, v=kin.v))
         return np.column_stack([a_lag, slip])
 
-    def implausible(self, values, total_mass):
+    def implausible(self, values, total_mass, kin):
         if not 0.0 < values["m_load_kg"] < total_mass:
             return f"load mass {values['m_load_kg']:.3g} kg outside (0, {total_mass:.3g}) kg"
         return None
 
     def starts(self, kin, context):
+        """Widths from 1 µm to a twentieth of the stroke, eight per decade: the fit's SSR is
+        rugged in the width (each reversal's transient moves with it), so the refinement
+        starts from the grid point whose columns explain the residual best."""
         low, high = 1e-6, max(float(np.ptp(kin.x)) / 20.0, 2e-6)
-        return [{"width_um": w} for w in np.geomspace(low, high, 12)]
+        count = max(2, int(np.ceil(8 * np.log10(high / low))) + 1)
+        return [{"width_um": w} for w in np.geomspace(low, high, count)]
 
     def describe(self, values):
         return (f"play {values['width_um'] * 1e6:.3g} µm, load {values['m_load_kg']:.3g} kg, "
