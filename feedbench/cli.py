@@ -1,4 +1,4 @@
-"""The `feedbench` command: run, runs, analyze, live, report, demo, sim.
+"""The `feedbench` command: run, runs, analyze, live, report, demo, sim, export, closure.
 
 Errors the user can fix (a config key, a limit, an unknown run, a file that is not what it
 should be) print one line ``feedbench: error: <file or field>: <reason>`` and exit with
@@ -163,7 +163,10 @@ def cmd_report(args: argparse.Namespace) -> int:
     from feedbench.report import write_report
 
     files = [resolve_run(run, args.dir) for run in args.runs]
-    print(write_report(files, args.output or Path(args.dir) / "report.html"))
+    output = Path(args.output or Path(args.dir) / "report.html")
+    if output.is_dir():
+        raise ConfigError(f"-o: {output} is a directory (give the report's file name)")
+    print(write_report(files, output))
     return 0
 
 
@@ -288,9 +291,9 @@ def build_parser() -> argparse.ArgumentParser:
     export = sub.add_parser("export", help="export a run (id, id prefix or .h5): FRFs as "
                             "UFF58, drive channels as CSV with the closure's TOML sidecar")
     export.add_argument("run")
-    export.add_argument("--dir", default="runs")
-    export.add_argument("--uff58", metavar="FILE", help="binary UFF dataset 58 file of the "
-                        "run's FRFs (with coherence)")
+    export.add_argument("--dir", default="runs", help="output directory holding catalog.sqlite")
+    export.add_argument("--uff58", metavar="FILE", help="UFF dataset 58 file of the run's "
+                        "FRFs (with their coherence)")
     export.add_argument("--csv", metavar="FILE", help="CSV file (FILE.toml: its sidecar)")
     export.set_defaults(func=cmd_export)
 
