@@ -26,7 +26,7 @@ from feedbench.closure_io import write_csv_trace
 from feedbench.analysis.closure import Trace
 from feedbench.daq.catalog import Catalog
 from feedbench.experiments.impact_hammer import FORCE_CHANNEL, RESPONSE_CHANNEL
-from test_report import PER_CYCLE, daq_step, friction_steps, record, record_with_daq
+from test_report import COLUMN, PER_CYCLE, daq_step, friction_steps, record, record_with_daq
 
 GOOD = "good.h5"
 FEEDS = [25, 50, 75, 100, 150, 200, 300, 400, 500, 700, 900, 1200, 1500]
@@ -110,6 +110,13 @@ def hammer_never_fired(path: Path) -> None:
     record_with_daq(path, {"type": "impact_hammer"},
                     [daq_step("settle", "settle", {}, np.zeros((50 * PER_CYCLE, 2)))],
                     (FORCE_CHANNEL, RESPONSE_CHANNEL))
+
+
+def nan_force() -> list:
+    """A friction sweep whose drive force reads NaN for one sample of a measure window."""
+    steps = friction_steps()
+    steps[1][3][7, COLUMN["force"]] = np.nan
+    return steps
 
 
 def three_feeds() -> list:
@@ -196,6 +203,11 @@ CASES: dict[str, tuple[Callable[[Path], list[str]], str]] = {
                                             "bad.h5: impact_hammer analysis: no 'daq' recorded"),
     "analyze hammer that never fired": (recording_file(hammer_never_fired),
                                         "bad.h5: no usable hammer hit recorded"),
+    "analyze friction with a NaN force": (recording_file(family("friction_sweep", nan_force)),
+                                          "bad.h5: force: NaN or inf samples in the measure "
+                                          "window 'measure'"),
+    "report into a directory": (lambda d: ["report", str(d / GOOD), "-o", str(d)],
+                                "runs is a directory"),
     "analyze friction with 3 feeds": (recording_file(family("friction_sweep", three_feeds,
                                                             feeds_mm_min=FEEDS[:3])),
                                       "bad.h5: 3 feeds measured in the positive direction"),

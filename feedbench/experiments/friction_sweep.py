@@ -126,6 +126,11 @@ def analyze_recording(recording) -> dict:
     params = validate_table(recording.config["experiment"], SCHEMA, "experiment")
     windows = recorded_windows(recording, "measure")
     v, f = friction_points(*axis_signals(recording.channels), windows)
+    for name, values in (("velocity", v), ("force", f)):
+        if not np.all(np.isfinite(values)):
+            label = windows[int(np.argmin(np.isfinite(values)))].label
+            raise ConfigError(f"{recording.path}: {name}: NaN or inf samples in the measure "
+                              f"window {label!r}")
     for direction, sign in SIGNS.items():
         feeds = int(np.sum(np.sign(v) == sign))
         if feeds < MIN_FEEDS:
