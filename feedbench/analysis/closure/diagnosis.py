@@ -28,8 +28,8 @@ import numpy as np
 
 from feedbench.analysis.closure.effects import CANDIDATES, EFFECTS, Context, Effect
 from feedbench.analysis.closure.model import (
-    Fit, FitError, Model, Term, check_identifiable, design, fit_model, held_out_error,
-    least_squares_solution, output_slope, tip_error,
+    TIP_TERMS, Fit, FitError, Model, Term, check_identifiable, design, fit_model,
+    held_out_error, least_squares_solution, output_slope, predict_tip, tip_error,
 )
 from feedbench.analysis.closure.trace import Kinematics
 from feedbench.config import ConfigError
@@ -275,8 +275,10 @@ def try_effect(effect: Effect, current: Fit, kin: Kinematics, context: Context,
     starts = effect.starts(kin, context)
     rows = kin.rows
     with np.errstate(all="ignore"):
-        shares = [_explained_share(effect.probe(kin, context, s)[rows], context.residual, basis)
-                  for s in starts]
+        probes = [effect.probe(kin, context, s)[rows] for s in starts]
+        shares = [_explained_share(probe, context.residual, basis) for probe in probes]
+        if effect.name in TIP_TERMS and current.tip_ssr is not None:
+            shares = _with_tip(shares, probes, current, kin)
     usable = [j for j, share in enumerate(shares) if np.isfinite(share)]
     if not usable:
         return Candidate(effect.name, 0.0, "no start in the data's range", None, 0.0, 0.0,
@@ -334,6 +336,19 @@ def _free_basis(current: Fit, kin: Kinematics) -> np.ndarray:
     q, r = np.linalg.qr(columns)
     keep = np.abs(np.diag(r)) > 1e-10 * max(np.abs(np.diag(r)).max(), 1e-300)
     return q[:, keep]
+
+
+def _with_tip(shares: list[float], probes: list[np.ndarray], current: Fit,
+              kin: Kinematics) -> list[float]:
+    """Screening shares over both outputs: a tip-shaping term's probe, (T − 1) a, is also
+    the shape of the tip residual it would explain; each output's share weighted by its
+    relative SSR, as in `Fit.cost`."""
+    residual = (kin.tip - predict_tip(current.model, kin))[kin.rows]
+    force = current.ssr / current.measured_norm**2
+    tip = current.tip_ssr / current.tip_norm**2
+    alone = np.zeros((residual.size, 0))
+    return [(share * force + _explained_share(probe, residual, alone) * tip) / (force + tip)
+            for share, probe in zip(shares, probes)]
 
 
 def _explained_share(probe: np.ndarray, residual: np.ndarray, basis: np.ndarray) -> float:
