@@ -414,7 +414,8 @@ def _stride(kin: Kinematics) -> int:
 
 def _standard_deviations(model: Model, kin: Kinematics, prediction: Prediction,
                          residual: np.ndarray, k: int) -> dict[tuple[str, str], float]:
-    """One-sigma SI deviations from (JᵀJ)⁻¹ s² n/n_eff, J the reading's Jacobian."""
+    """One-sigma SI deviations from (Σ JᵀJ / s²)⁻¹ over the outputs: the force reading, and
+    the tip acceleration when there is one (only a tip-shaping term's η moves it)."""
     rows = kin.rows
     d = design(model, kin)
     slope = output_slope(model, prediction.acting)
@@ -426,17 +427,31 @@ def _standard_deviations(model: Model, kin: Kinematics, prediction: Prediction,
         names.append((model.terms[i].name, key))
     if not names:
         return {}
-    jacobian = np.column_stack(blocks)
-    dof = max(kin.n_used - k, 1)
-    variance = float(residual @ residual) / dof * kin.n_used / kin.effective_n
-    covariance = np.linalg.pinv(jacobian.T @ jacobian) * variance
-    std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    information = _information(np.column_stack(blocks), residual, k, kin)
+    if kin.tip is not None:
+        tip = np.zeros((rows.size, len(names)))
+        for j, (i, _) in enumerate(slots):
+            if model.terms[i].name in TIP_TERMS:
+                tip[:, len(names) - len(slots) + j] = _nonlinear_derivative(
+                    model, kin, x, slots, j, tip=True)[rows]
+        information += _information(tip, (kin.tip - predict_tip(model, kin))[rows], k, kin)
+    std = np.sqrt(np.clip(np.diag(np.linalg.pinv(information)), 0.0, None))
     return dict(zip(names, map(float, std)))
 
 
+def _information(jacobian: np.ndarray, residual: np.ndarray, k: int,
+                 kin: Kinematics) -> np.ndarray:
+    """JᵀJ / s² of one output, s² its residual variance scaled by n/n_eff for the
+    band-limited residual."""
+    dof = max(kin.n_used - k, 1)
+    variance = float(residual @ residual) / dof * kin.n_used / kin.effective_n
+    return jacobian.T @ jacobian / variance
+
+
 def _nonlinear_derivative(model: Model, kin: Kinematics, x: np.ndarray,
-                          slots: list[tuple[int, str]], j: int) -> np.ndarray:
-    """Central difference of the reading in η_j with θ held (the joint model's Jacobian)."""
+                          slots: list[tuple[int, str]], j: int, tip: bool = False) -> np.ndarray:
+    """Central difference of the reading (or the tip acceleration) in η_j with θ held (the
+    joint model's Jacobian)."""
     i, key = slots[j]
     p = model.terms[i].effect.parameter(key)
     span = p.upper - p.lower if np.isfinite(p.upper - p.lower) else 1.0
@@ -444,6 +459,8 @@ def _nonlinear_derivative(model: Model, kin: Kinematics, x: np.ndarray,
     plus, minus = x.copy(), x.copy()
     plus[j] += h
     minus[j] -= h
-    up = predict(model.with_nonlinear(plus, slots), kin).reading
-    down = predict(model.with_nonlinear(minus, slots), kin).reading
-    return (up - down) / (2.0 * h)
+    def output(values: np.ndarray) -> np.ndarray:
+        varied = model.with_nonlinear(values, slots)
+        return predict_tip(varied, kin) if tip else predict(varied, kin).reading
+
+    return (output(plus) - output(minus)) / (2.0 * h)
