@@ -119,6 +119,20 @@ def nan_force() -> list:
     return steps
 
 
+def cycle_back(path: Path) -> None:
+    """The good recording with its bus cycle counter stepping back at row 100."""
+    shutil.copy(path.parent / GOOD, path)
+    with h5py.File(path, "r+") as f:
+        f["cycle"][100] = 3
+
+
+def cases_file(d: Path) -> list[str]:
+    """A closure cases file whose world names an effect nobody knows."""
+    (d / "cases.toml").write_text(f"[[case]]\nname = 'x'\nmodel = '{model(d)}'\n"
+                                  "effects = { ripplez = { amplitude_N = 5.0 } }\n")
+    return ["closure", "--cases", str(d / "cases.toml")]
+
+
 def three_feeds() -> list:
     return friction_steps()[: 3 * STEPS_PER_FEED]
 
@@ -208,6 +222,10 @@ CASES: dict[str, tuple[Callable[[Path], list[str]], str]] = {
                                           "window 'measure'"),
     "report into a directory": (lambda d: ["report", str(d / GOOD), "-o", str(d)],
                                 "runs is a directory"),
+    "analyze cycle counter stepping back": (recording_file(cycle_back),
+                                            "bad.h5: not a feedbench recording (/cycle not "
+                                            "increasing: row 100 has cycle 3 after"),
+    "closure case with an unknown effect": (cases_file, "world.effects.ripplez: unknown effect"),
     "analyze friction with 3 feeds": (recording_file(family("friction_sweep", three_feeds,
                                                             feeds_mm_min=FEEDS[:3])),
                                       "bad.h5: 3 feeds measured in the positive direction"),

@@ -174,6 +174,7 @@ def _read_recording(path: Path) -> Recording:
         names = json.loads(attrs["channels"])
         rows = _complete_rows(file, names)
         cycle = _read_only(file[CYCLE][:rows])
+        _check_increasing(cycle)
         return Recording(
             path=path,
             cycle=cycle,
@@ -193,6 +194,15 @@ def _read_recording(path: Path) -> Recording:
             },
             streams={name: _read_stream(group) for name, group in file.get(STREAMS, {}).items()},
         )
+
+
+def _check_increasing(cycle: np.ndarray) -> None:
+    """The bus cycle of every row must follow the one before (raises ValueError)."""
+    back = np.flatnonzero(np.diff(cycle) <= 0)
+    if back.size:
+        row = int(back[0]) + 1
+        raise ValueError(f"/{CYCLE} not increasing: row {row} has cycle {cycle[row]} "
+                         f"after {cycle[row - 1]}")
 
 
 def missing_cycles(cycle: np.ndarray) -> int:
