@@ -218,8 +218,9 @@ def read_kuka(path: str | Path, axis: int) -> Trace:
 
 def kuka_parameters(path: str | Path, axis: int) -> dict[str, float]:
     """The authors' own parameters of one joint (`para`), link side: friction f_coul,
-    f_vis, f_asym, f_a, f_b (N·m, N·m·s/rad, 1/(rad/s)) and s_f_ff, stiffness c_rad (N·m/rad),
-    backlash q_back (rad), gear ratio u, motor inertia J_mr (kg·m², motor side)."""
+    f_vis, f_asym, f_a (N·m, N·m·s/rad, N·m, N·m), the tanh constants f_b and s_f_ff
+    (s/rad), stiffness c_rad_ff (N·m/rad), backlash q_back (rad), gear ratio u, motor
+    inertia J_mr (kg·m², motor side)."""
     para = _load_mat(Path(path), squeeze_me=True, struct_as_record=False)["para"]
     keys = ("f_coul", "f_vis", "f_asym", "f_a", "f_b", "s_f_ff", "c_rad_ff", "q_back", "u",
             "J_mr")
