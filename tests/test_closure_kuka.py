@@ -127,18 +127,21 @@ def test_kuka_joint_3_offset_is_the_authors_asymmetry():
 
 
 @needs_kuka
-@pytest.mark.parametrize("data, axis, message", [
-    (FIT, None, "multi-axis KUKA recording; give the axis"),
-    (FIT, 7, "axis must lie in 1–6"),
-    (SHARED_DATA / "emps" / "DATA_EMPS.mat", 1, "single-axis file"),
+@pytest.mark.parametrize("axis, message", [
+    (None, "multi-axis KUKA recording; give the axis"),
+    (7, "axis must lie in 1–6"),
 ])
-def test_axis_selection_errors_are_one_line(data, axis, message):
+def test_kuka_axis_must_be_given_and_exist(axis, message):
     with pytest.raises(ConfigError, match=message):
-        closure_report(data, None, axis=axis)
+        closure_report(FIT, None, axis=axis)
 
 
-def test_csv_axis_option_is_refused(tmp_path):
-    with pytest.raises(ConfigError, match="--axis is for the KUKA"):
+def test_axis_is_refused_for_single_axis_files(tmp_path):
+    t = np.arange(100) * 1e-3
+    scipy.io.savemat(tmp_path / "emps.mat", {"t": t, "qm": t, "qg": t, "vir": t, "gtau": 35.15})
+    with pytest.raises(ConfigError, match="single-axis file; --axis is for the KUKA"):
+        closure_report(tmp_path / "emps.mat", None, axis=1)
+    with pytest.raises(ConfigError, match="--axis is for the KUKA .mat recordings"):
         closure_report(tmp_path / "a.csv", None, axis=1)
 
 
