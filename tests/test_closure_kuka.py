@@ -145,15 +145,23 @@ def test_axis_is_refused_for_single_axis_files(tmp_path):
         closure_report(tmp_path / "a.csv", None, axis=1)
 
 
+def sines(t: np.ndarray, amplitude: np.ndarray, w: np.ndarray, phase: np.ndarray,
+          gain: np.ndarray | float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Position (m), velocity, acceleration of a sum of sines (rad/s, rad), each scaled and
+    shifted by a complex gain."""
+    angle = np.outer(t, w) + phase + np.angle(gain)
+    scaled = amplitude * np.abs(gain)
+    return ((scaled * np.sin(angle)).sum(1), (scaled * w * np.cos(angle)).sum(1),
+            (-scaled * w**2 * np.sin(angle)).sum(1))
+
+
 def loaded_axis(seconds: float = 12.0, fs: float = 500.0) -> tuple[Trace, np.ndarray]:
     """An axis M a + σ v moving a load whose known force (gravity-like, position
     dependent, plus a drift) is far larger than the model's part; and that force."""
     rng = np.random.default_rng(5)
     t = np.arange(int(seconds * fs)) / fs
     w = 2 * np.pi * np.array([0.3, 0.7, 1.9])
-    x = (np.array([0.2, 0.05, 0.01]) / w * np.sin(np.outer(t, w) + [0.0, 1.0, 2.0])).sum(1)
-    v = (np.array([0.2, 0.05, 0.01]) * np.cos(np.outer(t, w) + [0.0, 1.0, 2.0])).sum(1)
-    a = (-np.array([0.2, 0.05, 0.01]) * w * np.sin(np.outer(t, w) + [0.0, 1.0, 2.0])).sum(1)
+    x, v, a = sines(t, np.array([0.2, 0.05, 0.01]) / w, w, np.array([0.0, 1.0, 2.0]))
     external = 800.0 * np.sin(20.0 * x) + 50.0 * t
     force = 30.0 * a + 400.0 * v + external + rng.normal(0.0, 2.0, t.size)
     return Trace(t, x, force, name="loaded", external_force=external), external
@@ -191,14 +199,11 @@ def two_mass(seed: int, tip_kg: float = 0.002, seconds: float = 10.0, fs: float 
     t = np.arange(int(seconds * fs)) / fs
     w = 2 * np.pi * np.geomspace(0.5, 90.0, 40)
     amplitude = 0.02 / (1.0 + (w / (2 * np.pi * 2.0)) ** 2)
-    phase = np.outer(t, w) + rng.uniform(0.0, 2 * np.pi, w.size)
+    phase = rng.uniform(0.0, 2 * np.pi, w.size)
     k = tip_kg * (2 * np.pi * 40.0) ** 2
     c = 2 * 0.02 * math.sqrt(k * tip_kg)
-    h = (c * 1j * w + k) / (-tip_kg * w**2 + c * 1j * w + k)
-    x = (amplitude * np.sin(phase)).sum(1)
-    v = (amplitude * w * np.cos(phase)).sum(1)
-    a = (-amplitude * w**2 * np.sin(phase)).sum(1)
-    tip = (-amplitude * w**2 * np.abs(h) * np.sin(phase + np.angle(h))).sum(1)
+    x, v, a = sines(t, amplitude, w, phase)
+    tip = sines(t, amplitude, w, phase, (c * 1j * w + k) / (-tip_kg * w**2 + c * 1j * w + k))[2]
     force = 20.0 * a + tip_kg * tip + 100.0 * v + rng.normal(0.0, 3.0, t.size)
     return Trace(t, x, force, name=f"two-mass {seed}",
                  tip_acceleration=tip + rng.normal(0.0, 0.5, t.size))
