@@ -52,6 +52,8 @@ SCHEMA = {
 }
 
 MOBILITY_BAND_HZ = (20.0, 150.0)
+MIN_BAND_POINTS = 3
+"""Frequencies the mobility's extrema need in the band: a resonance with a point below it."""
 
 
 def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
@@ -59,6 +61,13 @@ def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
     if not p["f_start_Hz"] <= p["f_stop_Hz"] < 0.25 / cycle_s:
         raise ConfigError(f"experiment.f_stop_Hz: must lie at or above f_start_Hz and below "
                           f"{0.25 / cycle_s:g} Hz (4 samples per period at the bus cycle)")
+    f = frequencies(p)
+    in_band = int(np.sum((f >= MOBILITY_BAND_HZ[0]) & (f <= MOBILITY_BAND_HZ[1])))
+    if p["loop"] == "velocity" and in_band < MIN_BAND_POINTS:
+        low, high = MOBILITY_BAND_HZ
+        raise ConfigError(f"experiment.f_start_Hz: the open-loop mobility (Eq. 4.20) is read in "
+                          f"{low:g}–{high:g} Hz and needs at least {MIN_BAND_POINTS} frequencies "
+                          f"there (f_start_Hz … f_stop_Hz by f_step_Hz give {in_band})")
     return p
 
 
