@@ -858,6 +858,11 @@ def closure_section(report: Any) -> RunSection:
         Indicator("fit on / judged on", f"{data['fit_data']} / {data['holdout_data']}"),
         Indicator("stopped", data["stopped"]),
     ]
+    if data["tip_error_before"] is not None:
+        section.quality.insert(1, Indicator(
+            "held-out tip acceleration NRMSE before → after",
+            f"{100 * data['tip_error_before']:.2f} % → {100 * data['tip_error_after']:.2f} %",
+            data["tip_error_after"] <= data["tip_error_before"]))
     section.headline = (f"{', '.join(data['effects']) or 'nothing'} added: "
                         f"{100 * data['error_before']:.2f} % → {100 * data['error_after']:.2f} %")
     return section

@@ -275,3 +275,16 @@ def test_replay_carries_the_external_force():
     assert model.term("viscous").values["F_v_Ns_m"] == pytest.approx(400.0, rel=0.01)
     assert report.result.error_after < 0.01
     assert report.replay_after.force < 0.005  # 0.13 %: the load is replayed too
+
+
+def test_campaign_report_shows_the_tip_error():
+    from feedbench.report import closure_section
+
+    spec = parse_model_config({
+        "model": {"bandwidth_Hz": 120.0},
+        "terms": {"inertia": {"M_kg": "free"}, "viscous": {"F_v_Ns_m": "free"}},
+        "closure": {"candidates": ["structural_mode"]}})
+    report = run_closure(spec, two_mass(1), two_mass(2))
+    quality = {q.name: q for q in closure_section(report).quality}
+    tip = quality["held-out tip acceleration NRMSE before → after"]
+    assert tip.ok and tip.value == "100.42 % → 13.16 %"
