@@ -8,11 +8,13 @@ its catalog row, made once per module) and runs `feedbench.cli.main` in-process.
 
 from __future__ import annotations
 
+import _thread
 import logging
 import shutil
 import socket
 import subprocess
 import sys
+import threading
 import warnings
 from pathlib import Path
 from typing import Callable
@@ -445,12 +447,12 @@ def test_an_unexpected_error_is_one_line_naming_its_type(runs, capsys, monkeypat
                                    "zero (run with --debug for the traceback)"])
 
 
-def test_ctrl_c_outside_a_run_is_one_line_and_status_130(runs, capsys, monkeypatch):
-    import feedbench.cli
-
-    def interrupted(args):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(feedbench.cli, "cmd_runs", interrupted)
-    assert run_main(["runs", "--dir", str(runs)], capsys) == (130, ["feedbench: error: "
-                                                                    "interrupted"])
+def test_ctrl_c_outside_a_run_is_one_line_and_status_130(capsys):
+    """Ctrl-C (SIGINT to the main thread) a second into the closure's simulated cases."""
+    timer = threading.Timer(1.0, _thread.interrupt_main)
+    timer.start()
+    try:
+        assert run_main(["closure", "--cases"], capsys) == (130, ["feedbench: error: "
+                                                                  "interrupted"])
+    finally:
+        timer.cancel()
