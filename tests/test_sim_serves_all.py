@@ -33,6 +33,7 @@ from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError
 from pymodbus.client import ModbusTcpClient
 
+from feedbench.bench import sim_config
 from feedbench.protocols import cia401
 from feedbench.sim_backends.eds import packaged_eds_path
 from feedbench.sim_backends.modbus_devices import SimulatedModbusTcpServer, SimulatedSpindleInverter
@@ -169,6 +170,22 @@ def _modbus(info: dict) -> ModbusTcpClient:
     client = ModbusTcpClient(host, port=int(port), timeout=2)
     assert client.connect()
     return client
+
+
+def test_sim_configs_name_their_bench(tmp_path):
+    """The example sim configs: the lab bench with the SMFE workpiece (3 lanes) and the I/O
+    module at node 10, the rack-and-pinion axis; a tool-tip [experiment] in a sim config
+    puts the I/O module at its io_node_id."""
+    examples = Path(__file__).parents[1] / "feedbench" / "examples"
+    bench, workpiece = sim_config(examples / "bench_sim.toml")
+    assert (bench["axis"], bench["io_node_id"], len(workpiece)) == ("lab", 10, 3)
+    bench, workpiece = sim_config(examples / "bench_sim_rack_pinion.toml")
+    assert (bench["axis"], bench["node_id"], bench["slave_node_id"], workpiece) == (
+        "rack_pinion", 1, 2, [])
+    hammer = (examples / "impact_hammer.toml").read_text()
+    config = tmp_path / "hammer_sim.toml"
+    config.write_text(hammer.replace("io_node_id = 10", "io_node_id = 23"))
+    assert sim_config(config)[0]["io_node_id"] == 23
 
 
 # -- the documented register maps -----------------------------------------------------------

@@ -117,25 +117,30 @@ class SimulatedBench:
                                               noise=build_sensor_noise(world),
                                               **(bus_options or {}))
             self._stack.callback(self.drive.close)
-            if not peripherals:
-                return
-            self._start_peripherals(cycle_s, modbus_address)
-            inputs = DaqInputs(self.daq)
-            if exciter_node is not None:
-                structure = world.get("structure", {})
+            if peripherals:
+                self._start_peripherals(cycle_s, modbus_address)
+                inputs = DaqInputs(self.daq)
+                if exciter_node is not None:
+                    self._start_structure(world.get("structure", {}), inputs, exciter_node,
+                                          milling, cycle_s)
                 if milling:
-                    structure = {**structure, "accelerometer_noise_m_s2": [0.0, 0.0, 0.0]}
-                self.structure = start_structure_world(self.drive, inputs, exciter_node,
-                                                       structure, cycle_s)
-            if milling:
-                self.milling = SmfeWorld(process, Workpiece(lanes), lambda: simulator.tip_position,
-                                         self.inverter, inputs, cycle_s,
-                                         milling_table["noise_m_s2"], milling_table["seed"])
-                self.drive.after_physics.append(self.milling.step)
-            self.drive.after_physics.append(inputs.flush)
+                    self.milling = SmfeWorld(process, Workpiece(lanes),
+                                             lambda: simulator.tip_position, self.inverter,
+                                             inputs, cycle_s, milling_table["noise_m_s2"],
+                                             milling_table["seed"])
+                    self.drive.after_physics.append(self.milling.step)
+                self.drive.after_physics.append(inputs.flush)
         except BaseException:
             self._stack.close()
             raise
+
+    def _start_structure(self, table: Mapping[str, Any], inputs: DaqInputs, node_id: int,
+                         with_milling: bool, cycle_s: float) -> None:
+        """The exciters' world and its I/O module; beside the milling process its
+        accelerometer noise is left to the milling world's (counted once)."""
+        if with_milling:
+            table = {**table, "accelerometer_noise_m_s2": [0.0, 0.0, 0.0]}
+        self.structure = start_structure_world(self.drive, inputs, node_id, table, cycle_s)
 
     def _start_peripherals(self, cycle_s: float, modbus_address: tuple[str, int]) -> None:
         self.inverter = SimulatedSpindleInverter()
