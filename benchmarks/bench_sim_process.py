@@ -8,7 +8,8 @@
 - SMFE world: wall time of one bus cycle of the milling process (10 samples at 10 kHz) in
   `MillingProcess.advance`, against the offline `simulate_smfe_cut` per 10 samples
   (baseline: the same numba kernel family without per-call overhead), and a whole
-  `SmfeWorld.step` (inverter, cut, noise, DAQ frames) with the DAQ not streaming.
+  world step after the axis physics (`SmfeWorld.step`: inverter, cut, noise; the load cell;
+  the DAQ's inputs to the instrument) with the DAQ not streaming.
 """
 
 from __future__ import annotations
@@ -134,7 +135,8 @@ def milling_cycle_us() -> tuple[float, float, float]:
     offline()  # compile (or load the numba cache) outside the timing
     with SimulatedBench(_bench_table(channel=f"bench-world-{uuid.uuid4().hex[:8]}")) as bench:
         bench.inverter.setpoint_rpm, bench.inverter.run_commanded = 1000.0, True
-        world = _best_us(lambda: [bench.world.step() for _ in range(cycles)], cycles)
+        world = _best_us(lambda: [hook() for _ in range(cycles)
+                                  for hook in bench.drive.after_physics], cycles)
     return _best_us(stepped, cycles), _best_us(offline, cycles), world
 
 
@@ -149,7 +151,7 @@ def run() -> dict[str, float]:
     print(f"hub relay, one way between two socketcand clients: {relay:.0f} frames/s")
     print(f"milling process per bus cycle (10 samples at 10 kHz): {stepping:.1f} µs stepped "
           f"per cycle vs {offline:.1f} µs in one offline call = {stepping / offline:.2f}×; "
-          f"whole world step (inverter, cut, noise, 10 DAQ frames): {world:.1f} µs")
+          f"whole world step (inverter, cut, noise, load cell, 10 DAQ samples): {world:.1f} µs")
     return {"sim_inprocess_cycles_per_s": local, "sim_process_cycles_per_s": remote,
             "sim_process_ratio": remote / local, "hub_frames_per_s": relay,
             "smfe_step_us_per_cycle": stepping, "smfe_offline_us_per_cycle": offline,
