@@ -127,15 +127,10 @@ def _case(name: str, injected: str | None, kind: str, structure: str = "2mass",
                     declared or {}, omit, injected_free, kind_free)
 
 
-def _sized(effect: str, small: dict, large: dict, **common) -> list[CaseSpec]:
-    """The small and the large case of one effect."""
-    return [_case(f"{effect}_{size}", effect, "effect", plant=dict(world), **common)
-            for size, world in (("small", small), ("large", large))]
-
-
-def _sized_drive(effect: str, small: dict, large: dict, **common) -> list[CaseSpec]:
-    """The small and the large case of an effect inside the drive."""
-    return [_case(f"{effect}_{size}", effect, "effect", drive=dict(world), **common)
+def _sized(effect: str, small: dict, large: dict, inside: str = "plant",
+           **common) -> list[CaseSpec]:
+    """The small and the large case of one effect of the plant (or inside="drive")."""
+    return [_case(f"{effect}_{size}", effect, "effect", **{inside: dict(world)}, **common)
             for size, world in (("small", small), ("large", large))]
 
 
@@ -144,23 +139,23 @@ _CLEAN_FREE = (None, "clean")
 _LIST = [
     *[_case(f"clean_{s}", None, "clean", s)
       for s in ("2mass", "2mass_stiff", "2mass_soft", "3mass", "rigid")],
-    *_sized("coulomb", {"F_c_N": 8.0}, {"F_c_N": 60.0}, omit=("coulomb",)),
-    *_sized("stribeck", {"dF_s_N": 12.0, "v_s_mm_min": 500.0},
-            {"dF_s_N": 40.0, "v_s_mm_min": 500.0}),
-    *_sized("direction_dependent", {"dF_v_Ns_m": 25.0}, {"dF_v_Ns_m": 100.0},
+    *_sized("coulomb", {"F_c_N": 4.0}, {"F_c_N": 60.0}, omit=("coulomb",)),
+    *_sized("stribeck", {"dF_s_N": 30.0, "v_s_mm_min": 1000.0},
+            {"dF_s_N": 60.0, "v_s_mm_min": 1000.0}),
+    *_sized("direction_dependent", {"dF_v_Ns_m": 55.0}, {"dF_v_Ns_m": 100.0},
             declared={"offset_N": 0.0}),
-    *_sized("offset", {"offset_N": 4.0}, {"offset_N": 30.0}),
-    *_sized("backlash", {"m_load_kg": 3.0, "F_load_N": 10.0, "width_um": 30.0},
+    *_sized("offset", {"offset_N": 3.0}, {"offset_N": 30.0}),
+    *_sized("backlash", {"m_load_kg": 5.0, "F_load_N": 25.0, "width_um": 100.0},
             {"m_load_kg": 8.0, "F_load_N": 40.0, "width_um": 150.0}),
     *_sized("ripple", {"amplitude_N": 4.0, **_RIPPLE}, {"amplitude_N": 20.0, **_RIPPLE}),
     _case("structural_mode_small", "structural_mode", "effect", "2mass_light",
           omit=("structural_mode",)),
     _case("structural_mode_large", "structural_mode", "effect", omit=("structural_mode",)),
-    *_sized_drive("delay", {"tau_ms": 0.25}, {"tau_ms": 1.5}, omit=("delay",)),
-    *_sized("cubic_stiffening", {"stiffening": 0.3}, {"stiffening": 1.5}),
-    *_sized("inertia_mismatch", {"dM_kg": 2.0}, {"dM_kg": 8.0}, free=_CLEAN_FREE),
-    *_sized_drive("amplitude_nonlinearity", {"beta_per_kN": 0.3}, {"beta_per_kN": 1.2}),
-    *_sized_drive("sensor_gain", {"gain": 1.04}, {"gain": 1.2}),
+    *_sized("delay", {"tau_ms": 0.25}, {"tau_ms": 1.5}, "drive", omit=("delay",)),
+    *_sized("cubic_stiffening", {"stiffening": 0.2}, {"stiffening": 0.6}),
+    *_sized("inertia_mismatch", {"dM_kg": 3.0}, {"dM_kg": 8.0}, free=_CLEAN_FREE),
+    *_sized("amplitude_nonlinearity", {"beta_per_kN": 0.5}, {"beta_per_kN": 1.2}, "drive"),
+    *_sized("sensor_gain", {"gain": 1.07}, {"gain": 1.2}, "drive"),
     _case("recal_delay", "recalibrate:delay.tau_ms", "recalibration", drive={"tau_ms": 1.5}),
     _case("recal_fn", "recalibrate:structural_mode.f_n_Hz", "recalibration",
           declared={"f_n_Hz": TWO_MASS.f_n_Hz * 1.08}),
@@ -174,15 +169,18 @@ _LIST = [
 CASES: dict[str, CaseSpec] = {case.name: case for case in _LIST}
 """Every case by name."""
 
-STIFFENING_DEFLECTION_M = 20e-6
+STIFFENING_DEFLECTION_M = 40e-6
 """Cubic stiffening: the spring is stiffer by the case's `stiffening` share at this
 deflection (m): k d (1 + stiffening (d / d_ref)²)."""
 
 
 def world(case: CaseSpec) -> tuple[Plant, Drive]:
-    """The simulated axis and drive of a case."""
+    """The simulated axis and drive of a case. A backlash load is carved out of the motor
+    side and its friction out of the motor's Coulomb level: as declared, the axis's mass and
+    friction include them, and only the play is undeclared."""
     s, w = STRUCTURES[case.structure], case.truth
-    masses = [s.motor_kg + w.get("dM_kg", 0.0)]
+    load_kg, load_N = w.get("m_load_kg", 0.0), w.get("F_load_N", 0.0)
+    masses = [s.motor_kg + w.get("dM_kg", 0.0) - load_kg]
     springs = []
     if s.modal_kg:
         masses.append(s.tip_kg)
@@ -194,7 +192,7 @@ def world(case: CaseSpec) -> tuple[Plant, Drive]:
         mass, f, zeta = s.third
         masses.append(mass)
         springs.append(Spring(1, 2, mass * (2 * math.pi * f) ** 2, 2 * zeta * 2 * math.pi * f * mass))
-    friction = Friction(s.sigma, w["F_c_N"], w.get("dF_s_N", 0.0),
+    friction = Friction(s.sigma, w["F_c_N"] - load_N, w.get("dF_s_N", 0.0),
                         w.get("v_s_mm_min", 1.0) * 1e-3 / 60.0, 2.0, w.get("dF_v_Ns_m", 0.0))
     backlash = ((w["m_load_kg"], w["F_load_N"], w["width_um"] * 1e-6)
                 if "m_load_kg" in w else None)

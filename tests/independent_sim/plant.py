@@ -126,8 +126,8 @@ def _matrices(plant: Plant, contact: int) -> tuple[np.ndarray, np.ndarray, np.nd
         c_c = 2 * CONTACT_ZETA * math.sqrt(k_c * masses[load])
         links.append(Spring(0, load, k_c, c_c))
         half_play = 0.5 * plant.backlash[2]
-        const[load] += contact * k_c * half_play      # the spring acts on d − L/2 (or d + L/2)
-        const[0] -= contact * k_c * half_play
+        const[load] -= contact * k_c * half_play      # the spring acts on d ∓ L/2
+        const[0] += contact * k_c * half_play
     for s in links:
         for matrix, value in ((K, s.k), (C, s.c)):
             matrix[s.i, s.i] += value

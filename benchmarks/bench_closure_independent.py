@@ -1,0 +1,104 @@
+"""The closure on data its own models did not make (issue 13): every case of the independent
+simulator (`tests/independent_sim`: an exactly discretized n-mass chain under a 4 kHz / 1 kHz
+P-PI cascade, one undeclared effect, a wrongly declared parameter, or nothing per case), fitted
+on one recording and judged on a second (other seed, other feeds), in two variants: the exact
+model declared, and mass and viscous friction left free.
+
+Prints one row per case (injected, found, held-out force NRMSE before → after, closure wall
+time, verdict) and the totals. Figures, per variant (`exact`, `free`), with the targets:
+- independent_<variant>_named_first: share of effect cases whose effect is the first finding
+  (≥ 0.9).
+- independent_<variant>_halved: share of effect and recalibration cases whose held-out error
+  is at least halved (≥ 0.9).
+- independent_<variant>_clean_untouched: share of clean cases where nothing is found (1.0).
+- independent_<variant>_recalibrated: share of recalibration cases whose first finding is the
+  recalibration of the wrongly declared parameter (≥ 0.8).
+- independent_<variant>_crashes: cases where the closure raised (0).
+- independent_<variant>_median_s: median closure wall time per case (≤ 10 s on 2 cores).
+
+Run alone: `python benchmarks/bench_closure_independent.py [CASE ...]`.
+"""
+
+from __future__ import annotations
+
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from feedbench.analysis.closure import report_dict
+from feedbench.closure_command import closure_report
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from independent_sim import CASES, write_case  # noqa: E402  (tests/independent_sim)
+from independent_sim.judge import Verdict, judge  # noqa: E402
+
+from _timing import print_figures  # noqa: E402  (benchmarks/_timing.py)
+
+VARIANTS = {"exact": False, "free": True}
+
+
+def close_case(name: str, directory: Path, free: bool) -> tuple[Verdict, float]:
+    """The closure on one case; its verdict (a crash recorded, not raised) and wall time."""
+    files = write_case(name, directory, free)
+    injected, kind = CASES[name].expected(free)
+    start = time.perf_counter()
+    try:
+        report = closure_report(files.data_csv, files.model_toml, files.validation_csv)
+        verdict = judge(report_dict(report), kind, injected)
+    except Exception as exc:  # a crash is a finding of the benchmark, counted
+        verdict = Verdict(kind, injected, (), float("nan"), float("nan"),
+                          f"{type(exc).__name__}: {exc}")
+    return verdict, time.perf_counter() - start
+
+
+def _row(name: str, verdict: Verdict, seconds: float) -> str:
+    if verdict.crash:
+        outcome = f"CRASH {verdict.crash[:60]}"
+    else:
+        outcome = (f"{', '.join(verdict.found) or '—':<40.40s} {verdict.error_before:7.2%} → "
+                   f"{verdict.error_after:6.2%}")
+    mark = "ok" if verdict.passed else "MISS"
+    return f"{name:<30s} {verdict.injected or '—':<36s} {outcome} {seconds:5.1f} s  {mark}"
+
+
+def totals(verdicts: list[Verdict], seconds: list[float]) -> dict[str, float]:
+    """The variant's shares, crash count and median time."""
+    def share(kinds: tuple[str, ...], target: str) -> float:
+        chosen = [v for v in verdicts if v.kind in kinds]
+        return sum(getattr(v, target) for v in chosen) / len(chosen) if chosen else float("nan")
+
+    return {"named_first": share(("effect",), "named_first"),
+            "halved": share(("effect", "recalibration"), "halved"),
+            "clean_untouched": share(("clean",), "untouched"),
+            "recalibrated": share(("recalibration",), "named_first"),
+            "crashes": float(sum(v.crash is not None for v in verdicts)),
+            "median_s": statistics.median(seconds)}
+
+
+def run(names: list[str] | None = None) -> dict[str, float]:
+    """Measure, print and return the figures."""
+    names = names or list(CASES)
+    figures, notes = {}, {}
+    targets = {"named_first": "≥ 0.9", "halved": "≥ 0.9", "clean_untouched": "1.0",
+               "recalibrated": "≥ 0.8", "crashes": "0", "median_s": "≤ 10 s"}
+    with tempfile.TemporaryDirectory() as directory:
+        for variant, free in VARIANTS.items():
+            print(f"-- {variant}: {'mass and viscous free' if free else 'exact model declared'}")
+            print(f"{'case':<30s} {'injected':<36s} {'found':<40s} before → after")
+            verdicts, seconds = [], []
+            for name in names:
+                verdict, wall = close_case(name, Path(directory), free)
+                print(_row(name, verdict, wall), flush=True)
+                verdicts.append(verdict)
+                seconds.append(wall)
+            for key, value in totals(verdicts, seconds).items():
+                figures[f"independent_{variant}_{key}"] = value
+                notes[f"independent_{variant}_{key}"] = f"target {targets[key]}"
+    print_figures(figures, notes, 40, "8.3f")
+    return figures
+
+
+if __name__ == "__main__":
+    run(sys.argv[1:])
