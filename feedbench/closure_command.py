@@ -103,6 +103,8 @@ def read_checked(path: str | Path, axis: int | None = None) -> tuple[Trace, dict
         raise
     except (ValueError, MatReadError) as exc:
         raise ConfigError(f"{path}: {exc}") from None
+    except KeyError as exc:  # a recording without the channel
+        raise ConfigError(f"{path}: no {exc.args[0]!r} channel") from None
 
 
 # -- simulated cases -----------------------------------------------------------------------

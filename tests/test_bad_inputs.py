@@ -27,6 +27,7 @@ from feedbench.cli import main
 from feedbench.closure_io import write_csv_trace
 from feedbench.analysis.closure import Trace
 from feedbench.daq.catalog import Catalog
+from feedbench.daq.recorder import Recorder
 from feedbench.experiments.impact_hammer import FORCE_CHANNEL, RESPONSE_CHANNEL
 from test_report import COLUMN, PER_CYCLE, daq_step, friction_steps, record, record_with_daq
 
@@ -133,6 +134,16 @@ def cases_file(d: Path) -> list[str]:
     (d / "cases.toml").write_text(f"[[case]]\nname = 'x'\nmodel = '{model(d)}'\n"
                                   "effects = { ripplez = { amplitude_N = 5.0 } }\n")
     return ["closure", "--cases", str(d / "cases.toml")]
+
+
+def no_drive_channels(path: Path) -> None:
+    """A friction-sweep recording with one named drive's velocity and force, but not its
+    statusword: neither a single drive's channels nor an axis of several."""
+    units = {"master.velocity": "m/s", "master.force": "N"}
+    metadata = {"experiment": "friction_sweep", "cycle_s": 1e-3,
+                "config": {"experiment": {"type": "friction_sweep"}}}
+    with Recorder(path, tuple(units), units, metadata) as recorder:
+        recorder.append_block(np.arange(1, 101), np.zeros((100, 2)))
 
 
 def three_feeds() -> list:
@@ -244,6 +255,13 @@ CASES: dict[str, tuple[Callable[[Path], list[str]], str]] = {
     "closure foreign h5": (lambda d: (foreign(d / "x.h5"), ["closure", str(d / "x.h5"),
                                                            "--model", model(d)])[1],
                            "x.h5: not a feedbench recording"),
+    "closure recording without position": (lambda d: (no_drive_channels(d / "x.h5"),
+                                                      ["closure", str(d / "x.h5"), "--model",
+                                                       model(d)])[1],
+                                           "x.h5: no 'position' channel"),
+    "analyze friction without drive channels": (recording_file(no_drive_channels),
+                                                "bad.h5: friction_sweep analysis: no drive "
+                                                "channels recorded"),
     "closure text as mat": (lambda d: ((d / "x.mat").write_text("no"),
                                        ["closure", str(d / "x.mat")])[1], "x.mat: "),
     "closure unknown format": (lambda d: ["closure", str(trace(d).with_suffix(".toml"))],

@@ -114,6 +114,9 @@ def axis_signals(channels: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.nda
     if "force" in channels:
         return channels["velocity"], channels["force"]
     drives = [c.removesuffix(".statusword") for c in channels if c.endswith(".statusword")]
+    if not drives:
+        raise ValueError("no drive channels recorded (force, or <drive>.statusword and "
+                         "<drive>.force)")
     return (channels[f"{drives[0]}.velocity"],
             np.sum([channels[f"{d}.force"] for d in drives], axis=0))
 
