@@ -34,13 +34,18 @@ from canopen.sdo import SdoAbortedError
 from pymodbus.client import ModbusTcpClient
 
 from feedbench.bench import sim_config
+from feedbench.models.axis import CSV
 from feedbench.protocols import cia401
 from feedbench.sim_backends.eds import packaged_eds_path
-from feedbench.sim_backends.modbus_devices import SimulatedModbusTcpServer, SimulatedSpindleInverter
+from feedbench.sim_backends.io_module import object_dictionary
+from feedbench.sim_backends.modbus_devices import (
+    SimulatedModbusTcpServer, SimulatedSpindleInverter,
+)
 from feedbench.sim_backends.process import READY, one_line_logging
 from feedbench.sim_backends.rack_pinion import packaged_eds_path as rack_eds_path
 from feedbench.sim_backends.rack_pinion import world_truth
 from feedbench.sim_backends.world import build_axis
+from test_cia402_sim import enable, loopback
 
 DOCS = Path(__file__).parents[1] / "docs"
 START_TIMEOUT_S = 60.0
@@ -344,8 +349,6 @@ def test_lab_drive_answers_every_object_of_its_eds(lab, lab_can):
 def test_lab_io_module_answers_its_objects(lab, lab_can):
     """The CiA 401 I/O module of the exciters at the configured node: device type (profile
     401), error register, the digital output and the four analog outputs, all 0 at rest."""
-    from feedbench.sim_backends.io_module import object_dictionary
-
     assert lab.info["io_node_id"] == IO_NODE
     module = lab_can.node(IO_NODE, object_dictionary())
     values = read_every_object(module)
@@ -498,10 +501,6 @@ def test_an_exception_inside_the_world_faults_the_drive_with_emcy(can_channel):
     """A world device raises in the SYNC handler: the host's tick still gets the cycle's
     TPDOs, the statusword shows FAULT, EMCY 0x6100 (internal software) arrives, one line is
     logged; after a fault reset with a healthy world the drive enables again."""
-    from test_cia402_sim import enable, loopback
-
-    from feedbench.models.axis import CSV
-
     broken = []
 
     def world_device() -> None:
