@@ -48,7 +48,7 @@ def test_a_candidate_whose_fit_fails_is_rejected_with_its_reason():
     candidate = try_effect(broken, current, kin, Context(current.residual, current.acting),
                            _free_basis(current, kin), 1)
     assert candidate.fit is None
-    assert candidate.rejected == "fit failed: the fitted prediction is not finite"
+    assert candidate.rejected == "fit failed: non-finite regressors or force at the start values"
     assert not candidate.significant(ClosureOptions())
 
 
@@ -156,3 +156,17 @@ def test_a_ripple_longer_than_half_the_stroke_is_not_a_ripple():
     assert ripple.implausible({**values, "pitch_mm": 0.5 * half_stroke}, 30.0, kin) is None
     reason = ripple.implausible({**values, "pitch_mm": 10.0}, 30.0, kin)
     assert reason.startswith("pitch 1e+04 mm longer than half the stroke")
+
+
+def test_cubic_stiffening_is_identified_on_its_mode():
+    mode = {"m_kg": 8.0, "f_n_Hz": 25.0, "zeta": 0.05}
+    kappa = 2e-4 * 1e12                                     # 2e-4 /µm²
+    truth = (new_term("structural_mode", mode, ()),
+             new_term("cubic_stiffening", {"m_kg": 8.0, "kappa_per_um2": kappa,
+                                           "f_n_Hz": 25.0, "zeta": 0.05}))
+    kin = kin_of(synthetic_trace(truth))
+    start = {"f_n_Hz": 25.0, "zeta": 0.05, "kappa_per_um2": 0.5 * kappa}
+    model = base_model().with_term(truth[0]).with_term(new_term("cubic_stiffening", start))
+    fitted = fit_model(model, kin).model.term("cubic_stiffening").values
+    assert fitted["kappa_per_um2"] == pytest.approx(kappa, rel=0.03)
+    assert fitted["m_kg"] == pytest.approx(8.0, rel=0.03)

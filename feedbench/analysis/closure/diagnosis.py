@@ -230,7 +230,8 @@ def _order(candidate: Candidate) -> tuple[bool, float]:
 def rank_candidates(current: Fit, kin: Kinematics, options: ClosureOptions) -> list[Candidate]:
     """Every applicable candidate tried against `current`, best (lowest ΔBIC) first."""
     present, fixed = current.model.names, current.model.fixed
-    context = Context(current.residual, current.acting)
+    context = Context(current.residual, current.acting,
+                      {t.name: t.values for t in current.model.terms})
     basis = _free_basis(current, kin)
     tried = [try_effect(EFFECTS[name], current, kin, context, basis, options.starts)
              for name in options.candidates if EFFECTS[name].applicable(present, fixed)]
@@ -354,6 +355,8 @@ def _with_tip(shares: list[float], probes: list[np.ndarray], current: Fit,
 def _explained_share(probe: np.ndarray, residual: np.ndarray, basis: np.ndarray) -> float:
     """Share of ‖residual‖² in the span of `probe` made orthogonal to `basis`."""
     probe = probe - basis @ (basis.T @ probe)
+    if not np.all(np.isfinite(probe)):
+        return math.nan
     if not np.any(np.abs(probe) > 0.0):
         return 0.0
     explained = probe @ least_squares_solution(probe, residual)

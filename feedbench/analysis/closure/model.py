@@ -241,7 +241,10 @@ def tip_error(model: Model, kin: Kinematics) -> float:
 
 
 def least_squares_solution(columns: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """argmin ‖columns θ − target‖ by the normal equations of unit-norm columns (p ≪ n)."""
+    """argmin ‖columns θ − target‖ by the normal equations of unit-norm columns (p ≪ n);
+    `FitError` if columns or target are not finite."""
+    if not (np.all(np.isfinite(columns)) and np.all(np.isfinite(target))):
+        raise FitError("non-finite regressors or force at the start values")
     norms = np.linalg.norm(columns, axis=0)
     norms[norms == 0.0] = 1.0
     scaled = columns / norms
@@ -361,7 +364,12 @@ def _refine_nonlinear(model: Model, kin: Kinematics, x0: np.ndarray,
     measured = kin.force[rows]
 
     def force_residual(x: np.ndarray) -> np.ndarray:
-        return measured - _solve(model.with_nonlinear(x, slots), kin, rows, cache)[1]
+        """The reading's residual; NaN where the columns are not finite (a trial step the
+        optimiser then shortens)."""
+        try:
+            return measured - _solve(model.with_nonlinear(x, slots), kin, rows, cache)[1]
+        except FitError:
+            return np.full(measured.size, np.nan)
 
     def tip_residual(x: np.ndarray) -> np.ndarray:
         return kin.tip[rows] - predict_tip(model.with_nonlinear(x, slots), kin)[rows]
@@ -435,6 +443,8 @@ def _standard_deviations(model: Model, kin: Kinematics, prediction: Prediction,
                 tip[:, len(names) - len(slots) + j] = _nonlinear_derivative(
                     model, kin, x, slots, j, tip=True)[rows]
         information += _information(tip, (kin.tip - predict_tip(model, kin))[rows], k, kin)
+    if not np.all(np.isfinite(information)):  # a derivative step left the stable range
+        return dict.fromkeys(names, math.nan)
     std = np.sqrt(np.clip(np.diag(np.linalg.pinv(information)), 0.0, None))
     return dict(zip(names, map(float, std)))
 

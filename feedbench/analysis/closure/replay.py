@@ -6,7 +6,8 @@ reference (CSP) and excitation (force offset); the replayed position and force r
 compared with the measured ones. A rigid body is replayed as two halves on a coupling whose
 mode lies far above the loop rate, critically damped: the exact zero-order-hold
 discretisation of the axis integrates it without error. Backlash is not replayed (the
-rigid play has no coupling to put it in); the report says so.
+rigid play has no coupling to put it in), nor a cubic stiffening (the kernel's coupling is
+linear); the report says so.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ RIGID_MODE_FACTOR = 20.0
 COHERENCE_MIN = 0.8
 """FRF bins with a lower measured coherence are left out of the FRF errors."""
 
-NOT_REPLAYED = ("backlash",)
+NOT_REPLAYED = ("backlash", "cubic_stiffening")
 
 
 @dataclass(frozen=True)
