@@ -321,6 +321,9 @@ CASES: dict[str, tuple[Callable[[Path], list[str]], str]] = {
     "bode below the mobility band": (
         run("[experiment]\ntype = 'closed_loop_bode'\nf_start_Hz = 5.0\nf_stop_Hz = 19.0\n"),
         "experiment.f_start_Hz: the open-loop mobility (Eq. 4.20) is read in 20–150 Hz"),
+    "hammer record too short": (run("[experiment]\ntype = 'impact_hammer'\nrecord_s = 0.01\n"
+                                    "pretrigger_s = 0.005\n"),
+                                "experiment.record_s: 0.01 s gives 1 frequency lines"),
     "smfe one cut": (run("[experiment]\ntype = 'smfe'\ncuts = ['down']\n"), "experiment.cuts: "),
     # closure traces: CSV, sidecar, units, samples, model config
     "csv missing column": (closure(sidecar('reference = "x_ref_mm"', 'reference = "x_cmd_mm"')),

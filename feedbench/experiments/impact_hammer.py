@@ -12,6 +12,7 @@ record with an overloaded accelerometer or lost samples too. The compliance x_ti
 
 from __future__ import annotations
 
+import math
 from typing import Any, Mapping
 
 import numpy as np
@@ -41,6 +42,8 @@ SCHEMA = {
 }
 
 DEFAULT_BAND_HZ = (20.0, 150.0)
+MIN_BAND_LINES = 3
+"""Frequency lines (1/record_s apart) the analysis needs in `DEFAULT_BAND_HZ` for a peak."""
 INVARIANCE_TOLERANCE = 0.3
 """'Invariant': every |compliance| within 30 % of the reference's peak (≈ 2.3 dB at the peak,
 where idle lies 13 dB away on the lab bench)."""
@@ -52,6 +55,12 @@ def _validated(params: Mapping[str, Any]) -> dict:
         raise ConfigError("experiment.pretrigger_s: must be shorter than record_s")
     if not p["feeds_mm_min"]:
         raise ConfigError("experiment.feeds_mm_min: at least one feed")
+    low, high = DEFAULT_BAND_HZ
+    lines = math.floor(high * p["record_s"]) - math.ceil(low * p["record_s"]) + 1
+    if lines < MIN_BAND_LINES:
+        raise ConfigError(f"experiment.record_s: {p['record_s']:g} s gives {lines} frequency "
+                          f"lines in the {low:g}–{high:g} Hz the quasi-FRF (Eq. 5.3) is read "
+                          f"in; it needs at least {MIN_BAND_LINES}")
     return p
 
 
