@@ -10,9 +10,12 @@ M v̇ = −K x − C v + u. A backlash load (optional, the last mass) touches th
 stiff contact spring only when the play L is used up; the three contact states (free, pushed,
 pulled) each have their own exact discretization, the constant ±k_c L/2 of the contact force
 entering as a held force. Forces that are nonlinear in the state (friction, ripple, cubic
-stiffening, the load's friction) are held over each physics step, evaluated at the state
-half a step ahead (first-order extrapolation), which keeps the held stiffness from pumping
-energy into a lightly damped mode.
+stiffening, the load's friction) are held over each physics step: the position-dependent ones
+evaluated at the state half a step ahead (first-order extrapolation), which keeps a held cubic
+spring from pumping energy into a lightly damped mode; friction at the step's velocity (it only
+dissipates, and FRICTION_SMOOTHING keeps it stable). The recorded force is the drive's command
+averaged over each 1 kHz cycle (it leads the acting force by the delay); positions are the
+encoder's at the cycle's end.
 """
 
 from __future__ import annotations
@@ -92,8 +95,9 @@ class Plant:
 @dataclass(frozen=True)
 class Drive:
     """The drive: P position loop (K_v, 1/s), PI velocity loop (K_p N·s/m, T_i s), force
-    limit (N), force delay (s, whole physics steps), force-constant error: acting force =
-    command · (1 − β |command|) / gain (β in 1/N)."""
+    limit (N), force delay (s, whole physics steps), force-constant error: the force constant
+    saturates with the current and is off by a gain, acting force = command / ((1 + β |command|)
+    · gain) (β in 1/N)."""
 
     K_p: float
     T_i: float
@@ -186,7 +190,7 @@ def simulate(plant: Plant, drive: Drive, sensors: Sensors, reference: np.ndarray
     excitation (N) arrays; record at 1 kHz."""
     dt = 1.0 / PHYSICS_HZ
     Ad, Bd, const = discretize(plant, dt)
-    steps = reference.size - reference.size % RECORD_STEPS
+    steps = (reference.size - 1) // RECORD_STEPS * RECORD_STEPS
     rng = np.random.default_rng(seed)
     encoder_noise = rng.normal(0.0, sensors.position_noise, steps // VELOCITY_STEPS + 1)
     record_noise = rng.normal(0.0, sensors.position_noise, steps // RECORD_STEPS)
@@ -204,9 +208,10 @@ def simulate(plant: Plant, drive: Drive, sensors: Sensors, reference: np.ndarray
                                 encoder_noise, record_noise, dt)
     cycles = steps // RECORD_STEPS
     force_noise = rng.normal(0.0, sensors.force_noise, cycles)
-    exc = excitation[:steps].reshape(cycles, RECORD_STEPS).mean(axis=1)
+    held = np.repeat(excitation[:steps:VELOCITY_STEPS], VELOCITY_STEPS)   # as the loop adds it
+    exc = held.reshape(cycles, RECORD_STEPS).mean(axis=1)
     return Run(np.arange(1, cycles + 1) * RECORD_STEPS * dt, x_rec, f_rec + force_noise, f_rec,
-               reference[RECORD_STEPS - 1:steps:RECORD_STEPS], exc, s_rec)
+               reference[RECORD_STEPS:steps + 1:RECORD_STEPS], exc, s_rec)
 
 
 @njit(cache=True)
@@ -264,7 +269,7 @@ def _loop(Ad, Bd, const, springs, motor, control, delay_steps, has_load, load_fr
                 command = max(-limit, min(limit, command))
         fifo[step % (delay_steps + 1)] = command
         applied = fifo[(step + 1) % (delay_steps + 1)] if step >= delay_steps else 0.0
-        acting = applied * (1.0 - beta * abs(applied)) / gain
+        acting = applied / ((1.0 + beta * abs(applied)) * gain)
         for k in range(n):
             u[k] = 0.0
         u[0] = acting - _motor_force(state[n], state[0] + 0.5 * dt * state[n], motor)
