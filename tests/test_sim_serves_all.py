@@ -17,6 +17,7 @@ import io
 import json
 import logging
 import re
+import socket
 import struct
 import subprocess
 import sys
@@ -468,6 +469,32 @@ def test_daq_and_sdo_faults_get_their_protocol_answer(lab, lab_can):
     assert aborted.value.code == 0x06020000
     lines = lab.new_stderr(since, 3)
     assert len(lines) == 3 and all("serial DAQ" in line for line in lines), lines
+
+
+def test_socketcand_faults_get_the_hubs_error_and_one_line(lab):
+    """A malformed frame (9 data bytes) and an unknown command to the hub are answered
+    ``< error … >`` in socketcand's own syntax, one line logged each."""
+    host, port = lab.info["socketcand"].rsplit(":", 1)
+    since = len(lab.stderr)
+    with socket.create_connection((host, int(port)), timeout=2) as sock:
+        replies = [_socketcand(sock, b"")]
+        for text in (f"< open {lab.info['channel']} >", "< rawmode >",
+                     "< send 123 9 0 1 2 3 4 5 6 7 8 >", "< bogus >"):
+            replies.append(_socketcand(sock, text.encode()))
+    assert replies == ["< hi >", "< ok >", "< ok >", "< error malformed frame >",
+                       "< error unsupported command >"]
+    lines = lab.new_stderr(since, 2)
+    assert len(lines) == 2 and all("socketcand hub" in line for line in lines), lines
+
+
+def _socketcand(sock: socket.socket, text: bytes) -> str:
+    """Send `text` (if any), return the next ``< … >`` message from the hub."""
+    if text:
+        sock.sendall(text)
+    reply = b""
+    while not reply.endswith(b">"):
+        reply += sock.recv(1)
+    return reply.decode()
 
 
 class BrokenInverter(SimulatedSpindleInverter):

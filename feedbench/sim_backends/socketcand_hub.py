@@ -17,6 +17,7 @@ a single `recv` and would fail if a frame arrived in the same TCP segment.
 
 from __future__ import annotations
 
+import logging
 import os
 import selectors
 import socket
@@ -24,6 +25,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+LOGGER = logging.getLogger(__name__)
 LOOPBACK = "127.0.0.1"
 JOIN_S = 0.05
 RECEIVE_BYTES = 65536
@@ -182,12 +184,16 @@ class SocketcandHub:
         elif command == "echo":
             self._send(client, b"< echo >")
         else:
+            LOGGER.warning("socketcand hub: unsupported command %r: answered < error >",
+                           " ".join(message))
             self._send(client, b"< error unsupported command >")
 
     def _relay(self, sender: _Client, message: list[str]) -> None:
         try:
             can_id, data = parse_send(message)
         except (ValueError, IndexError):
+            LOGGER.warning("socketcand hub: malformed frame %r: answered < error >",
+                           " ".join(message))
             self._send(sender, b"< error malformed frame >")
             return
         now = time.monotonic()
