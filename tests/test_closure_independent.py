@@ -101,13 +101,15 @@ SUBSET = [
 
 @pytest.mark.parametrize("name, free", SUBSET)
 def test_closure_on_independent_case(case_directory, name, free):
-    """Named first and error halved (effects, recalibrations); untouched (clean); no crash."""
+    """Named first and error halved (effects, recalibrations); untouched and within 1.5× the
+    simulator's noise floor (clean); no crash."""
     files = write_case(name, case_directory, free)
     injected, kind = CASES[name].expected(free)
     verdict = judge(report_dict(closure_report(files.data_csv, files.model_toml,
                                                files.validation_csv)), kind, injected)
     if kind == "clean":
         assert verdict.found == ()
+        assert verdict.error_after <= 1.5 * files.noise_floor
         return
     assert verdict.found[:1] == (injected,)
     assert verdict.error_after <= HALVED * verdict.error_before
