@@ -184,14 +184,10 @@ def world(case: CaseSpec) -> tuple[Plant, Drive]:
     springs = []
     if s.modal_kg:
         masses.append(s.tip_kg)
-        omega = 2 * math.pi * s.f_n_Hz
-        k = s.modal_kg * omega ** 2
-        springs.append(Spring(0, 1, k, 2 * s.zeta * omega * s.modal_kg,
-                              k * w.get("stiffening", 0.0) / STIFFENING_DEFLECTION_M ** 2))
+        springs.append(_spring(0, 1, s.modal_kg, s.f_n_Hz, s.zeta, w.get("stiffening", 0.0)))
     if s.third:
-        mass, f, zeta = s.third
-        masses.append(mass)
-        springs.append(Spring(1, 2, mass * (2 * math.pi * f) ** 2, 2 * zeta * 2 * math.pi * f * mass))
+        masses.append(s.third[0])
+        springs.append(_spring(1, 2, *s.third))
     friction = Friction(s.sigma, w["F_c_N"] - load_N, w.get("dF_s_N", 0.0),
                         w.get("v_s_mm_min", 1.0) * 1e-3 / 60.0, 2.0, w.get("dF_v_Ns_m", 0.0))
     backlash = ((w["m_load_kg"], w["F_load_N"], w["width_um"] * 1e-6)
@@ -202,6 +198,15 @@ def world(case: CaseSpec) -> tuple[Plant, Drive]:
                   backlash)
     return plant, Drive(*_gains(s.total_kg), FORCE_LIMIT_N, w["tau_ms"] * 1e-3,
                         w.get("beta_per_kN", 0.0) * 1e-3, w.get("gain", 1.0))
+
+
+def _spring(i: int, j: int, mass: float, f: float, zeta: float, stiffening: float = 0.0
+            ) -> Spring:
+    """The spring-damper that makes `mass` (kg) on it ring at f (Hz) with ζ when i is held,
+    stiffer by the share `stiffening` at STIFFENING_DEFLECTION_M."""
+    omega = 2 * math.pi * f
+    k = mass * omega ** 2
+    return Spring(i, j, k, 2 * zeta * omega * mass, k * stiffening / STIFFENING_DEFLECTION_M ** 2)
 
 
 def _gains(mass: float) -> tuple[float, float, float]:
