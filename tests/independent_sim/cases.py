@@ -5,7 +5,7 @@ Files of `write_case(name, directory)`, all in `directory`:
     <name>_data.csv / .toml          the fit recording and its sidecar
     <name>_validation.csv / .toml    a second recording (other seed, other feeds)
     <name>_model.toml                the declared model (…_free_model.toml: M, F_v free)
-in the documented CSV + sidecar and model-config formats (README "Your own data: CSV +
+(<name>_tip_data.csv … with the optional tip accelerometer channel) in the documented CSV + sidecar and model-config formats (README "Your own data: CSV +
 sidecar", "Model config"). Written with the standard library and numpy only.
 """
 
@@ -226,19 +226,22 @@ _CACHE: dict[tuple[str, Path], float] = {}
 """Noise floors of the cases already written, by (name, directory)."""
 
 
-def write_case(name: str, directory: Path, free_mass_viscous: bool = False) -> CaseFiles:
+def write_case(name: str, directory: Path, free_mass_viscous: bool = False,
+               tip_channel: bool = False) -> CaseFiles:
     """Write a case's two recordings (once per directory and process) and its model config;
-    `free_mass_viscous` declares M and F_v free instead of their values."""
+    `free_mass_viscous` declares M and F_v free instead of their values; `tip_channel` adds
+    the tip accelerometer (`tip_acceleration`, m/s2) to recordings of an axis with a tip."""
     case = CASES[name]
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    data, validation = directory / f"{name}_data.csv", directory / f"{name}_validation.csv"
-    key = (name, directory.resolve())
+    stem = f"{name}_tip" if tip_channel else name
+    data, validation = directory / f"{stem}_data.csv", directory / f"{stem}_validation.csv"
+    key = (stem, directory.resolve())
     if key not in _CACHE:
         seed = zlib.crc32(name.encode())
-        _write_recording(data, record(case, FIT_PROGRAM, seed), case, "fit")
+        _write_recording(data, record(case, FIT_PROGRAM, seed), case, "fit", tip_channel)
         held = record(case, VALIDATION_PROGRAM, seed + 1)
-        _write_recording(validation, held, case, "validation")
+        _write_recording(validation, held, case, "validation", tip_channel)
         _CACHE[key] = float(np.linalg.norm(held.force - held.force_clean)
                             / np.linalg.norm(held.force_clean))
     model = directory / f"{name}{'_free' if free_mass_viscous else ''}_model.toml"
@@ -247,21 +250,26 @@ def write_case(name: str, directory: Path, free_mass_viscous: bool = False) -> C
 
 
 COLUMNS = {"time": ("t_s", "s"), "position": ("x_mm", "mm"), "force": ("F_N", "N"),
-           "reference": ("x_ref_mm", "mm"), "excitation": ("excitation_N", "N")}
+           "reference": ("x_ref_mm", "mm"), "excitation": ("excitation_N", "N"),
+           "tip_acceleration": ("a_tip_m_s2", "m/s2")}
 
 
-def _write_recording(path: Path, run: Run, case: CaseSpec, part: str) -> None:
-    """The CSV (s, mm, N) and its sidecar: the force is the mean command over each cycle,
-    so it lags the cycle-end positions by half a cycle."""
-    table = np.column_stack([run.time, run.position * 1e3, run.force, run.reference * 1e3,
-                             run.excitation])
-    np.savetxt(path, table, delimiter=",", fmt="%.10g", comments="",
-               header=",".join(column for column, _ in COLUMNS.values()))
+def _write_recording(path: Path, run: Run, case: CaseSpec, part: str, tip_channel: bool
+                     ) -> None:
+    """The CSV (s, mm, N, m/s²) and its sidecar: the force is the mean command over each
+    cycle, so it lags the cycle-end positions by half a cycle."""
+    values = {"time": run.time, "position": run.position * 1e3, "force": run.force,
+              "reference": run.reference * 1e3, "excitation": run.excitation}
+    if tip_channel and run.tip_acceleration is not None:
+        values["tip_acceleration"] = run.tip_acceleration
+    columns = {channel: COLUMNS[channel] for channel in values}
+    np.savetxt(path, np.column_stack(list(values.values())), delimiter=",", fmt="%.10g",
+               comments="", header=",".join(column for column, _ in columns.values()))
     cycle_ms = 1e3 * RECORD_STEPS / PHYSICS_HZ
     lines = [f'name = "independent simulator: {case.name} ({part})"',
              f"force_lag_ms = {0.5 * cycle_ms!r}", "", "[columns]"]
-    lines += [f'{channel} = "{column}"' for channel, (column, _) in COLUMNS.items()]
-    lines += ["", "[units]"] + [f'{channel} = "{unit}"' for channel, (_, unit) in COLUMNS.items()]
+    lines += [f'{channel} = "{column}"' for channel, (column, _) in columns.items()]
+    lines += ["", "[units]"] + [f'{channel} = "{unit}"' for channel, (_, unit) in columns.items()]
     lines += ["", "[controller]", *_controller_lines(case)]
     path.with_suffix(".toml").write_text("\n".join(lines) + "\n")
 

@@ -110,11 +110,13 @@ class Drive:
 
 @dataclass(frozen=True)
 class Sensors:
-    """Encoder resolution (m) and noise (m RMS), force-reading noise (N RMS)."""
+    """Encoder resolution (m) and noise (m RMS), force-reading noise (N RMS), tip
+    accelerometer noise (m/s² RMS)."""
 
     resolution: float = 1e-7
     position_noise: float = 2e-8
     force_noise: float = 1.5
+    acceleration_noise: float = 0.05
 
 
 def _matrices(plant: Plant, contact: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -172,8 +174,9 @@ def natural_modes(plant: Plant) -> list[tuple[float, float]]:
 @dataclass(frozen=True)
 class Run:
     """A recording at the recording rate: time (s), encoder position (m), force read (N),
-    force without reading noise (N), reference (m), excitation (N); and the physics
-    states (m, m/s) at the recording instants."""
+    force without reading noise (N), reference (m), excitation (N), the acceleration of
+    mass 1 read by an accelerometer (m/s², None on a rigid axis); and the physics states
+    (m, m/s) at the recording instants."""
 
     time: np.ndarray
     position: np.ndarray
@@ -181,6 +184,7 @@ class Run:
     force_clean: np.ndarray
     reference: np.ndarray
     excitation: np.ndarray
+    tip_acceleration: np.ndarray | None
     states: np.ndarray
 
 
@@ -210,8 +214,23 @@ def simulate(plant: Plant, drive: Drive, sensors: Sensors, reference: np.ndarray
     force_noise = rng.normal(0.0, sensors.force_noise, cycles)
     held = np.repeat(excitation[:steps:VELOCITY_STEPS], VELOCITY_STEPS)   # as the loop adds it
     exc = held.reshape(cycles, RECORD_STEPS).mean(axis=1)
+    tip = (None if len(plant.masses) < 2 else tip_acceleration(plant, s_rec)
+           + rng.normal(0.0, sensors.acceleration_noise, cycles))
     return Run(np.arange(1, cycles + 1) * RECORD_STEPS * dt, x_rec, f_rec + force_noise, f_rec,
-               reference[RECORD_STEPS:steps + 1:RECORD_STEPS], exc, s_rec)
+               reference[RECORD_STEPS:steps + 1:RECORD_STEPS], exc, tip, s_rec)
+
+
+def tip_acceleration(plant: Plant, states: np.ndarray) -> np.ndarray:
+    """Acceleration (m/s²) of mass 1 at each state (rows): its springs, dampers and cubic
+    stiffening; nothing else acts on it."""
+    A, _, _ = _matrices(plant, 0)
+    n = len(plant.all_masses)
+    acceleration = states @ A[n + 1]
+    for s in plant.springs:
+        if 1 in (s.i, s.j):
+            d = states[:, s.j] - states[:, s.i]
+            acceleration += (1.0 if s.i == 1 else -1.0) * s.k3 * d ** 3 / plant.masses[1]
+    return acceleration
 
 
 @njit(cache=True)
