@@ -5,8 +5,9 @@ Files of `write_case(name, directory)`, all in `directory`:
     <name>_data.csv / .toml          the fit recording and its sidecar
     <name>_validation.csv / .toml    a second recording (other seed, other feeds)
     <name>_model.toml                the declared model (…_free_model.toml: M, F_v free)
-(<name>_tip_data.csv … with the optional tip accelerometer channel) in the documented CSV + sidecar and model-config formats (README "Your own data: CSV +
-sidecar", "Model config"). Written with the standard library and numpy only.
+(<name>_tip_data.csv … with the optional tip accelerometer channel), in the documented
+CSV + sidecar and model-config formats (README "Your own data: CSV + sidecar", "Model
+config"). Written with the standard library and numpy only.
 """
 
 from __future__ import annotations
