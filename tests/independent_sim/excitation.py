@@ -16,7 +16,8 @@ M_PER_S_PER_M_MIN = 1.0 / 60.0
 class Program:
     """What a recording does: feeds (m/min) of one back-and-forth each, the peak
     acceleration (m/s²), the cruise time of a move (s), the dwell between moves (s); pulses
-    (N, s) on moves at `pulse_feed`; a chirp (N, Hz → Hz, s) over moves at `chirp_feed`."""
+    (N, s) on moves at `pulse_feed`; a chirp (N, Hz → Hz) swept once over back-and-forths
+    at `chirp_feed` lasting at least `chirp_time` (s)."""
 
     feeds: tuple[float, ...]
     acceleration: float = 3.0
