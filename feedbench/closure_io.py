@@ -70,6 +70,8 @@ def read_csv_trace(path: str | Path, sidecar: Mapping[str, Any] | None = None
                    ) -> tuple[Trace, dict[str, Any]]:
     """A CSV trace and the controller table of its sidecar (read next to it if not given)."""
     path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such file")
     raw = read_toml(sidecar_path(path)) if sidecar is None else dict(sidecar)
     side = validate_table(raw, SIDECAR_SCHEMA, "sidecar")
     columns = validate_table(side["columns"] or {}, {

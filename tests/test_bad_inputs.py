@@ -332,6 +332,7 @@ CASES: dict[str, tuple[Callable[[Path], list[str]], str]] = {
                             "sidecar.columns.force: no column 'F_N' in trace.csv"),
     "sidecar missing": (closure(lambda p: p.with_suffix(".toml").unlink()),
                         "trace.toml: no such config file"),
+    "csv missing": (closure(lambda p: p.unlink()), "trace.csv: no such file"),
     "sidecar key misspelled": (closure(sidecar("[columns]", "[colums]")),
                                "sidecar.colums: unknown key"),
     "sidecar column key misspelled": (closure(sidecar("position =", "postion =")),
