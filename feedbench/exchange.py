@@ -402,10 +402,10 @@ def _identified(frf: ExchangeFrf) -> dict:
 
 
 def _peaks(magnitude: np.ndarray) -> np.ndarray:
-    """Indices of the resonance peaks of |H|: at least 1 dB prominent, the MAX_MODES most
+    """Indices of the resonance peaks of |H|: at least 3 dB prominent, the MAX_MODES most
     prominent, in frequency order."""
     level = 20 * np.log10(np.maximum(magnitude, np.finfo(float).tiny))
-    peaks, properties = scipy.signal.find_peaks(level, prominence=1.0)
+    peaks, properties = scipy.signal.find_peaks(level, prominence=3.0)
     strongest = np.argsort(properties["prominences"])[::-1][:MAX_MODES]
     return np.sort(peaks[strongest])
 
@@ -443,7 +443,7 @@ def describe_uff58(result: dict) -> str:
         for mode in frf.get("modes", []):
             lines.append(f"     mode {mode['f_n_hz']:.2f} Hz, zeta {100 * mode['zeta']:.2f} %, "
                          f"k {mode['k_N_m'] * 1e-6:.4g} N/um, m {mode['m_kg']:.4g} kg")
-        if "modes" not in frf:
+        if not frf.get("modes"):
             lines += [f"     peak {p['f_hz']:.2f} Hz, |H| {p['abs']:.4g} {frf['units']}"
                       for p in frf["peaks"]]
         lines += [f"     warning: {w}" for w in frf.get("warnings", [])]
