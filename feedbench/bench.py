@@ -17,11 +17,12 @@ from feedbench.config import ConfigError, Field, one_of, positive, read_toml, va
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.clock import LockstepClock, RealtimeClock, one_core
 from feedbench.daq.recorder import Recorder
+from feedbench.protocols.address import split_address
 from feedbench.protocols.canbus import open_network
 from feedbench.drivers.cia402 import Cia402Drive
 from feedbench.experiments import chirp, friction_sweep, smfe, stepped_loading
 from feedbench.experiments import closed_loop_bode, impact_hammer, shaker_chirp, sine_stream
-from feedbench.experiments.cycle_io import open_cycle_devices, split_address
+from feedbench.experiments.cycle_io import open_cycle_devices
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan
 from feedbench.experiments.runner import Observer, ProgressPrinter, Runner, StopRequest

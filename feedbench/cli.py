@@ -20,6 +20,7 @@ from typing import Sequence
 
 from feedbench.config import ConfigError
 from feedbench.experiments.limits import LimitError
+from feedbench.protocols.address import split_address
 
 USER_ERRORS = (ConfigError, LimitError, KeyError, FileNotFoundError)
 INTERRUPTED = 130
@@ -208,13 +209,13 @@ SIM_LISTENS = ("socketcand", "modbus")
 def check_can_listen(field: str, address: str) -> None:
     """A ``host:port`` to listen on must be free (port 0 or none: any free one); raises
     `ConfigError` naming the field and the address, before anything starts."""
-    host, _, port = address.rpartition(":")
-    if not (port.isdigit() and int(port)):
+    host, port = split_address(address, field, listen=True)
+    if not port:
         return
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the servers do
         try:
-            probe.bind((host or "127.0.0.1", int(port)))
+            probe.bind((host, port))
         except OSError as exc:
             raise ConfigError(f"{field}: cannot listen on {address} ({exc.strerror})") from None
 

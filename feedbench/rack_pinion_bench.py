@@ -19,8 +19,8 @@ from feedbench.daq.clock import LockstepClock, RealtimeClock
 from feedbench.drivers.cia402 import Cia402Drive
 from feedbench.drivers.modbus_devices import LoadCellAmplifier, connect_tcp
 from feedbench.drivers.rack_pinion import AXIS_PDOS, AxisController
-from feedbench.experiments.cycle_io import split_address
 from feedbench.experiments.rack_pinion_io import AxisEncoders, AxisSettings, LoadCellForce
+from feedbench.protocols.address import split_address
 from feedbench.protocols.canbus import open_network
 
 LOAD_CELL_ID = 2

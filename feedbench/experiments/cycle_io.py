@@ -23,6 +23,7 @@ from contextlib import ExitStack
 from feedbench.config import ConfigError
 from feedbench.daq.recorder import StreamSpec
 from feedbench.experiments.plan import Plan
+from feedbench.protocols.address import split_address
 from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
 from feedbench.units import RPM
 
@@ -170,14 +171,6 @@ class DaqStream:
                 // self._samples_per_cycle
             self._recorder.append_stream(self.name, cycles, block.sequence, block.samples)
         return n
-
-
-def split_address(address: str, what: str) -> tuple[str, int]:
-    """``host:port`` → (host, port); `what` names the config key in the error."""
-    host, _, port = address.rpartition(":")
-    if not host or not port.isdigit():
-        raise ConfigError(f"{what}: expected host:port, got {address!r}")
-    return host, int(port)
 
 
 def open_cycle_devices(needs: dict[str, dict], modbus: str, daq_port: str,

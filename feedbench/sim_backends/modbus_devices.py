@@ -40,6 +40,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.base import ModbusBaseServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from feedbench.protocols.address import LOOPBACK
 from feedbench.protocols.modbus_registers import (
     INVERTER_CONTROL_FAULT_RESET,
     INVERTER_CONTROL_RUN,
@@ -59,7 +60,6 @@ from feedbench.protocols.modbus_registers import (
 from feedbench.units import RPM
 
 LOGGER = logging.getLogger(__name__)
-LOOPBACK = "127.0.0.1"
 READ_HOLDING = 3
 WRITE_FUNCTIONS = (6, 16)
 THREAD_TIMEOUT_S = 5.0

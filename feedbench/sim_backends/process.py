@@ -32,6 +32,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from feedbench.protocols.address import LOOPBACK, split_address
 from feedbench.sim_backends.bench import start_simulated_axis
 from feedbench.sim_backends.modbus_devices import (
     SimulatedLoadCell, SimulatedModbusDevice, SimulatedModbusTcpServer, SimulatedSpindleInverter,
@@ -41,18 +42,12 @@ from feedbench.sim_backends.rack_pinion import (
 )
 from feedbench.sim_backends.serial_daq import SimulatedSerialDaq
 from feedbench.sim_backends.smfe_world import SmfeWorld, Workpiece, build_process, lanes_from_list
-from feedbench.sim_backends.socketcand_hub import LOOPBACK, SocketcandHub
+from feedbench.sim_backends.socketcand_hub import SocketcandHub
 from feedbench.sim_backends.structure_world import StructureWorld, start_structure_world
 from feedbench.sim_backends.world import build_axis, build_sensor_noise
 
 READY = "feedbench-sim ready"
 """First word of the line `serve` prints once every device listens."""
-
-
-def split_address(address: str, default_port: int = 0) -> tuple[str, int]:
-    """``host:port`` (or ``host``) → (host, port)."""
-    host, _, port = address.rpartition(":") if ":" in address else (address, "", "")
-    return host or LOOPBACK, int(port) if port else default_port
 
 
 class DaqInputs:
@@ -175,7 +170,7 @@ def serve(bench: Mapping[str, Any], workpiece: Sequence[Mapping[str, Any]] = (),
     devices served (``modbus_devices``: name → device id), and per axis ``daq_port`` (lab)
     or ``load_cell`` (rack_pinion). Log records go to stderr, one line each, meanwhile.
     """
-    hub = SocketcandHub(*split_address(bench["socketcand"]))
+    hub = SocketcandHub(*split_address(bench["socketcand"], "bench.socketcand", listen=True))
     host, port = hub.start()
     try:
         with one_line_logging(), ExitStack() as stack:
@@ -192,7 +187,7 @@ def serve(bench: Mapping[str, Any], workpiece: Sequence[Mapping[str, Any]] = (),
 def _start_bench(bench: Mapping[str, Any], workpiece: Sequence[Mapping[str, Any]],
                  bus_options: Mapping[str, Any], stack: ExitStack) -> dict[str, Any]:
     """Start the bench of ``bench.axis`` (closed by `stack`); what the ready line says of it."""
-    modbus = split_address(bench["modbus"])
+    modbus = split_address(bench["modbus"], "bench.modbus", listen=True)
     if bench["axis"] == "rack_pinion":
         axis = SimulatedRackPinionAxis(
             build_simulator(bench["world"], bench["cycle_ms"] * 1e-3), bench["interface"],

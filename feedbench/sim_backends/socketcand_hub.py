@@ -25,8 +25,9 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+from feedbench.protocols.address import LOOPBACK
+
 LOGGER = logging.getLogger(__name__)
-LOOPBACK = "127.0.0.1"
 JOIN_S = 0.05
 RECEIVE_BYTES = 65536
 THREAD_TIMEOUT_S = 5.0
