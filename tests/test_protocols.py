@@ -1,9 +1,13 @@
-"""What both ends of a link share (`feedbench.protocols`): one address parser."""
+"""What both ends of a link share (`feedbench.protocols`): one address parser, one CiA 402
+object table."""
 
 import pytest
 
 from feedbench.config import ConfigError
+from feedbench.drivers.cia402 import PdoConfig, decode_state
+from feedbench.protocols import cia402
 from feedbench.protocols.address import split_address
+from feedbench.sim_backends import eds
 
 
 @pytest.mark.parametrize("address, expected", [
@@ -30,3 +34,58 @@ def test_a_listener_defaults_to_loopback_and_any_free_port(address, expected):
 def test_a_listener_refuses_a_port_that_is_no_number():
     with pytest.raises(ConfigError, match=r"^bench\.socketcand: expected host:port"):
         split_address("127.0.0.1:http", "bench.socketcand", listen=True)
+
+
+def test_every_state_the_simulated_drive_reports_decodes_to_itself_on_the_host():
+    """The device's statusword table against canopen's p402 masks the host decodes with."""
+    assert len(cia402.STATE_BITS) == 6
+    for state, bits in cia402.STATE_BITS.items():
+        assert decode_state(bits | cia402.SW_REMOTE | cia402.SW_FOLLOWS_COMMAND) == state
+
+
+def test_the_supported_modes_are_the_bits_of_the_mode_codes():
+    assert cia402.MODES == (8, 9, 10)
+    assert sum(1 << (mode - 1) for mode in cia402.MODES) == cia402.SUPPORTED_MODES == 0x0380
+
+
+EDS_NAMES = {
+    "DEVICE_TYPE_OBJECT": "Device type", "ERROR_REGISTER": "Error register",
+    "CYCLE_PERIOD": "Communication cycle period", "HEARTBEAT_TIME": "Producer heartbeat time",
+    "IDENTITY": "Identity object", "ERROR_CODE": "Error code", "CONTROLWORD": "Controlword",
+    "STATUSWORD": "Statusword", "QUICK_STOP_OPTION_CODE": "Quick stop option code",
+    "MODES_OF_OPERATION": "Modes of operation",
+    "MODES_OF_OPERATION_DISPLAY": "Modes of operation display",
+    "POSITION_ACTUAL": "Position actual value", "FOLLOWING_ERROR_WINDOW": "Following error window",
+    "VELOCITY_ACTUAL": "Velocity actual value", "VELOCITY_WINDOW": "Velocity window",
+    "TARGET_TORQUE": "Target torque", "RATED_TORQUE": "Motor rated torque",
+    "TORQUE_ACTUAL": "Torque actual value", "TARGET_POSITION": "Target position",
+    "QUICK_STOP_DECELERATION": "Quick stop deceleration", "VELOCITY_OFFSET": "Velocity offset",
+    "TORQUE_OFFSET": "Torque offset", "FOLLOWING_ERROR_ACTUAL": "Following error actual value",
+    "TARGET_VELOCITY": "Target velocity", "SUPPORTED_DRIVE_MODES": "Supported drive modes",
+    "FORCE_LIMIT": "Force limit", "FORCE_ACTUAL": "Force actual value",
+    "FORCE_OFFSET_FINE": "Force offset fine", "CYCLE_COUNTER": "Cycle counter",
+    "FAULT_INJECTION": "Fault injection",
+}
+
+
+def test_the_packaged_eds_holds_each_object_of_the_table_under_its_name():
+    od = eds.load(3)
+    assert {name: od[getattr(cia402, name)].name for name in EDS_NAMES} == EDS_NAMES
+    assert [od[index].name for index in cia402.GAIN_OBJECTS.values()] == [
+        "Velocity loop gain K_p", "Velocity loop integral time T_i", "Position loop gain K_v"]
+    assert od[cia402.DEVICE_TYPE_OBJECT].default == cia402.DEVICE_TYPE
+    assert od[cia402.SUPPORTED_DRIVE_MODES].default == cia402.SUPPORTED_MODES
+    assert od[cia402.MODES_OF_OPERATION].default == cia402.CSV
+    assert od[cia402.TPDO_COMMUNICATION][cia402.PDO_TRANSMISSION_TYPE].default \
+        == cia402.TRANSMISSION_SYNC
+    assert od[cia402.RPDO_COMMUNICATION][cia402.PDO_COB_ID].default == cia402.RPDO_COB_BASE + 3
+
+
+def test_the_host_maps_by_default_what_the_eds_maps():
+    od = eds.load(3)
+    for first_map, default in ((cia402.RPDO_MAPPING, PdoConfig().rpdo),
+                               (cia402.TPDO_MAPPING, PdoConfig().tpdo)):
+        for number, objects in default.items():
+            record = od[first_map + number - 1]
+            mapped = [record[sub].default >> 16 for sub in range(1, record[0].default + 1)]
+            assert mapped == list(objects), number

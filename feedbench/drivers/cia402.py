@@ -12,7 +12,8 @@ access costs tens of µs per cycle).
 
 Units on the bus (the simulated drive's EDS, docs/ARCHITECTURE.md): position 1 nm,
 velocity 1 nm/s, 0x6071 / 0x6077 / 0x60B2 in per mille of the rated force 0x6076 (mN),
-0x2010 / 0x2011 in mN. This API speaks SI: m, m/s, N.
+0x2010 / 0x2011 in mN. This API speaks SI: m, m/s, N. The object table is
+`protocols.cia402`, shared with the simulated drive.
 """
 
 from __future__ import annotations
@@ -32,24 +33,23 @@ from canopen.profiles.p402 import OperationMode, State402
 
 from feedbench.config import ConfigError
 from feedbench.protocols.canbus import pdo_codec, remote_node
+from feedbench.protocols.cia402 import (
+    CONTROLWORD, CW_FAULT_RESET, CYCLE_COUNTER, DEFAULT_RPDO_MAPS, DEFAULT_TPDO_MAPS, FAULT,
+    FORCE_ACTUAL, FORCE_OFFSET_FINE, GAIN_OBJECTS, HEARTBEAT_TIME, MODES_OF_OPERATION,
+    NOT_READY, OPERATION_ENABLED, POSITION_ACTUAL, QUICK_STOP_ACTIVE, RATED_TORQUE, STATUSWORD,
+    SUPPORTED_DRIVE_MODES, SW_FAULT, SW_TARGET_REACHED, SWITCH_ON_DISABLED, TARGET_POSITION,
+    TARGET_TORQUE, TARGET_VELOCITY, TORQUE_ACTUAL, TORQUE_OFFSET, TRANSMISSION_SYNC,
+    VELOCITY_ACTUAL, VELOCITY_OFFSET,
+)
 
 Entry = int | tuple[int, int]
 """A mapped object: index (sub-index 0) or (index, sub-index)."""
 
-OPERATION_ENABLED = "OPERATION ENABLED"
-QUICK_STOP_ACTIVE = "QUICK STOP ACTIVE"
-FAULT = "FAULT"
-DISABLED_STATES = ("SWITCH ON DISABLED", "NOT READY TO SWITCH ON", FAULT)
+DISABLED_STATES = (SWITCH_ON_DISABLED, NOT_READY, FAULT)
 CW_ENABLE_OPERATION = State402.CW_OPERATION_ENABLED
 CW_QUICK_STOP = State402.CW_QUICK_STOP
 CW_DISABLE_VOLTAGE = State402.CW_DISABLE_VOLTAGE
 CW_DISABLE_OPERATION = State402.CW_SWITCH_ON  # 0x07 from operation enabled: transition 5
-CW_FAULT_RESET = State402.CW_SWITCH_ON_DISABLED  # bit 7: resets a fault on its rising edge
-SW_FAULT = 0x0008
-SW_TARGET_REACHED = 0x0400  # in quick stop active: the stop is complete
-TRANSMISSION_SYNC = 1
-GAIN_OBJECTS = {"K_p": 0x2001, "T_i": 0x2002, "K_v": 0x2003}
-"""Manufacturer objects of the cascade gains (the simulated drive's; differ per vendor)."""
 
 
 @dataclass(frozen=True)
@@ -59,15 +59,8 @@ class PdoConfig:
     All mapped PDOs are SYNC-triggered (transmission type 1).
     """
 
-    rpdo: dict[int, tuple[Entry, ...]] = field(default_factory=lambda: {
-        1: (0x6040, 0x607A, 0x6060),  # controlword, target position, modes of operation
-        2: (0x60FF, 0x60B1),  # target velocity, velocity offset
-        3: (0x2011, 0x60B2, 0x6071),  # force offset fine, torque offset, target torque
-    })
-    tpdo: dict[int, tuple[Entry, ...]] = field(default_factory=lambda: {
-        1: (0x6041, 0x6064, 0x2020),  # statusword, position actual, cycle counter
-        2: (0x606C, 0x2010),  # velocity actual, force actual (mN)
-    })
+    rpdo: dict[int, tuple[Entry, ...]] = field(default_factory=lambda: dict(DEFAULT_RPDO_MAPS))
+    tpdo: dict[int, tuple[Entry, ...]] = field(default_factory=lambda: dict(DEFAULT_TPDO_MAPS))
 
 
 class Actual(NamedTuple):
@@ -149,7 +142,7 @@ class Cia402Drive:
         self.pdo_config = pdo_config or PdoConfig()
         self.emcy_code: int | None = None
         self.node.emcy.add_callback(self._on_emcy)
-        self._raw: dict[int, int | float] = {0x6041: 0}
+        self._raw: dict[int, int | float] = {STATUSWORD: 0}
         self._writers: dict[int, tuple[Callable, bytearray, int]] = {}
         self._rpdo_frames: list[tuple[int, bytearray]] = []
         self._tpdo_handlers: list[tuple[int, Callable]] = []
@@ -170,10 +163,10 @@ class Cia402Drive:
         node.nmt.state = "PRE-OPERATIONAL"
         self._first_contact(heartbeat_ms)
         self._wait_for_heartbeat(timeout_s)
-        self._newton_per_mille = node.sdo[0x6076].raw * 1e-6
-        self._supported_modes = node.sdo[0x6502].raw
+        self._newton_per_mille = node.sdo[RATED_TORQUE].raw * 1e-6
+        self._supported_modes = node.sdo[SUPPORTED_DRIVE_MODES].raw
         self._map_pdos()
-        self._raw[0x6041] = node.sdo[0x6041].raw  # the state before the first TPDO
+        self._raw[STATUSWORD] = node.sdo[STATUSWORD].raw  # the state before the first TPDO
         if gains:
             self.write_gains(**gains)
         node.nmt.state = "OPERATIONAL"
@@ -184,7 +177,7 @@ class Cia402Drive:
         log = logging.getLogger("canopen.sdo.client")
         log.disabled = True
         try:
-            self.node.sdo[0x1017].raw = heartbeat_ms
+            self.node.sdo[HEARTBEAT_TIME].raw = heartbeat_ms
         except canopen.SdoCommunicationError as exc:
             raise ConfigError(f"bench.node_id: no drive answers as node {self.node.id} "
                               f"({exc})") from None
@@ -211,7 +204,7 @@ class Cia402Drive:
         for number, pdo_map in self.node.tpdo.map.items():
             if self._save_map(pdo_map, self.pdo_config.tpdo.get(number, ())):
                 self._bind_reader(pdo_map)
-        if 0x6040 not in self._writers or 0x6041 not in self._raw:
+        if CONTROLWORD not in self._writers or STATUSWORD not in self._raw:
             raise DriveError("the cycle loop needs 0x6040 in an RPDO and 0x6041 in a TPDO")
 
     @staticmethod
@@ -282,12 +275,12 @@ class Cia402Drive:
     @property
     def statusword(self) -> int:
         """The latest statusword 0x6041 (TPDO)."""
-        return self._raw[0x6041]
+        return self._raw[STATUSWORD]
 
     @property
     def state(self) -> str:
         """CiA 402 state decoded from the latest statusword."""
-        return decode_state(self._raw[0x6041])
+        return decode_state(self._raw[STATUSWORD])
 
     @property
     def is_enabled(self) -> bool:
@@ -296,11 +289,11 @@ class Cia402Drive:
     @property
     def fault(self) -> bool:
         """Statusword bit 3: fault (or fault reaction) active."""
-        return bool(self._raw[0x6041] & SW_FAULT)
+        return bool(self._raw[STATUSWORD] & SW_FAULT)
 
     def _write_controlword(self, controlword: int) -> None:
         self._controlword = controlword
-        self._put(0x6040, controlword)
+        self._put(CONTROLWORD, controlword)
 
     def enable_step(self) -> bool:
         """Write the next controlword towards operation enabled; True once it is reached.
@@ -336,7 +329,7 @@ class Cia402Drive:
             self._write_controlword(CW_DISABLE_OPERATION)
             return False
         stopping = state == OPERATION_ENABLED or (
-            state == QUICK_STOP_ACTIVE and not self._raw[0x6041] & SW_TARGET_REACHED)
+            state == QUICK_STOP_ACTIVE and not self._raw[STATUSWORD] & SW_TARGET_REACHED)
         self._write_controlword(CW_QUICK_STOP if stopping else CW_DISABLE_VOLTAGE)
         return False
 
@@ -369,10 +362,10 @@ class Cia402Drive:
         if not bit or not self._supported_modes & bit:
             raise ValueError(f"mode {mode} not supported by node {self.node.id} "
                              f"(0x6502 = 0x{self._supported_modes:04X})")
-        if 0x6060 in self._writers:
-            self._put(0x6060, mode)
+        if MODES_OF_OPERATION in self._writers:
+            self._put(MODES_OF_OPERATION, mode)
         else:
-            self.node.sdo[0x6060].raw = mode
+            self.node.sdo[MODES_OF_OPERATION].raw = mode
 
     def set_targets(self, position: float | None = None, velocity: float | None = None,
                     force: float | None = None, velocity_offset: float | None = None,
@@ -382,18 +375,18 @@ class Cia402Drive:
         `force_offset` goes to 0x2011 (mN) when mapped, else to the torque offset 0x60B2 (‰).
         """
         if position is not None:
-            self._put(0x607A, round(position * 1e9))
+            self._put(TARGET_POSITION, round(position * 1e9))
         if velocity is not None:
-            self._put(0x60FF, round(velocity * 1e9))
+            self._put(TARGET_VELOCITY, round(velocity * 1e9))
         if force is not None:
-            self._put(0x6071, round(force / self._newton_per_mille))
+            self._put(TARGET_TORQUE, round(force / self._newton_per_mille))
         if velocity_offset is not None:
-            self._put(0x60B1, round(velocity_offset * 1e9))
+            self._put(VELOCITY_OFFSET, round(velocity_offset * 1e9))
         if force_offset is not None:
-            if 0x2011 in self._writers:
-                self._put(0x2011, round(force_offset * 1e3))
+            if FORCE_OFFSET_FINE in self._writers:
+                self._put(FORCE_OFFSET_FINE, round(force_offset * 1e3))
             else:
-                self._put(0x60B2, round(force_offset / self._newton_per_mille))
+                self._put(TORQUE_OFFSET, round(force_offset / self._newton_per_mille))
 
     def _put(self, index: int, value: int) -> None:
         try:
@@ -416,10 +409,11 @@ class Cia402Drive:
     def actual(self) -> Actual:
         """Latest actual values from the TPDOs, in SI (NaN where an object is not mapped)."""
         raw = self._raw
-        force = raw[0x2010] * 1e-3 if 0x2010 in raw else \
-            raw.get(0x6077, math.nan) * self._newton_per_mille
-        return Actual(self.device_cycle, raw[0x6041], raw.get(0x6064, math.nan) * 1e-9,
-                      raw.get(0x606C, math.nan) * 1e-9, force)
+        force = raw[FORCE_ACTUAL] * 1e-3 if FORCE_ACTUAL in raw else \
+            raw.get(TORQUE_ACTUAL, math.nan) * self._newton_per_mille
+        return Actual(self.device_cycle, raw[STATUSWORD],
+                      raw.get(POSITION_ACTUAL, math.nan) * 1e-9,
+                      raw.get(VELOCITY_ACTUAL, math.nan) * 1e-9, force)
 
     def latest(self, index: int) -> int | float:
         """The latest raw value of an object mapped in a TPDO (KeyError if it is not)."""
@@ -430,7 +424,7 @@ class Cia402Drive:
     @property
     def device_cycle(self) -> int:
         """The drive's cycle counter 0x2020 (16 bit); without it, the TPDO sets received."""
-        return self._raw.get(0x2020, self._sets_received & 0xFFFF)
+        return self._raw.get(CYCLE_COUNTER, self._sets_received & 0xFFFF)
 
     def arm_cycle(self) -> None:
         """Before the SYNC: forget the TPDOs received so far."""

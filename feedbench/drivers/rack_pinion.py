@@ -10,15 +10,19 @@ from __future__ import annotations
 
 from feedbench.drivers.cia402 import Cia402Drive, DriveError, PdoConfig
 from feedbench.protocols import rack_pinion as objects
+from feedbench.protocols.cia402 import (
+    CONTROLWORD, CYCLE_COUNTER, FORCE_ACTUAL, POSITION_ACTUAL, STATUSWORD, TARGET_POSITION,
+    TARGET_VELOCITY, TORQUE_OFFSET, VELOCITY_ACTUAL, VELOCITY_OFFSET,
+)
 
 AXIS_PDOS = PdoConfig(
     rpdo={
-        1: (0x6040, 0x607A, 0x60B2),  # controlword, target position, torque offset (‰)
-        2: (0x60FF, 0x60B1),  # target velocity, velocity offset
+        1: (CONTROLWORD, TARGET_POSITION, TORQUE_OFFSET),  # torque offset in ‰
+        2: (TARGET_VELOCITY, VELOCITY_OFFSET),
     },
     tpdo={
-        1: (0x6041, 0x6064, 0x2020),  # statusword, position actual (the axis), cycle counter
-        2: (0x606C, 0x2010),  # motor velocity, motor force at the rack (mN)
+        1: (STATUSWORD, POSITION_ACTUAL, CYCLE_COUNTER),  # position actual: the axis
+        2: (VELOCITY_ACTUAL, FORCE_ACTUAL),  # motor velocity, motor force at the rack (mN)
         3: objects.AXIS_TPDO,  # motor encoder at the rack, linear scale (nm)
     },
 )

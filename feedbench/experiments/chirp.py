@@ -16,7 +16,7 @@ from feedbench.config import ConfigError, Field, non_negative, one_of, positive,
 from feedbench.analysis.frf import estimate_frf
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import chirp, integrate_velocity, move_to, ramp_to_feed
-from feedbench.models.axis import CSP
+from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN
 
 NAME = "chirp"

@@ -27,7 +27,7 @@ from feedbench.config import ConfigError, Field, one_of, positive, validate_tabl
 from feedbench.experiments.chirp import mobility_extrema
 from feedbench.experiments.plan import Plan, Segment, recorded_windows
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
-from feedbench.models.axis import CSP, CSV
+from feedbench.protocols.cia402 import CSP, CSV
 from feedbench.units import MM_PER_MIN
 
 NAME = "closed_loop_bode"

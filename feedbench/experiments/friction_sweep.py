@@ -17,7 +17,7 @@ from feedbench.analysis.friction import FrictionFit, fit_andersson_directional
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import constant_feed_move
-from feedbench.models.axis import CSP
+from feedbench.protocols.cia402 import CSP
 from feedbench.units import MIN_PER_MM, MM_PER_MIN
 
 NAME = "friction_sweep"

@@ -24,7 +24,7 @@ from feedbench.experiments.tool_tip import (
     FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, ExcitationWindow, daq_needs,
     full_scale, overloaded, plan_over_feeds, window_samples,
 )
-from feedbench.models.axis import CSP
+from feedbench.protocols.cia402 import CSP
 
 NAME = "impact_hammer"
 EXCITER = "hammer"

@@ -23,7 +23,7 @@ from feedbench.experiments.tool_tip import (
     FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, ExcitationWindow, daq_needs,
     overloaded, plan_over_feeds, window_samples,
 )
-from feedbench.models.axis import CSP
+from feedbench.protocols.cia402 import CSP
 
 NAME = "shaker_chirp"
 

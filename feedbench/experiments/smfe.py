@@ -37,7 +37,6 @@ from feedbench.analysis.smfe import (
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
 from feedbench.experiments.plan import Plan, Segment, recorded_windows
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
-from feedbench.models.axis import CSP
 from feedbench.models.milling import (
     MAX_STEP_ROTATION,
     MILLING_MODES,
@@ -45,6 +44,7 @@ from feedbench.models.milling import (
     CuttingCoefficients,
     Tool,
 )
+from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN, RPM
 
 NAME = "smfe"

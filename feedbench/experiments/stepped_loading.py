@@ -31,7 +31,7 @@ from feedbench.analysis.stiffness import (
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import constant_feed_move
-from feedbench.models.axis import CSP
+from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN
 
 NAME = "stepped_loading"

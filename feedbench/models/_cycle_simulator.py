@@ -2,23 +2,20 @@
 (`axis.AxisSimulator`, `rack_pinion.RackPinionSimulator`).
 
 Both kernels read their settings from one parameter vector and name the shared entries
-alike (P_CYCLE, P_FORCE_LIMIT, …), so filling them, the force limit, the cycle clock and
-the checks of per-cycle arrays are written once here.
+alike (P_CYCLE, P_FORCE_LIMIT, …), so filling them, the loop rates and bus cycle
+(`ServoTiming`), the force limit, the cycle clock and the checks of per-cycle arrays are
+written once here.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from types import ModuleType
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import numpy as np
 
-from feedbench.models._kernel import CSP, CST, CSV
-
-if TYPE_CHECKING:
-    from feedbench.models.axis import ServoTiming
-
-MODES = (CSP, CSV, CST)
+from feedbench.protocols.cia402 import CSP, CST, CSV, MODES
 
 
 def positive(name: str, value: float) -> None:
@@ -31,6 +28,54 @@ def check_mode(mode: int) -> None:
     """Raise a ValueError unless `mode` is CSP, CSV or CST."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES} (CSP, CSV, CST), got {mode}")
+
+
+def whole_ratio(name: str, ratio: float, minimum: int) -> int:
+    """`ratio` as an integer >= minimum, or a ValueError naming the field."""
+    count = round(ratio)
+    if count < minimum or abs(ratio - count) > 1e-6 * max(1.0, ratio):
+        raise ValueError(f"{name} must be a whole number >= {minimum}, got {ratio:.6g}")
+    return count
+
+
+@dataclass(frozen=True)
+class ServoTiming:
+    """Loop rates (Hz), drive force delay τ_ol (s) and bus cycle (s).
+
+    Each loop period must divide the next slower one, and the delay must be a whole number
+    of velocity-loop periods (default 0.75 ms = 6 × 125 µs, τ_ol of Ch. 5.3.2).
+    """
+
+    f_velocity: float = 8000.0
+    f_position: float = 1000.0
+    delay: float = 0.75e-3
+    cycle: float = 1e-3
+
+    def __post_init__(self) -> None:
+        for name in ("f_velocity", "f_position", "cycle"):
+            positive(name, getattr(self, name))
+        for derived in ("velocity_ticks_per_position", "position_ticks_per_cycle", "delay_ticks"):
+            getattr(self, derived)  # raises ValueError unless a whole number
+
+    @property
+    def velocity_period(self) -> float:
+        """h = 1/f_velocity (s)."""
+        return 1.0 / self.f_velocity
+
+    @property
+    def velocity_ticks_per_position(self) -> int:
+        """Velocity-loop periods per position-loop period."""
+        return whole_ratio("f_velocity / f_position", self.f_velocity / self.f_position, 1)
+
+    @property
+    def position_ticks_per_cycle(self) -> int:
+        """Position-loop periods per bus cycle."""
+        return whole_ratio("f_position · cycle", self.f_position * self.cycle, 1)
+
+    @property
+    def delay_ticks(self) -> int:
+        """The delay in velocity-loop periods."""
+        return whole_ratio("delay · f_velocity", self.delay * self.f_velocity, 0)
 
 
 class CycleSimulator:

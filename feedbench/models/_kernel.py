@@ -33,9 +33,7 @@ import numpy as np
 from numba import njit
 
 from feedbench.models.effects import E_FORCE_LEVEL, acting_force, effect_forces, has_extra_forces
-
-CSP, CSV, CST = 8, 9, 10
-"""CiA 402 modes of operation: cyclic synchronous position / velocity / torque (force)."""
+from feedbench.protocols.cia402 import CSP, CST
 
 # columns of a friction table (rows: 0 for v >= 0, 1 for v < 0); 1/v_s saves a division
 F_C, F_S, INVERSE_V_S, SIGMA, K_TANH, DELTA = range(6)

@@ -20,14 +20,13 @@ import numpy as np
 from numba import njit
 
 from feedbench.models._kernel import (
-    CSP,
-    CST,
     friction_side,
     friction_velocity,
     proof_coefficients,
     velocity_pi,
 )
 from feedbench.models.effects import dead_zone
+from feedbench.protocols.cia402 import CSP, CST
 
 COUPLED, MASTER_ALONE, SLAVE_ALONE = 0, 1, 2
 """Coupling modes: master–slave with preload; one motor drives, the other is off."""

@@ -39,10 +39,12 @@ import numpy as np
 from scipy.linalg import expm
 
 from feedbench.models import _kernel
-from feedbench.models._cycle_simulator import MODES, CycleSimulator, check_mode, positive
-from feedbench.models._kernel import CSP, CST, CSV
+from feedbench.models._cycle_simulator import (
+    CycleSimulator, ServoTiming, check_mode, positive, whole_ratio,
+)
 from feedbench.models.effects import AxisEffects
 from feedbench.models.friction import AnderssonFriction, DirectionalFriction, LAB_BENCH_FRICTION
+from feedbench.protocols.cia402 import CSP, CST, CSV, MODES
 
 __all__ = [
     "CSP", "CSV", "CST", "MODES", "TwoMassAxis", "CascadeGains", "LAB_BENCH_GAINS", "ServoTiming",
@@ -51,14 +53,6 @@ __all__ = [
 
 OUTPUT_NAMES = ("position", "velocity", "force", "tip_position", "tip_velocity",
                 "tip_acceleration", "mean_velocity", "mean_force")
-
-
-def _whole_ratio(name: str, ratio: float, minimum: int) -> int:
-    """`ratio` as an integer >= minimum, or a ValueError naming the field."""
-    count = round(ratio)
-    if count < minimum or abs(ratio - count) > 1e-6 * max(1.0, ratio):
-        raise ValueError(f"{name} must be a whole number >= {minimum}, got {ratio:.6g}")
-    return count
 
 
 @dataclass(frozen=True)
@@ -149,46 +143,6 @@ LAB_BENCH_GAINS = CascadeGains.standard(34.4, 30.0)
 """Default drive tuning of the laboratory bench: M_total = 34.4 kg, f_bw = 30 Hz."""
 
 
-@dataclass(frozen=True)
-class ServoTiming:
-    """Loop rates (Hz), drive force delay τ_ol (s) and bus cycle (s).
-
-    Each loop period must divide the next slower one, and the delay must be a whole number
-    of velocity-loop periods (default 0.75 ms = 6 × 125 µs, τ_ol of Ch. 5.3.2).
-    """
-
-    f_velocity: float = 8000.0
-    f_position: float = 1000.0
-    delay: float = 0.75e-3
-    cycle: float = 1e-3
-
-    def __post_init__(self) -> None:
-        for name in ("f_velocity", "f_position", "cycle"):
-            positive(name, getattr(self, name))
-        for derived in ("velocity_ticks_per_position", "position_ticks_per_cycle", "delay_ticks"):
-            getattr(self, derived)  # raises ValueError unless a whole number
-
-    @property
-    def velocity_period(self) -> float:
-        """h = 1/f_velocity (s)."""
-        return 1.0 / self.f_velocity
-
-    @property
-    def velocity_ticks_per_position(self) -> int:
-        """Velocity-loop periods per position-loop period."""
-        return _whole_ratio("f_velocity / f_position", self.f_velocity / self.f_position, 1)
-
-    @property
-    def position_ticks_per_cycle(self) -> int:
-        """Position-loop periods per bus cycle."""
-        return _whole_ratio("f_position · cycle", self.f_position * self.cycle, 1)
-
-    @property
-    def delay_ticks(self) -> int:
-        """The delay in velocity-loop periods."""
-        return _whole_ratio("delay · f_velocity", self.delay * self.f_velocity, 0)
-
-
 class AxisSimulator(CycleSimulator):
     """The drive's inner world: two-mass axis, friction, P-PI cascade, delay, force limit.
 
@@ -222,7 +176,7 @@ class AxisSimulator(CycleSimulator):
         """velocity_feedforward: in CSP add the target's increment per cycle / cycle time to
         the velocity command. physics_substeps: physics steps per velocity-loop period.
         effects: what else the world carries (ripple, force-level nonlinearity, backlash)."""
-        physics_substeps = _whole_ratio("physics_substeps", physics_substeps, 1)
+        physics_substeps = whole_ratio("physics_substeps", physics_substeps, 1)
         super().__init__(timing, physics_substeps, velocity_feedforward)
         self._inputs = np.zeros((_kernel.INPUT_COUNT, 1))
         self._outputs = np.zeros((_kernel.OUTPUT_COUNT, 1))

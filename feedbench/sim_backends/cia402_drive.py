@@ -41,32 +41,24 @@ import canopen
 import numpy as np
 from canopen.sdo import SdoAbortedError
 
+from feedbench.models.axis import AxisSimulator
 from feedbench.protocols.canbus import connect, pdo_codec
-from feedbench.models.axis import CSP, CSV, MODES, AxisSimulator
+from feedbench.protocols.cia402 import (
+    CONTROLWORD, CSP, CSV, CW_FAULT_RESET, CYCLE_COUNTER, CYCLE_PERIOD, EMCY_FOLLOWING_ERROR,
+    EMCY_INTERNAL_SOFTWARE, EMCY_PDO_LENGTH, ERROR_CODE, ERROR_REGISTER, FAULT,
+    FAULT_INJECTION, FOLLOWING_ERROR_ACTUAL, FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL, FORCE_LIMIT,
+    FORCE_OFFSET_FINE, GAIN_OBJECTS, MANUFACTURER_FIRST, MODES, MODES_OF_OPERATION,
+    MODES_OF_OPERATION_DISPLAY, OPERATION_ENABLED, PDO_RECORDS_END, POSITION_ACTUAL,
+    QUICK_STOP_ACTIVE, QUICK_STOP_DECELERATION, RATED_TORQUE, READY, RPDO_COMMUNICATION,
+    RPDO_MAPPING, STATE_BITS, STATUSWORD, SW_FOLLOWING_ERROR, SW_FOLLOWS_COMMAND, SW_REMOTE,
+    SWITCH_ON_DISABLED, SWITCHED_ON, TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY,
+    TORQUE_ACTUAL, TORQUE_OFFSET, TPDO_COMMUNICATION, TPDO_MAPPING, VELOCITY_ACTUAL,
+    VELOCITY_OFFSET, VELOCITY_WINDOW,
+)
 from feedbench.sim_backends import eds
-
-SWITCH_ON_DISABLED = "SWITCH ON DISABLED"
-READY = "READY TO SWITCH ON"
-SWITCHED_ON = "SWITCHED ON"
-OPERATION_ENABLED = "OPERATION ENABLED"
-QUICK_STOP_ACTIVE = "QUICK STOP ACTIVE"
-FAULT = "FAULT"
-
-STATUSWORD = {  # state bits incl. bit 4 voltage enabled, bit 5 quick stop (1 = not active)
-    SWITCH_ON_DISABLED: 0x0040,
-    READY: 0x0031,
-    SWITCHED_ON: 0x0033,
-    OPERATION_ENABLED: 0x0037,
-    QUICK_STOP_ACTIVE: 0x0017,
-    FAULT: 0x0008,
-}
-SW_REMOTE = 0x0200
-SW_FOLLOWS_COMMAND = 0x1000
-SW_FOLLOWING_ERROR = 0x2000
 
 # controlword commands (CiA 402), decoded by `command_of`
 DISABLE_VOLTAGE, QUICK_STOP, SHUTDOWN, SWITCH_ON, ENABLE_OPERATION = range(5)
-CW_FAULT_RESET = 0x0080
 
 TRANSITIONS = {  # (state, command) -> next state; absent pairs leave the state unchanged
     (READY, DISABLE_VOLTAGE): SWITCH_ON_DISABLED,  # 7
@@ -88,9 +80,6 @@ POWERED = (OPERATION_ENABLED, QUICK_STOP_ACTIVE)
 
 LOGGER = logging.getLogger(__name__)
 
-EMCY_FOLLOWING_ERROR = 0x8611
-EMCY_INTERNAL_SOFTWARE = 0x6100
-EMCY_PDO_LENGTH = 0x8210
 ERROR_REGISTER_GENERIC = 0x01
 FOLLOWING_ERROR_OFF = 0xFFFFFFFF
 
@@ -98,9 +87,7 @@ ABORT_NO_OBJECT = 0x06020000
 ABORT_NOT_MAPPABLE = 0x06040041
 ABORT_PDO_LENGTH = 0x06040042
 ABORT_VALUE_RANGE = 0x06090030
-GAIN_OBJECTS = {0x2001: "K_p", 0x2002: "T_i", 0x2003: "K_v"}  # → CascadeGains fields
-FORCE_LIMIT_OBJECT = 0x2004
-RATED_FORCE_OBJECT = 0x6076
+GAIN_FIELDS = {index: name for name, index in GAIN_OBJECTS.items()}  # → CascadeGains
 INT16_MAX = 0x7FFF
 INT32_MAX = 0x7FFFFFFF
 
@@ -215,7 +202,7 @@ class SimulatedCia402Drive:
     def _boot(self, application: bool) -> None:
         """Power-on / NMT reset: object values back to defaults, boot-up, pre-operational."""
         store = self.node.data_store
-        for index in [i for i in store if application or i < 0x2000]:
+        for index in [i for i in store if application or i < MANUFACTURER_FIRST]:
             del store[index]
         if application:
             self._reset_application()
@@ -229,12 +216,13 @@ class SimulatedCia402Drive:
         sim = self.simulator
         self.values: dict[int, int | float] = {
             index: od[index].default for index in od
-            if index >= 0x2000 and isinstance(od[index], canopen.objectdictionary.ODVariable)
+            if index >= MANUFACTURER_FIRST
+            and isinstance(od[index], canopen.objectdictionary.ODVariable)
         }
-        self.values.update({0x1001: 0, 0x1006: round(sim.timing.cycle * 1e6),
-                            FORCE_LIMIT_OBJECT: sim.force_limit})
+        self.values.update({ERROR_REGISTER: 0, CYCLE_PERIOD: round(sim.timing.cycle * 1e6),
+                            FORCE_LIMIT: sim.force_limit})
         self.values.update({index: getattr(sim.gains, name)
-                            for index, name in GAIN_OBJECTS.items()})
+                            for name, index in GAIN_OBJECTS.items()})
         if self._objects is not None:
             self.values.update(self._objects.values())
         self.state = SWITCH_ON_DISABLED
@@ -242,9 +230,9 @@ class SimulatedCia402Drive:
         self._following_error = False
         self._stop_velocity = 0.0
         self._count = 0
-        self._newton_per_mille = self.values[RATED_FORCE_OBJECT] * 1e-6  # N per ‰ (0x6076: mN)
+        self._newton_per_mille = self.values[RATED_TORQUE] * 1e-6  # N per ‰ (0x6076: mN)
         sim.enabled = False
-        self.values[0x6041] = self._statusword()
+        self.values[STATUSWORD] = self._statusword()
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Runs after canopen's NmtSlave has applied the command."""
@@ -272,8 +260,8 @@ class SimulatedCia402Drive:
     def _on_sdo_write(self, index: int, subindex: int, od: canopen.objectdictionary.ODVariable,
                       data: bytes) -> None:
         """Validate and apply an SDO download (raise SdoAbortedError to refuse it)."""
-        if 0x1400 <= index < 0x1C00:
-            if 0x1600 <= index < 0x1800 or 0x1A00 <= index:
+        if RPDO_COMMUNICATION <= index < PDO_RECORDS_END:
+            if RPDO_MAPPING <= index < TPDO_COMMUNICATION or TPDO_MAPPING <= index:
                 self._check_mapping(index, subindex, od.decode_raw(data))
             self._pdo_dirty = True
         elif subindex == 0 and index in self.values:
@@ -285,22 +273,22 @@ class SimulatedCia402Drive:
                 self._objects.write(index, value)
             except ValueError:
                 raise SdoAbortedError(ABORT_VALUE_RANGE) from None
-        if index in GAIN_OBJECTS:
+        if index in GAIN_FIELDS:
             try:
-                gains = dataclasses.replace(self.simulator.gains, **{GAIN_OBJECTS[index]: value})
+                gains = dataclasses.replace(self.simulator.gains, **{GAIN_FIELDS[index]: value})
             except ValueError:  # CascadeGains refuses T_i <= 0, K_p < 0, K_v < 0
                 raise SdoAbortedError(ABORT_VALUE_RANGE) from None
             self.simulator.set_gains(gains)
-        elif index in (FORCE_LIMIT_OBJECT, RATED_FORCE_OBJECT) and not value > 0:
+        elif index in (FORCE_LIMIT, RATED_TORQUE) and not value > 0:
             raise SdoAbortedError(ABORT_VALUE_RANGE)
-        if index == FORCE_LIMIT_OBJECT:
+        if index == FORCE_LIMIT:
             self.simulator.force_limit = value
         self.values[index] = value
-        self._newton_per_mille = self.values[RATED_FORCE_OBJECT] * 1e-6
+        self._newton_per_mille = self.values[RATED_TORQUE] * 1e-6
 
     def _check_mapping(self, index: int, subindex: int, value: int) -> None:
         """CiA 301 checks of a mapping entry (sub 1–8) or of the number of entries (sub 0)."""
-        receive = index < 0x1800
+        receive = index < TPDO_COMMUNICATION
         if subindex == 0:
             if value > 8 or sum(self.node.sdo[index][sub].raw & 0xFF
                                 for sub in range(1, value + 1)) > 64:
@@ -353,7 +341,7 @@ class SimulatedCia402Drive:
                          " EMCY 0x%04X", self.node.id, self._count, type(error).__name__, error,
                          EMCY_INTERNAL_SOFTWARE)
             self._fault(EMCY_INTERNAL_SOFTWARE)
-        self.values[0x6041] = self._statusword()
+        self.values[STATUSWORD] = self._statusword()
         if self._operational:
             self._send_tpdos()
 
@@ -362,12 +350,12 @@ class SimulatedCia402Drive:
         world (an `AxisSimulator` steps here; a shared world's port only latches them)."""
         self._count += 1
         values = self.values
-        values[0x2020] = self._count & 0xFFFF
+        values[CYCLE_COUNTER] = self._count & 0xFFFF
         if self._pdo_dirty:
             self._load_pdo_maps()
         values.update(self._received)  # the RPDO data received since the last SYNC
         self._received.clear()
-        self._advance_state_machine(values[0x6040])
+        self._advance_state_machine(values[CONTROLWORD])
         for hook in self.before_physics:
             hook()
         self._step_physics()
@@ -401,16 +389,16 @@ class SimulatedCia402Drive:
         if self.state == FAULT:
             if fault_reset:
                 self._reset_fault()
-        elif values[0x2030]:
-            self._fault(values[0x2030])
-            values[0x2030] = 0
+        elif values[FAULT_INJECTION]:
+            self._fault(values[FAULT_INJECTION])
+            values[FAULT_INJECTION] = 0
         else:
             state = TRANSITIONS.get((self.state, command_of(controlword)), self.state)
             if state != self.state:
                 self._enter(state)
-        mode = values[0x6060]
+        mode = values[MODES_OF_OPERATION]
         if mode in MODES:
-            values[0x6061] = mode
+            values[MODES_OF_OPERATION_DISPLAY] = mode
 
     def _enter(self, state: str) -> None:
         if state == QUICK_STOP_ACTIVE and self.state != QUICK_STOP_ACTIVE:
@@ -422,14 +410,14 @@ class SimulatedCia402Drive:
 
     def _fault(self, code: int) -> None:
         self._enter(FAULT)
-        self.values[0x603F] = code
-        self.values[0x1001] = ERROR_REGISTER_GENERIC
+        self.values[ERROR_CODE] = code
+        self.values[ERROR_REGISTER] = ERROR_REGISTER_GENERIC
         self.node.emcy.send(code, ERROR_REGISTER_GENERIC)
 
     def _reset_fault(self) -> None:
         self._enter(SWITCH_ON_DISABLED)
-        self.values[0x603F] = 0
-        self.values[0x1001] = 0
+        self.values[ERROR_CODE] = 0
+        self.values[ERROR_REGISTER] = 0
         self._following_error = False
         self.node.emcy.reset()
 
@@ -441,14 +429,15 @@ class SimulatedCia402Drive:
             self._step_quick_stop()
             return
         self.simulator.step_cycle(
-            v[0x6061], v[0x607A] * 1e-9, v[0x60FF] * 1e-9, v[0x6071] * per_mille,
-            v[0x60B1] * 1e-9, v[0x60B2] * per_mille + v[0x2011] * 1e-3, self.tip_force)
+            v[MODES_OF_OPERATION_DISPLAY], v[TARGET_POSITION] * 1e-9, v[TARGET_VELOCITY] * 1e-9,
+            v[TARGET_TORQUE] * per_mille, v[VELOCITY_OFFSET] * 1e-9,
+            v[TORQUE_OFFSET] * per_mille + v[FORCE_OFFSET_FINE] * 1e-3, self.tip_force)
 
     def _step_quick_stop(self) -> None:
         """Quick-stop ramp (0x6085) in velocity control; switch on disabled when stopped."""
         v = self.values
         sim = self.simulator
-        ramp = v[0x6085] * 1e-9 * sim.timing.cycle
+        ramp = v[QUICK_STOP_DECELERATION] * 1e-9 * sim.timing.cycle
         self._stop_velocity = math.copysign(max(0.0, abs(self._stop_velocity) - ramp),
                                             self._stop_velocity)
         sim.step_cycle(CSV, 0.0, self._stop_velocity, 0.0, 0.0, 0.0, self.tip_force)
@@ -456,7 +445,7 @@ class SimulatedCia402Drive:
     def _finish_quick_stop(self) -> None:
         """Quick stop complete (ramp at zero, |v| below 0x606D): switch on disabled."""
         if (self.state == QUICK_STOP_ACTIVE and self._stop_velocity == 0.0
-                and abs(self.simulator.velocity) * 1e9 < self.values[0x606D]):
+                and abs(self.simulator.velocity) * 1e9 < self.values[VELOCITY_WINDOW]):
             self._enter(SWITCH_ON_DISABLED)
 
     def _next_noise(self) -> tuple[float, float]:
@@ -472,21 +461,22 @@ class SimulatedCia402Drive:
         position, mean_velocity, mean_force = self.simulator.reported()
         force_noise, velocity_noise = self._next_noise()
         force = mean_force + force_noise  # cycle means, as a drive filters them
-        v[0x6064] = position = _int32_wrapped(position * 1e9)
-        v[0x606C] = _saturated((mean_velocity + velocity_noise) * 1e9, INT32_MAX)
-        v[0x2010] = _saturated(force * 1e3, INT32_MAX)
-        v[0x6077] = _saturated(force / self._newton_per_mille, INT16_MAX)
+        v[POSITION_ACTUAL] = position = _int32_wrapped(position * 1e9)
+        v[VELOCITY_ACTUAL] = _saturated((mean_velocity + velocity_noise) * 1e9, INT32_MAX)
+        v[FORCE_ACTUAL] = _saturated(force * 1e3, INT32_MAX)
+        v[TORQUE_ACTUAL] = _saturated(force / self._newton_per_mille, INT16_MAX)
         if self._objects is not None:
             v.update(self._objects.actual())
-        v[0x60F4] = error = v[0x607A] - position
-        if (self.state == OPERATION_ENABLED and v[0x6061] == CSP
-                and v[0x6065] != FOLLOWING_ERROR_OFF and abs(error) > v[0x6065]):
+        v[FOLLOWING_ERROR_ACTUAL] = error = v[TARGET_POSITION] - position
+        window = v[FOLLOWING_ERROR_WINDOW]
+        if (self.state == OPERATION_ENABLED and v[MODES_OF_OPERATION_DISPLAY] == CSP
+                and window != FOLLOWING_ERROR_OFF and abs(error) > window):
             self._following_error = True
             self._fault(EMCY_FOLLOWING_ERROR)
-        v[0x6041] = self._statusword()
+        v[STATUSWORD] = self._statusword()
 
     def _statusword(self) -> int:
-        word = STATUSWORD[self.state] | SW_REMOTE
+        word = STATE_BITS[self.state] | SW_REMOTE
         if self.state == OPERATION_ENABLED:
             word |= SW_FOLLOWS_COMMAND
         if self._following_error:

@@ -20,28 +20,25 @@ import canopen
 from canopen.objectdictionary import ODRecord, ODVariable, ObjectDictionary, datatypes
 from canopen.objectdictionary.eds import export_eds
 
+from feedbench.protocols.cia402 import (
+    CONTROLWORD, CSV, CYCLE_COUNTER, CYCLE_PERIOD, DEFAULT_RPDO_MAPS, DEFAULT_TPDO_MAPS,
+    DEVICE_TYPE, DEVICE_TYPE_OBJECT, ERROR_CODE, ERROR_REGISTER, FAULT_INJECTION,
+    FOLLOWING_ERROR_ACTUAL, FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL, FORCE_LIMIT, FORCE_OFFSET_FINE,
+    GAIN_OBJECTS, HEARTBEAT_TIME, IDENTITY, MODES_OF_OPERATION, MODES_OF_OPERATION_DISPLAY,
+    PDO_COB_ID, PDO_EVENT_TIMER, PDO_INHIBIT_TIME, PDO_TRANSMISSION_TYPE, POSITION_ACTUAL,
+    QUICK_STOP_DECELERATION, QUICK_STOP_OPTION_CODE, RATED_TORQUE, RPDO_COB_BASE,
+    RPDO_COMMUNICATION, RPDO_MAPPING, STATUSWORD, SUPPORTED_DRIVE_MODES, SUPPORTED_MODES,
+    TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY, TORQUE_ACTUAL, TORQUE_OFFSET, TPDO_COB_BASE,
+    TPDO_COMMUNICATION, TPDO_MAPPING, TRANSMISSION_SYNC, VELOCITY_ACTUAL, VELOCITY_OFFSET,
+    VELOCITY_WINDOW,
+)
+
 EDS_FILE = "cia402.eds"
 PRODUCT_NAME = "Simulated CiA 402 feed drive"
 
 RPDO_COUNT = TPDO_COUNT = 4
-TRANSMISSION_SYNC = 1
-"""PDO transmission type: every SYNC (CiA 301)."""
 PDO_NOT_VALID = 0x80000000
 
-DEFAULT_RPDO_MAPS: dict[int, tuple[int, ...]] = {
-    1: (0x6040, 0x607A, 0x6060),  # controlword, target position, modes of operation: 7 bytes
-    2: (0x60FF, 0x60B1),  # target velocity, velocity offset: 8 bytes
-    3: (0x2011, 0x60B2, 0x6071),  # force offset fine, torque offset, target torque: 8 bytes
-}
-DEFAULT_TPDO_MAPS: dict[int, tuple[int, ...]] = {
-    1: (0x6041, 0x6064, 0x2020),  # statusword, position actual, cycle counter: 8 bytes
-    2: (0x606C, 0x2010),  # velocity actual, force actual: 8 bytes
-}
-
-SUPPORTED_MODES = 0x0380
-"""0x6502 bits 7, 8, 9: cyclic synchronous position, velocity, torque (CiA 402)."""
-DEVICE_TYPE = 0x00020192
-"""0x1000: profile 402 (0x0192), additional information: servo drive."""
 QUICK_STOP_OPTION = 2
 """0x605A: slow down on the quick-stop ramp, then switch on disabled."""
 
@@ -65,51 +62,53 @@ U8, U16, U32 = datatypes.UNSIGNED8, datatypes.UNSIGNED16, datatypes.UNSIGNED32
 F32 = datatypes.REAL32
 
 COMMUNICATION = (
-    Entry(0x1000, "Device type", U32, "ro", default=DEVICE_TYPE),
-    Entry(0x1001, "Error register", U8, "ro", default=0),
-    Entry(0x1006, "Communication cycle period", U32, "ro", default=1000, unit="us",
+    Entry(DEVICE_TYPE_OBJECT, "Device type", U32, "ro", default=DEVICE_TYPE),
+    Entry(ERROR_REGISTER, "Error register", U8, "ro", default=0),
+    Entry(CYCLE_PERIOD, "Communication cycle period", U32, "ro", default=1000, unit="us",
           description="bus cycle: one SYNC advances the simulated axis by this time"),
-    Entry(0x1017, "Producer heartbeat time", U16, "rw", default=1000, unit="ms"),
+    Entry(HEARTBEAT_TIME, "Producer heartbeat time", U16, "rw", default=1000, unit="ms"),
 )
 
 PROFILE = (
-    Entry(0x603F, "Error code", U16, "ro", True, 0),
-    Entry(0x6040, "Controlword", U16, "rw", True, 0),
-    Entry(0x6041, "Statusword", U16, "ro", True, 0),
-    Entry(0x605A, "Quick stop option code", I16, "const", default=QUICK_STOP_OPTION),
-    Entry(0x6060, "Modes of operation", I8, "rw", True, 9),
-    Entry(0x6061, "Modes of operation display", I8, "ro", True, 9),
-    Entry(0x6064, "Position actual value", I32, "ro", True, 0, "nm"),
-    Entry(0x6065, "Following error window", U32, "rw", False, 10_000_000, "nm",
+    Entry(ERROR_CODE, "Error code", U16, "ro", True, 0),
+    Entry(CONTROLWORD, "Controlword", U16, "rw", True, 0),
+    Entry(STATUSWORD, "Statusword", U16, "ro", True, 0),
+    Entry(QUICK_STOP_OPTION_CODE, "Quick stop option code", I16, "const",
+          default=QUICK_STOP_OPTION),
+    Entry(MODES_OF_OPERATION, "Modes of operation", I8, "rw", True, CSV),
+    Entry(MODES_OF_OPERATION_DISPLAY, "Modes of operation display", I8, "ro", True, CSV),
+    Entry(POSITION_ACTUAL, "Position actual value", I32, "ro", True, 0, "nm"),
+    Entry(FOLLOWING_ERROR_WINDOW, "Following error window", U32, "rw", False, 10_000_000, "nm",
           "CSP: fault with EMCY 0x8611 when |target - actual| exceeds it; 0xFFFFFFFF: off"),
-    Entry(0x606C, "Velocity actual value", I32, "ro", True, 0, "nm/s"),
-    Entry(0x606D, "Velocity window", U16, "rw", False, 10_000, "nm/s",
+    Entry(VELOCITY_ACTUAL, "Velocity actual value", I32, "ro", True, 0, "nm/s"),
+    Entry(VELOCITY_WINDOW, "Velocity window", U16, "rw", False, 10_000, "nm/s",
           "quick stop ends (switch on disabled) when |velocity| is below it"),
-    Entry(0x6071, "Target torque", I16, "rw", True, 0, "permille of 0x6076"),
-    Entry(0x6076, "Motor rated torque", U32, "rw", False, 1_000_000, "mN",
+    Entry(TARGET_TORQUE, "Target torque", I16, "rw", True, 0, "permille of 0x6076"),
+    Entry(RATED_TORQUE, "Motor rated torque", U32, "rw", False, 1_000_000, "mN",
           "linear motor: rated force, the 1000 permille of the torque objects"),
-    Entry(0x6077, "Torque actual value", I16, "ro", True, 0, "permille of 0x6076"),
-    Entry(0x607A, "Target position", I32, "rw", True, 0, "nm"),
-    Entry(0x6085, "Quick stop deceleration", U32, "rw", False, 2_000_000_000, "nm/s2"),
-    Entry(0x60B1, "Velocity offset", I32, "rw", True, 0, "nm/s"),
-    Entry(0x60B2, "Torque offset", I16, "rw", True, 0, "permille of 0x6076"),
-    Entry(0x60F4, "Following error actual value", I32, "ro", True, 0, "nm"),
-    Entry(0x60FF, "Target velocity", I32, "rw", True, 0, "nm/s"),
-    Entry(0x6502, "Supported drive modes", U32, "ro", default=SUPPORTED_MODES),
+    Entry(TORQUE_ACTUAL, "Torque actual value", I16, "ro", True, 0, "permille of 0x6076"),
+    Entry(TARGET_POSITION, "Target position", I32, "rw", True, 0, "nm"),
+    Entry(QUICK_STOP_DECELERATION, "Quick stop deceleration", U32, "rw", False, 2_000_000_000,
+          "nm/s2"),
+    Entry(VELOCITY_OFFSET, "Velocity offset", I32, "rw", True, 0, "nm/s"),
+    Entry(TORQUE_OFFSET, "Torque offset", I16, "rw", True, 0, "permille of 0x6076"),
+    Entry(FOLLOWING_ERROR_ACTUAL, "Following error actual value", I32, "ro", True, 0, "nm"),
+    Entry(TARGET_VELOCITY, "Target velocity", I32, "rw", True, 0, "nm/s"),
+    Entry(SUPPORTED_DRIVE_MODES, "Supported drive modes", U32, "ro", default=SUPPORTED_MODES),
 )
 
 MANUFACTURER = (
-    Entry(0x2001, "Velocity loop gain K_p", F32, "rw", unit="N*s/m",
+    Entry(GAIN_OBJECTS["K_p"], "Velocity loop gain K_p", F32, "rw", unit="N*s/m",
           description="P-PI cascade, Eq. (5.4); the drive serves its live value"),
-    Entry(0x2002, "Velocity loop integral time T_i", F32, "rw", unit="s"),
-    Entry(0x2003, "Position loop gain K_v", F32, "rw", unit="1/s"),
-    Entry(0x2004, "Force limit", F32, "rw", unit="N"),
-    Entry(0x2010, "Force actual value", I32, "ro", True, 0, "mN",
+    Entry(GAIN_OBJECTS["T_i"], "Velocity loop integral time T_i", F32, "rw", unit="s"),
+    Entry(GAIN_OBJECTS["K_v"], "Position loop gain K_v", F32, "rw", unit="1/s"),
+    Entry(FORCE_LIMIT, "Force limit", F32, "rw", unit="N"),
+    Entry(FORCE_ACTUAL, "Force actual value", I32, "ro", True, 0, "mN",
           "force applied by the motor to the carriage"),
-    Entry(0x2011, "Force offset fine", I32, "rw", True, 0, "mN", "added to 0x60B2"),
-    Entry(0x2020, "Cycle counter", U16, "ro", True, 0, "",
+    Entry(FORCE_OFFSET_FINE, "Force offset fine", I32, "rw", True, 0, "mN", "added to 0x60B2"),
+    Entry(CYCLE_COUNTER, "Cycle counter", U16, "ro", True, 0, "",
           "number of SYNCs processed (wraps at 65536)"),
-    Entry(0x2030, "Fault injection", U16, "rw", False, 0, "",
+    Entry(FAULT_INJECTION, "Fault injection", U16, "rw", False, 0, "",
           "write an EMCY error code: the drive faults with it at the next SYNC"),
 )
 
@@ -148,16 +147,17 @@ def _cob_id(base: int, enabled: bool) -> str:
 
 def _pdo_records(od: ObjectDictionary, number: int, receive: bool,
                  mapped: tuple[int, ...]) -> None:
-    comm_index, map_index = (0x1400, 0x1600) if receive else (0x1800, 0x1A00)
-    cob_base = (0x200 if receive else 0x180) + 0x100 * (number - 1)
+    comm_index, map_index = ((RPDO_COMMUNICATION, RPDO_MAPPING) if receive
+                             else (TPDO_COMMUNICATION, TPDO_MAPPING))
+    cob_base = (RPDO_COB_BASE if receive else TPDO_COB_BASE) + 0x100 * (number - 1)
     kind = "RPDO" if receive else "TPDO"
     comm = ODRecord(f"{kind}{number} communication parameter", comm_index + number - 1)
     _member(comm, 0, "Highest sub-index supported", U8, "const", 2 if receive else 5)
-    _member(comm, 1, "COB-ID", U32, "rw", default_raw=_cob_id(cob_base, bool(mapped)))
-    _member(comm, 2, "Transmission type", U8, "rw", TRANSMISSION_SYNC)
+    _member(comm, PDO_COB_ID, "COB-ID", U32, "rw", default_raw=_cob_id(cob_base, bool(mapped)))
+    _member(comm, PDO_TRANSMISSION_TYPE, "Transmission type", U8, "rw", TRANSMISSION_SYNC)
     if not receive:
-        _member(comm, 3, "Inhibit time", U16, "rw", 0)
-        _member(comm, 5, "Event timer", U16, "rw", 0)
+        _member(comm, PDO_INHIBIT_TIME, "Inhibit time", U16, "rw", 0)
+        _member(comm, PDO_EVENT_TIMER, "Event timer", U16, "rw", 0)
     od.add_object(comm)
     mapping = ODRecord(f"{kind}{number} mapping parameter", map_index + number - 1)
     _member(mapping, 0, "Number of mapped objects", U8, "rw", len(mapped))
@@ -170,7 +170,7 @@ def _pdo_records(od: ObjectDictionary, number: int, receive: bool,
 
 
 def _identity(od: ObjectDictionary) -> None:
-    identity = ODRecord("Identity object", 0x1018)
+    identity = ODRecord("Identity object", IDENTITY)
     _member(identity, 0, "Number of entries", U8, "const", 4)
     for sub, name, value in ((1, "Vendor-ID", 0), (2, "Product code", 0x402),
                              (3, "Revision number", 1), (4, "Serial number", 1)):

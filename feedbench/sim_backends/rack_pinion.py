@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
-from feedbench.models.axis import CSP, CascadeGains, ServoTiming
+from feedbench.models.axis import CascadeGains, ServoTiming
 from feedbench.models.friction import AnderssonFriction, DirectionalFriction
 from feedbench.models.rack_pinion import (
     K_TR_THESIS, MOTORS, RACK_PINION_GAINS, SLAVE_ALONE, Bumper, Preload, RackPinionAxis,
@@ -29,6 +29,7 @@ from feedbench.models.rack_pinion import (
 )
 from feedbench.protocols import rack_pinion as objects
 from feedbench.protocols.canbus import open_bus
+from feedbench.protocols.cia402 import CSP, RATED_TORQUE
 from feedbench.sim_backends import eds
 from feedbench.sim_backends.drive_bus import SimulatedDriveBus
 from feedbench.sim_backends.modbus_devices import SimulatedLoadCell, SimulatedModbusTcpServer
@@ -37,7 +38,6 @@ from feedbench.units import MIN_PER_MM, MM_PER_MIN, N_MIN_PER_MM, N_PER_UM
 
 EDS_FILE = "rack_pinion.eds"
 PRODUCT_NAME = "Simulated rack-and-pinion axis drive (CiA 402, master-slave)"
-RATED_FORCE_OBJECT = 0x6076
 
 OBJECTS = (
     eds.Entry(objects.PRELOAD_LEVEL, "Preload level", eds.U16, "rw", False, 100,
@@ -296,7 +296,7 @@ class MotorObjects:
 
     def values(self) -> dict[int, int | float]:
         """Parameters at power-on: 0x6076 is the rated torque as a force at the rack (mN)."""
-        return {RATED_FORCE_OBJECT: round(self.world.simulator.axis.rated_force * 1e3)}
+        return {RATED_TORQUE: round(self.world.simulator.axis.rated_force * 1e3)}
 
     def write(self, index: int, value: int | float) -> None:
         """A node without axis objects: nothing to apply."""

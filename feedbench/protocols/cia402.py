@@ -1,0 +1,129 @@
+"""The CiA 402 servo drive's object table, shared by both ends: the host driver
+(`drivers.cia402`), the simulated drive and its EDS (`sim_backends.cia402_drive`, `eds`)
+and the physics kernel behind it (`models._kernel`, which takes the mode codes).
+
+Plain ints (numba compiles the kernel against the mode codes). Every object here is a VAR
+at sub-index 0 except the PDO parameter records (CiA 301), whose sub-indices are named
+below. Units on the bus (docs/ARCHITECTURE.md): position 1 nm, velocity 1 nm/s, the
+torque objects in per mille of the rated force `RATED_TORQUE` (mN), the manufacturer
+force objects in mN, the gains in SI (REAL32).
+"""
+
+from __future__ import annotations
+
+# -- modes of operation (0x6060 / 0x6061) --------------------------------------------------
+
+CSP, CSV, CST = 8, 9, 10
+"""Cyclic synchronous position, velocity, torque."""
+MODES = (CSP, CSV, CST)
+SUPPORTED_MODES = 0x0380
+"""0x6502 bits 7, 8, 9: the three cyclic synchronous modes."""
+
+# -- communication objects (CiA 301) -------------------------------------------------------
+
+DEVICE_TYPE_OBJECT = 0x1000
+DEVICE_TYPE = 0x00020192
+"""Its value: profile 402 (0x0192), additional information: servo drive."""
+ERROR_REGISTER = 0x1001
+CYCLE_PERIOD = 0x1006
+"""µs: one SYNC advances the simulated axis by this time."""
+HEARTBEAT_TIME = 0x1017
+IDENTITY = 0x1018
+RPDO_COMMUNICATION, RPDO_MAPPING = 0x1400, 0x1600
+TPDO_COMMUNICATION, TPDO_MAPPING = 0x1800, 0x1A00
+"""First PDO parameter record of each kind (PDO n at + n − 1)."""
+PDO_RECORDS_END = 0x1C00
+"""First index past the TPDO mapping records."""
+PDO_COB_ID, PDO_TRANSMISSION_TYPE, PDO_INHIBIT_TIME, PDO_EVENT_TIMER = 1, 2, 3, 5
+"""Sub-indices of a PDO communication record; a mapping record's sub 0 counts its
+entries, subs 1–8 are the entries."""
+RPDO_COB_BASE, TPDO_COB_BASE = 0x200, 0x180
+"""COB-ID of PDO 1 without the node id (PDO n: + 0x100 (n − 1))."""
+TRANSMISSION_SYNC = 1
+"""PDO transmission type: every SYNC."""
+
+# -- profile objects (CiA 402) -------------------------------------------------------------
+
+ERROR_CODE = 0x603F
+CONTROLWORD = 0x6040
+STATUSWORD = 0x6041
+QUICK_STOP_OPTION_CODE = 0x605A
+MODES_OF_OPERATION = 0x6060
+MODES_OF_OPERATION_DISPLAY = 0x6061
+POSITION_ACTUAL = 0x6064
+FOLLOWING_ERROR_WINDOW = 0x6065
+VELOCITY_ACTUAL = 0x606C
+VELOCITY_WINDOW = 0x606D
+TARGET_TORQUE = 0x6071
+RATED_TORQUE = 0x6076
+"""mN: a linear motor's rated force, the 1000 ‰ of the torque objects."""
+TORQUE_ACTUAL = 0x6077
+TARGET_POSITION = 0x607A
+QUICK_STOP_DECELERATION = 0x6085
+VELOCITY_OFFSET = 0x60B1
+TORQUE_OFFSET = 0x60B2
+FOLLOWING_ERROR_ACTUAL = 0x60F4
+TARGET_VELOCITY = 0x60FF
+SUPPORTED_DRIVE_MODES = 0x6502
+
+# -- manufacturer objects of the simulated drive (differ per vendor) ------------------------
+
+MANUFACTURER_FIRST = 0x2000
+GAIN_OBJECTS = {"K_p": 0x2001, "T_i": 0x2002, "K_v": 0x2003}
+"""Cascade gains (Eq. 5.4: N·s/m, s, 1/s) by `CascadeGains` field name."""
+FORCE_LIMIT = 0x2004
+"""N."""
+FORCE_ACTUAL = 0x2010
+"""mN: the force the motor applies to the carriage."""
+FORCE_OFFSET_FINE = 0x2011
+"""mN, added to `TORQUE_OFFSET`."""
+CYCLE_COUNTER = 0x2020
+"""The SYNCs processed, 16 bit (wraps)."""
+FAULT_INJECTION = 0x2030
+"""An EMCY code written here faults the drive with it at the next SYNC."""
+
+DEFAULT_RPDO_MAPS: dict[int, tuple[int, ...]] = {
+    1: (CONTROLWORD, TARGET_POSITION, MODES_OF_OPERATION),  # 7 bytes
+    2: (TARGET_VELOCITY, VELOCITY_OFFSET),  # 8 bytes
+    3: (FORCE_OFFSET_FINE, TORQUE_OFFSET, TARGET_TORQUE),  # 8 bytes
+}
+DEFAULT_TPDO_MAPS: dict[int, tuple[int, ...]] = {
+    1: (STATUSWORD, POSITION_ACTUAL, CYCLE_COUNTER),  # 8 bytes
+    2: (VELOCITY_ACTUAL, FORCE_ACTUAL),  # 8 bytes
+}
+"""PDO maps of the simulated drive's EDS, which the host writes by SDO unless told others."""
+
+# -- state machine -------------------------------------------------------------------------
+
+NOT_READY = "NOT READY TO SWITCH ON"
+SWITCH_ON_DISABLED = "SWITCH ON DISABLED"
+READY = "READY TO SWITCH ON"
+SWITCHED_ON = "SWITCHED ON"
+OPERATION_ENABLED = "OPERATION ENABLED"
+QUICK_STOP_ACTIVE = "QUICK STOP ACTIVE"
+FAULT = "FAULT"
+"""State names (canopen's p402 spelling, which decodes the statusword on the host)."""
+STATE_BITS = {
+    SWITCH_ON_DISABLED: 0x0040,
+    READY: 0x0031,
+    SWITCHED_ON: 0x0033,
+    OPERATION_ENABLED: 0x0037,
+    QUICK_STOP_ACTIVE: 0x0017,
+    FAULT: 0x0008,
+}
+"""Statusword of each state the drive reports: state bits incl. bit 4 voltage enabled and
+bit 5 quick stop (1 = not active)."""
+SW_FAULT = 0x0008
+SW_REMOTE = 0x0200
+SW_TARGET_REACHED = 0x0400
+"""In quick stop active: the stop is complete."""
+SW_FOLLOWS_COMMAND = 0x1000
+SW_FOLLOWING_ERROR = 0x2000
+CW_FAULT_RESET = 0x0080
+"""Controlword bit 7: resets a fault on its rising edge."""
+
+# -- emergency codes the simulated drive sends ---------------------------------------------
+
+EMCY_FOLLOWING_ERROR = 0x8611
+EMCY_INTERNAL_SOFTWARE = 0x6100
+EMCY_PDO_LENGTH = 0x8210
