@@ -17,6 +17,7 @@ from feedbench.config import ConfigError, Field, one_of, positive, read_toml, va
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.clock import LockstepClock, RealtimeClock, one_core
 from feedbench.daq.recorder import Recorder
+from feedbench.daq.recording import open_recording
 from feedbench.protocols.address import split_address
 from feedbench.protocols.canbus import open_network
 from feedbench.drivers.cia402 import Cia402Drive
@@ -126,6 +127,24 @@ def _check_excitation_fits(plan: Plan, limits: Limits) -> None:
 def load_run_config(path: str | Path) -> RunConfig:
     """Read and validate a TOML run config file."""
     return parse_run_config(read_toml(path))
+
+
+def analyze_file(path: str | Path) -> dict:
+    """Open a recording and run its experiment's analysis step; what the data do not fit
+    is a `ConfigError` naming the file."""
+    recording = open_recording(path)
+    if recording.experiment not in EXPERIMENTS:
+        raise ConfigError(f"{path}: no analysis for experiment {recording.experiment!r}")
+    try:
+        result = EXPERIMENTS[recording.experiment].analyze_recording(recording)
+    except ConfigError:
+        raise
+    except (ValueError, KeyError) as exc:  # the recorded data do not fit the analysis
+        reason = f"no {exc.args[0]!r} recorded" if isinstance(exc, KeyError) else exc
+        raise ConfigError(f"{path}: {recording.experiment} analysis: {reason}") from exc
+    result["run"] = {"file": str(path), "status": recording.status, "reason": recording.reason,
+                     "n_samples": recording.n_samples, "n_gaps": recording.n_gaps}
+    return result
 
 
 def sim_config(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:

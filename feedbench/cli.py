@@ -72,26 +72,6 @@ def cmd_runs(args: argparse.Namespace) -> int:
     return 0
 
 
-def analyze_file(path: str | Path) -> dict:
-    """Open a recording and run its experiment's analysis step."""
-    from feedbench.bench import EXPERIMENTS
-    from feedbench.daq.recording import open_recording
-
-    recording = open_recording(path)
-    if recording.experiment not in EXPERIMENTS:
-        raise ConfigError(f"{path}: no analysis for experiment {recording.experiment!r}")
-    try:
-        result = EXPERIMENTS[recording.experiment].analyze_recording(recording)
-    except ConfigError:
-        raise
-    except (ValueError, KeyError) as exc:  # the recorded data do not fit the analysis
-        reason = f"no {exc.args[0]!r} recorded" if isinstance(exc, KeyError) else exc
-        raise ConfigError(f"{path}: {recording.experiment} analysis: {reason}") from exc
-    result["run"] = {"file": str(path), "status": recording.status, "reason": recording.reason,
-                     "n_samples": recording.n_samples, "n_gaps": recording.n_gaps}
-    return result
-
-
 def resolve_run(run: str, directory: str) -> str:
     """A recording path from a file path or a run id (or unique id prefix) in the catalog."""
     if Path(run).is_file() or Path(run).suffix.lower() in (".h5", ".hdf5"):
@@ -127,6 +107,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     if Path(args.run).suffix.lower() in UFF_SUFFIXES:
         result, describe = analyze_uff58(args.run), describe_uff58
     else:
+        from feedbench.bench import analyze_file
         from feedbench.demo import describe_analysis
 
         result, describe = analyze_file(resolve_run(args.run, args.dir)), describe_analysis
@@ -140,6 +121,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     """Export a run: its FRFs as UFF58, its drive channels as CSV + closure sidecar."""
     from feedbench import exchange
+    from feedbench.bench import analyze_file
 
     if not (args.uff58 or args.csv):
         raise ConfigError("export: give --uff58 FILE and/or --csv FILE")

@@ -17,7 +17,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from feedbench.bench import EXPERIMENTS, parse_run_config, run_config
+from feedbench.bench import EXPERIMENTS, analyze_file, parse_run_config, run_config
 from feedbench.config import ConfigError, read_toml
 from feedbench.experiments import stepped_loading
 from feedbench.experiments.limits import LimitError
@@ -371,8 +371,6 @@ def _run_one(name: str, raw: dict, quiet: bool) -> tuple[dict, dict]:
 
     A further experiment whose config or plan is refused before anything moves is recorded
     as ``refused`` (no file) and the campaign goes on; the bench core's must run."""
-    from feedbench.cli import analyze_file
-
     t0 = time.monotonic()
     try:
         row = run_config(parse_run_config(raw), progress=not quiet)

@@ -187,7 +187,7 @@ RUN_FRFS: dict[str, Callable[[dict, Any], Iterator[ExchangeFrf]]] = {
 def export_uff58(recording_path: str | Path, path: str | Path,
                  analyze: Callable[[str | Path], dict]) -> Path:
     """Write the FRFs of a run to a UFF58 file; `analyze` is its analysis step
-    (`cli.analyze_file`), run only for a family with FRFs (RUN_FRFS)."""
+    (`bench.analyze_file`), run only for a family with FRFs (RUN_FRFS)."""
     recording = open_recording(recording_path)
     if recording.experiment not in RUN_FRFS:
         raise ConfigError(f"{recording_path}: a {recording.experiment} run has no FRF to "

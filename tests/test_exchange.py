@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import pyuff
 
-from feedbench.cli import analyze_file, main
+from feedbench.bench import analyze_file
+from feedbench.cli import main
 from feedbench.closure_io import read_csv_trace, read_recording
 from feedbench.exchange import (
     HEADER_BYTES_FIELD, Dof, ExchangeFrf, read_uff58, write_uff58,

@@ -11,12 +11,11 @@ import numpy as np
 import pytest
 import scipy.signal
 
-from feedbench.daq.live import (
-    Decimator, LiveStream, RingBuffer, bucket_size, minmax_decimate, recorded_plan, replay,
-)
+from feedbench.daq.live import Decimator, LiveStream, RingBuffer, bucket_size, minmax_decimate
 from feedbench.daq.recorder import Recorder
 from feedbench.daq.recording import open_recording
 from feedbench.experiments.plan import Plan, Segment
+from feedbench.experiments.replay import recorded_plan, replay
 from feedbench.experiments.runner import BLOCK_CYCLES, StopRequest
 from feedbench.daq.recorder import StreamSpec
 from feedbench.gui.live_results import (

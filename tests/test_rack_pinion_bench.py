@@ -8,8 +8,7 @@ import canopen
 import numpy as np
 import pytest
 
-from feedbench.bench import parse_run_config, run_config
-from feedbench.cli import analyze_file
+from feedbench.bench import analyze_file, parse_run_config, run_config
 from feedbench.daq.clock import LockstepClock
 from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config

@@ -16,8 +16,7 @@ import numpy as np
 import pytest
 from scipy.integrate import cumulative_trapezoid
 
-from feedbench.bench import parse_run_config, run_config
-from feedbench.cli import analyze_file
+from feedbench.bench import analyze_file, parse_run_config, run_config
 from feedbench.config import ConfigError
 from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config

@@ -10,23 +10,20 @@ decimation to a few thousand points per channel so a one-sample spike stays visi
 reader copies before it reduces and drops any bucket the producer overwrote meanwhile, so a
 slow reader skips frames, never corrupts them, and the recorder keeps every sample.
 
-`replay` feeds a recording, streams included, through the same observer calls
+`experiments.replay` feeds a recording, streams included, through the same observer calls
 (``feedbench live RUN``).
 """
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, Protocol, Sequence
 
 import numpy as np
 
 from feedbench.daq.recorder import StreamSpec
-from feedbench.experiments.plan import Plan, Segment
-from feedbench.experiments.runner import BLOCK_CYCLES, Observer, StopRequest
 
 ROWS = ""
 """Source name of the per-cycle rows (streams are named by their recording name, e.g. daq)."""
@@ -37,6 +34,23 @@ SLACK = 0.25
 UNIT_SUFFIXES = {"_mm_min": "mm/min", "_Hz": "Hz", "_hz": "Hz", "_mm": "mm", "_N": "N",
                  "_s": "s"}
 """Info keys carry their engineering unit as a suffix (config convention): feed_mm_min → mm/min."""
+
+
+class PlanView(Protocol):
+    """What the live stream reads of the plan a run executes (`experiments.plan.Plan`)."""
+
+    experiment: str
+    segments: Sequence[Any]
+    n_cycles: int
+    cycle_s: float
+
+
+class SegmentView(Protocol):
+    """What it reads of a step of the plan (`experiments.plan.Segment`)."""
+
+    label: str
+    kind: str
+    info: Mapping[str, Any]
 
 
 class RingBuffer:
@@ -259,7 +273,7 @@ class LiveStream:
         self._wall_start = time.monotonic()
 
     # observer side: called from the cycle loop, never blocks
-    def on_start(self, plan: Plan, channels: Sequence[str]) -> None:
+    def on_start(self, plan: PlanView, channels: Sequence[str]) -> None:
         """Size the ring for the plan's cycle time and reset the state."""
         self._ring = RingBuffer(self._capacity(1.0 / plan.cycle_s), channels)
         self._streams, self._specs, self._stream_timebases, self._units = {}, {}, {}, {}
@@ -278,7 +292,7 @@ class LiveStream:
             self._specs[name] = spec
             self._streams[name] = RingBuffer(self._capacity(spec.rate_hz), spec.channels)
 
-    def on_segment(self, index: int, segment: Segment, cycle: int) -> None:
+    def on_segment(self, index: int, segment: SegmentView, cycle: int) -> None:
         """Remember the step; progress counts from the first step's cycle."""
         if self._plan_start is None:
             self._plan_start = cycle
@@ -459,99 +473,3 @@ class Decimator:
         if self.k == 1:
             return t, values, values
         return (t, *minmax_buckets(values, self.k))
-
-
-def recorded_plan(recording) -> tuple[Plan, list[int]]:
-    """The plan a recording was made from, rebuilt from its segment events.
-
-    Returns the plan (segments carry label, kind, info and their recorded length; their
-    setpoints are not needed to replay) and each segment's first cycle. Enable and
-    disable steps are the runner's, not the plan's, and are left out as in a live run.
-    """
-    segments, starts = [], []
-    for seg in recording.segments("segment"):
-        meta = json.loads(seg.label)
-        if meta.get("kind") in ("enable", "disable"):
-            continue
-        info = {k: v for k, v in meta.items() if k not in ("label", "kind")}
-        length = np.broadcast_to(np.float64(0.0), (seg.stop - seg.start,))
-        segments.append(Segment(meta["label"], meta["kind"], length, info=info))
-        starts.append(seg.start)
-    cycle_s = float(recording.metadata.get("cycle_s", 1e-3))
-    plan = Plan(recording.experiment, 0, segments, recording.config.get("experiment", {}), cycle_s)
-    return plan, starts
-
-
-def replay(recording, observers: Sequence[Observer], speed: float = 1.0,
-           stop: StopRequest | None = None, block_rows: int = BLOCK_CYCLES) -> str:
-    """Feed a recording to `observers` as the runner fed them, paced at `speed` × real time.
-
-    Stream observers (`on_layout`, `on_stream`) also get the units and each recorded stream,
-    its samples up to a block's last cycle handed over before the block (the rest at the
-    end). `speed` ≤ 0 replays
-    as fast as possible; `stop` (a `StopRequest`) ends it early. Returns the status passed
-    to `on_stop`: the recording's own, or ``stopped``.
-    """
-    plan, starts = recorded_plan(recording)
-    names = list(recording.channels)
-    rows = np.column_stack([recording.channels[name] for name in names]) if names else np.zeros((0, 0))
-    cycles = recording.cycle
-    for obs in observers:
-        obs.on_start(plan, names)
-        if hasattr(obs, "on_layout"):
-            obs.on_layout(recording.units, recorded_streams(recording))
-    pace = _Pacer(plan.cycle_s / speed if speed > 0 else 0.0)
-    boundaries = np.searchsorted(cycles, starts)
-    handed = dict.fromkeys(recording.streams, 0)
-    next_segment, status = 0, recording.status
-    for begin in range(0, len(cycles), block_rows):
-        end = min(begin + block_rows, len(cycles))
-        while next_segment < len(starts) and boundaries[next_segment] < end:
-            for obs in observers:
-                obs.on_segment(next_segment, plan.segments[next_segment], starts[next_segment])
-            next_segment += 1
-        _replay_streams(recording, observers, handed, int(cycles[end - 1]))
-        for obs in observers:
-            obs.on_block(cycles[begin:end], rows[begin:end])
-        if stop is not None and stop.reason is not None:
-            status = "stopped"
-            break
-        pace.wait(end)
-    if status != "stopped":  # samples the instrument sent after the last bus cycle
-        _replay_streams(recording, observers, handed, np.iinfo(np.int64).max)
-    for obs in observers:
-        obs.on_stop(status, stop.reason if status == "stopped" else recording.reason)
-    return status
-
-
-def recorded_streams(recording) -> dict[str, StreamSpec]:
-    """The high-rate streams of a recording as the devices declared them."""
-    return {name: StreamSpec(tuple(stream.channels), stream.units, stream.rate_hz)
-            for name, stream in recording.streams.items()}
-
-
-def _replay_streams(recording, observers: Sequence[Observer], handed: dict[str, int],
-                    last_cycle: int) -> None:
-    """Hand each stream's samples up to bus cycle `last_cycle` that were not handed yet."""
-    watching = [obs for obs in observers if hasattr(obs, "on_stream")]
-    for name, stream in recording.streams.items():
-        begin = handed[name]
-        end = int(np.searchsorted(stream.cycle, last_cycle, side="right"))
-        if end > begin and watching:
-            samples = np.column_stack([values[begin:end] for values in stream.channels.values()])
-            for obs in watching:
-                obs.on_stream(name, stream.cycle[begin:end], stream.sequence[begin:end], samples)
-        handed[name] = max(end, begin)
-
-
-class _Pacer:
-    """Sleeps so that sample n is handed over n · dt seconds after the start."""
-
-    def __init__(self, dt: float) -> None:
-        self.dt = dt
-        self.t0 = time.monotonic()
-
-    def wait(self, n_done: int) -> None:
-        delay = self.t0 + n_done * self.dt - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)

@@ -24,8 +24,9 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
-from feedbench.daq.live import ROWS, Decimator, LiveFrame, LiveState, LiveStream, replay
+from feedbench.daq.live import ROWS, Decimator, LiveFrame, LiveState, LiveStream
 from feedbench.experiments.limits import Limits
+from feedbench.experiments.replay import replay
 from feedbench.experiments.runner import StopRequest
 from feedbench.gui.live_results import (
     Curve, Image, LiveResult, Panel, ResultView, live_result_for,
