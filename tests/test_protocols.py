@@ -5,7 +5,7 @@ import pytest
 
 from feedbench.config import ConfigError
 from feedbench.drivers.cia402 import PdoConfig, decode_state
-from feedbench.protocols import cia402
+from feedbench.protocols import cia301, cia402
 from feedbench.protocols.address import split_address
 from feedbench.sim_backends import eds
 
@@ -48,10 +48,13 @@ def test_the_supported_modes_are_the_bits_of_the_mode_codes():
     assert sum(1 << (mode - 1) for mode in cia402.MODES) == cia402.SUPPORTED_MODES == 0x0380
 
 
-EDS_NAMES = {
-    "DEVICE_TYPE_OBJECT": "Device type", "ERROR_REGISTER": "Error register",
+COMMUNICATION_NAMES = {
+    "DEVICE_TYPE": "Device type", "ERROR_REGISTER": "Error register",
     "CYCLE_PERIOD": "Communication cycle period", "HEARTBEAT_TIME": "Producer heartbeat time",
-    "IDENTITY": "Identity object", "ERROR_CODE": "Error code", "CONTROLWORD": "Controlword",
+    "IDENTITY": "Identity object",
+}
+EDS_NAMES = {
+    "ERROR_CODE": "Error code", "CONTROLWORD": "Controlword",
     "STATUSWORD": "Statusword", "QUICK_STOP_OPTION_CODE": "Quick stop option code",
     "MODES_OF_OPERATION": "Modes of operation",
     "MODES_OF_OPERATION_DISPLAY": "Modes of operation display",
@@ -70,21 +73,23 @@ EDS_NAMES = {
 
 def test_the_packaged_eds_holds_each_object_of_the_table_under_its_name():
     od = eds.load(3)
+    assert {name: od[getattr(cia301, name)].name for name in COMMUNICATION_NAMES} \
+        == COMMUNICATION_NAMES
     assert {name: od[getattr(cia402, name)].name for name in EDS_NAMES} == EDS_NAMES
     assert [od[index].name for index in cia402.GAIN_OBJECTS.values()] == [
         "Velocity loop gain K_p", "Velocity loop integral time T_i", "Position loop gain K_v"]
-    assert od[cia402.DEVICE_TYPE_OBJECT].default == cia402.DEVICE_TYPE
+    assert od[cia301.DEVICE_TYPE].default == cia402.DEVICE_TYPE
     assert od[cia402.SUPPORTED_DRIVE_MODES].default == cia402.SUPPORTED_MODES
     assert od[cia402.MODES_OF_OPERATION].default == cia402.CSV
-    assert od[cia402.TPDO_COMMUNICATION][cia402.PDO_TRANSMISSION_TYPE].default \
-        == cia402.TRANSMISSION_SYNC
-    assert od[cia402.RPDO_COMMUNICATION][cia402.PDO_COB_ID].default == cia402.RPDO_COB_BASE + 3
+    assert od[cia301.TPDO_COMMUNICATION][cia301.PDO_TRANSMISSION_TYPE].default \
+        == cia301.TRANSMISSION_SYNC
+    assert od[cia301.RPDO_COMMUNICATION][cia301.PDO_COB_ID].default == cia301.RPDO_COB_BASE + 3
 
 
 def test_the_host_maps_by_default_what_the_eds_maps():
     od = eds.load(3)
-    for first_map, default in ((cia402.RPDO_MAPPING, PdoConfig().rpdo),
-                               (cia402.TPDO_MAPPING, PdoConfig().tpdo)):
+    for first_map, default in ((cia301.RPDO_MAPPING, PdoConfig().rpdo),
+                               (cia301.TPDO_MAPPING, PdoConfig().tpdo)):
         for number, objects in default.items():
             record = od[first_map + number - 1]
             mapped = [record[sub].default >> 16 for sub in range(1, record[0].default + 1)]

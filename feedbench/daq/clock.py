@@ -25,7 +25,8 @@ from typing import Iterator, Protocol, Sequence
 import canopen
 import numpy as np
 
-SYNC_COB_ID = 0x80
+from feedbench.protocols.cia301 import SYNC_COB_ID
+
 COUNTER_MODULO = 0x10000
 SPIN_S = 0.5e-3
 """The real-time loop sleeps until this long before the SYNC slot, then spins."""

@@ -32,14 +32,14 @@ from canopen.pdo import PdoMap
 from canopen.profiles.p402 import OperationMode, State402
 
 from feedbench.config import ConfigError
+from feedbench.protocols import cia301
 from feedbench.protocols.canbus import pdo_codec, remote_node
 from feedbench.protocols.cia402 import (
     CONTROLWORD, CW_FAULT_RESET, CYCLE_COUNTER, DEFAULT_RPDO_MAPS, DEFAULT_TPDO_MAPS, FAULT,
-    FORCE_ACTUAL, FORCE_OFFSET_FINE, GAIN_OBJECTS, HEARTBEAT_TIME, MODES_OF_OPERATION,
-    NOT_READY, OPERATION_ENABLED, POSITION_ACTUAL, QUICK_STOP_ACTIVE, RATED_TORQUE, STATUSWORD,
-    SUPPORTED_DRIVE_MODES, SW_FAULT, SW_TARGET_REACHED, SWITCH_ON_DISABLED, TARGET_POSITION,
-    TARGET_TORQUE, TARGET_VELOCITY, TORQUE_ACTUAL, TORQUE_OFFSET, TRANSMISSION_SYNC,
-    VELOCITY_ACTUAL, VELOCITY_OFFSET,
+    FORCE_ACTUAL, FORCE_OFFSET_FINE, GAIN_OBJECTS, MODES_OF_OPERATION, NOT_READY, OPERATION_ENABLED,
+    POSITION_ACTUAL, QUICK_STOP_ACTIVE, RATED_TORQUE, STATUSWORD, SUPPORTED_DRIVE_MODES,
+    SWITCH_ON_DISABLED, SW_FAULT, SW_TARGET_REACHED, TARGET_POSITION, TARGET_TORQUE,
+    TARGET_VELOCITY, TORQUE_ACTUAL, TORQUE_OFFSET, VELOCITY_ACTUAL, VELOCITY_OFFSET,
 )
 
 Entry = int | tuple[int, int]
@@ -177,7 +177,7 @@ class Cia402Drive:
         log = logging.getLogger("canopen.sdo.client")
         log.disabled = True
         try:
-            self.node.sdo[HEARTBEAT_TIME].raw = heartbeat_ms
+            self.node.sdo[cia301.HEARTBEAT_TIME].raw = heartbeat_ms
         except canopen.SdoCommunicationError as exc:
             raise ConfigError(f"bench.node_id: no drive answers as node {self.node.id} "
                               f"({exc})") from None
@@ -217,7 +217,7 @@ class Cia402Drive:
         pdo_map.clear()
         for entry in entries:
             pdo_map.add_variable(*_index_subindex(entry))
-        pdo_map.trans_type = TRANSMISSION_SYNC
+        pdo_map.trans_type = cia301.TRANSMISSION_SYNC
         pdo_map.enabled = bool(entries)
         pdo_map.save()
         return pdo_map.enabled

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import canopen
 
-from feedbench.protocols import cia401
+from feedbench.protocols import cia301, cia401
 from feedbench.protocols.canbus import remote_node
 
 
@@ -30,7 +30,7 @@ class IoModule:
     def configure(self) -> None:
         """Read the device type by SDO (profile 401 expected), then NMT operational."""
         try:
-            raw = self.node.sdo.upload(0x1000, 0)
+            raw = self.node.sdo.upload(cia301.DEVICE_TYPE, 0)
         except (canopen.SdoCommunicationError, canopen.SdoAbortedError) as error:
             raise IoModuleError(f"I/O module node {self.node.id}: {error}") from error
         device_type = int.from_bytes(raw, "little")

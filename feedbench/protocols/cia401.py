@@ -17,11 +17,14 @@ from __future__ import annotations
 
 import struct
 
+from feedbench.protocols import cia301
+
 DEVICE_TYPE = 0x000F0191
 """0x1000: profile 401 (0x0191), digital inputs and outputs, analog inputs and outputs."""
 PROFILE = 0x0191
-RPDO_DIGITAL = 0x200
-RPDO_ANALOG = 0x300
+RPDO_DIGITAL = cia301.RPDO_COB_BASE
+RPDO_ANALOG = cia301.RPDO_COB_BASE + 0x100
+"""COB-IDs of RPDO 1 and 2 without the node id."""
 DIGITAL_OUTPUTS = 0x6200
 ANALOG_OUTPUTS = 0x6411
 ANALOG_CHANNELS = 4

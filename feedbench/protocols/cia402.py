@@ -3,8 +3,8 @@
 and the physics kernel behind it (`models._kernel`, which takes the mode codes).
 
 Plain ints (numba compiles the kernel against the mode codes). Every object here is a VAR
-at sub-index 0 except the PDO parameter records (CiA 301), whose sub-indices are named
-below. Units on the bus (docs/ARCHITECTURE.md): position 1 nm, velocity 1 nm/s, the
+at sub-index 0; the communication objects and PDO records are `protocols.cia301`'s.
+Units on the bus (docs/ARCHITECTURE.md): position 1 nm, velocity 1 nm/s, the
 torque objects in per mille of the rated force `RATED_TORQUE` (mN), the manufacturer
 force objects in mN, the gains in SI (REAL32).
 """
@@ -19,28 +19,8 @@ MODES = (CSP, CSV, CST)
 SUPPORTED_MODES = 0x0380
 """0x6502 bits 7, 8, 9: the three cyclic synchronous modes."""
 
-# -- communication objects (CiA 301) -------------------------------------------------------
-
-DEVICE_TYPE_OBJECT = 0x1000
 DEVICE_TYPE = 0x00020192
-"""Its value: profile 402 (0x0192), additional information: servo drive."""
-ERROR_REGISTER = 0x1001
-CYCLE_PERIOD = 0x1006
-"""µs: one SYNC advances the simulated axis by this time."""
-HEARTBEAT_TIME = 0x1017
-IDENTITY = 0x1018
-RPDO_COMMUNICATION, RPDO_MAPPING = 0x1400, 0x1600
-TPDO_COMMUNICATION, TPDO_MAPPING = 0x1800, 0x1A00
-"""First PDO parameter record of each kind (PDO n at + n − 1)."""
-PDO_RECORDS_END = 0x1C00
-"""First index past the TPDO mapping records."""
-PDO_COB_ID, PDO_TRANSMISSION_TYPE, PDO_INHIBIT_TIME, PDO_EVENT_TIMER = 1, 2, 3, 5
-"""Sub-indices of a PDO communication record; a mapping record's sub 0 counts its
-entries, subs 1–8 are the entries."""
-RPDO_COB_BASE, TPDO_COB_BASE = 0x200, 0x180
-"""COB-ID of PDO 1 without the node id (PDO n: + 0x100 (n − 1))."""
-TRANSMISSION_SYNC = 1
-"""PDO transmission type: every SYNC."""
+"""Value of the device type object (`cia301.DEVICE_TYPE`): profile 402 (0x0192), servo drive."""
 
 # -- profile objects (CiA 402) -------------------------------------------------------------
 
@@ -68,7 +48,6 @@ SUPPORTED_DRIVE_MODES = 0x6502
 
 # -- manufacturer objects of the simulated drive (differ per vendor) ------------------------
 
-MANUFACTURER_FIRST = 0x2000
 GAIN_OBJECTS = {"K_p": 0x2001, "T_i": 0x2002, "K_v": 0x2003}
 """Cascade gains (Eq. 5.4: N·s/m, s, 1/s) by `CascadeGains` field name."""
 FORCE_LIMIT = 0x2004

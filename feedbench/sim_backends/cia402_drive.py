@@ -42,17 +42,16 @@ import numpy as np
 from canopen.sdo import SdoAbortedError
 
 from feedbench.models.axis import AxisSimulator
+from feedbench.protocols import cia301
 from feedbench.protocols.canbus import connect, pdo_codec
 from feedbench.protocols.cia402 import (
-    CONTROLWORD, CSP, CSV, CW_FAULT_RESET, CYCLE_COUNTER, CYCLE_PERIOD, EMCY_FOLLOWING_ERROR,
-    EMCY_INTERNAL_SOFTWARE, EMCY_PDO_LENGTH, ERROR_CODE, ERROR_REGISTER, FAULT,
-    FAULT_INJECTION, FOLLOWING_ERROR_ACTUAL, FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL, FORCE_LIMIT,
-    FORCE_OFFSET_FINE, GAIN_OBJECTS, MANUFACTURER_FIRST, MODES, MODES_OF_OPERATION,
-    MODES_OF_OPERATION_DISPLAY, OPERATION_ENABLED, PDO_RECORDS_END, POSITION_ACTUAL,
-    QUICK_STOP_ACTIVE, QUICK_STOP_DECELERATION, RATED_TORQUE, READY, RPDO_COMMUNICATION,
-    RPDO_MAPPING, STATE_BITS, STATUSWORD, SW_FOLLOWING_ERROR, SW_FOLLOWS_COMMAND, SW_REMOTE,
-    SWITCH_ON_DISABLED, SWITCHED_ON, TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY,
-    TORQUE_ACTUAL, TORQUE_OFFSET, TPDO_COMMUNICATION, TPDO_MAPPING, VELOCITY_ACTUAL,
+    CONTROLWORD, CSP, CSV, CW_FAULT_RESET, CYCLE_COUNTER, EMCY_FOLLOWING_ERROR,
+    EMCY_INTERNAL_SOFTWARE, EMCY_PDO_LENGTH, ERROR_CODE, FAULT, FAULT_INJECTION,
+    FOLLOWING_ERROR_ACTUAL, FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL, FORCE_LIMIT, FORCE_OFFSET_FINE,
+    GAIN_OBJECTS, MODES, MODES_OF_OPERATION, MODES_OF_OPERATION_DISPLAY, OPERATION_ENABLED,
+    POSITION_ACTUAL, QUICK_STOP_ACTIVE, QUICK_STOP_DECELERATION, RATED_TORQUE, READY, STATE_BITS,
+    STATUSWORD, SWITCHED_ON, SWITCH_ON_DISABLED, SW_FOLLOWING_ERROR, SW_FOLLOWS_COMMAND, SW_REMOTE,
+    TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY, TORQUE_ACTUAL, TORQUE_OFFSET, VELOCITY_ACTUAL,
     VELOCITY_OFFSET, VELOCITY_WINDOW,
 )
 from feedbench.sim_backends import eds
@@ -190,9 +189,9 @@ class SimulatedCia402Drive:
         self.network.add_node(self.node)
         self.node.add_read_callback(self._on_sdo_read)
         self.node.add_write_callback(self._on_sdo_write)
-        self.network.subscribe(0, self._on_nmt)
+        self.network.subscribe(cia301.NMT_COB_ID, self._on_nmt)
         if self._owns_network:
-            self.network.subscribe(0x80, self._on_sync)
+            self.network.subscribe(cia301.SYNC_COB_ID, self._on_sync)
             _compile_physics(simulator)
             connect(self.network)
         self._boot(application=True)
@@ -202,7 +201,7 @@ class SimulatedCia402Drive:
     def _boot(self, application: bool) -> None:
         """Power-on / NMT reset: object values back to defaults, boot-up, pre-operational."""
         store = self.node.data_store
-        for index in [i for i in store if application or i < MANUFACTURER_FIRST]:
+        for index in [i for i in store if application or i < cia301.MANUFACTURER_FIRST]:
             del store[index]
         if application:
             self._reset_application()
@@ -216,10 +215,11 @@ class SimulatedCia402Drive:
         sim = self.simulator
         self.values: dict[int, int | float] = {
             index: od[index].default for index in od
-            if index >= MANUFACTURER_FIRST
+            if index >= cia301.MANUFACTURER_FIRST
             and isinstance(od[index], canopen.objectdictionary.ODVariable)
         }
-        self.values.update({ERROR_REGISTER: 0, CYCLE_PERIOD: round(sim.timing.cycle * 1e6),
+        self.values.update({cia301.ERROR_REGISTER: 0,
+                            cia301.CYCLE_PERIOD: round(sim.timing.cycle * 1e6),
                             FORCE_LIMIT: sim.force_limit})
         self.values.update({index: getattr(sim.gains, name)
                             for name, index in GAIN_OBJECTS.items()})
@@ -240,7 +240,7 @@ class SimulatedCia402Drive:
         if node_id not in (0, self.node.id):
             return
         if self.node.nmt.state == "INITIALISING":  # reset node (0x81) / communication (0x82)
-            self._boot(application=command == 0x81)
+            self._boot(application=command == cia301.NMT_RESET_NODE)
         elif self._pdo_dirty:
             self._load_pdo_maps()
         self._operational = self.node.nmt.state == "OPERATIONAL"
@@ -260,8 +260,9 @@ class SimulatedCia402Drive:
     def _on_sdo_write(self, index: int, subindex: int, od: canopen.objectdictionary.ODVariable,
                       data: bytes) -> None:
         """Validate and apply an SDO download (raise SdoAbortedError to refuse it)."""
-        if RPDO_COMMUNICATION <= index < PDO_RECORDS_END:
-            if RPDO_MAPPING <= index < TPDO_COMMUNICATION or TPDO_MAPPING <= index:
+        if cia301.RPDO_COMMUNICATION <= index < cia301.PDO_RECORDS_END:
+            if (cia301.RPDO_MAPPING <= index < cia301.TPDO_COMMUNICATION
+                    or cia301.TPDO_MAPPING <= index):
                 self._check_mapping(index, subindex, od.decode_raw(data))
             self._pdo_dirty = True
         elif subindex == 0 and index in self.values:
@@ -288,7 +289,7 @@ class SimulatedCia402Drive:
 
     def _check_mapping(self, index: int, subindex: int, value: int) -> None:
         """CiA 301 checks of a mapping entry (sub 1–8) or of the number of entries (sub 0)."""
-        receive = index < TPDO_COMMUNICATION
+        receive = index < cia301.TPDO_COMMUNICATION
         if subindex == 0:
             if value > 8 or sum(self.node.sdo[index][sub].raw & 0xFF
                                 for sub in range(1, value + 1)) > 64:
@@ -411,13 +412,13 @@ class SimulatedCia402Drive:
     def _fault(self, code: int) -> None:
         self._enter(FAULT)
         self.values[ERROR_CODE] = code
-        self.values[ERROR_REGISTER] = ERROR_REGISTER_GENERIC
+        self.values[cia301.ERROR_REGISTER] = ERROR_REGISTER_GENERIC
         self.node.emcy.send(code, ERROR_REGISTER_GENERIC)
 
     def _reset_fault(self) -> None:
         self._enter(SWITCH_ON_DISABLED)
         self.values[ERROR_CODE] = 0
-        self.values[ERROR_REGISTER] = 0
+        self.values[cia301.ERROR_REGISTER] = 0
         self._following_error = False
         self.node.emcy.reset()
 

@@ -18,9 +18,8 @@ import can
 import canopen
 
 from feedbench.protocols.canbus import connect
+from feedbench.protocols.cia301 import SYNC_COB_ID
 from feedbench.sim_backends.cia402_drive import DriveObjects, SimulatedCia402Drive
-
-SYNC_COB_ID = 0x80
 
 
 class SimulatedDriveBus:

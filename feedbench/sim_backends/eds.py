@@ -20,17 +20,14 @@ import canopen
 from canopen.objectdictionary import ODRecord, ODVariable, ObjectDictionary, datatypes
 from canopen.objectdictionary.eds import export_eds
 
+from feedbench.protocols import cia301
 from feedbench.protocols.cia402 import (
-    CONTROLWORD, CSV, CYCLE_COUNTER, CYCLE_PERIOD, DEFAULT_RPDO_MAPS, DEFAULT_TPDO_MAPS,
-    DEVICE_TYPE, DEVICE_TYPE_OBJECT, ERROR_CODE, ERROR_REGISTER, FAULT_INJECTION,
-    FOLLOWING_ERROR_ACTUAL, FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL, FORCE_LIMIT, FORCE_OFFSET_FINE,
-    GAIN_OBJECTS, HEARTBEAT_TIME, IDENTITY, MODES_OF_OPERATION, MODES_OF_OPERATION_DISPLAY,
-    PDO_COB_ID, PDO_EVENT_TIMER, PDO_INHIBIT_TIME, PDO_TRANSMISSION_TYPE, POSITION_ACTUAL,
-    QUICK_STOP_DECELERATION, QUICK_STOP_OPTION_CODE, RATED_TORQUE, RPDO_COB_BASE,
-    RPDO_COMMUNICATION, RPDO_MAPPING, STATUSWORD, SUPPORTED_DRIVE_MODES, SUPPORTED_MODES,
-    TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY, TORQUE_ACTUAL, TORQUE_OFFSET, TPDO_COB_BASE,
-    TPDO_COMMUNICATION, TPDO_MAPPING, TRANSMISSION_SYNC, VELOCITY_ACTUAL, VELOCITY_OFFSET,
-    VELOCITY_WINDOW,
+    CONTROLWORD, CSV, CYCLE_COUNTER, DEFAULT_RPDO_MAPS, DEFAULT_TPDO_MAPS, DEVICE_TYPE, ERROR_CODE,
+    FAULT_INJECTION, FOLLOWING_ERROR_ACTUAL, FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL, FORCE_LIMIT,
+    FORCE_OFFSET_FINE, GAIN_OBJECTS, MODES_OF_OPERATION, MODES_OF_OPERATION_DISPLAY,
+    POSITION_ACTUAL, QUICK_STOP_DECELERATION, QUICK_STOP_OPTION_CODE, RATED_TORQUE, STATUSWORD,
+    SUPPORTED_DRIVE_MODES, SUPPORTED_MODES, TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY,
+    TORQUE_ACTUAL, TORQUE_OFFSET, VELOCITY_ACTUAL, VELOCITY_OFFSET, VELOCITY_WINDOW,
 )
 
 EDS_FILE = "cia402.eds"
@@ -62,11 +59,11 @@ U8, U16, U32 = datatypes.UNSIGNED8, datatypes.UNSIGNED16, datatypes.UNSIGNED32
 F32 = datatypes.REAL32
 
 COMMUNICATION = (
-    Entry(DEVICE_TYPE_OBJECT, "Device type", U32, "ro", default=DEVICE_TYPE),
-    Entry(ERROR_REGISTER, "Error register", U8, "ro", default=0),
-    Entry(CYCLE_PERIOD, "Communication cycle period", U32, "ro", default=1000, unit="us",
-          description="bus cycle: one SYNC advances the simulated axis by this time"),
-    Entry(HEARTBEAT_TIME, "Producer heartbeat time", U16, "rw", default=1000, unit="ms"),
+    Entry(cia301.DEVICE_TYPE, "Device type", U32, "ro", default=DEVICE_TYPE),
+    Entry(cia301.ERROR_REGISTER, "Error register", U8, "ro", default=0),
+    Entry(cia301.CYCLE_PERIOD, "Communication cycle period", U32, "ro", default=1000,
+          unit="us", description="bus cycle: one SYNC advances the simulated axis by this time"),
+    Entry(cia301.HEARTBEAT_TIME, "Producer heartbeat time", U16, "rw", default=1000, unit="ms"),
 )
 
 PROFILE = (
@@ -147,17 +144,19 @@ def _cob_id(base: int, enabled: bool) -> str:
 
 def _pdo_records(od: ObjectDictionary, number: int, receive: bool,
                  mapped: tuple[int, ...]) -> None:
-    comm_index, map_index = ((RPDO_COMMUNICATION, RPDO_MAPPING) if receive
-                             else (TPDO_COMMUNICATION, TPDO_MAPPING))
-    cob_base = (RPDO_COB_BASE if receive else TPDO_COB_BASE) + 0x100 * (number - 1)
+    comm_index, map_index = ((cia301.RPDO_COMMUNICATION, cia301.RPDO_MAPPING) if receive
+                             else (cia301.TPDO_COMMUNICATION, cia301.TPDO_MAPPING))
+    cob_base = (cia301.RPDO_COB_BASE if receive else cia301.TPDO_COB_BASE) + 0x100 * (number - 1)
     kind = "RPDO" if receive else "TPDO"
     comm = ODRecord(f"{kind}{number} communication parameter", comm_index + number - 1)
     _member(comm, 0, "Highest sub-index supported", U8, "const", 2 if receive else 5)
-    _member(comm, PDO_COB_ID, "COB-ID", U32, "rw", default_raw=_cob_id(cob_base, bool(mapped)))
-    _member(comm, PDO_TRANSMISSION_TYPE, "Transmission type", U8, "rw", TRANSMISSION_SYNC)
+    _member(comm, cia301.PDO_COB_ID, "COB-ID", U32, "rw",
+            default_raw=_cob_id(cob_base, bool(mapped)))
+    _member(comm, cia301.PDO_TRANSMISSION_TYPE, "Transmission type", U8, "rw",
+            cia301.TRANSMISSION_SYNC)
     if not receive:
-        _member(comm, PDO_INHIBIT_TIME, "Inhibit time", U16, "rw", 0)
-        _member(comm, PDO_EVENT_TIMER, "Event timer", U16, "rw", 0)
+        _member(comm, cia301.PDO_INHIBIT_TIME, "Inhibit time", U16, "rw", 0)
+        _member(comm, cia301.PDO_EVENT_TIMER, "Event timer", U16, "rw", 0)
     od.add_object(comm)
     mapping = ODRecord(f"{kind}{number} mapping parameter", map_index + number - 1)
     _member(mapping, 0, "Number of mapped objects", U8, "rw", len(mapped))
@@ -170,7 +169,7 @@ def _pdo_records(od: ObjectDictionary, number: int, receive: bool,
 
 
 def _identity(od: ObjectDictionary) -> None:
-    identity = ODRecord("Identity object", IDENTITY)
+    identity = ODRecord("Identity object", cia301.IDENTITY)
     _member(identity, 0, "Number of entries", U8, "const", 4)
     for sub, name, value in ((1, "Vendor-ID", 0), (2, "Product code", 0x402),
                              (3, "Revision number", 1), (4, "Serial number", 1)):

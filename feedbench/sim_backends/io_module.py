@@ -14,14 +14,14 @@ import struct
 import canopen
 from canopen.objectdictionary import ODArray, ODVariable, ObjectDictionary, datatypes
 
-from feedbench.protocols import cia401
+from feedbench.protocols import cia301, cia401
 
 
 def _variable(name: str, index: int, subindex: int, data_type: int, access: str,
               default: int) -> ODVariable:
     var = ODVariable(name, index, subindex)
     var.data_type, var.access_type, var.default = data_type, access, default
-    var.pdo_mappable = index >= 0x6000
+    var.pdo_mappable = index >= cia301.PROFILE_FIRST
     return var
 
 
@@ -38,10 +38,12 @@ def object_dictionary() -> ObjectDictionary:
     analog outputs 0x6411."""
     od = ObjectDictionary()
     od.device_information.product_name = "Simulated CiA 401 I/O module (exciters)"
-    od.add_object(_variable("Device type", 0x1000, 0, datatypes.UNSIGNED32, "ro",
+    od.add_object(_variable("Device type", cia301.DEVICE_TYPE, 0, datatypes.UNSIGNED32, "ro",
                             cia401.DEVICE_TYPE))
-    od.add_object(_variable("Error register", 0x1001, 0, datatypes.UNSIGNED8, "ro", 0))
-    od.add_object(_variable("Producer heartbeat time", 0x1017, 0, datatypes.UNSIGNED16, "rw", 0))
+    od.add_object(_variable("Error register", cia301.ERROR_REGISTER, 0, datatypes.UNSIGNED8,
+                            "ro", 0))
+    od.add_object(_variable("Producer heartbeat time", cia301.HEARTBEAT_TIME, 0,
+                            datatypes.UNSIGNED16, "rw", 0))
     od.add_object(_array("Write digital output 8 bit", cia401.DIGITAL_OUTPUTS,
                          datatypes.UNSIGNED8, 1))
     od.add_object(_array("Write analog output 16 bit", cia401.ANALOG_OUTPUTS,

@@ -1,0 +1,36 @@
+"""CANopen (CiA 301) objects and COB-IDs every node of the bench shares: the drives (CiA 402,
+`protocols.cia402`) and the exciters' I/O module (CiA 401, `protocols.cia401`), host side
+and simulated side alike."""
+
+from __future__ import annotations
+
+NMT_COB_ID = 0x000
+SYNC_COB_ID = 0x080
+NMT_RESET_NODE = 0x81
+"""NMT command: reset node (application and communication); 0x82 resets communication."""
+
+DEVICE_TYPE = 0x1000
+"""Object: profile number in the low 16 bits, additional information above."""
+ERROR_REGISTER = 0x1001
+CYCLE_PERIOD = 0x1006
+"""µs: one SYNC advances the simulated axis by this time."""
+HEARTBEAT_TIME = 0x1017
+"""ms; 0: no heartbeat."""
+IDENTITY = 0x1018
+MANUFACTURER_FIRST = 0x2000
+"""First index of the manufacturer-specific objects."""
+PROFILE_FIRST = 0x6000
+"""First index of the device-profile objects."""
+
+RPDO_COMMUNICATION, RPDO_MAPPING = 0x1400, 0x1600
+TPDO_COMMUNICATION, TPDO_MAPPING = 0x1800, 0x1A00
+"""First PDO parameter record of each kind (PDO n at + n − 1)."""
+PDO_RECORDS_END = 0x1C00
+"""First index past the TPDO mapping records."""
+PDO_COB_ID, PDO_TRANSMISSION_TYPE, PDO_INHIBIT_TIME, PDO_EVENT_TIMER = 1, 2, 3, 5
+"""Sub-indices of a PDO communication record; a mapping record's sub 0 counts its
+entries, subs 1–8 are the entries."""
+RPDO_COB_BASE, TPDO_COB_BASE = 0x200, 0x180
+"""COB-ID of PDO 1 without the node id (predefined connection set; PDO n: + 0x100 (n − 1))."""
+TRANSMISSION_SYNC = 1
+"""PDO transmission type: every SYNC."""
