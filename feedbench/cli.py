@@ -9,11 +9,14 @@ Ctrl-C outside a run one line (status 130). ``--debug`` shows the traceback inst
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
+import signal
 import socket
 import sqlite3
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Sequence
@@ -293,10 +296,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `feedbench` console script."""
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
+        with _noting_interrupts():
+            return args.func(args)
     except Exception as exc:
         if args.debug:
             raise
+        if _SIGINT_SEEN.is_set():
+            _error_line("interrupted")
+            return INTERRUPTED
         user = isinstance(exc, USER_ERRORS) or isinstance(exc, OSError) and exc.filename
         _error_line(_user_message(exc) if user else
                     f"{type(exc).__name__}: {exc} (run with --debug for the traceback)")
@@ -306,6 +313,31 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         _error_line("interrupted")
         return INTERRUPTED
+
+
+_SIGINT_SEEN = threading.Event()
+"""Set by a Ctrl-C during the command, even one Python could not raise where it landed (a
+KeyboardInterrupt inside a ctypes callback of numba's compiler is printed and dropped, and
+the command then fails with some other error): the command still ends as interrupted."""
+
+
+def _raise_interrupt(signum: int, frame: object) -> None:
+    _SIGINT_SEEN.set()
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _noting_interrupts():
+    """SIGINT raises KeyboardInterrupt as by default and is remembered in `_SIGINT_SEEN`."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _SIGINT_SEEN.clear()
+    previous = signal.signal(signal.SIGINT, _raise_interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _user_message(exc: Exception) -> str:
