@@ -32,8 +32,9 @@ CASES_PATH = EXAMPLES / "cases.toml"
 EMPS_MODEL = EXAMPLES / "emps_rigid_viscous.toml"
 KUKA_MODEL = EXAMPLES / "kuka_joint.toml"
 
-WORLD_TO_VOCABULARY = {"sensor_offset": "offset"}
-"""World effects the closure names differently (a force-reading offset is an offset)."""
+WORLD_TO_VOCABULARY = {"sensor_offset": "offset", "inertia_mismatch": "inertia.M_kg"}
+"""World effects the closure names differently: a force-reading offset is an offset, a mass
+the declared model does not know is the recalibration of its declared mass."""
 
 
 @contextmanager
@@ -120,7 +121,9 @@ CASE_SCHEMA = {
 
 @dataclass(frozen=True)
 class CaseOutcome:
-    """One simulated case: the undeclared effect(s) injected, what the closure found."""
+    """One simulated case: the undeclared effect(s) injected, what the closure found (effects
+    and "term.key" of recalibrated declared parameters, in order), the fitted parameters of
+    the effects and of the recalibrated terms."""
 
     name: str
     injected: tuple[str, ...]
@@ -184,9 +187,12 @@ def run_case(case: Mapping[str, Any]) -> CaseOutcome:
     with single_blas_thread():
         report = run_closure(spec, trace)
     data = report_dict(report)
-    return CaseOutcome(case["name"], undeclared(case["world"], spec), report.result.effects,
+    found = tuple(step.chosen.name for step in report.result.steps)
+    recalibrated = {name.split(".")[0] for name in report.result.recalibrated}
+    params = {**data["params"], **{term: data["final_params"][term] for term in recalibrated}}
+    return CaseOutcome(case["name"], undeclared(case["world"], spec), found,
                        report.result.error_before, report.result.error_after,
-                       time.perf_counter() - start, data["params"], case.get("acceptance", True))
+                       time.perf_counter() - start, params, case.get("acceptance", True))
 
 
 def run_cases(path: str | Path = CASES_PATH) -> list[CaseOutcome]:

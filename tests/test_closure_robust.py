@@ -17,6 +17,7 @@ from feedbench.analysis.closure import (
 )
 from feedbench.analysis.closure.diagnosis import try_effect, _free_basis
 from feedbench.analysis.closure.effects import EFFECTS, Context, Offset
+from feedbench.analysis.closure.model import predict
 from feedbench.analysis.closure.report import _step_dict
 from feedbench.closure_command import single_blas_thread
 from feedbench.config import ConfigError
@@ -170,3 +171,68 @@ def test_cubic_stiffening_is_identified_on_its_mode():
     fitted = fit_model(model, kin).model.term("cubic_stiffening").values
     assert fitted["kappa_per_um2"] == pytest.approx(kappa, rel=0.03)
     assert fitted["m_kg"] == pytest.approx(8.0, rel=0.03)
+
+
+def test_recalibrated_delay_moves_the_drive_delay_of_the_replay():
+    """A recalibrated declared delay is the drive's delay too: the final model is replayed
+    with the controller's delay moved as far, in whole velocity-loop periods (0.5 → 1.5 ms
+    at 4 kHz); the base model keeps the declared one."""
+    from feedbench.analysis.closure.run import recalibrated_controller
+    from feedbench.analysis.closure.spec import ControllerSpec
+
+    fit_kin, holdout, declared = wrong_delay_case()
+    result = close_the_loop(declared, fit_kin, holdout)
+    controller = ControllerSpec(K_p=8000.0, K_v=160.0, T_i=math.inf, f_velocity=4000.0,
+                                f_position=1000.0, delay=0.5e-3, force_limit=500.0,
+                                velocity_feedforward=False)
+    assert recalibrated_controller(controller, result).delay == pytest.approx(1.5e-3)
+    unchanged = close_the_loop(declared, fit_kin, holdout,
+                               ClosureOptions(recalibrate=False, candidates=("offset",)))
+    assert recalibrated_controller(controller, unchanged) is controller
+
+
+def test_a_declared_mass_that_is_off_is_one_recalibration():
+    """M declared 10 % high: one finding, the recalibration inertia.M_kg back to the truth
+    (no effect ΔM a beside it); the retired effect name says what took its place."""
+    kin = kin_of(synthetic_trace())
+    declared = Model((new_term("inertia", {"M_kg": 1.1 * BASE["M_kg"]}, ()),
+                      new_term("viscous", {"F_v_Ns_m": BASE["F_v_Ns_m"]}, ()),
+                      new_term("coulomb", {"F_c_N": BASE["F_c_N"], "k_tanh_min_mm": K_TANH}, ())),
+                     "declared")
+    result = close_the_loop(declared, kin.window(0, 7000), kin.window(7300, kin.n))
+    assert result.recalibrated == ("inertia.M_kg",) and result.effects == ()
+    before, after, std = result.steps[0].recalibration
+    assert (before, after) == (pytest.approx(33.0), pytest.approx(BASE["M_kg"], rel=0.005))
+    assert 0.0 < std < 0.05
+    with pytest.raises(ValueError, match="'inertia_mismatch' is retired: a declared mass"):
+        ClosureOptions(candidates=("inertia_mismatch",))
+    from feedbench.analysis.closure import parse_model_config
+    with pytest.raises(ConfigError, match="terms.inertia_mismatch: retired"):
+        parse_model_config({"terms": {"inertia": {"M_kg": 30.0}, "inertia_mismatch": {}}})
+
+
+def test_backlash_load_on_a_contact_spring_is_identified_from_reversals():
+    """A load behind a 200 µm play on a 30 Hz contact (ζ 0.3), braked by 0.5 N/kg, on
+    reversal moves (the model's own term, 0.3 N noise): the candidate, from its screened
+    grid, gets play, contact and friction within 10 % and the error to the noise."""
+    truth = {"m_load_kg": 6.0, "width_um": 200e-6, "f_contact_Hz": 30.0, "zeta_contact": 0.3,
+             "friction_N_kg": 0.5}
+    t = np.arange(12000) / 1000.0
+    x = 0.02 * np.sin(2 * np.pi * 0.5 * t) + 0.004 * np.sin(2 * np.pi * 1.7 * t + 1.0)
+    v = np.gradient(x, t)
+    motion = Kinematics(x, v, np.gradient(v, t), np.zeros_like(t), np.ones(t.size, bool),
+                        1e-3, 100.0)
+    world = Model((new_term("inertia", {"M_kg": BASE["M_kg"]}),
+                   new_term("viscous", {"F_v_Ns_m": BASE["F_v_Ns_m"]}),
+                   new_term("coulomb", {"F_c_N": BASE["F_c_N"], "k_tanh_min_mm": K_TANH}),
+                   new_term("backlash", truth)))
+    force = predict(world, motion).reading + np.random.default_rng(5).normal(0, 0.3, t.size)
+    kin = kin_of(Trace(t, x, force))
+    current = fit_model(base_model(), kin)
+    context = Context(current.residual, current.acting,
+                      {term.name: term.values for term in current.model.terms})
+    candidate = try_effect(EFFECTS["backlash"], current, kin, context, _free_basis(current, kin), 1)
+    fitted = candidate.fit.model.term("backlash").values
+    for key in ("width_um", "f_contact_Hz", "zeta_contact", "friction_N_kg", "m_load_kg"):
+        assert fitted[key] == pytest.approx(truth[key], rel=0.1), key
+    assert candidate.fit.error < 0.2 * current.error

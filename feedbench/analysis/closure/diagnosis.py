@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from feedbench.analysis.closure.effects import CANDIDATES, EFFECTS, Context, Effect
+from feedbench.analysis.closure.effects import CANDIDATES, EFFECTS, RETIRED, Context, Effect
 from feedbench.analysis.closure.model import (
     TIP_TERMS, Fit, FitError, Model, Term, check_identifiable, design, fit_model,
     held_out_error, least_squares_solution, output_slope, predict_tip, tip_error,
@@ -36,10 +36,6 @@ from feedbench.config import ConfigError
 
 MAX_FAILED_STARTS = 3
 """Further starts tried, best screened first, when a candidate's fits fail."""
-
-RECALIBRATION_ALIASES = {("inertia", "M_kg"): "inertia_mismatch"}
-"""Declared parameters whose recalibration an effect of the library already is (ΔM a): that
-effect is tried instead, under its name."""
 
 
 @dataclass(frozen=True)
@@ -57,6 +53,9 @@ class ClosureOptions:
     recalibrate: bool = True
 
     def __post_init__(self) -> None:
+        retired = sorted(set(self.candidates) & set(RETIRED))
+        if retired:
+            raise ValueError(f"candidates: {retired[0]!r} is retired: {RETIRED[retired[0]]}")
         unknown = sorted(set(self.candidates) - set(CANDIDATES))
         if unknown:
             raise ValueError(f"candidates: unknown effect {unknown[0]!r} "
@@ -246,8 +245,7 @@ def rank_recalibrations(current: Fit, kin: Kinematics,
     tried = []
     for i, term in enumerate(current.model.terms):
         for p in term.effect.parameters:
-            alias = RECALIBRATION_ALIASES.get((term.name, p.key))
-            if p.setting or p.key in term.free or alias in options.candidates:
+            if p.setting or p.key in term.free:
                 continue
             terms = list(held.terms)
             terms[i] = replace(term, free=terms[i].free | {p.key})

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from feedbench.analysis.closure.diagnosis import ClosureResult, close_the_loop
-from feedbench.analysis.closure.model import Model, predict
+from feedbench.analysis.closure.model import predict
 from feedbench.analysis.closure.replay import Replay, ReplayErrors, replay, replay_errors
-from feedbench.analysis.closure.spec import ModelSpec
+from feedbench.analysis.closure.spec import ControllerSpec, ModelSpec
 from feedbench.analysis.closure.trace import (
     Kinematics, Trace, edge_samples, kinematics, standstill_speed,
 )
@@ -97,5 +97,18 @@ def _replays(spec: ModelSpec, trace: Trace, result: ClosureResult) -> tuple[Repl
     """Replays of the base and the final model on the judged trace, when possible."""
     if spec.controller is None or trace.reference is None:
         return None
-    models: tuple[Model, Model] = (result.base.model, result.final.model)
-    return tuple(replay(trace, m, spec.controller) for m in models)
+    return (replay(trace, result.base.model, spec.controller),
+            replay(trace, result.final.model, recalibrated_controller(spec.controller, result)))
+
+
+def recalibrated_controller(controller: ControllerSpec, result: ClosureResult) -> ControllerSpec:
+    """The controller the final model is replayed with: the drive's force delay moved by as
+    much as a recalibration moved the declared `delay` term (the two declare the same drive
+    delay, s). A delay the search added as an effect is a lead of the force channel only,
+    and leaves the drive's delay as declared."""
+    if "delay.tau_ms" not in result.recalibrated:
+        return controller
+    moved = (result.final.model.term("delay").values["tau_ms"]
+             - result.base.model.term("delay").values["tau_ms"])
+    periods = max(round((controller.delay + moved) * controller.f_velocity), 0)
+    return replace(controller, delay=periods / controller.f_velocity)

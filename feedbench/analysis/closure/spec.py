@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from typing import Any, Mapping
 
 from feedbench.analysis.closure.diagnosis import ClosureOptions
-from feedbench.analysis.closure.effects import CANDIDATES, EFFECTS, Effect, Parameter
+from feedbench.analysis.closure.effects import CANDIDATES, EFFECTS, RETIRED, Effect, Parameter
 from feedbench.analysis.closure.model import Model, Term
 from feedbench.config import ConfigError, Field, REQUIRED, non_negative, positive, validate_table
 
@@ -128,6 +128,8 @@ def parse_model_config(raw: Mapping[str, Any]) -> ModelSpec:
 
 def _term(name: str, table: Any) -> Term:
     """One declared term: each parameter fixed (number), free ("free") or both (table)."""
+    if name in RETIRED:
+        raise ConfigError(f"terms.{name}: retired: {RETIRED[name]}")
     if name not in EFFECTS:
         raise ConfigError(f"terms.{name}: unknown term (known: {', '.join(EFFECTS)})")
     if not isinstance(table, dict):
