@@ -5,9 +5,9 @@ compiled kernel and cascade, Eq. (5.4), as the simulated bench), driven by the r
 reference (CSP) and excitation (force offset); the replayed position and force reading are
 compared with the measured ones. A rigid body is replayed as two halves on a coupling whose
 mode lies far above the loop rate, critically damped: the exact zero-order-hold
-discretisation of the axis integrates it without error. Backlash is not replayed (the
-rigid play has no coupling to put it in), nor a cubic stiffening (the kernel's coupling is
-linear); the report says so.
+discretisation of the axis integrates it without error. Backlash is not replayed (its load
+on a contact spring would be a third body beside the kernel's motor and tip), nor a cubic
+stiffening (the kernel's coupling is linear); the report says so.
 """
 
 from __future__ import annotations
