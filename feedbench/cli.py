@@ -25,7 +25,7 @@ from feedbench.config import ConfigError
 from feedbench.experiments.limits import LimitError
 from feedbench.protocols.address import split_address
 
-USER_ERRORS = (ConfigError, LimitError, KeyError, FileNotFoundError)
+USER_ERRORS = (ConfigError, LimitError, FileNotFoundError)
 INTERRUPTED = 130
 """Exit status after Ctrl-C outside a run (128 + SIGINT, as a shell reports it)."""
 
@@ -341,10 +341,10 @@ def _noting_interrupts():
 
 
 def _user_message(exc: Exception) -> str:
-    """A user error's text (a KeyError's is its argument, unquoted; a file's error names it)."""
+    """A user error's text (a file's error names the file)."""
     if isinstance(exc, OSError) and exc.filename:
         return f"{exc.filename}: {exc.strerror}"
-    return str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc)
+    return str(exc)
 
 
 def _error_line(message: str) -> None:

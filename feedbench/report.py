@@ -826,22 +826,23 @@ def run_section(recording: Recording) -> RunSection:
 
 def closure_section(report: Any) -> RunSection:
     """A closure result (`analysis.closure.ClosureReport`) as a section: the held-out force
-    residual before and after, the effects added with their evidence and parameters, the
-    error before/after and the closed-loop replay errors."""
+    residual before and after, the findings (effects added, declared values recalibrated)
+    with their evidence and parameters, the error before/after and the closed-loop replay
+    errors."""
     from feedbench.analysis.closure import report_dict
 
     data = report_dict(report)
-    section = RunSection(f"closure: {report.name or 'model'}", "closure",
-                         " + ".join(data["effects"]) or "nothing added")
+    findings = ", ".join(_finding_summary(step) for step in data["steps"]) or "nothing found"
+    section = RunSection(f"closure: {report.name or 'model'}", "closure", findings)
     section.plots.append(Plot("held-out force residual before and after",
-                              png_of(_residual_figure(report))))
-    section.tables.append(Table("effects added", (
-        "effect", "evidence", "ΔBIC", "explained", "held-out error", "parameters"), tuple(
-        (step["effect"], step["evidence"], f"{step['delta_bic']:.0f}",
-         f"{100 * step['explained']:.1f} %",
-         f"{100 * step['error_before']:.2f} → {100 * step['error_after']:.2f} %",
-         ", ".join(f"{key} {p['value']:.4g}" for key, p in step["params"].items()))
-        for step in data["steps"])))
+                              png_of(_residual_figure(report, findings))))
+    section.tables.append(Table("findings", (
+        "finding", "kind", "evidence", "ΔBIC", "explained", "held-out error", "parameters"),
+        tuple((step["effect"], FINDING_KINDS[step["kind"]], step["evidence"],
+               f"{step['delta_bic']:.0f}", f"{100 * step['explained']:.1f} %",
+               f"{100 * step['error_before']:.2f} → {100 * step['error_after']:.2f} %",
+               _finding_parameters(step))
+              for step in data["steps"])))
     replay = data["replay"]
     if replay is not None:
         section.tables.append(Table("closed-loop replay on the held-out data", (
@@ -863,19 +864,34 @@ def closure_section(report: Any) -> RunSection:
             "held-out tip acceleration NRMSE before → after",
             f"{100 * data['tip_error_before']:.2f} % → {100 * data['tip_error_after']:.2f} %",
             data["tip_error_after"] <= data["tip_error_before"]))
-    section.headline = (f"{', '.join(data['effects']) or 'nothing'} added: "
+    section.headline = (f"{findings}: "
                         f"{100 * data['error_before']:.2f} % → {100 * data['error_after']:.2f} %")
     return section
 
 
-def _residual_figure(report: Any) -> MplFigure:
+FINDING_KINDS = {"effect": "effect added", "recalibration": "declared value recalibrated"}
+
+
+def _finding_summary(step: dict) -> str:
+    """"ripple added" or "delay.tau_ms recalibrated"."""
+    return f"{step['effect']} {'recalibrated' if step['kind'] == 'recalibration' else 'added'}"
+
+
+def _finding_parameters(step: dict) -> str:
+    """An effect's fitted parameters, or a recalibration's declared → fitted ± σ."""
+    if step["kind"] == "recalibration":
+        return step["description"]
+    return ", ".join(f"{key} {p['value']:.4g}" for key, p in step["params"].items())
+
+
+def _residual_figure(report: Any, findings: str) -> MplFigure:
+    """Held-out force residual (N) of the base and the final model over time."""
     time_s, before, after = report.held_out_residuals()
     result = report.result
     figure = new_figure(10.0, 4.5)
     ax = figure.subplots()
     ax.plot(time_s, before, ".", ms=1.5, label=f"before: NRMSE {result.error_before:.2%}")
-    ax.plot(time_s, after, ".", ms=1.5, label=f"after (+ {', '.join(result.effects) or 'nothing'})"
-            f": NRMSE {result.error_after:.2%}")
+    ax.plot(time_s, after, ".", ms=1.5, label=f"after ({findings}): NRMSE {result.error_after:.2%}")
     ax.set_xlabel("time in the held-out data (s)")
     ax.set_ylabel("force residual (N)")
     ax.grid(alpha=0.3)

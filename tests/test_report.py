@@ -577,15 +577,35 @@ def test_closure_section_shows_the_residual_before_and_after(closure_result):
     section = closure_section(closure_result)
     data = report_dict(closure_result)
     assert plot_sizes(section) == {"held-out force residual before and after": (1000, 450)}
-    effects = table(section, "effects added")
+    effects = table(section, "findings")
     assert list(effects) == data["effects"] == ["ripple"]
-    assert effects["ripple"][3] == (f"{100 * data['error_before']:.2f} → "
+    assert effects["ripple"][0] == "effect added"
+    assert effects["ripple"][4] == (f"{100 * data['error_before']:.2f} → "
                                     f"{100 * data['error_after']:.2f} %")
     assert data["error_after"] < 0.5 * data["error_before"]
     quality = {q.name: q for q in section.quality}
     assert quality["held-out force NRMSE before → after"].ok
     replay = table(section, "closed-loop replay on the held-out data")
     assert float(replay["force NRMSE"][1]) < float(replay["force NRMSE"][0])
+
+
+def test_closure_section_shows_a_recalibration(tmp_path):
+    """The independent simulator's axis declared 10 % heavy (44 kg, true 40 kg): the one
+    finding is the declared mass recalibrated, declared → fitted ± σ in the table."""
+    from feedbench.closure_command import closure_report
+    from independent_sim import write_case
+
+    files = write_case("recal_mass", tmp_path)
+    section = closure_section(closure_report(files.data_csv, files.model_toml,
+                                             files.validation_csv))
+    findings = table(section, "findings")
+    assert list(findings) == ["inertia.M_kg"]
+    kind, parameters = findings["inertia.M_kg"][0], findings["inertia.M_kg"][-1]
+    assert kind == "declared value recalibrated"
+    pattern = r"declared (\S+) → (\S+) ± \S+ kg, moved \S+ σ"
+    declared, fitted = re.match(pattern, parameters).groups()
+    assert float(declared) == 44.0 and float(fitted) == pytest.approx(40.0, rel=0.01)
+    assert section.headline.startswith("inertia.M_kg recalibrated: ")
 
 
 @pytest.fixture(scope="module")

@@ -17,6 +17,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from feedbench.config import ConfigError
 from feedbench.daq.recording import to_json, utc_now_iso
 
 SCHEMA = """
@@ -36,8 +37,9 @@ COLUMNS = "id, experiment, started_at, stopped_at, status, reason, file, n_sampl
 BUSY_TIMEOUT_S = 10.0
 
 
-class RunLookupError(KeyError):
-    """No run, or more than one run, matches the given id or prefix."""
+class RunLookupError(ConfigError, KeyError):
+    """No run, or more than one run, matches the given id or prefix (a user error: the CLI
+    prints it as one line)."""
 
     def __str__(self) -> str:
         return str(self.args[0])
