@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import math
 import signal
 import socket
@@ -39,7 +38,9 @@ class Parser(argparse.ArgumentParser):
 
 
 def _print_json(data: dict) -> None:
-    print(json.dumps(data, indent=2, default=float))
+    from feedbench.daq.recording import printable_json
+
+    print(printable_json(data))
 
 
 def cmd_run(args: argparse.Namespace) -> int:

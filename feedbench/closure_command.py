@@ -15,7 +15,6 @@ packages are imported where used, so that registering the command costs nothing.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -237,10 +236,11 @@ def cmd_closure(args: argparse.Namespace) -> int:
     """Run the closure on a trace, or the simulated case table."""
     from feedbench.analysis.closure import report_dict, report_text
     from feedbench.closure_io import save_plots
+    from feedbench.daq.recording import printable_json
 
     if args.cases:
         outcomes = run_cases(args.cases)
-        print(json.dumps(cases_dict(outcomes), indent=2, default=float) if args.json
+        print(printable_json(cases_dict(outcomes)) if args.json
               else cases_table(outcomes))
         return 0
     if not args.data:
@@ -257,7 +257,7 @@ def cmd_closure(args: argparse.Namespace) -> int:
         data = report_dict(report)
         data["plots"] = [str(p) for p in plots]
         data["report"] = str(html) if html else None
-        print(json.dumps(data, indent=2, default=float))
+        print(printable_json(data))
     else:
         print(report_text(report))
         for path in plots:

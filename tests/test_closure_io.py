@@ -12,6 +12,7 @@ from feedbench.analysis.closure import Trace
 from feedbench.cli import main
 from feedbench.closure_io import read_csv_trace, read_emps, write_csv_trace
 from feedbench.config import ConfigError
+from feedbench.daq.recording import printable_json
 from prerequisites import SHARED_DATA, requires
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "feedbench" / "examples" / "closure"
@@ -75,12 +76,24 @@ def test_emps_reader_scales_voltage_by_the_drive_gain():
     assert trace.sample_rate == pytest.approx(1000.0, rel=1e-4)
 
 
+def _not_json(constant: str) -> None:
+    raise AssertionError(f"{constant} is not JSON")
+
+
+def test_printed_json_is_strict_json():
+    """`--json` output: an unknown σ (NaN) or an infinite value is null, numpy values plain."""
+    text = printable_json({"std": float("nan"), "peak": np.float64(np.inf),
+                           "values": [1.0, np.array([np.nan, 2.0])], "n": np.int64(3)})
+    assert json.loads(text, parse_constant=_not_json) == {
+        "std": None, "peak": None, "values": [1.0, [None, 2.0]], "n": 3}
+
+
 def test_command_finds_the_effect_hidden_in_the_sample_csv(tmp_path, capsys):
     status = main(["closure", str(EXAMPLES / "sample_axis.csv"), "--model",
                    str(EXAMPLES / "bench_coulomb_viscous.toml"), "--json",
                    "--plots", str(tmp_path)])
     assert status == 0
-    data = json.loads(capsys.readouterr().out)
+    data = json.loads(capsys.readouterr().out, parse_constant=_not_json)
     assert data["effects"] == ["ripple"]  # 6 N at a 5 mm pitch (sample_axis.toml's world)
     assert data["params"]["ripple"]["pitch_mm"]["value"] == pytest.approx(5.0, rel=0.01)
     assert data["error_after"] < 0.5 * data["error_before"]

@@ -21,6 +21,7 @@ flushed chunk).
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -55,6 +56,26 @@ def utc_now_iso() -> str:
 def to_json(value: Any) -> str:
     """JSON text of `value`; numpy scalars/arrays become lists/numbers, anything else its str."""
     return json.dumps(value, default=_json_fallback, sort_keys=True)
+
+
+def printable_json(value: Any) -> str:
+    """Indented strict JSON of a result for people and tools (`--json`): numpy values become
+    numbers and lists, a non-finite number (an unknown σ, a missing coherence) null, which
+    jq and browsers read (Python's json writes NaN, which is not JSON)."""
+    return json.dumps(_finite(value), indent=2, default=_json_fallback, allow_nan=False)
+
+
+def _finite(value: Any) -> Any:
+    """`value` with every non-finite float replaced by None, containers walked."""
+    if isinstance(value, (np.generic, np.ndarray)):
+        value = value.tolist()
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: _finite(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(item) for item in value]
+    return value
 
 
 def _json_fallback(value: Any) -> Any:
