@@ -7,7 +7,7 @@ the held-out data too. Data from the inverse model itself: these test the search
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -112,6 +112,21 @@ def test_a_wrong_declared_delay_is_recalibrated_not_explained_by_an_effect():
     assert r["value"] == pytest.approx(1.5, abs=0.02)
     assert r["sigmas"] == pytest.approx(abs(r["value"] - 0.5) / r["std"])
     assert math.isfinite(entry["holdout_delta_bic"]) and entry["holdout_delta_bic"] < -10.0
+
+
+def test_a_recalibration_without_a_finite_std_says_sigma_unknown():
+    """A recalibrated parameter whose std could not be computed (NaN: the information matrix
+    was not finite) or is zero: σ moved is NaN (null in JSON), and the text says why instead
+    of "± nan, moved inf σ"."""
+    fit_kin, holdout, declared = wrong_delay_case()
+    step = close_the_loop(declared, fit_kin, holdout).steps[0]
+    for std, why in (({}, "not finite"), ({("delay", "tau_ms"): 0.0}, "singular")):
+        entry = _step_dict(replace(step, fit=replace(step.fit, std=std)))
+        assert math.isnan(entry["recalibration"]["sigmas"])
+        assert entry["description"] == (f"declared 0.5 → {entry['recalibration']['value']:.4g} "
+                                        f"ms, σ unknown (its information is {why}"
+                                        + (": a derivative step left the stable range)"
+                                           if why == "not finite" else ")"))
 
 
 def test_recalibration_can_be_switched_off():

@@ -67,13 +67,14 @@ def stop_reason(result: ClosureResult) -> str:
 
 def recalibration_dict(step: Step) -> dict[str, Any]:
     """A recalibrated declared parameter in its config unit: declared → fitted ± std, and by
-    how many standard deviations it moved."""
+    how many standard deviations it moved (NaN when the std is not finite and positive)."""
     i, key = step.chosen.freed
     p = step.fit.model.terms[i].effect.parameter(key)
     declared, value, std = (v / p.to_si for v in step.recalibration)
+    known = math.isfinite(std) and std > 0.0
     return {"parameter": step.chosen.name, "unit": p.unit, "declared": declared,
             "value": value, "std": std,
-            "sigmas": abs(value - declared) / std if std > 0.0 else math.inf}
+            "sigmas": abs(value - declared) / std if known else math.nan}
 
 
 def _step_dict(step: Step) -> dict[str, Any]:
@@ -94,8 +95,12 @@ def _step_dict(step: Step) -> dict[str, Any]:
 
 
 def _recalibration_text(r: dict[str, Any]) -> str:
-    return (f"declared {r['declared']:.4g} → {r['value']:.4g} ± {r['std']:.2g} {r['unit']}, "
-            f"moved {r['sigmas']:.3g} σ")
+    moved = f"{r['declared']:.4g} → {r['value']:.4g}"
+    if math.isfinite(r["sigmas"]):
+        return f"declared {moved} ± {r['std']:.2g} {r['unit']}, moved {r['sigmas']:.3g} σ"
+    why = ("its information is not finite: a derivative step left the stable range"
+           if math.isnan(r["std"]) else "its information is singular")
+    return f"declared {moved} {r['unit']}, σ unknown ({why})"
 
 
 def report_dict(report: ClosureReport) -> dict[str, Any]:
