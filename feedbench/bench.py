@@ -331,9 +331,12 @@ class Bench:
 
 def run_config(config: RunConfig, observers: Sequence[Observer] = (),
                progress: bool = True, stop: StopRequest | None = None) -> dict:
-    """Open the bench of `config`, run its plan, close the bench; returns the run record."""
+    """Open the bench of `config`, run its plan, close the bench; returns the run record.
+
+    The output directory and its catalog are made once the bench has opened: a bench that
+    cannot be reached leaves nothing behind."""
     output_dir = Path(config.bench["output_dir"])
-    output_dir.mkdir(parents=True, exist_ok=True)
-    catalog = Catalog(output_dir / "catalog.sqlite")
     with Bench(config.bench, config.plan) as bench:
+        output_dir.mkdir(parents=True, exist_ok=True)
+        catalog = Catalog(output_dir / "catalog.sqlite")
         return bench.run(config, catalog, output_dir, observers, progress, stop)

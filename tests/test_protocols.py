@@ -94,3 +94,10 @@ def test_the_host_maps_by_default_what_the_eds_maps():
             record = od[first_map + number - 1]
             mapped = [record[sub].default >> 16 for sub in range(1, record[0].default + 1)]
             assert mapped == list(objects), number
+
+
+@pytest.mark.parametrize("listen", [False, True])
+def test_a_port_above_65535_names_the_field(listen):
+    with pytest.raises(ConfigError, match=r"^bench\.modbus: port 70000 of '127.0.0.1:70000' is "
+                                          r"above 65535$"):
+        split_address("127.0.0.1:70000", "bench.modbus", listen=listen)

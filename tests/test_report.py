@@ -13,6 +13,7 @@ import re
 import shutil
 import struct
 import subprocess
+import tempfile
 
 import numpy as np
 import pytest
@@ -216,9 +217,13 @@ def test_quality_flags_an_aborted_run_with_missing_samples(sections):
 
 
 def chromium(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu",
-                           "--hide-scrollbars", *args], capture_output=True, text=True,
-                          timeout=120)
+    """Headless Chromium with a throw-away profile and no background traffic."""
+    with tempfile.TemporaryDirectory() as profile:
+        return subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu",
+                               "--hide-scrollbars", f"--user-data-dir={profile}",
+                               "--no-first-run", "--disable-background-networking",
+                               "--disable-component-update", "--disable-sync", *args],
+                              capture_output=True, text=True, timeout=120)
 
 
 def decoded_images(report, directory) -> list[str]:

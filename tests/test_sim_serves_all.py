@@ -84,10 +84,17 @@ class SimProcess:
         time.sleep(0.05)  # nothing more should come
         return self.stderr[since:]
 
-    def stop(self) -> int:
-        """Wait for the exit that `process.terminate()` asked for; the exit status."""
-        self.process.wait(timeout=20)
-        self._reader.join(5)
+    def stop(self) -> int | None:
+        """Wait for the exit that `process.terminate()` asked for; the exit status, or None
+        if it had to be killed after 20 s (then it is gone all the same)."""
+        try:
+            self.process.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+            return None
+        finally:
+            self._reader.join(5)
         return self.process.returncode
 
 
