@@ -7,7 +7,7 @@ the held-out data too. Data from the inverse model itself: these test the search
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 import pytest
@@ -16,7 +16,7 @@ from feedbench.analysis.closure import (
     ClosureOptions, Kinematics, Model, Trace, close_the_loop, fit_model, kinematics, new_term, report_dict,
 )
 from feedbench.analysis.closure.diagnosis import try_effect, _free_basis
-from feedbench.analysis.closure.effects import EFFECTS, Context, Offset
+from feedbench.analysis.closure.effects import EFFECTS, Context, Offset, Ripple
 from feedbench.analysis.closure.model import predict
 from feedbench.analysis.closure.report import _step_dict
 from feedbench.closure_command import single_blas_thread
@@ -51,6 +51,30 @@ def test_a_candidate_whose_fit_fails_is_rejected_with_its_reason():
     assert candidate.fit is None
     assert candidate.rejected == "fit failed: non-finite regressors or force at the start values"
     assert not candidate.significant(ClosureOptions())
+
+
+@dataclass(frozen=True)
+class FarFailingRipple(Ripple):
+    """A ripple whose law raises beyond 10 % off a 12 mm pitch: a refinement with 30 %
+    difference steps fails, one with √ε steps does not."""
+
+    def columns(self, kin, values):
+        if abs(values["pitch_mm"] / 0.012 - 1.0) > 0.1:
+            raise ValueError("pitch out of the law's range")
+        return super().columns(kin, values)
+
+
+def test_a_failing_coarse_step_refinement_keeps_the_fine_step_fit():
+    """A term refined with both difference steps: the coarse one raises, the √ε one's fit
+    is kept (it was thrown away with it, the candidate rejected)."""
+    truth = new_term("ripple", {"A_sin_N": 4.0, "A_cos_N": 0.0, "pitch_mm": 0.012})
+    kin = kin_of(synthetic_trace((truth,)))
+    ripple = new_term("ripple", {"A_sin_N": 0.0, "A_cos_N": 0.0, "pitch_mm": 0.0121})
+    effect = FarFailingRipple(**{f.name: getattr(EFFECTS["ripple"], f.name)
+                                 for f in fields(Ripple)} | {"difference_step": 0.3})
+    fit = fit_model(base_model().with_term(replace(ripple, effect=effect)), kin)
+    assert fit.model.term("ripple").values["pitch_mm"] == pytest.approx(0.012, rel=1e-3)
+    assert fit.model.term("ripple").values["A_sin_N"] == pytest.approx(4.0, rel=0.01)
 
 
 def test_amplitude_nonlinearity_is_finite_for_every_beta_and_starts_invertible():

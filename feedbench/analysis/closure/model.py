@@ -353,7 +353,8 @@ def _refine_nonlinear(model: Model, kin: Kinematics, x0: np.ndarray,
     a second output, weighted by the ratio of the two residuals' norms at the start (each
     output's noise level, as maximum likelihood weighs them). The Jacobian is by differences
     of √ε; a term whose SSR is rugged (`Effect.difference_step`) is refined once more with
-    differences of its own step (a secant across the ruggedness), the lower cost kept.
+    differences of its own step (a secant across the ruggedness), the lower cost kept; a
+    refinement that fails is dropped, the fit fails only when every one does.
     """
     lower = np.array([model.terms[i].effect.parameter(k).lower for i, k in slots])
     upper = np.array([model.terms[i].effect.parameter(k).upper for i, k in slots])
@@ -390,17 +391,19 @@ def _refine_nonlinear(model: Model, kin: Kinematics, x0: np.ndarray,
     unit = _magnitudes(x0, lower, upper)
     steps = np.array([model.terms[i].effect.difference_step for i, _ in slots])
     tangent = np.full(len(slots), DIFFERENCE_STEP)
-    results = []
+    results, failures = [], []
     with np.errstate(all="ignore"):
         for step in (tangent, steps) if np.any(steps != tangent) else (tangent,):
-            try:
+            try:  # each step on its own: a failure of one keeps the other's fit
                 results.append(least_squares(
                     lambda u: residual(u * unit), x0 / unit,
                     bounds=(lower / unit, upper / unit), x_scale="jac", diff_step=step,
                     ftol=NONLINEAR_TOLERANCE, xtol=NONLINEAR_TOLERANCE,
                     max_nfev=MAX_NONLINEAR_EVALUATIONS * len(slots)))
             except (ValueError, np.linalg.LinAlgError) as exc:
-                raise FitError(f"nonlinear refinement failed: {exc}") from None
+                failures.append(str(exc))
+    if not results:
+        raise FitError(f"nonlinear refinement failed: {'; '.join(failures)}")
     best = min(results, key=lambda result: result.cost)
     return model.with_nonlinear(best.x * unit, slots)
 
