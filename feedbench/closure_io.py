@@ -134,11 +134,26 @@ def _read_table(path: Path, delimiter: str, decimal: str) -> tuple[list[str], np
         body = body.replace(decimal, ".")
     try:
         data = np.loadtxt(io.StringIO(body), delimiter=delimiter, ndmin=2)
-    except ValueError as exc:
-        raise ConfigError(f"{path}: not a numeric table after the header ({exc})") from None
+    except ValueError:
+        raise ConfigError(f"{path}: {_bad_row(body.splitlines(), delimiter, len(header))}"
+                          ) from None
     if data.shape[1] != len(header):
         raise ConfigError(f"{path}: {len(header)} header names but {data.shape[1]} columns")
     return header, data
+
+
+def _bad_row(rows: list[str], delimiter: str, width: int) -> str:
+    """What is wrong with the first row of a CSV body that is not a numeric table."""
+    for number, row in enumerate(rows, 2):
+        cells = row.split(delimiter)
+        if len(cells) != width:
+            return f"row {number} has {len(cells)} values, the header {width} names"
+        for cell in cells:
+            try:
+                float(cell)
+            except ValueError:
+                return f"row {number}: {cell.strip()!r} is not a number"
+    return "not a numeric table after the header"
 
 
 def write_csv_trace(path: str | Path, trace: Trace, sidecar_extra: Mapping[str, Any]) -> None:

@@ -205,9 +205,17 @@ def export_csv(recording_path: str | Path, path: str | Path) -> Path:
     if path.suffix.lower() != ".csv":
         raise ConfigError(f"{path}: a CSV export must end in .csv (its sidecar is "
                           f"{sidecar_path(path.with_suffix('.csv')).name})")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_folder(path)
     write_csv_trace(path, read_recording(recording_path), {})
     return path
+
+
+def _make_folder(path: Path) -> None:
+    """The folder an export is written into; a ConfigError if a file stands in its way."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise ConfigError(f"{path}: its folder {path.parent} is a file, not a folder") from None
 
 
 def write_uff58(path: str | Path, frfs: list[ExchangeFrf], run: str = "NONE",
@@ -219,7 +227,7 @@ def write_uff58(path: str | Path, frfs: list[ExchangeFrf], run: str = "NONE",
     frfs = [frf for frf in frfs if np.size(frf.f) >= 2]
     if not frfs:
         raise ConfigError(f"{path}: no FRF of 2 or more frequency lines to write")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_folder(path)
     path.unlink(missing_ok=True)
     number = 0
     for frf in frfs:
