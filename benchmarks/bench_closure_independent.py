@@ -17,6 +17,9 @@ verdict) and the totals. Figures, per variant (`exact`, `free`), with the target
   verdicts use, changed from "halved": a case that starts within about twice the noise floor
   cannot halve (the exact model itself ends at 0.65–1.04× the floor on clean recordings), and
   1.5× the floor is the issue's own target for a clean recording with the exact model.
+- independent_<variant>_one_finding: share of effect and recalibration cases with exactly one
+  finding: the injected effect explained once, no second effect beside it (issue 13.7's
+  parsimony; 1.0).
 - independent_<variant>_clean_untouched: share of clean cases where nothing is found (1.0).
 - independent_<variant>_recalibrated: share of recalibration cases whose first finding is the
   recalibration of the wrongly declared parameter (≥ 0.8).
@@ -81,6 +84,7 @@ def totals(verdicts: list[Verdict], seconds: list[float]) -> dict[str, float]:
     return {"named_first": share(("effect",), "named_first"),
             "halved": share(("effect", "recalibration"), "halved"),
             "fixed": share(("effect", "recalibration"), "fixed"),
+            "one_finding": share(("effect", "recalibration"), "one_finding"),
             "clean_untouched": share(("clean",), "untouched"),
             "recalibrated": share(("recalibration",), "named_first"),
             "crashes": float(sum(v.crash is not None for v in verdicts)),
@@ -92,7 +96,7 @@ def run(names: list[str] | None = None) -> dict[str, float]:
     names = names or list(CASES)
     figures, notes = {}, {}
     targets = {"named_first": "≥ 0.9", "halved": "(as written)", "fixed": "≥ 0.9",
-               "clean_untouched": "1.0",
+               "one_finding": "1.0", "clean_untouched": "1.0",
                "recalibrated": "≥ 0.8", "crashes": "0", "median_s": "≤ 10 s"}
     with tempfile.TemporaryDirectory() as directory:
         for variant, free in VARIANTS.items():

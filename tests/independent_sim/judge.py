@@ -52,6 +52,12 @@ class Verdict:
                 and self.injected in (self.found[0], SAME_PHYSICS.get(self.found[0])))
 
     @property
+    def one_finding(self) -> bool:
+        """Exactly one finding: one injected effect (or wrong parameter) is explained once,
+        not by a second effect besides it (parsimony, issue 13.7)."""
+        return self.crash is None and len(self.found) == 1
+
+    @property
     def halved(self) -> bool:
         """The held-out error at least halved."""
         return self.crash is None and self.error_after <= HALVED * self.error_before
