@@ -399,13 +399,12 @@ def follower_force(x: np.ndarray, v: np.ndarray, dt: float, omega: float, zeta: 
 @njit(cache=True)
 def _spring_force(d: float, dv: float, w2: float, c: float, kappa: float,
                   half_play: float) -> float:
-    """Force per kg of the dead-zone spring-damper at deflection d (m), rate dv (m/s)."""
-    if d >= half_play:
-        s = d - half_play
-    elif d <= -half_play:
-        s = d + half_play
-    else:
+    """Force per kg of the dead-zone spring-damper at deflection d (m), rate dv (m/s): the
+    spring on the deflection beyond the play (`models.effects.dead_zone`), the damper while
+    in contact (|d| ≥ half_play)."""
+    if abs(d) < half_play:
         return 0.0
+    s = laws.dead_zone(d, 2.0 * half_play)
     return w2 * (s + kappa * s * s * s) + c * dv
 
 
