@@ -96,6 +96,7 @@ def case_directory(tmp_path_factory):
 SUBSET = [
     pytest.param("clean_2mass", False, id="clean_2mass"),
     pytest.param("clean_3mass", False, id="clean_3mass"),
+    pytest.param("clean_mode_120Hz_zeta0.01", False, id="clean_mode_120Hz_zeta0.01"),
     pytest.param("coulomb_small", False, id="coulomb_small"),
     pytest.param("delay_small", False, id="delay_small"),
     pytest.param("structural_mode_small", False, id="structural_mode_small"),
