@@ -21,18 +21,12 @@ from feedbench.daq.recording import open_recording
 from feedbench.protocols.address import split_address
 from feedbench.protocols.canbus import open_network
 from feedbench.drivers.cia402 import Cia402Drive
-from feedbench.experiments import chirp, friction_sweep, smfe, stepped_loading
-from feedbench.experiments import closed_loop_bode, impact_hammer, shaker_chirp, sine_stream
 from feedbench.experiments.cycle_io import open_cycle_devices
+from feedbench.experiments.family import Experiment, families, family
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan
 from feedbench.experiments.runner import Observer, ProgressPrinter, Runner, StopRequest
 from feedbench.units import kv_to_per_second
-
-EXPERIMENTS = {m.NAME: m for m in (friction_sweep, chirp, smfe, stepped_loading)}
-
-EXPERIMENTS.update({m.NAME: m for m in (impact_hammer, sine_stream, shaker_chirp,
-                                       closed_loop_bode)})
 
 GAINS_SCHEMA = {
     "K_p_Ns_m": Field(float, None, "velocity-loop gain (N·s/m)", positive),
@@ -83,12 +77,13 @@ RUN_SCHEMA = {
 
 @dataclass(frozen=True)
 class RunConfig:
-    """A validated run config: bench table, limits, experiment plan."""
+    """A validated run config: bench table, limits, the experiment and its plan."""
 
     bench: dict[str, Any]
     limits: Limits
     plan: Plan
     raw: dict[str, Any]
+    experiment: Experiment
 
 
 def parse_run_config(raw: Mapping[str, Any]) -> RunConfig:
@@ -99,16 +94,14 @@ def parse_run_config(raw: Mapping[str, Any]) -> RunConfig:
     bench = validate_table(top["bench"], BENCH_SCHEMA, "bench")
     validate_table(bench["gains"], GAINS_SCHEMA, "bench.gains")
     limits = Limits.from_config(top["limits"])
-    kind = top["experiment"].get("type")
-    if kind not in EXPERIMENTS:
-        raise ConfigError(f"experiment.type: must be one of {', '.join(EXPERIMENTS)} (got {kind!r})")
-    axes = getattr(EXPERIMENTS[kind], "AXES", None)
-    if axes and bench["axis"] not in axes:
-        raise ConfigError(f"bench.axis: experiment {kind} needs axis = {' or '.join(axes)} "
-                          f"(got {bench['axis']!r})")
-    plan = EXPERIMENTS[kind].build_plan(top["experiment"], bench["cycle_ms"] * 1e-3)
+    cls = family(top["experiment"].get("type"))
+    if cls.axes and bench["axis"] not in cls.axes:
+        raise ConfigError(f"bench.axis: experiment {cls.name} needs axis = "
+                          f"{' or '.join(cls.axes)} (got {bench['axis']!r})")
+    experiment = cls(top["experiment"], bench["cycle_ms"] * 1e-3)
+    plan = experiment.plan()
     _check_excitation_fits(plan, limits)
-    return RunConfig(bench, limits, plan, dict(raw))
+    return RunConfig(bench, limits, plan, dict(raw), experiment)
 
 
 def _check_excitation_fits(plan: Plan, limits: Limits) -> None:
@@ -133,10 +126,10 @@ def analyze_file(path: str | Path) -> dict:
     """Open a recording and run its experiment's analysis step; what the data do not fit
     is a `ConfigError` naming the file."""
     recording = open_recording(path)
-    if recording.experiment not in EXPERIMENTS:
+    if recording.experiment not in families():
         raise ConfigError(f"{path}: no analysis for experiment {recording.experiment!r}")
     try:
-        result = EXPERIMENTS[recording.experiment].analyze_recording(recording)
+        result = families()[recording.experiment].analyze(recording)
     except ConfigError:
         raise
     except (ValueError, KeyError) as exc:  # the recorded data do not fit the analysis
@@ -155,7 +148,7 @@ def sim_config(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     if "experiment" not in raw:
         return validate_table(raw.get("bench", {}), BENCH_SCHEMA, "bench"), []
     config = parse_run_config(raw)
-    exciter = _device_needs(config.plan).get("exciter", {})
+    exciter = config.experiment.devices().get("exciter", {})
     bench = {**config.bench, "io_node_id": exciter.get("node_id", config.bench["io_node_id"])}
     return bench, list(config.plan.params.get("workpiece", ()))
 
@@ -192,11 +185,10 @@ def _gains_si(table: Mapping[str, Any]) -> dict[str, float]:
 
 
 def _device_needs(plan: Plan | None) -> dict[str, dict]:
-    """The devices besides the drive the plan's experiment needs (its module's `devices`)."""
-    module = EXPERIMENTS.get(plan.experiment) if plan is not None else None
-    if module is None or not hasattr(module, "devices"):
+    """The devices besides the drive the plan's experiment needs (its family's `devices`)."""
+    if plan is None:
         return {}
-    return module.devices(plan.params, plan.cycle_s)
+    return family(plan.experiment)(plan.params, plan.cycle_s).devices()
 
 
 def _bus_options(cfg: Mapping[str, Any]) -> dict[str, Any]:
@@ -323,6 +315,9 @@ class Bench:
         catalog.add(run_id, config.plan.experiment, str(path), config.plan.params)
         streams = {name: spec for d in self.devices for name, spec in d.streams.items()}
         recorder = Recorder(path, runner.channels, runner.units, metadata, streams=streams)
+        for observer in observers:
+            if hasattr(observer, "on_metadata"):  # what the recording's analysis reads
+                observer.on_metadata(metadata)
         outcome = runner.run(config.plan, recorder, start)
         catalog.finish(run_id, outcome.status, outcome.reason, recorder.n_samples)
         return {"id": run_id, "file": str(path), "status": outcome.status,

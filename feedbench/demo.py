@@ -17,8 +17,10 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from feedbench.bench import EXPERIMENTS, analyze_file, parse_run_config, run_config
+from feedbench.bench import analyze_file, parse_run_config, run_config
 from feedbench.config import ConfigError, read_toml
+from feedbench.experiments.chirp import band_text, extrema_text
+from feedbench.experiments.family import HEADLINE_SEPARATOR, family, headline, percent_error
 from feedbench.experiments import stepped_loading
 from feedbench.experiments.limits import LimitError
 from feedbench.models.structure import POINT_DOF, ModalStructure
@@ -33,7 +35,6 @@ CAMPAIGN = (*BENCH_CORE, "closed_loop_bode", "impact_hammer", "shaker_chirp", "s
             "smfe", "stepped_loading", "friction_sweep_rack_pinion")
 """The example configs the demo runs, in this order."""
 FRICTION_KEYS = ("F_c", "F_s", "v_s", "sigma")
-HEADLINE_SEPARATOR = "; "
 
 QUICK_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
     # 13 feeds per direction with shorter plateaus (the drive settles in ≈ 50 ms): the
@@ -95,10 +96,6 @@ def campaign_config(name: str, directory: Path, quick: bool) -> dict:
     return raw
 
 
-def _percent(value: float, truth: float) -> float:
-    return 100.0 * (value - truth) / truth
-
-
 # -- truth of each example's simulated world (SI) ------------------------------------------
 
 
@@ -127,11 +124,6 @@ def example_truth(raw: Mapping[str, Any]) -> dict:
 # -- per-experiment summaries: JSON-able values in SI and a headline -----------------------
 
 
-def headline(*parts: str) -> str:
-    """One line of an experiment's key numbers; `describe_demo` prints each part on its own."""
-    return HEADLINE_SEPARATOR.join(parts)
-
-
 def _friction_comparison(analysis: dict, truth: dict) -> dict:
     out = {}
     for direction in ("positive", "negative"):
@@ -140,7 +132,7 @@ def _friction_comparison(analysis: dict, truth: dict) -> dict:
         out[direction] = {
             "identified": identified,
             "truth": true,
-            "error_pct": {k: _percent(identified[k], true[k]) for k in FRICTION_KEYS},
+            "error_pct": {k: percent_error(identified[k], true[k]) for k in FRICTION_KEYS},
             "std": analysis[direction]["std"],
         }
     return out
@@ -159,33 +151,13 @@ def summarize_friction(analysis: dict, truth: dict) -> dict:
                                  f"{worst[2]})")}
 
 
-def _mobility(analysis: dict, truth: dict) -> dict:
-    return {"antiresonance_hz": analysis["antiresonance_hz"],
-            "resonance_hz": analysis["resonance_hz"],
-            "min_coherence_20_150hz": analysis["min_coherence_20_150hz"],
-            "truth_f_t_hz": truth["f_t_hz"], "truth_f_r_hz": truth["f_r_hz"],
-            "warnings": analysis["warnings"]}
-
-
-def _extrema_headline(prefix: str, m: Mapping[str, float], truth: dict) -> str:
-    return (f"{prefix}f_t {m['antiresonance_hz']:.2f} Hz (Eq. 4.13: {truth['f_t_hz']:.2f}), "
-            f"f_r {m['resonance_hz']:.2f} Hz (Eq. 4.14: {truth['f_r_hz']:.2f})")
-
-
-def summarize_chirp(analysis: dict, truth: dict) -> dict:
-    """The servo mobility's anti-resonance and resonance against Eqs. (4.13, 4.14)."""
-    m = _mobility(analysis, truth)
-    return {**m, "headline": headline(_extrema_headline("", m, truth),
-                                      f"min coherence {m['min_coherence_20_150hz']:.4f}")}
-
-
 def summarize_bode(analysis: dict, truth: dict) -> dict:
     """The open-loop mobility from the closed velocity loop by Eq. (4.20): f_t, f_r."""
     m = analysis["mobility"]
     return {"antiresonance_hz": m["antiresonance_hz"], "resonance_hz": m["resonance_hz"],
             "truth_f_t_hz": truth["f_t_hz"], "truth_f_r_hz": truth["f_r_hz"],
             "min_r_squared": analysis["min_r_squared"], "flagged": len(analysis["flagged"]),
-            "headline": headline(_extrema_headline("Eq. 4.20: ", m, truth),
+            "headline": headline(extrema_text(m, truth, "Eq. 4.20: "),
                                  f"min R² {analysis['min_r_squared']:.4f}, "
                                  f"{len(analysis['flagged'])} points flagged")}
 
@@ -252,7 +224,7 @@ def _smfe_peaks(analysis: dict, side: str, structure: ModalStructure, first_row:
     for row, (axis, peak) in enumerate(analysis[side]["peaks"].items(), start=first_row):
         truth_abs, truth_f = _truth_peak(structure, row, f)
         out[axis] = {**peak, "truth_abs_m_N": truth_abs, "truth_f_hz": truth_f,
-                     "error_pct": _percent(peak["abs_m_N"], truth_abs)}
+                     "error_pct": percent_error(peak["abs_m_N"], truth_abs)}
     return out
 
 
@@ -316,7 +288,6 @@ def summarize_stepped_loading(analysis: dict, truth: dict) -> dict:
 SUMMARIES: dict[str, Callable[[dict, dict], dict]] = {
     "friction_sweep": summarize_friction,
     "friction_sweep_rack_pinion": summarize_friction,
-    "chirp": summarize_chirp,
     "closed_loop_bode": summarize_bode,
     "impact_hammer": summarize_hammer,
     "shaker_chirp": summarize_shaker_chirp,
@@ -390,7 +361,7 @@ def _entry(name: str, run: dict, analysis: dict, raw: dict) -> dict:
     """`experiments.<name>`: the run record, the headline, the summary against the truth of
     the example's world (a complete run only) and the whole analysis."""
     summary = ({"headline": f"{run['status']}: {run['reason']}"} if run["status"] != "complete"
-               else SUMMARIES[name](analysis, example_truth(raw)))
+               else family(analysis["experiment"]).summary(analysis, example_truth(raw)))
     return {"run": run, "headline": summary.pop("headline"), "summary": summary,
             "analysis": analysis}
 
@@ -410,7 +381,7 @@ def run_demo(directory: Path, quiet: bool = False, quick: bool = False) -> dict:
                           directory / "report.html", title="feedbench demo campaign")
     return {
         "friction": _friction_comparison(experiments["friction_sweep"]["analysis"], truth),
-        "servo_mobility": _mobility(experiments["chirp"]["analysis"], truth),
+        "servo_mobility": experiments["chirp"]["summary"],
         "runs": [experiments[name]["run"] for name in BENCH_CORE],
         "report": str(report),
         "report_s": time.monotonic() - t0,
@@ -448,7 +419,7 @@ def _bench_core_lines(result: dict) -> list[str]:
         f"(f_t, Eq. 4.13: {m['truth_f_t_hz']:.2f} Hz)",
         f"  resonance      {m['resonance_hz']:6.2f} Hz   "
         f"(f_r, Eq. 4.14: {m['truth_f_r_hz']:.2f} Hz)",
-        f"  min coherence 20-150 Hz: {m['min_coherence_20_150hz']:.4f}",
+        f"  min coherence {band_text(m)}: {m['min_coherence']:.4f}",
     ]
 
 
@@ -479,24 +450,6 @@ def describe_demo(result: dict) -> str:
 
 
 def describe_analysis(result: dict) -> str:
-    """Human-readable summary of one run's analysis."""
-    lines = [f"{result['experiment']}: {result['run']['file']} ({result['run']['status']})"]
-    module = EXPERIMENTS.get(result["experiment"])
-    if hasattr(module, "describe"):
-        lines += module.describe(result)
-    elif result["experiment"] == "friction_sweep":
-        for direction in ("positive", "negative"):
-            fit = result[direction]
-            lines.append(f"  {direction}: R² {fit['r_squared']:.5f}, rms {fit['rms_N']:.3f} N")
-            for k in FRICTION_KEYS:
-                lines.append(f"    {k:<6s} {_si_to_display(k, fit['identified'][k])}")
-    elif result["experiment"] == "chirp":
-        lines += [f"  anti-resonance {result['antiresonance_hz']:.2f} Hz, "
-                  f"resonance {result['resonance_hz']:.2f} Hz",
-                  f"  min coherence 20-150 Hz {result['min_coherence_20_150hz']:.4f}"]
-        lines += [f"  warning: {w}" for w in result["warnings"]]
-    else:  # a family without its own `describe`: its scalar results
-        lines += [f"  {key}: {value}" for key, value in result.items()
-                  if key != "experiment" and isinstance(value, (int, float, str))]
-        lines.append("  (--json prints the whole result)")
-    return "\n".join(lines)
+    """Human-readable summary of one run's analysis (its family's `describe`)."""
+    return "\n".join([f"{result['experiment']}: {result['run']['file']} "
+                      f"({result['run']['status']})", *family(result["experiment"]).describe(result)])

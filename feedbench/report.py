@@ -6,14 +6,9 @@ experiment's results (plots and a table in engineering units) and the quality in
 matplotlib's Agg canvas (no pyplot state, no display) and embedded as base64, so the file
 needs no network and no other file to be viewed.
 
-Results come from each experiment's `analyze_recording`; how they are drawn is a registry
-keyed by experiment name (`REPORT_RESULTS`), like the live window's: a family adds one
-function with ``@report_result("name")``. Present: friction sweep (curve and fitted model),
-chirp (servo mobility), closed-loop Bode (points with R², open-loop mobility by Eq. 4.20),
-stepped loading (load against displacement with the fitted stiffness, backlash, preload
-loss per level), impact hammer and shaker chirp (tool-tip compliance per feed with coherence,
-and the stability lobes it predicts, `tool_tip_lobes`), sine-stream (FRF points with R²) and
-SMFE (Φ_tt, Φ_ww, condition number, coherence). A closure result (`feedbench closure …
+Each run's results are its experiment family's: `Experiment.analyze` computes them and
+`Experiment.report` draws them into the run's section (`feedbench.experiments.family`); this
+module lays the sections out and knows no family by name. A closure result (`feedbench closure …
 --report FILE`) gets a section of its own (`closure_section`): held-out residual before and
 after, the effects found, the replay errors.
 """
@@ -35,6 +30,7 @@ from feedbench.analysis.stability import Lobes, zoa_lobes
 from feedbench.config import validate_table
 from feedbench.daq.live import bucket_size, minmax_decimate
 from feedbench.daq.recording import Recording, open_recording
+from feedbench.experiments.family import families
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import recorded_windows
 from feedbench.models.friction import AnderssonFriction
@@ -43,12 +39,6 @@ from feedbench.units import MM_PER_MIN, N_MIN_PER_MM, RPM
 
 TRACE_POINTS = 3000
 """Min/max buckets per trace: enough for a 1000-pixel-wide plot at any run length."""
-
-MIN_COHERENCE = 0.9
-"""Coherence below this in the analysed band is flagged (Ch. 3.5.1)."""
-
-MIN_R_SQUARED = 0.99
-"""A friction fit with a lower R² is flagged."""
 
 SHADED_KINDS = {"measure": "#2ca02c", "excite": "#ff7f0e"}
 
@@ -64,66 +54,7 @@ STREAM_PANELS = (("DAQ forces (N)", "N"), ("accelerations (m/s²)", "m/s^2"))
 """Panels of the high-rate streams' channels, by unit."""
 
 
-@dataclass(frozen=True)
-class CuttingTest:
-    """A milling operation for stability lobes (ZOA): tool diameter D (m), teeth Z, radial
-    engagement a_e (m) in `mode`, cutting coefficients K_tc, K_rc (N/m²)."""
-
-    D: float
-    Z: int
-    a_e: float
-    mode: str
-    K_tc: float
-    K_rc: float
-
-
-TABLE_5_1 = CuttingTest(D=40e-3, Z=4, a_e=32e-3, mode="down", K_tc=1885e6, K_rc=749e6)
-"""Tables 4.2 / 5.1: Walter F4042 (D 40 mm, Z 4, κ 90°), a_e 32 mm down-milling, C45 steel:
-the cut the thesis predicts the lobes of from idle and in-motion FRFs (Fig. 5.25)."""
-
-LOBE_SPEEDS_RPM = np.linspace(400.0, 2000.0, 801)
-"""Spindle speeds of the lobes (Fig. 5.25: 400–1500 rpm; up to 2000 for lobe 0 of a
-47–61 Hz mode with 4 teeth)."""
-
-
-@dataclass(frozen=True)
-class Plot:
-    """A titled PNG image."""
-
-    title: str
-    png: bytes
-
-
-@dataclass(frozen=True)
-class Table:
-    """A titled table: header and rows of text."""
-
-    title: str
-    header: tuple[str, ...]
-    rows: tuple[tuple[str, ...], ...]
-
-
-@dataclass(frozen=True)
-class Indicator:
-    """One quality indicator; `ok` None means informative only."""
-
-    name: str
-    value: str
-    ok: bool | None = None
-
-
-@dataclass
-class RunSection:
-    """Everything the report shows about one run."""
-
-    run_id: str
-    experiment: str
-    status: str
-    plots: list[Plot] = field(default_factory=list)
-    tables: list[Table] = field(default_factory=list)
-    quality: list[Indicator] = field(default_factory=list)
-    headline: str = ""
-
+from feedbench.views.sections import *  # noqa  TRANSITION: removed when every family draws its own
 
 REPORT_RESULTS: dict[str, Callable[[Recording, dict, RunSection], None]] = {}
 
@@ -139,20 +70,6 @@ def report_result(name: str):
 
 
 # figures
-
-def new_figure(width_in: float = 10.0, height_in: float = 4.0) -> MplFigure:
-    """A matplotlib figure on an Agg canvas (no pyplot global state)."""
-    figure = MplFigure(figsize=(width_in, height_in), dpi=100, layout="constrained")
-    FigureCanvasAgg(figure)
-    return figure
-
-
-def png_of(figure: MplFigure) -> bytes:
-    """The figure rendered as PNG bytes."""
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png")
-    return buffer.getvalue()
-
 
 def trace_plot(recording: Recording) -> Plot:
     """Positions (mm), velocities (mm/min), forces (N), spindle speed (rpm) and the DAQ's
@@ -344,118 +261,6 @@ def friction_table(result: dict) -> Table:
         rows.append(tuple(cells))
     return Table("identified friction parameters", ("parameter", "positive", "negative"),
                  tuple(rows))
-
-
-@report_result("chirp")
-def chirp_results(recording: Recording, result: dict, section: RunSection) -> None:
-    """Servo mobility |H1| with coherence, anti-resonance f_t and resonance f_r marked."""
-    frf = result["frf"]
-    f = np.array(frf["f_hz"])
-    figure = new_figure(8.0, 5.5)
-    magnitude, coherence = figure.subplots(2, 1, sharex=True, height_ratios=(2, 1))
-    magnitude.semilogy(f, frf["H1_abs"], lw=1.2, label="|H1| motor velocity / motor force")
-    for key, name in (("antiresonance_hz", "f_t"), ("resonance_hz", "f_r")):
-        magnitude.axvline(result[key], color="k", ls="--", lw=0.8)
-        magnitude.annotate(f"{name} {result[key]:.1f} Hz", (result[key], 1.0),
-                           xycoords=("data", "axes fraction"), ha="left", va="top", fontsize=8)
-    magnitude.set_ylabel("|H| ((m/s)/N)")
-    magnitude.grid(alpha=0.3, which="both")
-    magnitude.legend(fontsize=8, loc="lower left")
-    coherence.plot(f, frf["coherence"], lw=1.0, color="C2")
-    coherence.axhline(MIN_COHERENCE, color="r", ls=":", lw=0.8)
-    coherence.set_ylim(0.0, 1.05)
-    coherence.set_ylabel("coherence γ²")
-    coherence.set_xlabel("frequency (Hz)")
-    coherence.grid(alpha=0.3)
-    section.plots.append(Plot("servo mobility (H1, Welch) with coherence", png_of(figure)))
-    min_coherence = min(frf["coherence"]) if frf["coherence"] else float("nan")
-    section.tables.append(Table("servo mobility", ("quantity", "value"), (
-        ("anti-resonance f_t (Eq. 4.13)", f"{result['antiresonance_hz']:.2f} Hz"),
-        ("resonance f_r (Eq. 4.14)", f"{result['resonance_hz']:.2f} Hz"),
-        ("sweeps averaged", str(result["n_sweeps"])),
-    )))
-    section.quality.append(Indicator("min coherence in the band", f"{min_coherence:.4f}",
-                                     min_coherence >= MIN_COHERENCE))
-    section.quality.append(Indicator("FRF warnings", "; ".join(result["warnings"]) or "none",
-                                     not result["warnings"]))
-    section.headline = f"f_t {result['antiresonance_hz']:.1f} Hz, f_r {result['resonance_hz']:.1f} Hz"
-
-
-# tool-tip FRFs and stability lobes
-
-@dataclass(frozen=True)
-class FrfSeries:
-    """One FRF of a figure: label, frequencies (Hz), |H| and its quality (coherence or R²)."""
-
-    label: str
-    f: np.ndarray
-    magnitude: np.ndarray
-    quality: np.ndarray
-
-
-def frf_figure(series: Sequence[FrfSeries], y_label: str, quality_label: str = "coherence γ²",
-               gate: float = MIN_COHERENCE, points: bool = False) -> MplFigure:
-    """|H| (log) above its quality per frequency, one colour per series, the gate dotted."""
-    figure = new_figure(8.0, 5.5)
-    magnitude, quality = figure.subplots(2, 1, sharex=True, height_ratios=(2, 1))
-    style = dict(marker="o", ms=3, lw=0.6) if points else dict(lw=1.2)
-    for s in series:
-        magnitude.semilogy(s.f, s.magnitude, label=s.label, **style)
-        quality.plot(s.f, s.quality, **style)
-    quality.axhline(gate, color="r", ls=":", lw=0.8)
-    magnitude.set_ylabel(y_label)
-    magnitude.grid(alpha=0.3, which="both")
-    magnitude.legend(fontsize=8)
-    quality.set_ylim(min(0.0, float(np.nanmin([s.quality.min(initial=1.0) for s in series]))),
-                     1.05)
-    quality.set_ylabel(quality_label)
-    quality.set_xlabel("frequency (Hz)")
-    quality.grid(alpha=0.3)
-    return figure
-
-
-def tool_tip_lobes(f: np.ndarray, compliance: np.ndarray,
-                   cut: CuttingTest = TABLE_5_1) -> Lobes:
-    """ZOA stability lobes (Altintas & Budak; Ch. 5.5.6) of `cut` from the tool-tip
-    compliance x/F (m/N) measured along the feed. The lab bench's flexure moves along the
-    feed only, so the y direction is taken as rigid: Φ = [[Φ_xx, 0], [0, 0]]."""
-    phi = np.zeros((len(f), 2, 2), dtype=complex)
-    phi[:, 0, 0] = compliance
-    start, stop = engagement_angles(cut.a_e, cut.D, cut.mode)
-    return zoa_lobes(np.asarray(f, dtype=float), phi, LOBE_SPEEDS_RPM, cut.Z, cut.K_tc,
-                     cut.K_rc / cut.K_tc, start, stop)
-
-
-def lobes_results(compliances: dict[str, tuple[np.ndarray, np.ndarray]],
-                  section: RunSection) -> None:
-    """Stability lobes of each named compliance (Table 5.1's cut) as a plot and a table."""
-    figure = new_figure(8.0, 4.5)
-    ax = figure.subplots()
-    rows = []
-    for label, (f, compliance) in compliances.items():
-        lobes = tool_tip_lobes(f, compliance)
-        ax.plot(lobes.spindle_rpm, lobes.depth * 1e3, lw=1.2, label=label)
-        k = int(np.argmin(lobes.depth))
-        rows.append((label, f"{lobes.min_depth * 1e3:.3f}", f"{lobes.spindle_rpm[k]:.0f}",
-                     f"{lobes.chatter_frequency[k]:.1f}"))
-    ax.set_xlabel("spindle speed (rpm)")
-    ax.set_ylabel("critical depth a_lim (mm)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    cut = TABLE_5_1
-    ax.set_title(f"ZOA, Table 5.1: D {cut.D * 1e3:g} mm, Z {cut.Z}, a_e {cut.a_e * 1e3:g} mm "
-                 f"{cut.mode}-milling, K_tc {cut.K_tc * 1e-6:g}, K_rc {cut.K_rc * 1e-6:g} N/mm²",
-                 fontsize=9)
-    section.plots.append(Plot("stability lobes from the measured tool-tip FRF", png_of(figure)))
-    section.tables.append(Table("stability lobes (Table 5.1 cut, y taken rigid)",
-                                ("FRF", "min a_lim (mm)", "at (rpm)", "chatter (Hz)"),
-                                tuple(rows)))
-
-
-def _extremes(compliances: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict:
-    """The lowest and the highest feed's compliance (idle and in motion, Fig. 5.25)."""
-    labels = list(compliances)
-    return {labels[i]: compliances[labels[i]] for i in sorted({0, len(labels) - 1})}
 
 
 @report_result("impact_hammer")
@@ -798,25 +603,19 @@ def _smfe_quality_figure(recording: Recording, result: dict) -> MplFigure:
 
 # assembly
 
-def analyze(recording: Recording) -> dict:
-    """The experiment's own analysis of the recording (`analyze_recording`)."""
-    from feedbench.bench import EXPERIMENTS
-
-    return EXPERIMENTS[recording.experiment].analyze_recording(recording)
-
-
 def run_section(recording: Recording) -> RunSection:
-    """Configuration, traces, results and quality of one recorded run."""
+    """Configuration, traces, results and quality of one recorded run; the results drawn by
+    the recording's experiment family (`Experiment.report`)."""
     section = RunSection(recording.metadata.get("run_id", recording.path.stem),
                          recording.experiment, recording.status)
     section.quality += run_quality(recording)
     section.plots.append(trace_plot(recording))
-    draw = REPORT_RESULTS.get(recording.experiment)
-    if draw is None:
-        section.quality.append(Indicator("results", "no report drawing for this experiment"))
+    experiment = families().get(recording.experiment)
+    if experiment is None:
+        section.quality.append(Indicator("results", "no analysis for this experiment"))
     else:
         try:
-            draw(recording, analyze(recording), section)
+            experiment.report(recording, experiment.analyze(recording), section)
         except Exception as exc:  # an aborted run may be too short to analyse: say so
             section.quality.append(Indicator("analysis", f"failed: {type(exc).__name__}: {exc}",
                                              False))

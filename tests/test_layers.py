@@ -27,7 +27,7 @@ LAYERS = (
     ("units", "config"),
     ("protocols",),
     ("models",),
-    ("analysis",),
+    ("analysis", "views"),
     ("drivers", "sim_backends"),
     ("daq",),
     ("experiments",),

@@ -27,9 +27,8 @@ from feedbench.experiments.runner import CHANNELS, UNITS
 from feedbench.models.friction import AnderssonFriction
 from feedbench.models.milling import engagement_angles
 from feedbench.models.structure import SMFE_TOOL_STRUCTURE, ModalStructure
-from feedbench.report import (
-    TABLE_5_1, closure_section, render_html, run_section, tool_tip_lobes, write_report,
-)
+from feedbench.experiments.tool_tip import TABLE_5_1, tool_tip_lobes
+from feedbench.report import closure_section, render_html, run_section, write_report
 from feedbench.units import MM_PER_MIN
 from prerequisites import CHROMIUM, requires
 

@@ -12,12 +12,17 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
 from feedbench.analysis.frf import estimate_frf
+from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
+from feedbench.experiments.family import Experiment
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import chirp, integrate_velocity, move_to, ramp_to_feed
 from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN
+from feedbench.views.panels import Curve, Panel, ResultView
+from feedbench.views.sections import (
+    MIN_COHERENCE, Indicator, Plot, RunSection, Table, new_figure, png_of,
+)
 
 NAME = "chirp"
 SIGNS = {"positive": 1.0, "negative": -1.0}
@@ -44,6 +49,10 @@ SCHEMA = {
     "tail_s": Field(float, 1.0, "time at feed after each sweep, recorded with it so the "
                     "response rings down inside the record (s)", non_negative),
     "accel_m_s2": Field(float, 1.0, "acceleration of the ramps (m/s²)", positive),
+    "band_low_Hz": Field(float, 20.0, "mobility band searched for f_t and f_r: low end (Hz)",
+                         positive),
+    "band_high_Hz": Field(float, 150.0, "mobility band searched for f_t and f_r: high end (Hz)",
+                          positive),
 }
 
 
@@ -59,16 +68,19 @@ def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
         raise ConfigError(
             f"experiment.f_start_Hz: must be below f_stop_Hz ({p['f_stop_Hz']:g} Hz)"
         )
+    if p["band_low_Hz"] >= p["band_high_Hz"]:
+        raise ConfigError(
+            f"experiment.band_low_Hz: must be below band_high_Hz ({p['band_high_Hz']:g} Hz)"
+        )
     return p
 
 
-def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
-    """Accelerate, settle, sweep, stop, return — `repetitions` times.
+def build_plan(p: Mapping[str, Any], cycle_s: float) -> Plan:
+    """Accelerate, settle, sweep, stop, return — `repetitions` times (`p` validated).
 
     Every sweep runs in the same direction: direction-dependent friction (Fig. 5.11) makes
     the in-motion response direction-dependent, so alternating sweeps would not average.
     """
-    p = _validated(params, cycle_s)
     if p["inject"] == "force":
         sweep = chirp(p["amplitude_N"], p["f_start_Hz"], p["f_stop_Hz"], p["duration_s"],
                       cycle_s, p["sweep"])
@@ -134,13 +146,16 @@ def mobility_extrema(f: np.ndarray, H: np.ndarray, band: tuple[float, float]) ->
     return _refined_extremum(f, db, k_t), _refined_extremum(f, db, k_r)
 
 
-def analyze_recording(recording, band: tuple[float, float] = (20.0, 150.0)) -> dict:
+def analyze_recording(recording) -> dict:
     """Servo mobility motor force → motor velocity (H1) averaged over the sweeps.
 
     Each sweep with its ring-down tail is one record (rectangular window, no overlap: the
     response starts and ends inside it, so nothing leaks); spectra are averaged over the
-    records, and the coherence tells how well the repetitions agree.
+    records, and the coherence tells how well the repetitions agree. f_t and f_r are
+    searched in the configured mobility band.
     """
+    p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+    band = (p["band_low_Hz"], p["band_high_Hz"])
     windows = recorded_windows(recording, "excite", at_least=1)
     force, velocity = sweep_records(recording, windows)
     fs = 1.0 / float(recording.metadata["cycle_s"])
@@ -152,10 +167,112 @@ def analyze_recording(recording, band: tuple[float, float] = (20.0, 150.0)) -> d
         "experiment": NAME,
         "antiresonance_hz": f_t,
         "resonance_hz": f_r,
-        f"min_coherence_{band[0]:g}_{band[1]:g}hz": float(est.coherence[inside].min()),
+        "band_hz": list(band),
+        "min_coherence": float(est.coherence[inside].min()),
         "n_sweeps": len(windows),
         "warnings": list(est.warnings),
         "frf": {"f_hz": est.f[inside].tolist(), "H1_abs": np.abs(est.H1[inside]).tolist(),
                 "H1_phase_rad": np.angle(est.H1[inside]).tolist(),
                 "coherence": est.coherence[inside].tolist()},
     }
+
+
+def band_text(result: Mapping[str, Any]) -> str:
+    """``20-150 Hz``: the band the result's extrema and coherence are taken in."""
+    low, high = result["band_hz"]
+    return f"{low:g}-{high:g} Hz"
+
+
+def extrema_text(result: Mapping[str, Any], truth: Mapping[str, Any], prefix: str = "") -> str:
+    """f_t and f_r of a mobility result beside the model's (Eqs. 4.13, 4.14)."""
+    return (f"{prefix}f_t {result['antiresonance_hz']:.2f} Hz (Eq. 4.13: {truth['f_t_hz']:.2f}), "
+            f"f_r {result['resonance_hz']:.2f} Hz (Eq. 4.14: {truth['f_r_hz']:.2f})")
+
+
+class Chirp(Experiment):
+    """Chirp injection into the drive: the servo mobility, f_t and f_r (Ch. 3.5.1)."""
+
+    name = NAME
+    schema = SCHEMA
+    title = "servo mobility of the sweeps so far"
+    live_kinds = ("excite",)
+
+    @classmethod
+    def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
+        return _validated(params, cycle_s)
+
+    def plan(self) -> Plan:
+        return build_plan(self.settings, self.cycle_s)
+
+    @classmethod
+    def analyze(cls, recording, final: bool = True) -> dict:
+        return analyze_recording(recording)
+
+    @classmethod
+    def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
+        """Servo mobility |H1| with coherence, anti-resonance f_t and resonance f_r marked."""
+        frf = result["frf"]
+        f = np.array(frf["f_hz"])
+        figure = new_figure(8.0, 5.5)
+        magnitude, coherence = figure.subplots(2, 1, sharex=True, height_ratios=(2, 1))
+        magnitude.semilogy(f, frf["H1_abs"], lw=1.2, label="|H1| motor velocity / motor force")
+        for key, name in (("antiresonance_hz", "f_t"), ("resonance_hz", "f_r")):
+            magnitude.axvline(result[key], color="k", ls="--", lw=0.8)
+            magnitude.annotate(f"{name} {result[key]:.1f} Hz", (result[key], 1.0),
+                               xycoords=("data", "axes fraction"), ha="left", va="top",
+                               fontsize=8)
+        magnitude.set_ylabel("|H| ((m/s)/N)")
+        magnitude.grid(alpha=0.3, which="both")
+        magnitude.legend(fontsize=8, loc="lower left")
+        coherence.plot(f, frf["coherence"], lw=1.0, color="C2")
+        coherence.axhline(MIN_COHERENCE, color="r", ls=":", lw=0.8)
+        coherence.set_ylim(0.0, 1.05)
+        coherence.set_ylabel("coherence γ²")
+        coherence.set_xlabel("frequency (Hz)")
+        coherence.grid(alpha=0.3)
+        section.plots.append(Plot("servo mobility (H1, Welch) with coherence", png_of(figure)))
+        min_coherence = min(frf["coherence"]) if frf["coherence"] else float("nan")
+        section.tables.append(Table("servo mobility", ("quantity", "value"), (
+            ("anti-resonance f_t (Eq. 4.13)", f"{result['antiresonance_hz']:.2f} Hz"),
+            ("resonance f_r (Eq. 4.14)", f"{result['resonance_hz']:.2f} Hz"),
+            ("sweeps averaged", str(result["n_sweeps"])),
+        )))
+        section.quality.append(Indicator("min coherence in the band", f"{min_coherence:.4f}",
+                                         min_coherence >= MIN_COHERENCE))
+        section.quality.append(Indicator("FRF warnings", "; ".join(result["warnings"]) or "none",
+                                         not result["warnings"]))
+        section.headline = (f"f_t {result['antiresonance_hz']:.1f} Hz, "
+                            f"f_r {result['resonance_hz']:.1f} Hz")
+
+    @classmethod
+    def live_view(cls, result: Mapping[str, Any]) -> ResultView:
+        """|H1| (m/s)/N and coherence of the sweeps so far, f_t and f_r in the summary."""
+        frf = result["frf"]
+        f = np.asarray(frf["f_hz"])
+        panels = (
+            Panel("|H1| motor velocity / motor force", "frequency (Hz)", "|H| ((m/s)/N)",
+                  (Curve("H1", f, np.asarray(frf["H1_abs"])),), log_y=True),
+            Panel("coherence", "frequency (Hz)", "γ²",
+                  (Curve("coherence", f, np.asarray(frf["coherence"])),), y_range=(0.0, 1.05)),
+        )
+        n = result["n_sweeps"]
+        summary = (f"{n} sweep{'s' if n > 1 else ''}; f_t {result['antiresonance_hz']:.1f} Hz, "
+                   f"f_r {result['resonance_hz']:.1f} Hz, min coherence "
+                   f"{result['min_coherence']:.3f}")
+        return ResultView(cls.title, panels, summary)
+
+    @classmethod
+    def summary(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict:
+        """The servo mobility's anti-resonance and resonance against Eqs. (4.13, 4.14)."""
+        values = {key: result[key] for key in ("antiresonance_hz", "resonance_hz",
+                                               "min_coherence", "band_hz", "warnings")}
+        return {**values, "truth_f_t_hz": truth["f_t_hz"], "truth_f_r_hz": truth["f_r_hz"],
+                "headline": f"{extrema_text(result, truth)}; min coherence "
+                            f"{result['min_coherence']:.4f}"}
+
+    @classmethod
+    def describe(cls, result: Mapping[str, Any]) -> list[str]:
+        return ([f"  anti-resonance {result['antiresonance_hz']:.2f} Hz, "
+                 f"resonance {result['resonance_hz']:.2f} Hz",
+                 f"  min coherence {band_text(result)} {result['min_coherence']:.4f}"]
+                + [f"  warning: {w}" for w in result["warnings"]])

@@ -25,6 +25,7 @@ from feedbench.analysis.servo import open_loop_mobility
 from feedbench.analysis.sinefit import stepped_sine_frf
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
 from feedbench.experiments.chirp import mobility_extrema
+from feedbench.experiments.family import Experiment
 from feedbench.experiments.plan import Plan, Segment, recorded_windows
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
 from feedbench.protocols.cia402 import CSP, CSV
@@ -208,3 +209,20 @@ def analyze_recording(recording) -> dict:
                               "abs": np.abs(mobility).tolist(),
                               "phase_rad": np.angle(mobility).tolist()}
     return result
+
+class ClosedLoopBode(Experiment):
+    """TRANSITION shell: the module's functions behind the family interface."""
+
+    name = NAME
+    schema = SCHEMA
+
+    @classmethod
+    def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
+        return _validated(params, cycle_s)
+
+    def plan(self) -> Plan:
+        return build_plan(self.settings, self.cycle_s)
+
+    @classmethod
+    def analyze(cls, recording, final: bool = True) -> dict:
+        return analyze_recording(recording)

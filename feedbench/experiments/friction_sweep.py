@@ -15,6 +15,7 @@ import numpy as np
 
 from feedbench.analysis.friction import FrictionFit, fit_andersson_directional
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
+from feedbench.experiments.family import Experiment
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import constant_feed_move
 from feedbench.protocols.cia402 import CSP
@@ -146,3 +147,20 @@ def analyze_recording(recording) -> dict:
         "positive": _fit_summary(fit.positive),
         "negative": _fit_summary(fit.negative),
     }
+
+class FrictionSweep(Experiment):
+    """TRANSITION shell: the module's functions behind the family interface."""
+
+    name = NAME
+    schema = SCHEMA
+
+    @classmethod
+    def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
+        return _validated(params)
+
+    def plan(self) -> Plan:
+        return build_plan(self.settings, self.cycle_s)
+
+    @classmethod
+    def analyze(cls, recording, final: bool = True) -> dict:
+        return analyze_recording(recording)

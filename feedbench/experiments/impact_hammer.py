@@ -19,6 +19,7 @@ import numpy as np
 
 from feedbench.analysis.frf import HammerFrf, accelerance_to_receptance, quasi_frf
 from feedbench.config import ConfigError, Field, positive, validate_table
+from feedbench.experiments.family import Experiment
 from feedbench.experiments.plan import Plan, recorded_windows
 from feedbench.experiments.tool_tip import (
     FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, ExcitationWindow, daq_needs,
@@ -183,3 +184,23 @@ def analyze_recording(recording, force_window_s: float = 0.01, exp_decay_s: floa
         "invariant_from_mm_min": invariant_from(feeds, to_reference, invariance_tolerance),
         "notes": notes,
     }
+
+class ImpactHammer(Experiment):
+    """TRANSITION shell: the module's functions behind the family interface."""
+
+    name = NAME
+    schema = SCHEMA
+
+    @classmethod
+    def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
+        return _validated(params)
+
+    def plan(self) -> Plan:
+        return build_plan(self.settings, self.cycle_s)
+
+    def devices(self) -> dict[str, dict[str, Any]]:
+        return devices(self.settings, self.cycle_s)
+
+    @classmethod
+    def analyze(cls, recording, final: bool = True) -> dict:
+        return analyze_recording(recording)

@@ -54,6 +54,8 @@ def replay(recording, observers: Sequence[Observer], speed: float = 1.0,
     rows = np.column_stack([recording.channels[name] for name in names]) if names else np.zeros((0, 0))
     cycles = recording.cycle
     for obs in observers:
+        if hasattr(obs, "on_metadata"):
+            obs.on_metadata({**recording.metadata, "config": recording.config})
         obs.on_start(plan, names)
         if hasattr(obs, "on_layout"):
             obs.on_layout(recording.units, recorded_streams(recording))

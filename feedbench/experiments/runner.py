@@ -231,7 +231,7 @@ class Runner:
                     device.start(plan, device_recorder)
                 self._enable(plan.mode, start, recorder)
                 for index, segment in enumerate(plan.segments):
-                    recorder.event(self._next_cycle(), "segment", _segment_text(segment))
+                    recorder.event(self._next_cycle(), "segment", segment_text(segment))
                     for obs in self.observers:
                         obs.on_segment(index, segment, self._next_cycle())
                     for _ in range(segment.n_cycles):
@@ -314,7 +314,7 @@ class Runner:
 
     def _enable(self, mode: int, hold: float, recorder) -> None:
         """Walk the CiA 402 state machine to operation enabled, one controlword per cycle."""
-        recorder.event(self._next_cycle(), "segment", _segment_text(None, "enable"))
+        recorder.event(self._next_cycle(), "segment", segment_text(None, "enable"))
         for drive in self.drives.values():
             drive.set_mode(mode)
         for _ in range(ENABLE_TIMEOUT_CYCLES):
@@ -341,7 +341,7 @@ class Runner:
         The setpoint is already at standstill, so operation is disabled directly (0x07,
         then 0x00) rather than through the drive's own quick-stop ramp.
         """
-        recorder.event(self._next_cycle(), "segment", _segment_text(None, "disable"))
+        recorder.event(self._next_cycle(), "segment", segment_text(None, "disable"))
         for _ in range(DISABLE_TIMEOUT_CYCLES):
             if all([drive.disable_step(at_standstill=True) for drive in self.drives.values()]):
                 return
@@ -396,7 +396,7 @@ def _where(name: str) -> str:
     return f"{name}: " if name else ""
 
 
-def _segment_text(segment: Segment | None, label: str = "") -> str:
+def segment_text(segment: Segment | None, label: str = "") -> str:
     """Event text of a segment start: JSON with label, kind and the segment's info."""
     if segment is None:
         return json.dumps({"label": label, "kind": label})

@@ -17,6 +17,7 @@ import numpy as np
 
 from feedbench.analysis.frf import FrfEstimate, accelerance_to_receptance, estimate_frf
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
+from feedbench.experiments.family import Experiment
 from feedbench.experiments.plan import Plan, recorded_windows
 from feedbench.experiments.signals import chirp
 from feedbench.experiments.tool_tip import (
@@ -124,3 +125,23 @@ def analyze_recording(recording, band: tuple[float, float] | None = None) -> dic
                     "coherence": est.coherence[inside].tolist()},
         })
     return {"experiment": NAME, "feeds": feeds, "notes": notes}
+
+class ShakerChirp(Experiment):
+    """TRANSITION shell: the module's functions behind the family interface."""
+
+    name = NAME
+    schema = SCHEMA
+
+    @classmethod
+    def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
+        return _validated(params, cycle_s)
+
+    def plan(self) -> Plan:
+        return build_plan(self.settings, self.cycle_s)
+
+    def devices(self) -> dict[str, dict[str, Any]]:
+        return devices(self.settings, self.cycle_s)
+
+    @classmethod
+    def analyze(cls, recording, final: bool = True) -> dict:
+        return analyze_recording(recording)

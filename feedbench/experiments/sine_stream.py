@@ -24,6 +24,7 @@ import numpy as np
 from feedbench.analysis.frf import accelerance_to_receptance
 from feedbench.analysis.sinefit import stepped_sine_frf
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
+from feedbench.experiments.family import Experiment
 from feedbench.experiments.plan import Plan, Window, recorded_windows
 from feedbench.experiments.tool_tip import (
     FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, ExcitationWindow, daq_needs,
@@ -234,3 +235,23 @@ def analyze_recording(recording) -> dict:
             [s for s in summaries if s["feed_mm_min"] == feed]) for feed in feeds},
         "steps_flagged": sum(len(s["flagged"]) for s in summaries),
     }
+
+class SineStream(Experiment):
+    """TRANSITION shell: the module's functions behind the family interface."""
+
+    name = NAME
+    schema = SCHEMA
+
+    @classmethod
+    def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
+        return _validated(params, cycle_s)
+
+    def plan(self) -> Plan:
+        return build_plan(self.settings, self.cycle_s)
+
+    def devices(self) -> dict[str, dict[str, Any]]:
+        return devices(self.settings, self.cycle_s)
+
+    @classmethod
+    def analyze(cls, recording, final: bool = True) -> dict:
+        return analyze_recording(recording)

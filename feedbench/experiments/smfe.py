@@ -35,6 +35,7 @@ from feedbench.analysis.smfe import (
     smfe_estimate,
 )
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
+from feedbench.experiments.family import Experiment
 from feedbench.experiments.plan import Plan, Segment, recorded_windows
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
 from feedbench.models.milling import (
@@ -349,3 +350,27 @@ def describe(result: dict) -> list[str]:
                  f"max {cond['max']:.1f}; planned C_th {cond['planned_C_th']:.1f}")
     lines += [f"  warning: {w}" for w in result["warnings"]]
     return lines
+
+class Smfe(Experiment):
+    """TRANSITION shell: the module's functions behind the family interface."""
+
+    name = NAME
+    schema = SCHEMA
+
+    @classmethod
+    def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
+        return _validated(params, cycle_s)
+
+    def plan(self) -> Plan:
+        return build_plan(self.settings, self.cycle_s)
+
+    def devices(self) -> dict[str, dict[str, Any]]:
+        return devices(self.settings, self.cycle_s)
+
+    @classmethod
+    def analyze(cls, recording, final: bool = True) -> dict:
+        return analyze_recording(recording)
+
+    @classmethod
+    def describe(cls, result: Mapping[str, Any]) -> list[str]:
+        return describe(result)

@@ -29,6 +29,7 @@ from feedbench.analysis.stiffness import (
     torque_sharing,
 )
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
+from feedbench.experiments.family import Experiment
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import constant_feed_move
 from feedbench.protocols.cia402 import CSP
@@ -289,3 +290,25 @@ def describe(result: Mapping[str, Any]) -> list[str]:
             f"{test['k_slave_contact_N_m'] / 1e6:5.1f} → {test['k_slave_lost_N_m'] / 1e6:5.1f} "
             f"N/µm, share {test['torque_share']:.3f}")
     return lines
+
+class SteppedLoading(Experiment):
+    """TRANSITION shell: the module's functions behind the family interface."""
+
+    name = NAME
+    schema = SCHEMA
+    axes = AXES
+
+    @classmethod
+    def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
+        return _validated(params)
+
+    def plan(self) -> Plan:
+        return build_plan(self.settings, self.cycle_s)
+
+    @classmethod
+    def analyze(cls, recording, final: bool = True) -> dict:
+        return analyze_recording(recording)
+
+    @classmethod
+    def describe(cls, result: Mapping[str, Any]) -> list[str]:
+        return describe(result)

@@ -16,13 +16,16 @@ from typing import Any
 
 import numpy as np
 
+from feedbench.analysis.stability import Lobes, zoa_lobes
 from feedbench.config import Field, non_negative, positive
 from feedbench.daq.recorder import StreamSpec
 from feedbench.experiments.plan import Plan, Segment, Window
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
 from feedbench.protocols import cia401
 from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
+from feedbench.models.milling import engagement_angles
 from feedbench.units import MM_PER_MIN
+from feedbench.views.sections import Plot, RunSection, Table, new_figure, png_of
 
 DAQ_STREAM = "daq"
 RESPONSE_CHANNEL = "acc_tool_x"
@@ -190,3 +193,72 @@ class ExciterOutputs:
     def stop(self, recorder) -> None:
         """All outputs off."""
         self.io.zero()
+
+
+# stability lobes from a measured tool-tip FRF (drawn in the hammer's and the shaker chirp's
+# report sections)
+
+@dataclass(frozen=True)
+class CuttingTest:
+    """A milling operation for stability lobes (ZOA): tool diameter D (m), teeth Z, radial
+    engagement a_e (m) in `mode`, cutting coefficients K_tc, K_rc (N/m²)."""
+
+    D: float
+    Z: int
+    a_e: float
+    mode: str
+    K_tc: float
+    K_rc: float
+
+
+TABLE_5_1 = CuttingTest(D=40e-3, Z=4, a_e=32e-3, mode="down", K_tc=1885e6, K_rc=749e6)
+"""Tables 4.2 / 5.1: Walter F4042 (D 40 mm, Z 4, κ 90°), a_e 32 mm down-milling, C45 steel:
+the cut the thesis predicts the lobes of from idle and in-motion FRFs (Fig. 5.25)."""
+
+LOBE_SPEEDS_RPM = np.linspace(400.0, 2000.0, 801)
+"""Spindle speeds of the lobes (Fig. 5.25: 400–1500 rpm; up to 2000 for lobe 0 of a
+47–61 Hz mode with 4 teeth)."""
+
+
+def tool_tip_lobes(f: np.ndarray, compliance: np.ndarray,
+                   cut: CuttingTest = TABLE_5_1) -> Lobes:
+    """ZOA stability lobes (Altintas & Budak; Ch. 5.5.6) of `cut` from the tool-tip
+    compliance x/F (m/N) measured along the feed. The lab bench's flexure moves along the
+    feed only, so the y direction is taken as rigid: Φ = [[Φ_xx, 0], [0, 0]]."""
+    phi = np.zeros((len(f), 2, 2), dtype=complex)
+    phi[:, 0, 0] = compliance
+    start, stop = engagement_angles(cut.a_e, cut.D, cut.mode)
+    return zoa_lobes(np.asarray(f, dtype=float), phi, LOBE_SPEEDS_RPM, cut.Z, cut.K_tc,
+                     cut.K_rc / cut.K_tc, start, stop)
+
+
+def lobes_results(compliances: dict[str, tuple[np.ndarray, np.ndarray]],
+                  section: RunSection) -> None:
+    """Stability lobes of each named compliance (Table 5.1's cut) as a plot and a table."""
+    figure = new_figure(8.0, 4.5)
+    ax = figure.subplots()
+    rows = []
+    for label, (f, compliance) in compliances.items():
+        lobes = tool_tip_lobes(f, compliance)
+        ax.plot(lobes.spindle_rpm, lobes.depth * 1e3, lw=1.2, label=label)
+        k = int(np.argmin(lobes.depth))
+        rows.append((label, f"{lobes.min_depth * 1e3:.3f}", f"{lobes.spindle_rpm[k]:.0f}",
+                     f"{lobes.chatter_frequency[k]:.1f}"))
+    ax.set_xlabel("spindle speed (rpm)")
+    ax.set_ylabel("critical depth a_lim (mm)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    cut = TABLE_5_1
+    ax.set_title(f"ZOA, Table 5.1: D {cut.D * 1e3:g} mm, Z {cut.Z}, a_e {cut.a_e * 1e3:g} mm "
+                 f"{cut.mode}-milling, K_tc {cut.K_tc * 1e-6:g}, K_rc {cut.K_rc * 1e-6:g} N/mm²",
+                 fontsize=9)
+    section.plots.append(Plot("stability lobes from the measured tool-tip FRF", png_of(figure)))
+    section.tables.append(Table("stability lobes (Table 5.1 cut, y taken rigid)",
+                                ("FRF", "min a_lim (mm)", "at (rpm)", "chatter (Hz)"),
+                                tuple(rows)))
+
+
+def extreme_feeds(compliances: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict:
+    """The lowest and the highest feed's compliance (idle and in motion, Fig. 5.25)."""
+    labels = list(compliances)
+    return {labels[i]: compliances[labels[i]] for i in sorted({0, len(labels) - 1})}

@@ -39,6 +39,7 @@ from feedbench.experiments.chirp import mobility_extrema
 from feedbench.experiments.friction_sweep import axis_signals
 from feedbench.experiments.plan import Plan, Segment
 from feedbench.units import MM_PER_MIN
+from feedbench.views.panels import *  # noqa TRANSITION
 
 FRF_NPERSEG = 2048
 """Welch segment length of the live FRF, as `experiments.chirp.analyze_recording` uses."""
@@ -55,55 +56,6 @@ the oldest record is dropped (a window that falls behind skips results, never sa
 
 STRUCTURE_MODULE = "feedbench.gui.live_structure"
 """Registers the tool-tip and SMFE results (imported on first lookup)."""
-
-
-@dataclass(frozen=True)
-class Curve:
-    """One named x/y series of a panel; `points` draws markers instead of a line; `color`
-    (a Qt colour name) overrides the panel's colour sequence."""
-
-    name: str
-    x: np.ndarray
-    y: np.ndarray
-    points: bool = False
-    color: str | None = None
-
-
-@dataclass(frozen=True)
-class Image:
-    """A colour map over a panel: `z` (n_x × n_y) on a regular grid from (x0, y0) with
-    steps (dx, dy), NaN where nothing is known; drawn between `levels` (low, high)."""
-
-    z: np.ndarray
-    x0: float
-    dx: float
-    y0: float
-    dy: float
-    levels: tuple[float, float]
-
-
-@dataclass(frozen=True)
-class Panel:
-    """One plot of a result: axis labels (with units), log axes, its curves (drawn over
-    its `image`, if any)."""
-
-    title: str
-    x_label: str
-    y_label: str
-    curves: tuple[Curve, ...]
-    log_x: bool = False
-    log_y: bool = False
-    y_range: tuple[float, float] | None = None
-    image: Image | None = None
-
-
-@dataclass(frozen=True)
-class ResultView:
-    """What the window draws for a result: panels plus a one-line summary."""
-
-    title: str
-    panels: tuple[Panel, ...]
-    summary: str
 
 
 class StepTracker:
@@ -409,26 +361,6 @@ def _frf_panels(f: np.ndarray, H: np.ndarray, coherence: np.ndarray) -> tuple[Pa
 def _empty_frf_panels() -> tuple[Panel, Panel]:
     empty = np.zeros(0)
     return _frf_panels(empty, empty.astype(complex), empty)
-
-
-def point_frf_panels(series: Mapping[str, Sequence[tuple[float, complex, float]]],
-                     magnitude_label: str, r_squared_min: float) -> tuple[Panel, ...]:
-    """|H|, phase and R² of FRF points (f Hz, H, R²) per named series; points below the
-    R² gate, if any, are drawn again in red as their own series."""
-    magnitude, phase, quality = [], [], []
-    below = [point for points in series.values() for point in points if point[2] < r_squared_min]
-    named = [(name, points, None) for name, points in series.items()]
-    flagged = [(f"R² below {r_squared_min:g}", below, "r")] if below else []
-    for name, points, color in [*named, *flagged]:
-        f, H, r2 = (np.array(v) for v in zip(*points)) if points else (np.zeros(0),) * 3
-        H = H.astype(complex)
-        magnitude.append(Curve(name, f, np.abs(H), True, color))
-        phase.append(Curve(name, f, np.degrees(np.angle(H)), True, color))
-        quality.append(Curve(name, f, r2.astype(float), True, color))
-    return (Panel("magnitude", "frequency (Hz)", magnitude_label, tuple(magnitude), log_y=True),
-            Panel("phase", "frequency (Hz)", "phase (°)", tuple(phase)),
-            Panel("R² of the sine fits", "frequency (Hz)", "R²", tuple(quality),
-                  y_range=(0.0, 1.05)))
 
 
 def sine_point(reference: np.ndarray, response: np.ndarray, fs: float, f: float,

@@ -1,7 +1,7 @@
 """The live window: scrolling traces, progress, limits, a building-up result, a Stop button.
 
 The bench (or a replay) runs in a worker thread and feeds a `LiveStream` plus the
-experiment's `LiveResult`; the window reads them on a Qt timer in the GUI thread. The cycle
+experiment family's `LiveAnalysis`; the window reads them on a Qt timer in the GUI thread. The cycle
 loop never waits for the window: a slow window draws fewer frames, the recording keeps
 every sample. Closing the window leaves the run going; only the Stop button (or Ctrl-C)
 asks the runner for its safe stop (ramp down, disable, file marked aborted).
@@ -28,9 +28,9 @@ from feedbench.daq.live import ROWS, Decimator, LiveFrame, LiveState, LiveStream
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.replay import replay
 from feedbench.experiments.runner import StopRequest
-from feedbench.gui.live_results import (
-    Curve, Image, LiveResult, Panel, ResultView, live_result_for,
-)
+from feedbench.experiments.family import families
+from feedbench.experiments.incremental import LiveAnalysis
+from feedbench.views.panels import Curve, Image, Panel, ResultView
 from feedbench.units import MM_PER_MIN, RPM
 
 
@@ -316,7 +316,7 @@ class ResultPlots:
 
 
 class LiveWindow(QtWidgets.QMainWindow):
-    """Reads a `LiveStream` (and a `LiveResult`) on a timer and draws them.
+    """Reads a `LiveStream` (and a `LiveAnalysis`) on a timer and draws them.
 
     `units` maps channel → SI unit (groups the traces), over what the stream learned from
     the runner (`LiveStream.units`: rows and DAQ streams); `limits` draws the watched limits;
@@ -326,7 +326,7 @@ class LiveWindow(QtWidgets.QMainWindow):
     """
 
     def __init__(self, stream: LiveStream, units: Mapping[str, str], limits: Limits | None = None,
-                 result: LiveResult | None = None, stop: StopRequest | None = None,
+                 result: LiveAnalysis | None = None, stop: StopRequest | None = None,
                  worker: Worker | None = None, span_s: float = 10.0, fps: float = 60.0,
                  title: str = "feedbench live") -> None:
         super().__init__()
@@ -492,6 +492,12 @@ class LiveSession:
             print("feedbench: live window closed, the run goes on (Ctrl-C stops it safely)",
                   file=sys.stderr)
         return self.worker.wait(self.stop)
+
+
+def live_result_for(experiment: str) -> LiveAnalysis | None:
+    """The live analysis of `experiment`'s family (None for an unknown experiment)."""
+    family = families().get(experiment)
+    return LiveAnalysis(family) if family else None
 
 
 def qt_app() -> QtWidgets.QApplication:

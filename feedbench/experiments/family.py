@@ -1,0 +1,153 @@
+"""The seam where an experiment family plugs in: one `Experiment` subclass per family, and
+the one registry of them.
+
+A family is everything feedbench knows about one kind of test, in one class: its parameters
+(a schema of `config.Field`s whose names carry their units, checked on construction into a
+frozen dataclass), the devices it needs besides the drive, `plan()` (the segments the
+runner executes), `analyze` (the recording → a JSON-able result; the same function runs on
+a finished recording and, in the live window, on the windows completed so far:
+`experiments.incremental.LiveAnalysis`), and how a person sees the result: `report`
+(its report section), `live_view` (its live panels), `summary` (the demo's line against the
+simulated world's truth) and `describe` (`feedbench analyze`'s text).
+
+The registry is Python's entry points, group ``feedbench.experiments``, as python-can finds
+its bus interfaces: feedbench declares its own families in its pyproject.toml, and a lab
+adds one from its own package with one line in its own::
+
+    [project.entry-points."feedbench.experiments"]
+    my_test = "my_lab.my_test:MyTest"
+
+`bench`, `report`, `gui`, `demo` and the CLI look families up here and know none by name.
+docs/ARCHITECTURE.md walks through adding one (the backlash reversal test).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import cache
+from importlib.metadata import entry_points
+from typing import Any, ClassVar, Mapping
+
+from feedbench.config import ConfigError, Field, validate_table
+from feedbench.experiments.plan import Plan
+from feedbench.views.panels import ResultView
+from feedbench.views.sections import RunSection
+
+ENTRY_POINT_GROUP = "feedbench.experiments"
+
+
+class Experiment:
+    """One experiment family; subclasses set the class attributes and override the steps.
+
+    `name`: the config's ``experiment.type``; `schema`: its parameters (`config.Field`,
+    units in the names); `axes`: the bench axes it runs on (empty: any); `live_kinds`: the
+    segment kinds whose completion brings something new to analyse (the live result is
+    recomputed then); `title`: what the live panel and the report call it.
+    """
+
+    name: ClassVar[str]
+    schema: ClassVar[Mapping[str, Field]]
+    title: ClassVar[str] = ""
+    axes: ClassVar[tuple[str, ...]] = ()
+    live_kinds: ClassVar[tuple[str, ...]] = ("measure", "excite")
+
+    def __init__(self, params: Mapping[str, Any], cycle_s: float) -> None:
+        """Check `params` (the config's [experiment] table) for a bus cycle of `cycle_s` s;
+        raises `ConfigError` naming the field."""
+        self.cycle_s = cycle_s
+        self.settings: dict[str, Any] = self.check(params, cycle_s)
+        self.params = params_type(type(self))(**self.settings)
+
+    @classmethod
+    def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict[str, Any]:
+        """The validated parameters with defaults filled in; a family adds its cross-field
+        checks (a frequency below Nyquist, a start below a stop)."""
+        return validate_table(params, cls.schema, "experiment")
+
+    def plan(self) -> Plan:
+        """The segments the runner executes, every setpoint computed before anything moves."""
+        raise NotImplementedError
+
+    def devices(self) -> dict[str, dict[str, Any]]:
+        """The devices besides the drive (name → its settings): none by default."""
+        return {}
+
+    @classmethod
+    def analyze(cls, recording, final: bool = True) -> dict[str, Any]:
+        """The result of a `daq.recording.Recording` (SI, JSON-able, ``experiment`` = name).
+
+        `final` False: the recording holds only the windows completed so far (live); a
+        family then returns what they allow, or raises `ConfigError` saying what it waits for.
+        """
+        raise NotImplementedError
+
+    @classmethod
+    def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
+        """Add the result's plots, tables, quality indicators and headline to `section`."""
+        section.headline = scalar_text(result)
+
+    @classmethod
+    def live_view(cls, result: Mapping[str, Any]) -> ResultView:
+        """The live window's panels and one-line summary of a (partial) result."""
+        return ResultView(cls.title or cls.name, (), scalar_text(result))
+
+    @classmethod
+    def summary(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict[str, Any]:
+        """The demo's summary against the simulated world's `truth`: key values in SI and a
+        ``headline``."""
+        return {"headline": scalar_text(result)}
+
+    @classmethod
+    def describe(cls, result: Mapping[str, Any]) -> list[str]:
+        """`feedbench analyze`'s lines for the result (after the run line)."""
+        return [f"  {key}: {value}" for key, value in result.items()
+                if key != "experiment" and isinstance(value, (int, float, str))]
+
+
+HEADLINE_SEPARATOR = "; "
+"""Between the parts of a summary's headline (`feedbench demo` prints each on its own line)."""
+
+
+def headline(*parts: str) -> str:
+    """One line of an experiment's key numbers from its parts."""
+    return HEADLINE_SEPARATOR.join(parts)
+
+
+def percent_error(value: float, truth: float) -> float:
+    """100 (value − truth) / truth: an identified value against the simulated world's."""
+    return 100.0 * (value - truth) / truth
+
+
+def scalar_text(result: Mapping[str, Any]) -> str:
+    """The result's top-level numbers and words as one line (a family's fallback headline)."""
+    return ", ".join(f"{key} {value:.4g}" if isinstance(value, float) else f"{key} {value}"
+                     for key, value in result.items()
+                     if key not in ("experiment", "run") and isinstance(value, (int, float, str)))
+
+
+@cache
+def params_type(family: type[Experiment]) -> type:
+    """The frozen dataclass of a family's parameters, one field per schema entry."""
+    return dataclasses.make_dataclass(f"{family.__name__}Params",
+                                      [(key, Any) for key in family.schema], frozen=True)
+
+
+@cache
+def families() -> dict[str, type[Experiment]]:
+    """Every registered family by name (entry points of `ENTRY_POINT_GROUP`)."""
+    found: dict[str, type[Experiment]] = {}
+    for point in entry_points(group=ENTRY_POINT_GROUP):
+        cls = point.load()
+        if not (isinstance(cls, type) and issubclass(cls, Experiment)) or cls.name != point.name:
+            raise TypeError(f"entry point {point.name} = {point.value}: not an Experiment "
+                            "subclass of that name")
+        found[point.name] = cls
+    return found
+
+
+def family(name: Any, where: str = "experiment.type") -> type[Experiment]:
+    """The family called `name`; an unknown one is a `ConfigError` at `where`."""
+    known = families()
+    if name not in known:
+        raise ConfigError(f"{where}: must be one of {', '.join(sorted(known))} (got {name!r})")
+    return known[name]

@@ -1,0 +1,81 @@
+"""What the live window draws of a result, as plain data (no Qt here): panels of named
+curves and colour maps with their axis labels and units, and a one-line summary. Each
+experiment family builds its `ResultView` from the same analysis result the report draws
+(`Experiment.live_view`); `feedbench.gui.live_window` lays any of them out the same way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Curve:
+    """One named x/y series of a panel; `points` draws markers instead of a line; `color`
+    (a Qt colour name) overrides the panel's colour sequence."""
+
+    name: str
+    x: np.ndarray
+    y: np.ndarray
+    points: bool = False
+    color: str | None = None
+
+
+@dataclass(frozen=True)
+class Image:
+    """A colour map over a panel: `z` (n_x × n_y) on a regular grid from (x0, y0) with
+    steps (dx, dy), NaN where nothing is known; drawn between `levels` (low, high)."""
+
+    z: np.ndarray
+    x0: float
+    dx: float
+    y0: float
+    dy: float
+    levels: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class Panel:
+    """One plot of a result: axis labels (with units), log axes, its curves (drawn over
+    its `image`, if any)."""
+
+    title: str
+    x_label: str
+    y_label: str
+    curves: tuple[Curve, ...]
+    log_x: bool = False
+    log_y: bool = False
+    y_range: tuple[float, float] | None = None
+    image: Image | None = None
+
+
+@dataclass(frozen=True)
+class ResultView:
+    """What the window draws for a result: panels plus a one-line summary."""
+
+    title: str
+    panels: tuple[Panel, ...]
+    summary: str
+
+
+def point_frf_panels(series: Mapping[str, Sequence[tuple[float, complex, float]]],
+                     magnitude_label: str, r_squared_min: float) -> tuple[Panel, ...]:
+    """|H|, phase and R² of FRF points (f Hz, H, R²) per named series; points below the
+    R² gate, if any, are drawn again in red as their own series."""
+    magnitude, phase, quality = [], [], []
+    below = [point for points in series.values() for point in points if point[2] < r_squared_min]
+    named = [(name, points, None) for name, points in series.items()]
+    flagged = [(f"R² below {r_squared_min:g}", below, "r")] if below else []
+    for name, points, color in [*named, *flagged]:
+        f, H, r2 = (np.array(v) for v in zip(*points)) if points else (np.zeros(0),) * 3
+        H = H.astype(complex)
+        magnitude.append(Curve(name, f, np.abs(H), True, color))
+        phase.append(Curve(name, f, np.degrees(np.angle(H)), True, color))
+        quality.append(Curve(name, f, r2.astype(float), True, color))
+    return (Panel("magnitude", "frequency (Hz)", magnitude_label, tuple(magnitude), log_y=True),
+            Panel("phase", "frequency (Hz)", "phase (°)", tuple(phase)),
+            Panel("R² of the sine fits", "frequency (Hz)", "R²", tuple(quality),
+                  y_range=(0.0, 1.05)))
