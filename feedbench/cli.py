@@ -13,7 +13,6 @@ import contextlib
 import math
 import signal
 import socket
-import sqlite3
 import sys
 import threading
 import time
@@ -63,8 +62,11 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_runs(args: argparse.Namespace) -> int:
-    """List the run catalog."""
-    rows = open_catalog(args.dir).list()
+    """List the run catalog, the runs left unfinished by a process that has ended settled
+    first (`Catalog.reconcile`: crashed, samples counted from the file)."""
+    catalog = open_catalog(args.dir)
+    catalog.reconcile()
+    rows = catalog.list()
     if args.json:
         _print_json({"runs": [vars(r) for r in rows]})
         return 0
@@ -73,6 +75,16 @@ def cmd_runs(args: argparse.Namespace) -> int:
               + (f"  ({r.reason})" if r.reason else ""))
     if not rows:
         print(f"no runs in {args.dir}")
+    return 0
+
+
+def cmd_catalog_rebuild(args: argparse.Namespace) -> int:
+    """Recreate the run catalog from the recordings in the output directory."""
+    catalog = open_catalog(args.dir)
+    added, skipped = catalog.rebuild()
+    for reason in skipped:
+        print(f"skipped {reason}")
+    print(f"{catalog.path}: rebuilt from {added} recording(s)")
     return 0
 
 
@@ -92,14 +104,13 @@ def output_directory(directory: str | Path) -> Path:
 
 
 def open_catalog(directory: str | Path):
-    """The run catalog of an output directory; a file that is not one raises `ConfigError`."""
+    """The run catalog of an output directory (a corrupt one is moved aside and rebuilt);
+    one that cannot be read or written raises `ConfigError`."""
     from feedbench.daq.catalog import Catalog
 
     path = output_directory(directory) / "catalog.sqlite"
     try:
         return Catalog(path)
-    except sqlite3.DatabaseError as exc:
-        raise ConfigError(f"{path}: not a run catalog ({exc})") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot open the run catalog ({exc.strerror})") from None
 
@@ -239,6 +250,13 @@ def build_parser() -> argparse.ArgumentParser:
     runs.add_argument("--dir", default="runs", help="output directory holding catalog.sqlite")
     runs.add_argument("--json", action="store_true")
     runs.set_defaults(func=cmd_runs)
+
+    catalog = sub.add_parser("catalog", help="maintain the run catalog")
+    catalog_sub = catalog.add_subparsers(dest="action", required=True)
+    rebuild = catalog_sub.add_parser("rebuild", help="recreate the catalog from the "
+                                     "recordings (*.h5) in the output directory")
+    rebuild.add_argument("--dir", default="runs", help="output directory holding the recordings")
+    rebuild.set_defaults(func=cmd_catalog_rebuild)
 
     analyze = sub.add_parser("analyze", help="analyse a recorded run (id, id prefix or .h5) "
                              "or the FRFs of a UFF58 file (.uff, .unv)")

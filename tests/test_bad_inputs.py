@@ -203,11 +203,12 @@ def set_sample(column: str, index: int, value: float) -> Callable[[dict], None]:
     return edit
 
 
-def garbage_catalog(command: list[str]) -> Callable[[Path], list[str]]:
+def catalog_directory(command: list[str]) -> Callable[[Path], list[str]]:
+    """A catalog.sqlite that is a directory (a corrupt file is moved aside and rebuilt:
+    `test_catalog_truth.py`)."""
     def make(d: Path) -> list[str]:
         bad = d / "other"
-        bad.mkdir()
-        (bad / "catalog.sqlite").write_text("not a database\n" * 20)
+        (bad / "catalog.sqlite").mkdir(parents=True)
         return [*command, "--dir", str(bad)]
     return make
 
@@ -246,9 +247,12 @@ CASES: dict[str, tuple[Callable[[Path], list[str]], str]] = {
                                       "bad.h5: 3 feeds measured in the positive direction"),
     "analyze unknown run id": (lambda d: ["analyze", "nosuchrun", "--dir", str(d)],
                                "no run id starts with 'nosuchrun'"),
-    "analyze garbage catalog": (garbage_catalog(["analyze", "someid"]),
-                                "catalog.sqlite: not a run catalog"),
-    "runs garbage catalog": (garbage_catalog(["runs"]), "catalog.sqlite: not a run catalog"),
+    "analyze catalog is a directory": (catalog_directory(["analyze", "someid"]),
+                                       "catalog.sqlite: cannot use the run catalog (unable to "
+                                       "open database file)"),
+    "runs catalog is a directory": (catalog_directory(["runs"]),
+                                    "catalog.sqlite: cannot use the run catalog (unable to "
+                                    "open database file)"),
     "runs dir is a file": (lambda d: ["runs", "--dir", str(d / GOOD)],
                            f"/{GOOD} is not a directory"),
     "report foreign h5": (recording_file(foreign, "report"), "bad.h5: not a feedbench recording"),

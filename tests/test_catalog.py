@@ -1,8 +1,11 @@
-"""Run catalog: ids, add/finish, list order, lookup by unique prefix, concurrent readers."""
+"""Run catalog: ids, add/finish (with the recording process's pid and host), list order,
+lookup by unique prefix, concurrent readers, a catalog made before pids were recorded."""
 
 from __future__ import annotations
 
+import os
 import re
+import socket
 import sqlite3
 from pathlib import Path
 
@@ -49,6 +52,8 @@ def test_add_finish_list_get(tmp_path: Path) -> None:
         file=str(tmp_path / "a.h5"),
         n_samples=25_003,
         params={"feed_mm_min": 100.0},
+        pid=os.getpid(),
+        host=socket.gethostname(),
     )
     rows = catalog.list()
     assert [row.id for row in rows] == [second, first]
@@ -100,3 +105,21 @@ def test_reader_sees_committed_rows_while_writer_runs(tmp_path: Path) -> None:
         assert reader.execute("SELECT status, n_samples FROM runs").fetchall() == [
             ("complete", 10)
         ]
+
+
+def test_a_catalog_made_before_pids_gets_the_columns_and_keeps_its_rows(tmp_path: Path) -> None:
+    path = tmp_path / "catalog.sqlite"
+    with sqlite3.connect(path) as old:
+        old.execute("CREATE TABLE runs (id TEXT PRIMARY KEY, experiment TEXT NOT NULL,"
+                    " started_at TEXT, stopped_at TEXT, status TEXT NOT NULL,"
+                    " reason TEXT NOT NULL DEFAULT '', file TEXT, n_samples INTEGER,"
+                    " params JSON NOT NULL DEFAULT '{}')")
+        old.execute("INSERT INTO runs (id, experiment, status, n_samples) VALUES"
+                    " ('20260101-000000-frf-1', 'frf', 'complete', 12)")
+    catalog = Catalog(path)
+    [row] = catalog.list()
+    assert (row.id, row.status, row.n_samples, row.pid, row.host) == (
+        "20260101-000000-frf-1", "complete", 12, None, None)
+    catalog.add(run_id := catalog.new_run_id("frf"), "frf", tmp_path / "x.h5", {})
+    assert (catalog.get(run_id).pid, catalog.get(run_id).host) == (os.getpid(),
+                                                                   socket.gethostname())

@@ -1,24 +1,35 @@
-"""SQLite run catalog: one row per run (id, experiment, times, status, file, key parameters).
+"""SQLite run catalog: one row per run (id, experiment, times, status, file, key parameters,
+the pid and host of the process that records it).
 
 Every call opens its own connection and runs one short transaction, so one writer (the
 runner) and any number of readers (CLI, analysis, live window) can share the file; the
 database is in WAL mode so readers never block the writer.
+
+The recordings are the source of truth, the catalog an index of them: `reconcile` marks
+`crashed` a run whose process ended without finishing it (samples counted from its file),
+`rebuild` recreates the rows from the recordings in the catalog's directory, and a catalog
+file that SQLite finds corrupt is moved aside (``catalog.sqlite.corrupt-<UTC time>``) and
+rebuilt when it is opened, with one warning line. A catalog that cannot be read or written
+(read-only or full disk) raises `CatalogError`, one line.
 """
 
 from __future__ import annotations
 
 import json
+import logging
+import os
 import re
+import socket
 import sqlite3
 from collections.abc import Iterator, Mapping
-from contextlib import closing, contextmanager
+from contextlib import closing, contextmanager, suppress
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 from feedbench.config import ConfigError
-from feedbench.daq.recording import to_json, utc_now_iso
+from feedbench.daq.recording import RecordingSummary, read_summary, to_json, utc_now_iso
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (
@@ -30,11 +41,25 @@ CREATE TABLE IF NOT EXISTS runs (
     reason TEXT NOT NULL DEFAULT '',
     file TEXT,
     n_samples INTEGER,
-    params JSON NOT NULL DEFAULT '{}'
+    params JSON NOT NULL DEFAULT '{}',
+    pid INTEGER,
+    host TEXT
 )
 """
-COLUMNS = "id, experiment, started_at, stopped_at, status, reason, file, n_samples, params"
+ADDED_COLUMNS = {"pid": "INTEGER", "host": "TEXT"}
+"""Columns a catalog made before them gets when it is opened."""
+COLUMN_NAMES = ("id", "experiment", "started_at", "stopped_at", "status", "reason", "file",
+                "n_samples", "params", "pid", "host")
+COLUMNS = ", ".join(COLUMN_NAMES)
+UNFINISHED = ("created", "running")
+"""Statuses of a run whose process has not finished it (yet)."""
+CORRUPT = (sqlite3.SQLITE_NOTADB, sqlite3.SQLITE_CORRUPT)
 BUSY_TIMEOUT_S = 10.0
+LOGGER = logging.getLogger(__name__)
+
+
+class CatalogError(ConfigError):
+    """The catalog file cannot be read or written (read-only or full disk, not SQLite)."""
 
 
 class RunLookupError(ConfigError, KeyError):
@@ -58,17 +83,58 @@ class RunRow:
     file: str | None
     n_samples: int | None
     params: dict[str, Any]
+    pid: int | None = None
+    host: str | None = None
 
 
 class Catalog:
-    """The run catalog stored in the SQLite file `path` (created if missing)."""
+    """The run catalog stored in the SQLite file `path` (created if missing; a corrupt one
+    is moved aside and rebuilt from the recordings beside it)."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            problems = self._create()
+        except CatalogError as exc:
+            if getattr(exc.__cause__, "sqlite_errorcode", None) not in CORRUPT:
+                raise
+            problems = [str(exc.__cause__)]
+        if problems:
+            self._replace_corrupt("; ".join(problems[:3]))
+
+    def _create(self) -> list[str]:
+        """Make the table (and the columns added since a catalog was made); returns what
+        SQLite's integrity check finds wrong (nothing: an empty list)."""
         with self._transaction() as connection:
             connection.execute("PRAGMA journal_mode=WAL")
             connection.execute(SCHEMA)
+            present = {row[1] for row in connection.execute("PRAGMA table_info(runs)")}
+            for name, kind in ADDED_COLUMNS.items():
+                if name not in present:
+                    connection.execute(f"ALTER TABLE runs ADD COLUMN {name} {kind}")
+            return [row[0] for row in connection.execute("PRAGMA quick_check")
+                    if row[0] != "ok"]
+
+    def _replace_corrupt(self, problem: str) -> None:
+        """Move the corrupt file (and its WAL files) aside, make a new catalog and rebuild
+        it from the recordings, say so in one line. If another process moved it first, use
+        the catalog that process rebuilds."""
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+        aside = self.path.with_name(f"{self.path.name}.corrupt-{stamp}")
+        try:
+            self.path.rename(aside)
+        except FileNotFoundError:
+            self._create()
+            return
+        for suffix in ("-wal", "-shm"):
+            with suppress(FileNotFoundError):
+                Path(f"{self.path}{suffix}").rename(f"{aside}{suffix}")
+        self._create()
+        added, skipped = self.rebuild()
+        LOGGER.warning("%s: corrupt run catalog (%s) moved to %s; rebuilt from %d recording(s)"
+                       "%s", self.path, problem, aside.name, added,
+                       f", {len(skipped)} file(s) skipped" if skipped else "")
 
     def new_run_id(self, experiment: str) -> str:
         """Reserve a unique, time-sortable id `YYYYMMDD-HHMMSS-<experiment>-<n>` (UTC).
@@ -85,21 +151,25 @@ class Catalog:
             ).fetchone()
             run_id = f"{stamp}-{name}-{taken + 1}"
             connection.execute(
-                "INSERT INTO runs (id, experiment, status) VALUES (?, ?, 'created')",
-                (run_id, experiment),
+                "INSERT INTO runs (id, experiment, status, pid, host)"
+                " VALUES (?, ?, 'created', ?, ?)",
+                (run_id, experiment, os.getpid(), socket.gethostname()),
             )
         return run_id
 
     def add(self, run_id: str, experiment: str, file: str | Path, params: Mapping[str, Any]) -> None:
-        """Register the start of run `run_id` (status `running`, started now)."""
+        """Register the start of run `run_id` (status `running`, started now, recorded by
+        this process on this host)."""
         with self._transaction() as connection:
             connection.execute(
-                "INSERT INTO runs (id, experiment, started_at, status, file, params)"
-                " VALUES (?, ?, ?, 'running', ?, ?)"
+                "INSERT INTO runs (id, experiment, started_at, status, file, params, pid, host)"
+                " VALUES (?, ?, ?, 'running', ?, ?, ?, ?)"
                 " ON CONFLICT(id) DO UPDATE SET experiment = excluded.experiment,"
                 " started_at = excluded.started_at, status = excluded.status,"
-                " file = excluded.file, params = excluded.params",
-                (run_id, experiment, utc_now_iso(), str(file), to_json(dict(params))),
+                " file = excluded.file, params = excluded.params, pid = excluded.pid,"
+                " host = excluded.host",
+                (run_id, experiment, utc_now_iso(), str(file), to_json(dict(params)),
+                 os.getpid(), socket.gethostname()),
             )
 
     def finish(self, run_id: str, status: str, reason: str, n_samples: int) -> None:
@@ -138,17 +208,141 @@ class Catalog:
             raise RunLookupError(f"run id prefix {run_id_or_prefix!r} is ambiguous: {matches}")
         return _run_row(rows[0])
 
+    def reconcile(self) -> list[str]:
+        """Settle the runs left `created` or `running` by a process that has ended: the
+        recording's own final status if it has one, else `crashed` with the samples its file
+        holds. A run whose process still runs, or runs on another host, stays as it is.
+        Returns the ids changed."""
+        with self._transaction() as connection:
+            rows = connection.execute(
+                "SELECT id, file, pid, host FROM runs WHERE status IN (?, ?)", UNFINISHED
+            ).fetchall()
+        changed = []
+        for run_id, file, pid, host in rows:
+            summary, why = _summary(file)
+            if summary is not None and summary.status not in UNFINISHED:
+                self._settle(run_id, summary.status, summary.reason, summary.n_samples,
+                             summary.stopped_at)
+            elif _ended(pid, host, file):
+                self._settle(run_id, "crashed", f"process {pid} on {host} ended without "
+                             f"finishing the run{f' ({why})' if why else ''}",
+                             summary.n_samples if summary else 0, None)
+            else:
+                continue
+            changed.append(run_id)
+        return changed
+
+    def rebuild(self) -> tuple[int, list[str]]:
+        """Recreate the rows from the recordings (``*.h5``) in the catalog's directory: one
+        row per recording (its key parameters: the recorded `[experiment]` table); a file
+        still `running` keeps that status if a process on this host has it open for writing
+        (its pid), else it is `crashed`. The row of a run in progress is kept until its file
+        says how it ended. Rows are in the order the runs started. Returns the number of
+        recordings read and one line per file skipped (not a feedbench recording)."""
+        rows, skipped = {}, []
+        for path in sorted(self.path.parent.glob("*.h5")):
+            summary, why = _summary(str(path))
+            if summary is None:
+                skipped.append(why)
+            else:
+                rows[summary.run_id] = _rebuilt_row(summary)
+        added = len(rows)
+        with self._transaction(immediate=True) as connection:
+            for row in connection.execute(
+                    f"SELECT {COLUMNS} FROM runs WHERE status IN (?, ?)", UNFINISHED).fetchall():
+                live = dict(zip(COLUMN_NAMES, row))
+                in_file = dict(zip(COLUMN_NAMES, rows.get(live["id"], row)))
+                if (not _ended(live["pid"], live["host"], live["file"])
+                        and in_file["status"] in UNFINISHED):
+                    rows[live["id"]] = row
+            connection.execute("DELETE FROM runs")
+            connection.executemany(
+                f"INSERT INTO runs ({COLUMNS}) VALUES ({', '.join('?' * len(COLUMN_NAMES))})",
+                sorted(rows.values(), key=lambda row: row[COLUMN_NAMES.index("started_at")]
+                       or "~"))  # a run not started yet: last
+        return added, skipped
+
+    def _settle(self, run_id: str, status: str, reason: str, n_samples: int,
+                stopped_at: str | None) -> None:
+        with self._transaction() as connection:
+            connection.execute(
+                "UPDATE runs SET stopped_at = ?, status = ?, reason = ?, n_samples = ?"
+                " WHERE id = ? AND status IN (?, ?)",
+                (stopped_at or None, status, reason, n_samples, run_id, *UNFINISHED),
+            )
+
     @contextmanager
     def _transaction(self, immediate: bool = False) -> Iterator[sqlite3.Connection]:
-        """One connection, one transaction: committed on success, rolled back on error."""
-        with closing(sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_S)) as connection:
-            if immediate:
-                connection.execute("BEGIN IMMEDIATE")
-            with connection:
-                yield connection
+        """One connection, one transaction: committed on success, rolled back on error; an
+        SQLite error (read-only or full disk, not a database) raises `CatalogError`."""
+        try:
+            with closing(sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_S)) as connection:
+                if immediate:
+                    connection.execute("BEGIN IMMEDIATE")
+                with connection:
+                    yield connection
+        except sqlite3.DatabaseError as exc:
+            raise CatalogError(f"{self.path}: cannot use the run catalog ({exc})") from exc
 
 
 def _run_row(row: tuple[Any, ...]) -> RunRow:
-    *fields, params = row
-    return RunRow(*fields, params=json.loads(params))
+    *fields, params, pid, host = row
+    return RunRow(*fields, params=json.loads(params), pid=pid, host=host)
+
+
+def _summary(file: str | None) -> tuple[RecordingSummary | None, str]:
+    """The recording's summary, or None and why it cannot be read."""
+    if file is None:
+        return None, "no recording started"
+    try:
+        return read_summary(file), ""
+    except ConfigError as exc:
+        return None, str(exc)
+
+
+def _ended(pid: int | None, host: str | None, file: str | None) -> bool:
+    """True if the process that records a run is gone: process `pid` was on this host and
+    has ended (another host: False); a row made before pids were recorded: no process on
+    this host has its file (if any) open for writing."""
+    if pid is None:
+        return file is None or _writing_process(Path(file)) is None
+    if host != socket.gethostname():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:  # alive, another user's
+        return False
+    return False
+
+
+def _rebuilt_row(summary: RecordingSummary) -> tuple[Any, ...]:
+    """The catalog row of a recording found on disk (see `Catalog.rebuild`)."""
+    status, pid, host = summary.status, None, None
+    if status in UNFINISHED:
+        pid = _writing_process(summary.path)
+        status, host = ("running", socket.gethostname()) if pid else ("crashed", None)
+    reason = summary.reason or ("no process writes it any more" if status == "crashed" else "")
+    return (summary.run_id, summary.experiment, summary.started_at, summary.stopped_at or None,
+            status, reason, str(summary.path), summary.n_samples,
+            to_json(summary.config.get("experiment", {})), pid, host)
+
+
+def _writing_process(path: Path) -> int | None:
+    """The pid of a process on this host that has `path` open for writing (Linux: /proc),
+    None if there is none or it cannot be told."""
+    target = str(path.resolve())
+    for link in Path("/proc").glob("[0-9]*/fd/*"):
+        with suppress(OSError):  # the process or descriptor went away, or is not ours
+            if os.readlink(link) == target and _open_for_writing(link):
+                return int(link.parts[2])
+    return None
+
+
+def _open_for_writing(link: Path) -> bool:
+    """Whether the descriptor `/proc/<pid>/fd/<n>` is open for writing (its fdinfo flags)."""
+    info = Path(f"/proc/{link.parts[2]}/fdinfo/{link.name}").read_text()
+    flags = int(info.split("flags:")[1].split()[0], 8)
+    return flags & os.O_ACCMODE != os.O_RDONLY
 

@@ -25,7 +25,7 @@ import math
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, TypeVar
 
 import h5py
 import numpy as np
@@ -37,6 +37,7 @@ DATA = "data"
 EVENTS = "events"
 STREAMS = "streams"
 SEQUENCE = "sequence"
+T = TypeVar("T")
 EVENT_DTYPE = np.dtype(
     [("cycle", np.int64), ("kind", h5py.string_dtype()), ("text", h5py.string_dtype())]
 )
@@ -167,14 +168,40 @@ class Recording:
         return (self.cycle >= segment.start) & (self.cycle < segment.stop)
 
 
+@dataclass(frozen=True)
+class RecordingSummary:
+    """What the run catalog keeps of a recording, read without its data: `n_samples` counts
+    the rows on disk (a crashed writer's file: up to its last flushed chunk), `run_id` is the
+    id the run was recorded under (the file's stem if the file has none)."""
+
+    path: Path
+    run_id: str
+    experiment: str
+    status: str
+    reason: str
+    started_at: str
+    stopped_at: str
+    n_samples: int
+    config: dict[str, Any]
+
+
 def open_recording(path: str | Path) -> Recording:
     """Read a recording (complete, aborted, still being written or left by a crashed writer).
 
     A missing, empty, truncated or foreign file raises `ConfigError` naming the file.
     """
-    path = Path(path)
+    return _checked(Path(path), _read_recording)
+
+
+def read_summary(path: str | Path) -> RecordingSummary:
+    """A recording's status, times and sample count (errors as `open_recording`)."""
+    return _checked(Path(path), _read_summary)
+
+
+def _checked(path: Path, read: Callable[[Path], T]) -> T:
+    """`read(path)` with the libraries' errors turned into `ConfigError` naming the file."""
     try:
-        return _read_recording(path)
+        return read(path)
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such recording") from None
     except (OSError, RuntimeError) as exc:  # h5py: not HDF5, truncated, damaged, unreadable
@@ -187,6 +214,22 @@ def _first_line(exc: BaseException) -> str:
     """The first line of an exception's message (KeyError: its argument, unquoted)."""
     text = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _read_summary(path: Path) -> RecordingSummary:
+    with h5py.File(path, "r", libver="latest", swmr=True) as file:
+        attrs = file.attrs
+        return RecordingSummary(
+            path=path,
+            run_id=json.loads(attrs["run_id"]) if "run_id" in attrs else path.stem,
+            experiment=str(attrs["experiment"]),
+            status=str(attrs["status"]),
+            reason=str(attrs["reason"]),
+            started_at=str(attrs["started_at"]),
+            stopped_at=str(attrs["stopped_at"]),
+            n_samples=_complete_rows(file, json.loads(attrs["channels"])),
+            config=json.loads(attrs["config"]),
+        )
 
 
 def _read_recording(path: Path) -> Recording:
