@@ -6,9 +6,12 @@ Ground truth: the ramp law (setpoint / ramp seconds from standstill), the ADC st
 
 from __future__ import annotations
 
+import math
 import re
 import socket
+import struct
 from contextlib import contextmanager
+from fractions import Fraction
 from pathlib import Path
 from typing import Iterator, NamedTuple
 
@@ -27,6 +30,7 @@ from feedbench.drivers.modbus_devices import (
     connect_rtu,
     connect_tcp,
 )
+from feedbench.protocols.modbus_registers import FUNCTION_CODES, INVERTER_STATUS_AT_SPEED
 from feedbench.sim_backends.modbus_devices import (
     SimulatedLoadCell,
     SimulatedModbusRtuServer,
@@ -101,13 +105,39 @@ def test_speed_ramp_reaches_setpoint_after_setpoint_over_ramp_seconds():
         bench.inverter.run()
         advance(bench, expected_cycles // 2)
         assert bench.inverter.actual_speed_rpm == pytest.approx(setpoint / 2, abs=0.01)
-        advance(bench, expected_cycles // 2 - 2)
-        cycles = expected_cycles - 2
-        while not bench.inverter.status().at_speed:
-            advance(bench, 1)
-            cycles += 1
-        assert abs(cycles - expected_cycles) <= 1
-        assert bench.inverter.actual_speed_rpm == pytest.approx(setpoint, abs=0.01)
+        advance(bench, expected_cycles // 2 - 1)
+        assert not bench.inverter.status().at_speed, "one cycle before the ramp's end"
+        advance(bench, 1)
+        assert bench.inverter.status().at_speed, "on the cycle the ramp ends, not one late"
+        assert bench.inverter.actual_speed_rpm == setpoint
+
+
+@pytest.mark.parametrize("setpoint, ramp, cycle_s", [(1000.0, 200.0, 1e-3),
+                                                     (1234.56, 0.1, 0.125),
+                                                     (1592.5, 50.0, 2e-3),
+                                                     (480.2, 100.0, 2e-3),
+                                                     (791.35, 200.0, 2.5e-4),
+                                                     (718.35, 50.0, 1e-3)])
+def test_at_speed_rises_on_the_cycle_the_ramp_law_reaches_the_setpoint(setpoint, ramp,
+                                                                        cycle_s):
+    """AT_SPEED on cycle ceil(setpoint / (ramp · cycle)) exactly, that count computed in
+    exact decimal arithmetic. The last four rose one SYNC late with the float ramp of
+    before (the sum of the float steps fell short of the setpoint by a rounding error)."""
+    expected = math.ceil(Fraction(str(setpoint))
+                         / (Fraction(str(ramp)) * Fraction(str(cycle_s))))
+    with tcp_bench() as bench:
+        bench.inverter.set_ramp_rpm_s(ramp)
+        bench.inverter.set_speed_rpm(setpoint)
+        bench.inverter.run()
+        at_speed = []
+        for _ in range(expected + 1):
+            bench.inverter_sim.advance(cycle_s)
+            at_speed.append(bool(bench.inverter_sim.values()["STATUS"]
+                                 & INVERTER_STATUS_AT_SPEED))
+        assert at_speed.index(True) + 1 == expected
+        assert at_speed[expected - 1:] == [True, True]
+        status = bench.inverter.status()
+        assert status.at_speed and status.actual_rpm == pytest.approx(setpoint, abs=1e-9)
 
 
 def test_run_and_stop():
@@ -246,12 +276,103 @@ def test_illegal_address_becomes_device_error_naming_register_and_code():
             SpindleInverter(bench.inverter.client, 2).read(INVERTER_MAP["MAX_SPEED"])
 
 
-def test_other_function_codes_are_refused():
+UNDOCUMENTED_PDUS = {
+    0x01: bytes.fromhex("0000 0001"),  # read coils
+    0x02: bytes.fromhex("0000 0001"),  # read discrete inputs
+    0x04: bytes.fromhex("0000 0002"),  # read input registers
+    0x05: bytes.fromhex("0000 ff00"),  # write single coil
+    0x07: b"",  # read exception status
+    0x08: bytes.fromhex("0000 1234"),  # diagnostics, return query data
+    0x0B: b"",  # get comm event counter
+    0x0C: b"",  # get comm event log
+    0x0F: bytes.fromhex("0000 0001 01 01"),  # write multiple coils
+    0x11: b"",  # report server id
+    0x14: bytes.fromhex("07 06 0001 0000 0001"),  # read file record
+    0x16: bytes.fromhex("0000 ffff 0000"),  # mask write register
+    0x17: bytes.fromhex("0000 0001 0000 0001 02 0000"),  # read/write multiple registers
+    0x18: bytes.fromhex("0000"),  # read FIFO queue
+    0x2B: bytes.fromhex("0e 01 00"),  # read device identification
+    0x41: bytes.fromhex("0102"),  # user-defined
+    0x64: b"",  # user-defined
+    0x83: bytes.fromhex("02"),  # an exception response sent as a request
+}
+
+
+def ask(connection: socket.socket, transaction: int, device_id: int, pdu: bytes) -> bytes:
+    """One Modbus TCP request (MBAP header + `pdu`); returns the answer's PDU after checking
+    its MBAP header echoes the request's."""
+    connection.sendall(struct.pack(">HHHB", transaction, 0, len(pdu) + 1, device_id) + pdu)
+    header = b""
+    while len(header) < 7:
+        header += connection.recv(7 - len(header))
+    echoed, protocol, length, answered_id = struct.unpack(">HHHB", header)
+    assert (echoed, protocol, answered_id) == (transaction, 0, device_id)
+    body = b""
+    while len(body) < length - 1:
+        body += connection.recv(length - 1 - len(body))
+    return body
+
+
+def test_only_the_documented_function_codes_are_served_raw_tcp():
+    """A third-party client reading only the docs: every other function code (ones pymodbus
+    knows and ones nobody does) → exception 1, function byte = code | 0x80; a malformed
+    request of a documented code → exception 3; an unknown device id → 0x0B."""
+    with tcp_bench() as bench, socket.create_connection(
+            ("127.0.0.1", bench.inverter.client.comm_params.port), timeout=5.0) as raw:
+        for transaction, (code, data) in enumerate(UNDOCUMENTED_PDUS.items(), start=1):
+            for device_id in (1, 2):
+                assert ask(raw, transaction, device_id, bytes([code]) + data) == bytes(
+                    [code | 0x80, 0x01]), f"function 0x{code:02X}, device {device_id}"
+        assert ask(raw, 100, 1, bytes.fromhex("03 0000 0002")) == bytes.fromhex("03 04 0000 0000")
+        assert ask(raw, 101, 2, bytes.fromhex("10 0004 0002 04 0000 61a8")) == bytes.fromhex(
+            "10 0004 0002")
+        assert bench.load_cell_sim.range_N == 25000.0
+        assert ask(raw, 102, 1, bytes.fromhex("06 0006 07d0")) == bytes.fromhex("06 0006 07d0")
+        assert bench.inverter_sim.ramp_rpm_s == pytest.approx(200.0)
+        assert ask(raw, 103, 1, bytes.fromhex("03 00")) == bytes.fromhex("83 03"), "truncated"
+        assert ask(raw, 104, 1, bytes.fromhex("03 0000 0000")) == bytes.fromhex("83 03")
+        assert ask(raw, 105, 1, bytes.fromhex("03 0028 0001")) == bytes.fromhex("83 02")
+        assert ask(raw, 106, 1, bytes.fromhex("06 0006 0000")) == bytes.fromhex("86 03")
+        assert ask(raw, 107, 9, bytes.fromhex("41 00")) == bytes.fromhex("c1 0b")
+        assert ask(raw, 108, 9, bytes.fromhex("03 0000 0001")) == bytes.fromhex("83 0b")
+
+
+def test_undocumented_function_codes_through_the_pymodbus_client():
+    """pymodbus's own client calls for what the devices do not serve, TCP and RTU."""
+    calls = {
+        0x01: lambda client: client.read_coils(0, count=1, device_id=1),
+        0x04: lambda client: client.read_input_registers(0, count=2, device_id=1),
+        0x07: lambda client: client.read_exception_status(device_id=1),
+        0x08: lambda client: client.diag_read_diagnostic_register(device_id=1),
+        0x0B: lambda client: client.diag_get_comm_event_counter(device_id=1),
+        0x11: lambda client: client.report_device_id(device_id=1),
+        0x17: lambda client: client.readwrite_registers(read_address=0, read_count=1,
+                                                        write_address=0, values=[0],
+                                                        device_id=1),
+        0x18: lambda client: client.read_fifo_queue(address=0, device_id=1),
+        0x2B: lambda client: client.read_device_information(device_id=1),
+    }
     with tcp_bench() as bench:
-        response = bench.inverter.client.read_input_registers(0, count=2, device_id=1)
-        assert response.isError() and response.exception_code == 1
-        response = bench.inverter.client.read_coils(0, count=1, device_id=1)
-        assert response.isError() and response.exception_code == 1
+        for code, call in calls.items():
+            response = call(bench.inverter.client)
+            assert (response.function_code, response.exception_code) == (code | 0x80, 1), code
+    server = SimulatedModbusRtuServer([SimulatedSpindleInverter()])
+    client = connect_rtu(server.start())
+    try:
+        for code in (0x07, 0x08, 0x11, 0x2B):
+            response = calls[code](client)
+            assert (response.function_code, response.exception_code) == (code | 0x80, 1), code
+        assert SpindleInverter(client, 1).status().max_speed_rpm == 6000, "still in step"
+    finally:
+        client.close()
+        server.stop()
+
+
+def test_function_codes_doc_matches_code():
+    """docs/modbus_registers.md lists exactly the function codes the devices serve."""
+    rows = re.findall(r"^\s*\| 0x([0-9A-F]{2}) \((\d+)\) \|", REGISTER_DOC.read_text(), re.M)
+    assert [(int(hexa, 16), int(decimal)) for hexa, decimal in rows] == [
+        (code, code) for code in FUNCTION_CODES]
 
 
 def test_rtu_over_pty_null_modem():

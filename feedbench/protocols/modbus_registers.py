@@ -13,6 +13,13 @@ from typing import Sequence
 
 from pymodbus.client.mixin import ModbusClientMixin
 
+READ_HOLDING_REGISTERS = 0x03
+WRITE_SINGLE_REGISTER = 0x06
+WRITE_MULTIPLE_REGISTERS = 0x10
+FUNCTION_CODES = (READ_HOLDING_REGISTERS, WRITE_SINGLE_REGISTER, WRITE_MULTIPLE_REGISTERS)
+"""The function codes both devices serve; any other is answered with exception 1 (ILLEGAL
+FUNCTION), its function byte the code | 0x80."""
+
 INTEGER_LIMITS = {
     "UINT16": (0, 2**16 - 1),
     "INT16": (-(2**15), 2**15 - 1),

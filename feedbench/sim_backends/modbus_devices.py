@@ -17,7 +17,9 @@ Faults are answered with Modbus exceptions and logged as one line each (`Answeri
 a request to a device id no device has → exception 0x0B (gateway target device failed to
 respond), an exception inside a device → 4 (server device failure); the exceptions the
 register maps prescribe (1, 2, 3) are logged too. pymodbus itself would answer the first two
-with a traceback on stderr.
+with a traceback on stderr. Only the documented function codes reach the devices
+(`DocumentedFunctions`): pymodbus would answer diagnostics, device identification and the
+like itself, and an unknown code with function byte 0x80.
 """
 
 from __future__ import annotations
@@ -26,7 +28,6 @@ import abc
 import asyncio
 import concurrent.futures
 import logging
-import math
 import os
 import pty
 import select
@@ -36,12 +37,15 @@ from typing import Awaitable, Callable, Sequence
 
 import numpy as np
 from pymodbus.constants import ExcCodes
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
+from pymodbus.pdu.decoders import DecodePDU
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.base import ModbusBaseServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from feedbench.protocols.address import LOOPBACK
 from feedbench.protocols.modbus_registers import (
+    FUNCTION_CODES,
     INVERTER_CONTROL_FAULT_RESET,
     INVERTER_CONTROL_RUN,
     INVERTER_MAP,
@@ -60,10 +64,12 @@ from feedbench.protocols.modbus_registers import (
 from feedbench.units import RPM
 
 LOGGER = logging.getLogger(__name__)
-READ_HOLDING = 3
-WRITE_FUNCTIONS = (6, 16)
 THREAD_TIMEOUT_S = 5.0
 NOISE_BLOCK = 4096
+NANO_PER_RPM = 10**9
+"""The inverter holds speeds as integer nano-rpm: the ramp's sums are exact, so the actual
+speed lands on the setpoint on the cycle the ramp law says (the registers resolve 0.01 rpm
+and 0.1 rpm/s, both whole numbers of nano-rpm per 1 µs of cycle)."""
 
 
 class InvalidWrite(ValueError):
@@ -100,9 +106,8 @@ class SimulatedModbusDevice(abc.ABC):
 
     async def _on_request(self, function_code: int, start: int, address: int, _count: int,
                           registers: list[int], written: list[int] | None) -> ExcCodes | None:
-        """pymodbus action: apply a write, refresh the image; other functions → exception 1."""
-        if function_code != READ_HOLDING and function_code not in WRITE_FUNCTIONS:
-            return ExcCodes.ILLEGAL_FUNCTION
+        """pymodbus action (function codes 3, 6, 16 only: `DocumentedFunctions`): apply a
+        write, refresh the image."""
         with self.lock:
             if written is not None:
                 try:
@@ -135,9 +140,10 @@ class SimulatedSpindleInverter(SimulatedModbusDevice):
     """Spindle inverter: the actual speed follows the setpoint at the ramp limit.
 
     Running: target = setpoint, else 0; per `advance(dt)` the actual speed moves towards the
-    target by at most ramp·dt. A setpoint above `max_speed_rpm` trips OVERSPEED_SETPOINT:
-    the run command drops, the setpoint keeps its old value, the spindle ramps down. The
-    feed override is only held here: the simulated CNC reads `feed_override`.
+    target by at most ramp·dt, in exact integer steps (`NANO_PER_RPM`): AT_SPEED rises on
+    the cycle the ramp reaches the setpoint. A setpoint above `max_speed_rpm` trips
+    OVERSPEED_SETPOINT: the run command drops, the setpoint keeps its old value, the spindle
+    ramps down. The feed override is only held here: the simulated CNC reads `feed_override`.
     """
 
     register_map = INVERTER_MAP
@@ -147,11 +153,21 @@ class SimulatedSpindleInverter(SimulatedModbusDevice):
         super().__init__(device_id)
         self.max_speed_rpm = max_speed_rpm
         self.ramp_rpm_s = ramp_rpm_s
-        self.setpoint_rpm = 0.0
-        self.actual_rpm = 0.0
+        self._setpoint_nrpm = 0
+        self._actual_nrpm = 0
         self.run_commanded = False
         self.fault = InverterFault.NONE
         self.feed_override = 1.0
+
+    @property
+    def setpoint_rpm(self) -> float:
+        """Speed setpoint (rpm)."""
+        return self._setpoint_nrpm / NANO_PER_RPM
+
+    @property
+    def actual_rpm(self) -> float:
+        """Actual spindle speed (rpm)."""
+        return self._actual_nrpm / NANO_PER_RPM
 
     @property
     def speed_rad_s(self) -> float:
@@ -159,13 +175,13 @@ class SimulatedSpindleInverter(SimulatedModbusDevice):
         return self.actual_rpm * RPM
 
     def advance(self, dt_s: float) -> None:
-        """Move the actual speed towards the target by at most ramp·dt (rpm)."""
+        """Move the actual speed towards the target by at most ramp·dt."""
         with self.lock:
-            target = self.setpoint_rpm if self.run_commanded else 0.0
-            step = self.ramp_rpm_s * dt_s
-            gap = target - self.actual_rpm
-            self.actual_rpm = (target if abs(gap) <= step
-                               else self.actual_rpm + math.copysign(step, gap))
+            target = self._setpoint_nrpm if self.run_commanded else 0
+            step = round(self.ramp_rpm_s * dt_s * NANO_PER_RPM)
+            gap = target - self._actual_nrpm
+            self._actual_nrpm = target if abs(gap) <= step else self._actual_nrpm + (
+                step if gap > 0 else -step)
 
     def trip(self, fault: InverterFault) -> None:
         """Fault the inverter (bench fault injection): run command off, ramp down."""
@@ -189,8 +205,8 @@ class SimulatedSpindleInverter(SimulatedModbusDevice):
         }
 
     def _status_word(self) -> int:
-        running = self.actual_rpm != 0.0
-        at_speed = self.run_commanded and self.actual_rpm == self.setpoint_rpm
+        running = self._actual_nrpm != 0
+        at_speed = self.run_commanded and self._actual_nrpm == self._setpoint_nrpm
         return ((INVERTER_STATUS_RUNNING if running else 0)
                 | (INVERTER_STATUS_AT_SPEED if at_speed else 0)
                 | (INVERTER_STATUS_RUN_COMMANDED if self.run_commanded else 0)
@@ -216,7 +232,7 @@ class SimulatedSpindleInverter(SimulatedModbusDevice):
         if speed_rpm > self.max_speed_rpm:
             self._trip(InverterFault.OVERSPEED_SETPOINT)
         else:
-            self.setpoint_rpm = speed_rpm
+            self._setpoint_nrpm = round(speed_rpm * NANO_PER_RPM)
 
 
 class SimulatedLoadCell(SimulatedModbusDevice):
@@ -348,6 +364,39 @@ class _ServerThread:
         await asyncio.gather(*others, return_exceptions=True)
 
 
+class RefusedRequest(ModbusPDU):
+    """A request the devices do not serve, answered with `answer` under its own function
+    code | 0x80 (pymodbus would answer an unknown code with function byte 0x80)."""
+
+    def __init__(self, function_code: int, answer: ExcCodes) -> None:
+        super().__init__()
+        self.function_code = function_code
+        self.answer = answer
+
+    async def datastore_update(self, context: AnsweringContext,
+                               device_id: int) -> ExceptionResponse:
+        """The exception response (0x0B instead for a device id no device has)."""
+        return ExceptionResponse(self.function_code,
+                                 await context.refuse(device_id, self.function_code, self.answer))
+
+
+class DocumentedFunctions(DecodePDU):
+    """The servers' request decoder: the documented function codes (`FUNCTION_CODES`) as
+    pymodbus decodes them, a malformed one of them → exception 3 (ILLEGAL DATA VALUE), any
+    other code → exception 1 (ILLEGAL FUNCTION). On RTU a code pymodbus does not know has
+    no length it could frame, so it gets no answer (the host times out)."""
+
+    def __init__(self) -> None:
+        super().__init__(is_server=True)
+
+    def decode(self, frame: bytes) -> ModbusPDU:
+        """The request in `frame` (function code, then data; never empty)."""
+        function_code = frame[0]
+        if function_code not in FUNCTION_CODES:
+            return RefusedRequest(function_code, ExcCodes.ILLEGAL_FUNCTION)
+        return super().decode(frame) or RefusedRequest(function_code, ExcCodes.ILLEGAL_VALUE)
+
+
 def _sim_devices(devices: Sequence[SimulatedModbusDevice]) -> list[SimDevice]:
     return [device.sim_device() for device in devices]
 
@@ -377,7 +426,13 @@ class AnsweringContext:
         return await self._answer(device_id, func_code, address, lambda: self._core
                                   .async_setValues(device_id, func_code, address, values))
 
-    async def _answer(self, device_id: int, func_code: int, address: int,
+    async def refuse(self, device_id: int, func_code: int, answer: ExcCodes) -> ExcCodes:
+        """A request the devices do not serve (`DocumentedFunctions`): `answer`, logged."""
+        async def refused() -> ExcCodes:
+            return answer
+        return await self._answer(device_id, func_code, None, refused)
+
+    async def _answer(self, device_id: int, func_code: int, address: int | None,
                       request: Callable[[], Awaitable]):
         if device_id not in self._names:
             LOGGER.warning("modbus: device id %d: no such device (served: %s); function %d "
@@ -385,7 +440,7 @@ class AnsweringContext:
                            ", ".join(map(str, self._names)), func_code)
             return ExcCodes.GATEWAY_NO_RESPONSE
         where = (f"modbus: {self._names[device_id]} (device id {device_id}): function "
-                 f"{func_code} at address {address}")
+                 f"{func_code}" + ("" if address is None else f" at address {address}"))
         try:
             result = await request()
         except Exception as error:  # a fault inside the device: answered, never a traceback
@@ -399,8 +454,10 @@ class AnsweringContext:
 
 def _answering(server: ModbusBaseServer,
                devices: Sequence[SimulatedModbusDevice]) -> ModbusBaseServer:
-    """`server` with its simulator context wrapped in `AnsweringContext`."""
+    """`server` with its simulator context wrapped in `AnsweringContext`, decoding only the
+    documented function codes (`DocumentedFunctions`)."""
     server.context = AnsweringContext(server.context, devices)
+    server.decoder = DocumentedFunctions()
     return server
 
 
