@@ -7,6 +7,8 @@ import os
 import re
 import socket
 import sqlite3
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -123,3 +125,26 @@ def test_a_catalog_made_before_pids_gets_the_columns_and_keeps_its_rows(tmp_path
     catalog.add(run_id := catalog.new_run_id("frf"), "frf", tmp_path / "x.h5", {})
     assert (catalog.get(run_id).pid, catalog.get(run_id).host) == (os.getpid(),
                                                                    socket.gethostname())
+
+
+OPEN_AND_ADD = """
+import sys
+from feedbench.daq.catalog import Catalog
+catalog = Catalog(sys.argv[1])
+catalog.add(catalog.new_run_id("frf"), "frf", "x.h5", {})
+"""
+
+
+def test_processes_opening_an_old_catalog_at_once_all_add_their_run(tmp_path: Path) -> None:
+    path = tmp_path / "catalog.sqlite"
+    with sqlite3.connect(path) as old:
+        old.execute("CREATE TABLE runs (id TEXT PRIMARY KEY, experiment TEXT NOT NULL,"
+                    " started_at TEXT, stopped_at TEXT, status TEXT NOT NULL,"
+                    " reason TEXT NOT NULL DEFAULT '', file TEXT, n_samples INTEGER,"
+                    " params JSON NOT NULL DEFAULT '{}')")
+    processes = [subprocess.Popen([sys.executable, "-c", OPEN_AND_ADD, str(path)],
+                                  stderr=subprocess.PIPE, text=True) for _ in range(4)]
+    errors = [process.communicate(timeout=60)[1] for process in processes]
+    assert [process.returncode for process in processes] == [0] * 4, errors
+    rows = Catalog(path).list()
+    assert sorted(row.pid for row in rows) == sorted(process.pid for process in processes)

@@ -104,10 +104,12 @@ class Catalog:
             self._replace_corrupt("; ".join(problems[:3]))
 
     def _create(self) -> list[str]:
-        """Make the table (and the columns added since a catalog was made); returns what
-        SQLite's integrity check finds wrong (nothing: an empty list)."""
+        """Make the table (and the columns added since a catalog was made: under the write
+        lock, so that processes opening it at once add them once); returns what SQLite's
+        integrity check finds wrong (nothing: an empty list)."""
         with self._transaction() as connection:
             connection.execute("PRAGMA journal_mode=WAL")
+        with self._transaction(immediate=True) as connection:
             connection.execute(SCHEMA)
             present = {row[1] for row in connection.execute("PRAGMA table_info(runs)")}
             for name, kind in ADDED_COLUMNS.items():
@@ -302,7 +304,8 @@ def _summary(file: str | None) -> tuple[RecordingSummary | None, str]:
 
 def _ended(pid: int | None, host: str | None, file: str | None) -> bool:
     """True if the process that records a run is gone: process `pid` was on this host and
-    has ended (another host: False); a row made before pids were recorded: no process on
+    has ended (another host: False; a pid the system has given to a new process keeps the
+    run `running` until that one ends); a row made before pids were recorded: no process on
     this host has its file (if any) open for writing."""
     if pid is None:
         return file is None or _writing_process(Path(file)) is None
