@@ -34,7 +34,7 @@ LAYERS = (
     ("closure_io", "rack_pinion_bench"),  # readers of recordings; the rack-and-pinion wiring
     ("bench", "exchange"),  # the composition root; UFF58 / CSV export of a run
     ("report", "gui"),
-    ("closure_command", "demo"),
+    ("closure_command", "demo", "api"),  # api: the scripting face (issue 17), reports too
     ("cli",),
 )
 LAYER = {room: level for level, rooms in enumerate(LAYERS) for room in rooms}
