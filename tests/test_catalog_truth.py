@@ -18,6 +18,7 @@ import subprocess
 import sys
 import tempfile
 import textwrap
+from importlib import resources
 from pathlib import Path
 
 import pytest
@@ -89,6 +90,28 @@ def test_a_run_killed_mid_recording_is_listed_crashed_with_the_samples_of_its_fi
     assert main(["runs", "--dir", str(tmp_path)]) == 0
     line = capsys.readouterr().out.splitlines()[0].split()
     assert line[:3] == [run_id, "crashed", str(in_file.n_samples)]
+
+
+def test_a_simulated_run_killed_mid_run_is_listed_crashed(tmp_path, can_channel, capsys):
+    """`feedbench run` (bench, runner, recorder in one process) killed with SIGKILL."""
+    text = (resources.files("feedbench") / "examples" / "friction_sweep.toml").read_text()
+    config = tmp_path / "sweep.toml"
+    config.write_text(text.replace('output_dir = "runs"', f'output_dir = "{tmp_path}"')
+                      .replace('channel = "feedbench-demo"', f'channel = "{can_channel}"'))
+    run = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "run", str(config)],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    progress = 0
+    for line in run.stderr:
+        progress += "%" in line
+        if progress == 1:  # a wall second into the run: chunks are on disk
+            break
+    run.send_signal(signal.SIGKILL)
+    run.wait(10)
+    [row] = runs_json(tmp_path, capsys)
+    in_file = open_recording(row["file"])
+    assert in_file.status == "running" and in_file.n_samples >= 1000, in_file.n_samples
+    assert (row["status"], row["n_samples"], row["pid"]) == ("crashed", in_file.n_samples,
+                                                             run.pid)
 
 
 def test_a_finished_file_settles_its_row_and_a_row_without_a_file_crashes(tmp_path):
