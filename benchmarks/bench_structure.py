@@ -19,8 +19,9 @@ import time
 
 import numpy as np
 
-from feedbench.bench import EXPERIMENTS, parse_run_config, run_config
+from feedbench.bench import parse_run_config, run_config
 from feedbench.daq.recording import open_recording
+from feedbench.experiments.family import families
 from feedbench.models.axis import CSP, AxisSimulator
 from feedbench.protocols import cia401
 from feedbench.sim_backends.structure_world import StructureWorld, parse_structure
@@ -36,7 +37,7 @@ def _run(experiment: dict, channel: str) -> tuple[dict, float, int]:
     t0 = time.perf_counter()
     record = run_config(config, progress=False)
     seconds = time.perf_counter() - t0
-    analysis = EXPERIMENTS[experiment["type"]].analyze_recording(open_recording(record["file"]))
+    analysis = families()[experiment["type"]].analyze(open_recording(record["file"]))
     return analysis, seconds, config.plan.n_cycles
 
 

@@ -13,28 +13,26 @@ import time
 from dataclasses import asdict
 from importlib import resources
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
 from feedbench.bench import analyze_file, parse_run_config, run_config
 from feedbench.config import ConfigError, read_toml
-from feedbench.experiments.chirp import band_text, extrema_text
-from feedbench.experiments.family import HEADLINE_SEPARATOR, family, headline, percent_error
-from feedbench.experiments import stepped_loading
+from feedbench.experiments.chirp import band_text
+from feedbench.experiments.family import HEADLINE_SEPARATOR, family, headline
+from feedbench.experiments import friction_sweep, stepped_loading
 from feedbench.experiments.limits import LimitError
-from feedbench.models.structure import POINT_DOF, ModalStructure
+from feedbench.experiments.tool_tip import feed_text
 from feedbench.report import write_report
 from feedbench.sim_backends import rack_pinion
 from feedbench.sim_backends.smfe_world import build_process
 from feedbench.sim_backends.world import world_truth
-from feedbench.units import MM_PER_MIN, N_MIN_PER_MM, N_PER_UM
 
 BENCH_CORE = ("friction_sweep", "chirp")
 CAMPAIGN = (*BENCH_CORE, "closed_loop_bode", "impact_hammer", "shaker_chirp", "sine_stream",
-            "smfe", "stepped_loading", "friction_sweep_rack_pinion")
+            "smfe", "stepped_loading", "backlash_reversal", "friction_sweep_rack_pinion")
 """The example configs the demo runs, in this order."""
-FRICTION_KEYS = ("F_c", "F_s", "v_s", "sigma")
 
 QUICK_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
     # 13 feeds per direction with shorter plateaus (the drive settles in ≈ 50 ms): the
@@ -76,11 +74,6 @@ REPORT_AXES = ("lab", "rack_pinion")
 """Axes whose recordings go into the report: `report.headroom` reads the single drive's
 `force` channel, which a rack-and-pinion recording (`master.*`, `slave.*`) lacks (KeyError)."""
 
-THESIS_INVARIANT_FEED_MM_MIN = 500.0
-"""Fig. 5.12: the in-motion FRF becomes invariant above ≈ 500 mm/min (DIGEST §3)."""
-THESIS_PRELOAD_LOSS_N = {4.0: 1100.0, 20.0: 5300.0, 25.0: 6600.0}
-"""Ch. 3.4.3: preload lost at ≈ 1100 N (4 %), ≈ 5300 N (20 %), ≈ 6600 N (25 %)."""
-
 
 def example_config(name: str) -> dict:
     """A packaged example config (`feedbench/examples/<name>.toml`) as a dict."""
@@ -121,183 +114,6 @@ def example_truth(raw: Mapping[str, Any]) -> dict:
     return truth
 
 
-# -- per-experiment summaries: JSON-able values in SI and a headline -----------------------
-
-
-def _friction_comparison(analysis: dict, truth: dict) -> dict:
-    out = {}
-    for direction in ("positive", "negative"):
-        identified = analysis[direction]["identified"]
-        true = {k: truth["friction"][direction][k] for k in FRICTION_KEYS}
-        out[direction] = {
-            "identified": identified,
-            "truth": true,
-            "error_pct": {k: percent_error(identified[k], true[k]) for k in FRICTION_KEYS},
-            "std": analysis[direction]["std"],
-        }
-    return out
-
-
-def summarize_friction(analysis: dict, truth: dict) -> dict:
-    """Eq. (5.2) per direction against the world's friction."""
-    comparison = _friction_comparison(analysis, truth)
-    worst = max(((abs(c["error_pct"][k]), k, d) for d, c in comparison.items()
-                 for k in FRICTION_KEYS))
-    pos, neg = comparison["positive"]["identified"], comparison["negative"]["identified"]
-    return {**comparison, "max_abs_error_pct": worst[0],
-            "headline": headline(f"Eq. 5.2: F_c {pos['F_c']:.1f} / {neg['F_c']:.1f} N, F_s "
-                                 f"{pos['F_s']:.1f} / {neg['F_s']:.1f} N (+/−)",
-                                 f"largest error vs truth {worst[0]:.2f} % ({worst[1]}, "
-                                 f"{worst[2]})")}
-
-
-def summarize_bode(analysis: dict, truth: dict) -> dict:
-    """The open-loop mobility from the closed velocity loop by Eq. (4.20): f_t, f_r."""
-    m = analysis["mobility"]
-    return {"antiresonance_hz": m["antiresonance_hz"], "resonance_hz": m["resonance_hz"],
-            "truth_f_t_hz": truth["f_t_hz"], "truth_f_r_hz": truth["f_r_hz"],
-            "min_r_squared": analysis["min_r_squared"], "flagged": len(analysis["flagged"]),
-            "headline": headline(extrema_text(m, truth, "Eq. 4.20: "),
-                                 f"min R² {analysis['min_r_squared']:.4f}, "
-                                 f"{len(analysis['flagged'])} points flagged")}
-
-
-def _feed_text(feed: float | None) -> str:
-    return "only the highest feed" if feed is None else f"{feed:g} mm/min"
-
-
-def summarize_hammer(analysis: dict, truth: dict) -> dict:
-    """The feed from which the quasi-FRF (Eq. 5.3) is invariant, against Fig. 5.12."""
-    feeds = [{k: feed[k] for k in ("feed_mm_min", "peak_hz", "peak_compliance_m_N",
-                                   "distance_to_highest_feed", "min_coherence", "hits_used")}
-             for feed in analysis["feeds"]]
-    idle, top = feeds[0], feeds[-1]
-    invariant = analysis["invariant_from_mm_min"]
-    return {"invariant_from_mm_min": invariant,
-            "thesis_invariant_mm_min": THESIS_INVARIANT_FEED_MM_MIN,
-            "truth_f_t_hz": truth["f_t_hz"], "feeds": feeds,
-            "headline": headline(
-                f"invariant from {_feed_text(invariant)} "
-                f"(Fig. 5.12: ≈ {_feed_text(THESIS_INVARIANT_FEED_MM_MIN)})",
-                f"peak {idle['peak_hz']:.1f} Hz at {_feed_text(idle['feed_mm_min'])} "
-                f"(f_t {truth['f_t_hz']:.1f}), {top['peak_hz']:.1f} Hz at "
-                f"{_feed_text(top['feed_mm_min'])}",
-                "distance to the highest feed "
-                + ", ".join(f"{f['distance_to_highest_feed']:.2f}" for f in feeds))}
-
-
-def summarize_shaker_chirp(analysis: dict, _truth: dict) -> dict:
-    """Tool-tip FRF per feed: compliance peak and coherence."""
-    feeds = [{k: feed[k] for k in ("feed_mm_min", "peak_hz", "min_coherence", "n_averages")}
-             for feed in analysis["feeds"]]
-    return {"feeds": feeds, "headline": headline(*(
-        f"{_feed_text(f['feed_mm_min'])}: compliance peak {f['peak_hz']:.2f} Hz, "
-        f"min coherence {f['min_coherence']:.4f}" for f in feeds))}
-
-
-def summarize_sine_stream(analysis: dict, _truth: dict) -> dict:
-    """Quality gate and linearity of the streams (the chirp comparison is added later)."""
-    streams = analysis["streams"]
-    min_r2 = min(s["min_r_squared"] for s in streams)
-    spread = analysis["amplitude_spread"]
-    return {"streams": len(streams), "steps": sum(s["steps"] for s in streams),
-            "steps_flagged": analysis["steps_flagged"], "min_r_squared": min_r2,
-            "amplitude_spread": spread,
-            "headline": headline(
-                f"{sum(s['steps_used'] for s in streams)} steps used, "
-                f"{analysis['steps_flagged']} flagged, min R² {min_r2:.4f}",
-                "amplitude spread (Fig. 5.22) "
-                + ", ".join(f"{v:.3f} at {k} mm/min" for k, v in spread.items()))}
-
-
-def _truth_peak(structure: ModalStructure, row: int, f: np.ndarray) -> tuple[float, float]:
-    """Largest analytic |Φ_ii| (m/N) over f's span on a 0.01 Hz grid, and its frequency."""
-    fine = np.arange(f[0], f[-1], 0.01)
-    magnitude = np.abs(structure.receptance(fine)[:, row, row])
-    return float(magnitude.max()), float(fine[np.argmax(magnitude)])
-
-
-def _smfe_peaks(analysis: dict, side: str, structure: ModalStructure, first_row: int) -> dict:
-    """Each direct peak of one side beside the truth's largest |Φ_ii| in the band."""
-    f = np.asarray(analysis["f_hz"])
-    out = {}
-    for row, (axis, peak) in enumerate(analysis[side]["peaks"].items(), start=first_row):
-        truth_abs, truth_f = _truth_peak(structure, row, f)
-        out[axis] = {**peak, "truth_abs_m_N": truth_abs, "truth_f_hz": truth_f,
-                     "error_pct": percent_error(peak["abs_m_N"], truth_abs)}
-    return out
-
-
-def summarize_smfe(analysis: dict, truth: dict) -> dict:
-    """Direct receptance peaks of Φ_tt and Φ_ww (Eq. 6.13) against the world's modal
-    structure, condition number (6.14) against the planned C_th."""
-    structure = truth["milling_structure"]
-    sides = {"tool": _smfe_peaks(analysis, "tool", structure, 0)}
-    if structure.n_dof > POINT_DOF:
-        sides["workpiece"] = _smfe_peaks(analysis, "workpiece", structure, POINT_DOF)
-    cond = analysis["condition_number"]
-    return {**sides, "condition_number": cond, "warnings": analysis["warnings"],
-            "headline": headline(
-                *(_smfe_side_text(side, peaks) for side, peaks in sides.items()),
-                f"condition number (Eq. 6.14) median {cond['median']:.1f}, max "
-                f"{cond['max']:.1f} (planned C_th {cond['planned_C_th']:.2f})")}
-
-
-def _smfe_side_text(side: str, peaks: Mapping[str, dict]) -> str:
-    worst = max(abs(p["error_pct"]) for p in peaks.values())
-    return (f"Φ_{side[0] * 2} peaks "
-            + ", ".join(f"{axis * 2} {p['f_hz']:.2f} Hz" for axis, p in peaks.items())
-            + f": |Φ| within {worst:.1f} % of the truth")
-
-
-def _preload_level(test: dict, truth: dict) -> dict:
-    """One coupled test's loss force beside the thesis's and 2 τ_p K_tr (Eq. 3.1)."""
-    level = test["preload_pct"]
-    keys = ("loss_force_N", "loss_force_from_torques_N", "jump_m", "error")
-    return {"preload_pct": level, **{k: test.get(k) for k in keys},
-            "thesis_loss_force_N": THESIS_PRELOAD_LOSS_N.get(level),
-            "eq_3_1_loss_force_N": 2.0 * level / 100.0 * truth["rated_force"]}
-
-
-def _loss_text(level: dict) -> str:
-    if level["error"]:
-        return f"{level['preload_pct']:g} %: {level['error']}"
-    thesis = level["thesis_loss_force_N"]
-    return (f"loss {level['loss_force_N']:.0f} N at {level['preload_pct']:g} % "
-            + (f"(thesis ≈ {thesis:.0f})" if thesis else "(thesis: –)"))
-
-
-def summarize_stepped_loading(analysis: dict, truth: dict) -> dict:
-    """k_m, k_s (Eq. 3.26) and backlash against the world; preload-loss forces against the
-    thesis (Ch. 3.4.3) and 2 τ_p K_tr (Eq. 3.1)."""
-    k = {m: s["k_N_m"] for m, s in analysis["stiffness"].items()}
-    backlash = {m: b["value_m"] for m, b in analysis["backlash"].items()}
-    levels = [_preload_level(test, truth) for test in analysis["preload"]]
-    return {"k_N_m": k, "truth_k_N_m": {m: truth[f"k_{m}"] for m in k},
-            "backlash_m": backlash, "truth_backlash_m": {m: truth[f"backlash_{m}"]
-                                                         for m in backlash},
-            "preload": levels,
-            "headline": headline(
-                ", ".join(f"k_{m[0]} {v / N_PER_UM:.2f} N/µm ({truth[f'k_{m}'] / N_PER_UM:g})"
-                          for m, v in k.items()),
-                "backlash " + ", ".join(f"{m} {v * 1e6:.1f} µm ({truth[f'backlash_{m}'] * 1e6:g})"
-                                        for m, v in backlash.items()),
-                ", ".join(_loss_text(level) for level in levels))}
-
-
-SUMMARIES: dict[str, Callable[[dict, dict], dict]] = {
-    "friction_sweep": summarize_friction,
-    "friction_sweep_rack_pinion": summarize_friction,
-    "closed_loop_bode": summarize_bode,
-    "impact_hammer": summarize_hammer,
-    "shaker_chirp": summarize_shaker_chirp,
-    "sine_stream": summarize_sine_stream,
-    "smfe": summarize_smfe,
-    "stepped_loading": summarize_stepped_loading,
-}
-"""Per example: summary(analysis, truth of its world) → key values in SI and a 'headline'."""
-
-
 def sine_stream_vs_chirp(stream: dict, chirp: dict, feed: float, amplitude: float) -> dict:
     """Largest |a/F| deviation of the sine-stream from the shaker chirp's H1 in the
     half-power band of the resonance (|H| ≥ max/√2), at the chirp's feed and amplitude."""
@@ -329,7 +145,7 @@ def _add_chirp_comparison(experiments: dict, configs: dict) -> None:
     stream["summary"]["vs_shaker_chirp"] = comparison
     stream["headline"] = headline(
         stream["headline"],
-        f"vs shaker-chirp H1 at {_feed_text(comparison['feed_mm_min'])}, "
+        f"vs shaker-chirp H1 at {feed_text(comparison['feed_mm_min'])}, "
         f"{comparison['amplitude_N']:g} N: {100 * comparison['max_deviation']:.2f} % in "
         f"{comparison['band_hz'][0]:g}–{comparison['band_hz'][1]:g} Hz (half-power band)")
 
@@ -373,14 +189,14 @@ def run_demo(directory: Path, quiet: bool = False, quick: bool = False) -> dict:
     experiments = {name: _entry(name, *_run_one(name, raw, quiet), raw)
                    for name, raw in configs.items()}
     _add_chirp_comparison(experiments, configs)
-    truth = example_truth(configs["friction_sweep"])
     reported = [name for name, raw in configs.items() if experiments[name]["run"]["file"]
                 and raw["bench"].get("axis", "lab") in REPORT_AXES]
     t0 = time.monotonic()
     report = write_report([experiments[name]["run"]["file"] for name in reported],
                           directory / "report.html", title="feedbench demo campaign")
     return {
-        "friction": _friction_comparison(experiments["friction_sweep"]["analysis"], truth),
+        "friction": {direction: experiments["friction_sweep"]["summary"][direction]
+                     for direction in friction_sweep.SIGNS},
         "servo_mobility": experiments["chirp"]["summary"],
         "runs": [experiments[name]["run"] for name in BENCH_CORE],
         "report": str(report),
@@ -394,24 +210,9 @@ def run_demo(directory: Path, quiet: bool = False, quick: bool = False) -> dict:
 # -- text ----------------------------------------------------------------------------------
 
 
-def _si_to_display(key: str, value: float) -> str:
-    """Friction parameters in the units of Fig. 5.11."""
-    if key == "v_s":
-        return f"{value / MM_PER_MIN:8.1f} mm/min"
-    if key == "sigma":
-        return f"{value / N_MIN_PER_MM:8.5f} N·min/mm"
-    return f"{value:8.2f} N"
-
-
 def _bench_core_lines(result: dict) -> list[str]:
-    lines = ["Friction (Andersson, Eq. 5.2): identified vs simulator truth"]
-    for direction, comp in result["friction"].items():
-        lines.append(f"  {direction}:")
-        for k in FRICTION_KEYS:
-            lines.append(
-                f"    {k:<6s} {_si_to_display(k, comp['identified'][k])}   truth "
-                f"{_si_to_display(k, comp['truth'][k])}   error {comp['error_pct'][k]:+6.2f} %"
-            )
+    lines = ["Friction (Andersson, Eq. 5.2): identified vs simulator truth",
+             *friction_sweep.comparison_lines(result["friction"])]
     m = result["servo_mobility"]
     return lines + [
         "Servo mobility (motor force -> motor velocity, H1):",

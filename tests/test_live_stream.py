@@ -14,16 +14,15 @@ import scipy.signal
 from feedbench.daq.live import Decimator, LiveStream, RingBuffer, bucket_size, minmax_decimate
 from feedbench.daq.recorder import Recorder
 from feedbench.daq.recording import open_recording
+from feedbench.experiments.family import families
+from feedbench.experiments.incremental import LiveAnalysis
 from feedbench.experiments.plan import Plan, Segment
 from feedbench.experiments.replay import recorded_plan, replay
 from feedbench.experiments.runner import BLOCK_CYCLES, StopRequest
 from feedbench.daq.recorder import StreamSpec
 from feedbench.gui.live_results import (
-    ChirpMobility, ClosedLoopPoints, FrictionCurve, LoadDisplacement, RecordQueue,
+    ChirpMobility, RecordQueue,
     live_result_for,
-)
-from feedbench.gui.live_structure import (
-    HammerQuasiFrf, ShakerChirpFrf, SineStreamPoints, SmfeSpectrogram,
 )
 from feedbench.models.friction import AnderssonFriction
 from feedbench.units import MM_PER_MIN, RPM
@@ -380,16 +379,28 @@ def friction_run(feeds_mm_min, measure: int = 173):
                     rows[:, 2] = v + 1e-6 * np.sin(np.arange(n))
                     rows[:, 3] = force + 0.5 * np.cos(np.arange(n))
                 parts.append(rows)
-    return plan_of(*segments), np.concatenate([np.zeros((13, 4)), *parts])
+    plan = Plan("friction_sweep", 8, segments, {}, CYCLE_S)
+    return plan, np.concatenate([np.zeros((13, 4)), *parts])
+
+
+def friction_live() -> LiveAnalysis:
+    """The friction sweep's live analysis (its own `analyze` on the completed windows)."""
+    return LiveAnalysis(families()["friction_sweep"])
+
+
+def friction_points(live: LiveAnalysis) -> np.ndarray:
+    """The (velocity m/s, force N) points of the live result so far, one row each."""
+    points = live.result()["points"]
+    return np.column_stack([points["velocity_m_s"], points["force_N"]])
 
 
 def test_friction_curve_points_are_the_window_means_and_the_fit_finds_the_law():
     feeds = [25, 50, 100, 200, 400, 800, 1500]
     plan, rows = friction_run(feeds)
-    curve = FrictionCurve()
+    curve = friction_live()
     feed_like_runner([curve], plan, rows)
-    assert curve.version == 14 and len(curve.points) == 14
-    v, force = np.array(curve.points).T
+    v, force = friction_points(curve).T
+    assert curve.version == 14 and len(v) == 14
     mean_cos = np.cos(np.arange(173)).mean()
     for i, feed in enumerate(feeds):
         for j, (sign, name) in enumerate(((1, "positive"), (-1, "negative"))):
@@ -405,7 +416,7 @@ def test_friction_curve_points_are_the_window_means_and_the_fit_finds_the_law():
 
 def test_friction_curve_fits_a_direction_only_with_enough_points():
     plan, rows = friction_run([100, 200, 400])
-    curve = FrictionCurve()
+    curve = friction_live()
     feed_like_runner([curve], plan, rows)
     assert [c.name for c in curve.view().panels[0].curves] == ["measured"]
 
@@ -420,10 +431,11 @@ def test_friction_curve_of_a_master_slave_axis_sums_the_motor_forces():
     wide = np.zeros((len(rows), len(channels)))
     wide[:, 2], wide[:, 5] = rows[:, 2], 0.9 * rows[:, 2]
     wide[:, 3], wide[:, 6] = 0.7 * rows[:, 3], 0.3 * rows[:, 3]
-    single, master_slave = FrictionCurve(), FrictionCurve()
+    single, master_slave = friction_live(), friction_live()
     feed_like_runner([single], plan, rows)
     feed_like_runner([master_slave], plan, wide, channels=channels)
-    np.testing.assert_allclose(master_slave.points, single.points, rtol=1e-12)
+    np.testing.assert_allclose(friction_points(master_slave), friction_points(single),
+                               rtol=1e-12)
 
 
 def mobility_filter(fs: float):
@@ -476,8 +488,7 @@ def test_closed_loop_points_carry_the_true_gain_phase_and_r_squared():
         response = gain[f] * 0.001 * np.cos(2 * np.pi * f * t + 0.3 + phase[f])
         segments.append(segment(f"{f} Hz", "excite", n, frequency_hz=f))
         parts.append(np.column_stack([reference, response]))
-    result = live_result_for("closed_loop_bode")
-    assert isinstance(result, ClosedLoopPoints)
+    result = LiveAnalysis(families()["closed_loop_bode"])
     feed_like_runner([result], plan_of(*segments), np.concatenate([np.zeros((13, 2)), *parts]),
                      channels=("velocity_offset", "velocity"))
     magnitude, phase_panel, r2 = result.view().panels
@@ -486,7 +497,8 @@ def test_closed_loop_points_carry_the_true_gain_phase_and_r_squared():
     np.testing.assert_allclose(phase_panel.curves[0].y, [np.degrees(phase[f]) for f in frequencies],
                                atol=1e-7)
     assert r2.curves[0].y.min() > 1 - 1e-12 and len(r2.curves) == 1  # none below the gate
-    assert result.view().summary.startswith("4 of 4 frequencies, min R² 1.0000, 0 below 0.99")
+    # of the 141 frequencies the (default) params plan: the plan of this test holds 4
+    assert result.view().summary == "4 of 141 frequencies, min R² 1.0000, 0 below 0.99"
 
 
 def accelerance(f, f_n: float = 60.0, zeta: float = 0.05, k: float = 2e6):
@@ -518,13 +530,13 @@ def test_sine_stream_points_are_the_compliance_of_each_step_with_its_r_squared()
         if f == 35.0:
             acc = acc + 0.3 * np.abs(acc).max() * rng.normal(size=acc.size)
         segments.append(segment(f"{f:g} Hz", "excite", n, frequency_hz=f, feed_mm_min=-500.0,
-                                amplitude_N=20.0, step=len(segments), repeat=0))
+                                amplitude_N=20.0, held_N=20.0, limited=False,
+                                step=len(segments), repeat=0))
         daq.append(np.column_stack([force, acc]))
     segments.append(segment("stop", "move", 40))
     daq.append(np.zeros((40 * PER_CYCLE, 2)))
     n_rows = sum(s.n_cycles for s in segments) + 13
-    result = live_result_for("sine_stream")
-    assert isinstance(result, SineStreamPoints)
+    result = LiveAnalysis(families()["sine_stream"])
     versions = []
 
     class Watch(Collect):
@@ -548,7 +560,8 @@ def test_sine_stream_points_are_the_compliance_of_each_step_with_its_r_squared()
     assert r2.curves[0].y[good].min() > 1 - 1e-9
     np.testing.assert_allclose(below.x, [35.0])
     assert r2.curves[1].y[0] < 0.99
-    assert result.view().summary.startswith("step 5 of 5; 500 mm/min, 20 N: 5 points, peak")
+    # of the 2169 steps the (default) params plan: the plan of this test holds 5
+    assert result.view().summary.startswith("step 5 of 2169; 500 mm/min, 20 N: 5 points, peak")
 
 
 def hammer_hits(n_hits: int, f_n: float, record: int, rng) -> np.ndarray:
@@ -582,7 +595,7 @@ def test_hammer_quasi_frf_of_the_hits_so_far_equals_the_analysis_on_the_same_hit
             daq.append(r.T)
     segments.append(segment("stop", "move", 30))
     daq.append(np.zeros((30 * PER_CYCLE, 2)))
-    result = HammerQuasiFrf()
+    result = LiveAnalysis(families()["impact_hammer"])
     views = []
 
     class Watch(Collect):
@@ -625,7 +638,7 @@ def test_shaker_chirp_frf_of_the_sweeps_so_far_matches_the_structure():
     daq = [np.column_stack([force, acc + 0.01 * rng.normal(size=acc.size)]) for _ in range(2)]
     daq.append(np.zeros((30 * PER_CYCLE, 2)))
     plan = Plan("shaker_chirp", 8, segments, {"f_start_Hz": 20.0, "f_stop_Hz": 100.0}, CYCLE_S)
-    result = ShakerChirpFrf()
+    result = LiveAnalysis(families()["shaker_chirp"])
     feed_like_runner([result], plan, np.zeros((13 + 2 * n + 30, 4)),
                      daq=np.concatenate([np.zeros((13 * PER_CYCLE, 2)), *daq]),
                      daq_channels=("shaker_force", "acc_tool_x"))
@@ -650,8 +663,7 @@ def test_smfe_spectrogram_follows_the_tooth_passing_frequency_of_the_spindle_ram
     phase = 2 * np.pi * np.cumsum(2 * rpm_fine / 60.0) / DAQ_RATE
     forces = np.column_stack([500.0 * np.sin(phase), 200.0 * np.cos(phase), np.zeros_like(t)])
     plan = Plan("smfe", 8, [segment("ramp", "measure", n - 13)], {"teeth": 2}, CYCLE_S)
-    result = live_result_for("smfe")
-    assert isinstance(result, SmfeSpectrogram)
+    result = LiveAnalysis(families()["smfe"])
     feed_like_runner([result], plan, (rpm * RPM)[:, None], channels=("spindle_speed",),
                      daq=forces, daq_channels=("dyn_fx", "dyn_fy", "dyn_fz"))
     speed, spectrogram = result.view().panels
@@ -691,8 +703,7 @@ def test_stepped_loading_points_are_the_mean_load_and_displacement_of_each_step(
         rows[:, 0] = np.nan
         rows[::5, 0] = 8.1e7 * 2 * depth / 3 + np.arange(24)
         parts.append(rows)
-    result = live_result_for("stepped_loading")
-    assert isinstance(result, LoadDisplacement)
+    result = LiveAnalysis(families()["stepped_loading"])
     feed_like_runner([result], plan_of(*segments), np.concatenate([np.zeros((13, 4)), *parts]),
                      channels=channels)
     curve = result.view().panels[0].curves[0]

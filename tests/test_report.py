@@ -22,7 +22,9 @@ import scipy.signal
 from feedbench.analysis.stability import directional_matrix
 from feedbench.daq.recorder import Recorder, StreamSpec
 from feedbench.daq.recording import open_recording
-from feedbench.experiments import chirp, impact_hammer, smfe
+from feedbench.experiments import chirp, smfe
+from feedbench.experiments.impact_hammer import ImpactHammer
+from feedbench.experiments.friction_sweep import FrictionSweep
 from feedbench.experiments.runner import CHANNELS, UNITS
 from feedbench.models.friction import AnderssonFriction
 from feedbench.models.milling import engagement_angles
@@ -185,6 +187,22 @@ def test_friction_section_shows_the_identified_law(sections):
     assert quality["R² of the positive fit"].ok and quality["status"].ok
     assert quality["missing samples (gaps)"].value == "0"
     assert section.headline == "F_c 44.2 N, F_s 84.0 N (positive)"
+
+
+def test_friction_text_and_summary_give_the_law_in_the_units_of_fig_5_11(runs):
+    """`feedbench analyze`'s lines and the demo's summary against the recorded law."""
+    result = FrictionSweep.analyze(open_recording(runs[0]))
+    lines = FrictionSweep.describe(result)
+    assert lines[0] == "  positive: R² 1.00000, rms 0.000 N"
+    assert lines[1:5] == ["    F_c       44.20 N", "    F_s       84.00 N",
+                          "    v_s       387.4 mm/min", "    sigma   0.00280 N·min/mm"]
+    assert lines[6:] == ["    F_c       38.70 N", "    F_s       88.00 N",
+                         "    v_s       421.0 mm/min", "    sigma   0.00250 N·min/mm"]
+    truth = {"friction": {d: vars(LAW[sign]) for d, sign in (("positive", 1), ("negative", -1))}}
+    summary = FrictionSweep.summary(result, truth)
+    assert summary["max_abs_error_pct"] < 1e-6
+    assert summary["headline"].startswith("Eq. 5.2: F_c 44.2 / 38.7 N, F_s 84.0 / 88.0 N (+/−); "
+                                          "largest error vs truth 0.00 % (")
 
 
 def test_chirp_section_finds_anti_resonance_and_resonance(runs, sections):
@@ -433,7 +451,9 @@ def test_every_family_section_has_its_plots_and_no_failed_analysis(family_sectio
                              "open-loop mobility by Eq. (4.20)": (800, 400)},
         "smfe": {"key time traces": (1000, 950),
                  "SMFE direct receptances at the tool and the workpiece": (1000, 450),
-                 "condition number (Eq. 6.14) and coherence (Eq. 6.15)": (1000, 400)},
+                 "condition number (Eq. 6.14) and coherence (Eq. 6.15)": (1000, 400),
+                 "spindle speed and force spectrogram with the tooth-passing harmonics":
+                     (1000, 450)},
     }
     for name, section in family_sections.items():
         assert plot_sizes(section) == expected[name], name
@@ -453,7 +473,7 @@ def test_hammer_section_shows_each_feeds_compliance_and_the_lobes_it_predicts(fa
         peak = 1e6 / (2 * zeta * np.sqrt(1 - zeta**2) * structure.k[0])
         assert value(feeds[feed][1]) == pytest.approx(peak, rel=0.03)
     lobes = table(section, "stability lobes (Table 5.1 cut, y taken rigid)")
-    result = impact_hammer.analyze_recording(open_recording(family_runs["impact_hammer"]))
+    result = ImpactHammer.analyze(open_recording(family_runs["impact_hammer"]))
     for label, feed in (("0 mm/min", result["feeds"][0]), ("500 mm/min", result["feeds"][1])):
         frf = feed["frf"]
         measured = (np.array(frf["compliance_abs"])
@@ -462,6 +482,19 @@ def test_hammer_section_shows_each_feeds_compliance_and_the_lobes_it_predicts(fa
         assert value(lobes[label][0]) == pytest.approx(expected.min_depth * 1e3, abs=5e-4)
     assert value(lobes["500 mm/min"][0]) > 1.3 * value(lobes["0 mm/min"][0])  # Fig. 5.25
     assert section.headline == "invariant from 500 mm/min"
+
+
+def test_hammer_analysis_uses_the_configured_exponential_window(tmp_path):
+    """`exp_decay_s` 0.25 s instead of 0.5 s: the window adds 1/(ωτ) to ζ, twice as much,
+    and the peak |x/F| = 1/(2ζ√(1−ζ²) k) falls with it."""
+    path = tmp_path / "hammer.h5"
+    record_with_daq(path, {"type": "impact_hammer", "exp_decay_s": 0.25}, hammer_steps(),
+                    ("hammer_force", "acc_tool_x"))
+    feeds = ImpactHammer.analyze(open_recording(path))["feeds"]
+    for feed, structure in zip(feeds, (SDOF["idle"], SDOF["moving"])):
+        zeta = structure.zeta[0] + 1 / (2 * np.pi * structure.f_n[0] * 0.25)
+        peak = 1 / (2 * zeta * np.sqrt(1 - zeta**2) * structure.k[0])
+        assert feed["peak_compliance_m_N"] == pytest.approx(peak, rel=0.03)
 
 
 def test_tool_tip_lobes_reach_the_single_direction_limit_of_the_zoa():
@@ -626,7 +659,8 @@ def test_campaign_report_holds_every_family_and_the_closure_offline(campaign):
     path, sections = campaign
     text = path.read_text(encoding="utf-8")
     images = re.findall(r"<img alt='[^']*' src='data:image/png;base64,([^']+)'>", text)
-    assert len(images) == sum(len(s.plots) for s in sections) == 3 + 2 + 3 + 3 + 3 + 3 + 1
+    # smfe: 4 plots, the sweep (spindle speed, force spectrogram) added to its section
+    assert len(images) == sum(len(s.plots) for s in sections) == 3 + 2 + 3 + 3 + 4 + 3 + 1
     assert [png_size(base64.b64decode(data)) for data in images] == [
         png_size(plot.png) for s in sections for plot in s.plots]
     assert "http:" not in text and "https:" not in text and "<link" not in text

@@ -12,11 +12,12 @@ What they must show (thesis Ch. 4.3.1, 5.3.2, 5.5.3):
 import numpy as np
 import pytest
 
-from feedbench.bench import EXPERIMENTS, parse_run_config, run_config
+from feedbench.bench import parse_run_config, run_config
 from feedbench.config import ConfigError
 from feedbench.daq.recording import open_recording
 from feedbench.experiments import sine_stream
 from feedbench.experiments.closed_loop_bode import bandwidth
+from feedbench.experiments.family import families
 from feedbench.experiments.impact_hammer import frf_distance, invariant_from
 from feedbench.experiments.limits import LimitError
 from feedbench.experiments.tool_tip import ExcitationWindow, overloaded, windows_at_feed
@@ -37,7 +38,7 @@ def _run(tmp_path, channel: str, experiment: dict) -> tuple[dict, object]:
     record = run_config(config, progress=False)
     assert record["status"] == "complete", record["reason"]
     recording = open_recording(record["file"])
-    return EXPERIMENTS[experiment["type"]].analyze_recording(recording), recording
+    return families()[experiment["type"]].analyze(recording), recording
 
 
 def _by_feed(result: dict) -> dict[float, dict]:
@@ -109,9 +110,11 @@ def test_closed_velocity_loop_bode_gives_the_flexure_frequencies_through_eq_4_20
 
 def test_structure_plans_are_checked_before_anything_moves():
     with pytest.raises(ConfigError, match="experiment.f_stop_Hz"):
-        EXPERIMENTS["sine_stream"].build_plan({"f_start_Hz": 60.0, "f_stop_Hz": 40.0}, 1e-3)
+        families()["sine_stream"]({"f_start_Hz": 60.0, "f_stop_Hz": 40.0}, 1e-3)
     with pytest.raises(ConfigError, match="experiment.pretrigger_s"):
-        EXPERIMENTS["impact_hammer"].build_plan({"record_s": 0.05, "pretrigger_s": 0.1}, 1e-3)
+        families()["impact_hammer"]({"record_s": 0.05, "pretrigger_s": 0.1}, 1e-3)
+    with pytest.raises(ConfigError, match="experiment.band_low_Hz: must be below band_high_Hz"):
+        families()["impact_hammer"]({"band_low_Hz": 150.0, "band_high_Hz": 20.0}, 1e-3)
     with pytest.raises(LimitError, match="limits.excitation_N"):
         parse_run_config({"bench": {}, "limits": {"excitation_N": 10.0},
                           "experiment": {"type": "shaker_chirp", "amplitude_N": 50.0}})
@@ -139,8 +142,8 @@ def test_windows_run_in_passes_within_the_stroke_and_never_across_a_reversal():
 def test_sine_stream_holds_the_amplitude_where_the_actuator_allows():
     """Command = force / |F/u(f)|; below 15.9 Hz the ±1 mm stroke of the 2 kg mass bounds the
     force (m ω² stroke < 20 N): those steps are limited to what the actuator can give."""
-    p = sine_stream._validated({"f_start_Hz": 10.0, "f_stop_Hz": 20.0, "f_step_Hz": 1.0,
-                                "actuator_stroke_mm": 1.0}, 1e-3)
+    p = sine_stream.SineStream.check({"f_start_Hz": 10.0, "f_stop_Hz": 20.0, "f_step_Hz": 1.0,
+                                      "actuator_stroke_mm": 1.0}, 1e-3)
     windows = sine_stream.step_windows(p, 20.0, 1e-3)
     actuator = InertialActuator(stroke=1e-3)
     limited = [w.info["frequency_hz"] for w in windows if w.info["limited"]]
@@ -186,7 +189,7 @@ def test_closed_position_loop_bode_matches_the_axis_simulated_without_the_bus(tm
                   "f_stop_Hz": 100.0, "f_step_Hz": 10.0, "cycles_per_frequency": 8,
                   "settle_cycles": 4}
     result, _ = _run(tmp_path, "bode-position", experiment)
-    plan = EXPERIMENTS["closed_loop_bode"].build_plan(experiment, 1e-3)
+    plan = families()["closed_loop_bode"](experiment, 1e-3).plan()
     x_ref = plan.concatenated("target_position")
     position = build_axis({}, 1e-3).simulate(CSP, x_ref, 0.0, 0.0)["position"]
     offline, start = {}, 0

@@ -19,13 +19,16 @@ import numpy as np
 
 from feedbench.analysis.frf import HammerFrf, accelerance_to_receptance, quasi_frf
 from feedbench.config import ConfigError, Field, positive, validate_table
-from feedbench.experiments.family import Experiment
+from feedbench.experiments.family import Experiment, headline
 from feedbench.experiments.plan import Plan, recorded_windows
 from feedbench.experiments.tool_tip import (
-    FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, ExcitationWindow, daq_needs,
-    full_scale, overloaded, plan_over_feeds, window_samples,
+    FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, ExcitationWindow,
+    compliance_plot, daq_needs, feed_frf_panels, feed_frf_summary, feed_lobes,
+    feed_quality, feed_text, full_scale, overloaded, plan_over_feeds, window_samples,
 )
 from feedbench.protocols.cia402 import CSP
+from feedbench.views.panels import ResultView
+from feedbench.views.sections import Indicator, RunSection, Table
 
 NAME = "impact_hammer"
 EXCITER = "hammer"
@@ -39,30 +42,25 @@ SCHEMA = {
     "hit_force_N": Field(float, 25.0, "peak force of a hit (N), Fig. 5.12's 25 N", positive),
     "record_s": Field(float, 2.0, "record per hit (s)", positive),
     "pretrigger_s": Field(float, 0.05, "record before the hit (s)", positive),
+    "force_window_s": Field(float, 0.01, "force window: hammer force kept after the trigger, "
+                            "zero after (s)", positive),
+    "exp_decay_s": Field(float, 0.5, "time constant of the exponential window on the "
+                         "acceleration after the trigger (s)", positive),
+    "band_low_Hz": Field(float, 20.0, "band the quasi-FRF (Eq. 5.3) is read and the feeds "
+                         "compared in: low end (Hz)", positive),
+    "band_high_Hz": Field(float, 150.0, "band the quasi-FRF (Eq. 5.3) is read and the feeds "
+                          "compared in: high end (Hz)", positive),
+    "invariance_tolerance": Field(float, 0.3, "'invariant': every |compliance| within this "
+                                  "share of the highest feed's peak (0.3 ≈ 2.3 dB at the "
+                                  "peak, where idle lies 13 dB away on the lab bench)",
+                                  positive),
     **MOTION_SCHEMA,
 }
 
-DEFAULT_BAND_HZ = (20.0, 150.0)
 MIN_BAND_LINES = 3
-"""Frequency lines (1/record_s apart) the analysis needs in `DEFAULT_BAND_HZ` for a peak."""
-INVARIANCE_TOLERANCE = 0.3
-"""'Invariant': every |compliance| within 30 % of the reference's peak (≈ 2.3 dB at the peak,
-where idle lies 13 dB away on the lab bench)."""
-
-
-def _validated(params: Mapping[str, Any]) -> dict:
-    p = validate_table(params, SCHEMA, "experiment")
-    if p["pretrigger_s"] >= p["record_s"]:
-        raise ConfigError("experiment.pretrigger_s: must be shorter than record_s")
-    if not p["feeds_mm_min"]:
-        raise ConfigError("experiment.feeds_mm_min: at least one feed")
-    low, high = DEFAULT_BAND_HZ
-    lines = math.floor(high * p["record_s"]) - math.ceil(low * p["record_s"]) + 1
-    if lines < MIN_BAND_LINES:
-        raise ConfigError(f"experiment.record_s: {p['record_s']:g} s gives {lines} frequency "
-                          f"lines in the {low:g}–{high:g} Hz the quasi-FRF (Eq. 5.3) is read "
-                          f"in; it needs at least {MIN_BAND_LINES}")
-    return p
+"""Frequency lines (1/record_s apart) the analysis needs in the band for a peak."""
+THESIS_INVARIANT_FEED_MM_MIN = 500.0
+"""Fig. 5.12: the in-motion FRF becomes invariant above ≈ 500 mm/min (DIGEST §3)."""
 
 
 def hit_windows(p: Mapping[str, Any], cycle_s: float) -> list[ExcitationWindow]:
@@ -73,19 +71,6 @@ def hit_windows(p: Mapping[str, Any], cycle_s: float) -> list[ExcitationWindow]:
     command[fire] = p["hit_force_N"]
     return [ExcitationWindow(f"hit {i + 1}", command, {"hit": i})
             for i in range(p["hits_per_feed"])]
-
-
-def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
-    """Hits at each feed in turn (CSP), passes within the stroke."""
-    p = _validated(params)
-    windows = hit_windows(p, cycle_s)
-    return plan_over_feeds(NAME, CSP, p["feeds_mm_min"], lambda feed: windows, p, cycle_s,
-                           EXCITER)
-
-
-def devices(p: Mapping[str, Any], cycle_s: float) -> dict[str, dict[str, Any]]:
-    """The DAQ (hammer force, tool-tip acceleration) and the I/O module firing the hammer."""
-    return daq_needs(p, EXCITER)
 
 
 def feed_records(recording) -> tuple[dict[float, tuple[np.ndarray, np.ndarray]], list[str]]:
@@ -135,6 +120,25 @@ def _feed_summary(feed: float, frf: HammerFrf, band: tuple[float, float]) -> dic
     }
 
 
+def feed_summaries(recording, p: Mapping[str, Any]) -> tuple[list[dict], list[str]]:
+    """The quasi-FRF (Eq. 5.3) of each feed's hits, lowest feed first, read in the band of
+    `p` (validated parameters); feeds whose every hit is flagged are noted instead."""
+    fs = recording.streams["daq"].rate_hz
+    band = (p["band_low_Hz"], p["band_high_Hz"])
+    records, notes = feed_records(recording)
+    summaries = []
+    for feed in sorted(records):
+        forces, responses = records[feed]
+        try:
+            frf = quasi_frf(forces, responses, fs, p["force_window_s"], p["exp_decay_s"],
+                            force_range=full_scale(FORCE_CHANNEL))
+        except ValueError as error:  # every hit of the feed flagged
+            notes.append(f"{feed:g} mm/min: {error}")
+            continue
+        summaries.append(_feed_summary(feed, frf, band))
+    return summaries, notes
+
+
 def invariant_from(feeds: list[float], distances: list[float], tolerance: float) -> float | None:
     """The lowest feed from which every higher feed's FRF lies within `tolerance` of the
     highest feed's (None when only the highest feed does)."""
@@ -146,61 +150,125 @@ def invariant_from(feeds: list[float], distances: list[float], tolerance: float)
     return start
 
 
-def analyze_recording(recording, force_window_s: float = 0.01, exp_decay_s: float = 0.5,
-                      band: tuple[float, float] = DEFAULT_BAND_HZ,
-                      invariance_tolerance: float = INVARIANCE_TOLERANCE) -> dict:
-    """Quasi-FRF per feed (Eq. 5.3), its compliance, coherence, and the feed comparison.
+def _compliance(feed: Mapping[str, Any]) -> np.ndarray:
+    """A feed's complex compliance x/F (m/N) from its magnitude and phase."""
+    frf = feed["frf"]
+    return np.array(frf["compliance_abs"]) * np.exp(1j * np.array(frf["compliance_phase_rad"]))
 
-    SI: frequencies Hz, compliance m/N, feeds in mm/min (as configured).
-    """
-    fs = recording.streams["daq"].rate_hz
-    records, notes = feed_records(recording)
-    summaries = []
-    compliances = {}
-    for feed in sorted(records):
-        forces, responses = records[feed]
-        try:
-            frf = quasi_frf(forces, responses, fs, force_window_s, exp_decay_s,
-                            force_range=full_scale(FORCE_CHANNEL))
-        except ValueError as error:  # every hit of the feed flagged
-            notes.append(f"{feed:g} mm/min: {error}")
-            continue
-        summaries.append(_feed_summary(feed, frf, band))
-        compliances[feed] = np.array(summaries[-1]["frf"]["compliance_abs"])
-    feeds = sorted(compliances)
-    if not feeds:
-        raise ConfigError(f"{recording.path}: no usable hammer hit recorded "
-                          f"({'; '.join(notes) or 'no excite segment'})")
-    reference, idle = compliances[feeds[-1]], compliances[feeds[0]]
-    to_reference = [frf_distance(reference, compliances[f]) for f in feeds]
-    for summary, distance in zip(summaries, to_reference):
-        summary["distance_to_highest_feed"] = distance
-        summary["distance_to_lowest_feed"] = frf_distance(idle, compliances[summary["feed_mm_min"]])
-    return {
-        "experiment": NAME,
-        "feeds": summaries,
-        "reference_feed_mm_min": feeds[-1],
-        "invariance_tolerance": invariance_tolerance,
-        "invariant_from_mm_min": invariant_from(feeds, to_reference, invariance_tolerance),
-        "notes": notes,
-    }
 
 class ImpactHammer(Experiment):
-    """TRANSITION shell: the module's functions behind the family interface."""
+    """Impact hammer at a list of feeds (Ch. 5.3.1–5.3.2, Fig. 5.12): the quasi-FRF of each
+    feed's hits, Eq. (5.3) Φ = S_aF / S_FF, its compliance Φ / (jω)², and the feed from
+    which it stays within `invariance_tolerance` of the highest feed's; the stability lobes
+    of the lowest and the highest feed (Fig. 5.25)."""
 
     name = NAME
     schema = SCHEMA
+    title = "impact hammer: quasi-FRF of the hits so far"
+    live_kinds = ("excite",)
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
-        return _validated(params)
+        """The schema's checks, a pre-trigger inside the record, a feed, and enough
+        frequency lines (1/record_s apart) in the band for a peak."""
+        p = validate_table(params, SCHEMA, "experiment")
+        if p["pretrigger_s"] >= p["record_s"]:
+            raise ConfigError("experiment.pretrigger_s: must be shorter than record_s")
+        if not p["feeds_mm_min"]:
+            raise ConfigError("experiment.feeds_mm_min: at least one feed")
+        low, high = p["band_low_Hz"], p["band_high_Hz"]
+        if low >= high:
+            raise ConfigError(f"experiment.band_low_Hz: must be below band_high_Hz ({high:g} Hz)")
+        lines = math.floor(high * p["record_s"]) - math.ceil(low * p["record_s"]) + 1
+        if lines < MIN_BAND_LINES:
+            raise ConfigError(f"experiment.record_s: {p['record_s']:g} s gives {lines} frequency "
+                              f"lines in the {low:g}–{high:g} Hz the quasi-FRF (Eq. 5.3) is read "
+                              f"in; it needs at least {MIN_BAND_LINES}")
+        return p
 
     def plan(self) -> Plan:
-        return build_plan(self.settings, self.cycle_s)
+        """Hits at each feed in turn (CSP), passes within the stroke."""
+        windows = hit_windows(self.settings, self.cycle_s)
+        return plan_over_feeds(NAME, CSP, self.settings["feeds_mm_min"], lambda feed: windows,
+                               self.settings, self.cycle_s, EXCITER)
 
     def devices(self) -> dict[str, dict[str, Any]]:
-        return devices(self.settings, self.cycle_s)
+        """The DAQ (hammer force, tool-tip acceleration) and the I/O module firing the hammer."""
+        return daq_needs(self.settings, EXCITER)
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
-        return analyze_recording(recording)
+        """Quasi-FRF per feed (Eq. 5.3), its compliance, coherence, and the feed comparison:
+        each feed's distance to the highest feed's compliance (the in-motion reference) and to
+        the lowest's (idle). SI: frequencies Hz, compliance m/N; feeds in mm/min (as
+        configured). The hits so far (live) are analysed the same way."""
+        p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+        summaries, notes = feed_summaries(recording, p)
+        if not summaries:
+            raise ConfigError(f"{recording.path}: no usable hammer hit recorded "
+                              f"({'; '.join(notes) or 'no excite segment'})")
+        compliances = [np.array(x["frf"]["compliance_abs"]) for x in summaries]
+        for summary, compliance in zip(summaries, compliances):
+            summary["distance_to_highest_feed"] = frf_distance(compliances[-1], compliance)
+            summary["distance_to_lowest_feed"] = frf_distance(compliances[0], compliance)
+        feeds = [x["feed_mm_min"] for x in summaries]
+        tolerance = p["invariance_tolerance"]
+        return {
+            "experiment": NAME,
+            "feeds": summaries,
+            "reference_feed_mm_min": feeds[-1],
+            "invariance_tolerance": tolerance,
+            "invariant_from_mm_min": invariant_from(
+                feeds, [x["distance_to_highest_feed"] for x in summaries], tolerance),
+            "notes": notes,
+        }
+
+    @classmethod
+    def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
+        """Quasi-FRF per feed (Eq. 5.3) as compliance with coherence, the feed comparison
+        (Fig. 5.12) and the stability lobes of the lowest and highest feed (Fig. 5.25)."""
+        feeds = result["feeds"]
+        section.plots.append(compliance_plot(feeds, "quasi-FRF, Eq. 5.3"))
+        section.tables.append(Table("impact hammer per feed", (
+            "feed (mm/min)", "peak (Hz)", "peak |x/F| (µm/N)", "hits used", "min coherence",
+            "distance to highest feed"), tuple(
+            (f"{x['feed_mm_min']:g}", f"{x['peak_hz']:.2f}",
+             f"{x['peak_compliance_m_N'] * 1e6:.3f}", f"{x['hits_used']} of {x['hits']}",
+             f"{x['min_coherence']:.4f}", f"{100 * x['distance_to_highest_feed']:.0f} %")
+            for x in feeds)))
+        feed_lobes(feeds, _compliance, section)
+        section.quality += feed_quality(feeds, result["notes"], Indicator(
+            "hits left out", str(sum(x["hits"] - x["hits_used"] for x in feeds)),
+            all(x["hits"] == x["hits_used"] for x in feeds)))
+        invariant = result["invariant_from_mm_min"]
+        section.headline = (f"invariant from {invariant:g} mm/min" if invariant is not None
+                            else "no feed range invariant")
+
+    @classmethod
+    def live_view(cls, result: Mapping[str, Any]) -> ResultView:
+        """Compliance |x/F| (m/N) and coherence of each feed's hits so far; per feed the hits
+        used, the peak and the lowest coherence in the summary."""
+        feeds = result["feeds"]
+        return ResultView(cls.title, feed_frf_panels(feeds),
+                          feed_frf_summary(feeds, "hits_used", "hits", "hits", result["notes"]))
+
+    @classmethod
+    def summary(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict:
+        """The feed from which the quasi-FRF (Eq. 5.3) is invariant, against Fig. 5.12; the
+        idle peak against the motor-locked f_t (Eq. 4.13)."""
+        feeds = [{k: feed[k] for k in ("feed_mm_min", "peak_hz", "peak_compliance_m_N",
+                                       "distance_to_highest_feed", "min_coherence", "hits_used")}
+                 for feed in result["feeds"]]
+        idle, top = feeds[0], feeds[-1]
+        invariant = result["invariant_from_mm_min"]
+        return {"invariant_from_mm_min": invariant,
+                "thesis_invariant_mm_min": THESIS_INVARIANT_FEED_MM_MIN,
+                "truth_f_t_hz": truth["f_t_hz"], "feeds": feeds,
+                "headline": headline(
+                    f"invariant from {feed_text(invariant)} "
+                    f"(Fig. 5.12: ≈ {feed_text(THESIS_INVARIANT_FEED_MM_MIN)})",
+                    f"peak {idle['peak_hz']:.1f} Hz at {feed_text(idle['feed_mm_min'])} "
+                    f"(f_t {truth['f_t_hz']:.1f}), {top['peak_hz']:.1f} Hz at "
+                    f"{feed_text(top['feed_mm_min'])}",
+                    "distance to the highest feed "
+                    + ", ".join(f"{f['distance_to_highest_feed']:.2f}" for f in feeds))}

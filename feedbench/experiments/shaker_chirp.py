@@ -17,14 +17,17 @@ import numpy as np
 
 from feedbench.analysis.frf import FrfEstimate, accelerance_to_receptance, estimate_frf
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
-from feedbench.experiments.family import Experiment
+from feedbench.experiments.family import Experiment, headline
 from feedbench.experiments.plan import Plan, recorded_windows
 from feedbench.experiments.signals import chirp
 from feedbench.experiments.tool_tip import (
-    FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, ExcitationWindow, daq_needs,
-    overloaded, plan_over_feeds, window_samples,
+    FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, ExcitationWindow,
+    compliance_plot, daq_needs, feed_frf_panels, feed_frf_summary, feed_lobes,
+    feed_quality, feed_text, overloaded, plan_over_feeds, window_samples,
 )
 from feedbench.protocols.cia402 import CSP
+from feedbench.views.panels import ResultView
+from feedbench.views.sections import Indicator, RunSection, Table
 
 NAME = "shaker_chirp"
 
@@ -42,30 +45,6 @@ SCHEMA = {
     "sweep": Field(str, "linear", "linear or logarithmic", one_of("linear", "logarithmic")),
     **MOTION_SCHEMA,
 }
-
-def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
-    p = validate_table(params, SCHEMA, "experiment")
-    if not p["f_start_Hz"] < p["f_stop_Hz"] < 0.25 / cycle_s:
-        raise ConfigError(f"experiment.f_stop_Hz: must lie above f_start_Hz and below "
-                          f"{0.25 / cycle_s:g} Hz (4 commands per period at the bus cycle)")
-    return p
-
-
-def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
-    """`repetitions` sweeps at each feed (CSP), passes within the stroke."""
-    p = _validated(params, cycle_s)
-    sweep = chirp(p["amplitude_N"], p["f_start_Hz"], p["f_stop_Hz"], p["duration_s"], cycle_s,
-                  p["sweep"])
-    sweep = np.concatenate([sweep, np.zeros(int(round(p["tail_s"] / cycle_s)))])
-    windows = [ExcitationWindow(f"sweep {i + 1}", sweep, {"repetition": i})
-               for i in range(p["repetitions"])]
-    return plan_over_feeds(NAME, CSP, p["feeds_mm_min"], lambda feed: windows, p, cycle_s,
-                           p["exciter"])
-
-
-def devices(p: Mapping[str, Any], cycle_s: float) -> dict[str, dict[str, Any]]:
-    """The DAQ (exciter force, tool-tip acceleration) and the I/O module driving the exciter."""
-    return daq_needs(p, p["exciter"])
 
 
 def sweep_records(recording, force_channel: str) -> tuple[dict[float, np.ndarray], list[str]]:
@@ -97,51 +76,114 @@ def warnings_in_band(est: FrfEstimate, band: tuple[float, float]) -> list[str]:
     return [w for w in est.warnings if any(f"near {f:.2f} Hz" in w for f in peaks)]
 
 
-def analyze_recording(recording, band: tuple[float, float] | None = None) -> dict:
-    """Tool-tip FRF per feed: H1, H2 (accelerance), compliance, coherence in `band` (Hz;
-    default the swept range)."""
-    p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
-    band = band or (p["f_start_Hz"], p["f_stop_Hz"])
-    fs = recording.streams["daq"].rate_hz
-    records, notes = sweep_records(recording, FORCE_CHANNELS[p["exciter"]])
-    feeds = []
-    for feed, sweeps in sorted(records.items()):
-        force, response = np.concatenate(sweeps, axis=1)
-        est = estimate_frf(force, response, fs, nperseg=sweeps.shape[2], overlap=0.0,
-                           window="boxcar")
-        inside = (est.f >= band[0]) & (est.f <= band[1])
-        f = est.f[inside]
-        compliance = accelerance_to_receptance(f, est.H1[inside])
-        feeds.append({
-            "feed_mm_min": feed,
-            "n_averages": est.n_averages,
-            "peak_hz": float(f[np.argmax(np.abs(compliance))]),
-            "min_coherence": float(est.coherence[inside].min()),
-            "warnings": warnings_in_band(est, band),
-            "frf": {"f_hz": f.tolist(), "H1_abs": np.abs(est.H1[inside]).tolist(),
-                    "H1_phase_rad": np.angle(est.H1[inside]).tolist(),
-                    "H2_abs": np.abs(est.H2[inside]).tolist(),
-                    "compliance_abs": np.abs(compliance).tolist(),
-                    "coherence": est.coherence[inside].tolist()},
-        })
-    return {"experiment": NAME, "feeds": feeds, "notes": notes}
+def feed_frf(feed: float, sweeps: np.ndarray, fs: float, band: tuple[float, float]) -> dict:
+    """One feed's tool-tip FRF from its sweeps (records × (force, acceleration) × n, fs Hz):
+    H1, H2 (accelerance, (m/s²)/N), compliance H1 / (jω)² (m/N) and coherence in `band`."""
+    force, response = np.concatenate(sweeps, axis=1)
+    est = estimate_frf(force, response, fs, nperseg=sweeps.shape[2], overlap=0.0,
+                       window="boxcar")
+    inside = (est.f >= band[0]) & (est.f <= band[1])
+    f = est.f[inside]
+    compliance = accelerance_to_receptance(f, est.H1[inside])
+    return {
+        "feed_mm_min": feed,
+        "n_averages": est.n_averages,
+        "peak_hz": float(f[np.argmax(np.abs(compliance))]),
+        "min_coherence": float(est.coherence[inside].min()),
+        "warnings": warnings_in_band(est, band),
+        "frf": {"f_hz": f.tolist(), "H1_abs": np.abs(est.H1[inside]).tolist(),
+                "H1_phase_rad": np.angle(est.H1[inside]).tolist(),
+                "H2_abs": np.abs(est.H2[inside]).tolist(),
+                "compliance_abs": np.abs(compliance).tolist(),
+                "coherence": est.coherence[inside].tolist()},
+    }
+
+
+def _compliance(feed: Mapping[str, Any]) -> np.ndarray:
+    """A feed's complex compliance x/F = H1 / (jω)² (m/N) from its accelerance H1."""
+    frf = feed["frf"]
+    f = np.array(frf["f_hz"])
+    accelerance = np.array(frf["H1_abs"]) * np.exp(1j * np.array(frf["H1_phase_rad"]))
+    return -accelerance / (2 * np.pi * f) ** 2
+
 
 class ShakerChirp(Experiment):
-    """TRANSITION shell: the module's functions behind the family interface."""
+    """Chirp with a shaker (or the inertial actuator) at the tool tip (Ch. 3.5.1, Fig. 3.17):
+    per feed H1, H2 and coherence over the sweeps, each sweep with its ring-down one
+    leakage-free record, and the compliance x_tip / F_tip = H1 / (jω)²; the stability lobes
+    of the lowest and the highest feed (Ch. 5.5.6)."""
 
     name = NAME
     schema = SCHEMA
+    title = "shaker chirp: tool-tip FRF of the sweeps so far"
+    live_kinds = ("excite",)
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
-        return _validated(params, cycle_s)
+        """The schema's checks and a sweep of at least 4 commands per period."""
+        p = validate_table(params, SCHEMA, "experiment")
+        if not p["f_start_Hz"] < p["f_stop_Hz"] < 0.25 / cycle_s:
+            raise ConfigError(f"experiment.f_stop_Hz: must lie above f_start_Hz and below "
+                              f"{0.25 / cycle_s:g} Hz (4 commands per period at the bus cycle)")
+        return p
 
     def plan(self) -> Plan:
-        return build_plan(self.settings, self.cycle_s)
+        """`repetitions` sweeps, each followed by `tail_s` at zero, at each feed (CSP),
+        passes within the stroke."""
+        p = self.settings
+        sweep = chirp(p["amplitude_N"], p["f_start_Hz"], p["f_stop_Hz"], p["duration_s"],
+                      self.cycle_s, p["sweep"])
+        sweep = np.concatenate([sweep, np.zeros(int(round(p["tail_s"] / self.cycle_s)))])
+        windows = [ExcitationWindow(f"sweep {i + 1}", sweep, {"repetition": i})
+                   for i in range(p["repetitions"])]
+        return plan_over_feeds(NAME, CSP, p["feeds_mm_min"], lambda feed: windows, p,
+                               self.cycle_s, p["exciter"])
 
     def devices(self) -> dict[str, dict[str, Any]]:
-        return devices(self.settings, self.cycle_s)
+        """The DAQ (exciter force, tool-tip acceleration) and the I/O module driving the
+        exciter."""
+        return daq_needs(self.settings, self.settings["exciter"])
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
-        return analyze_recording(recording)
+        """Tool-tip FRF per feed (`feed_frf`) in the swept range; the sweeps so far (live)
+        are analysed the same way."""
+        p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+        band = (p["f_start_Hz"], p["f_stop_Hz"])
+        fs = recording.streams["daq"].rate_hz
+        records, notes = sweep_records(recording, FORCE_CHANNELS[p["exciter"]])
+        feeds = [feed_frf(feed, sweeps, fs, band) for feed, sweeps in sorted(records.items())]
+        return {"experiment": NAME, "feeds": feeds, "notes": notes}
+
+    @classmethod
+    def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
+        """Tool-tip compliance per feed (H1 over the sweeps) with coherence, and its lobes."""
+        feeds = result["feeds"]
+        section.plots.append(compliance_plot(feeds, "H1 over the sweeps"))
+        section.tables.append(Table("shaker chirp per feed", (
+            "feed (mm/min)", "sweeps averaged", "peak (Hz)", "min coherence", "warnings"), tuple(
+            (f"{x['feed_mm_min']:g}", str(x["n_averages"]), f"{x['peak_hz']:.2f}",
+             f"{x['min_coherence']:.4f}", "; ".join(x["warnings"]) or "none") for x in feeds)))
+        feed_lobes(feeds, _compliance, section)
+        section.quality += feed_quality(feeds, result["notes"], Indicator(
+            "FRF warnings", "; ".join(w for x in feeds for w in x["warnings"]) or "none",
+            not any(x["warnings"] for x in feeds)))
+        section.headline = ", ".join(f"{x['feed_mm_min']:g} mm/min: peak {x['peak_hz']:.1f} Hz"
+                                     for x in feeds)
+
+    @classmethod
+    def live_view(cls, result: Mapping[str, Any]) -> ResultView:
+        """Compliance |x/F| (m/N) and coherence of each feed's sweeps so far; per feed the
+        sweeps averaged, the peak and the lowest coherence in the summary."""
+        feeds = result["feeds"]
+        return ResultView(cls.title, feed_frf_panels(feeds), feed_frf_summary(
+            feeds, "n_averages", "n_averages", "sweeps", result["notes"]))
+
+    @classmethod
+    def summary(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict:
+        """Tool-tip FRF per feed: compliance peak and coherence."""
+        feeds = [{k: feed[k] for k in ("feed_mm_min", "peak_hz", "min_coherence", "n_averages")}
+                 for feed in result["feeds"]]
+        return {"feeds": feeds, "headline": headline(*(
+            f"{feed_text(f['feed_mm_min'])}: compliance peak {f['peak_hz']:.2f} Hz, "
+            f"min coherence {f['min_coherence']:.4f}" for f in feeds))}

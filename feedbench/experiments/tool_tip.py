@@ -1,6 +1,8 @@
 """Shared by the tool-tip experiments (impact hammer, sine-stream, shaker chirp; Ch. 3.5.1, 5.3,
 5.5.3): excitation windows laid out in passes at a constant feed, the exciter commanded from
-the plan through the CiA 401 I/O module, and the DAQ samples of a recorded window.
+the plan through the CiA 401 I/O module, the DAQ samples of a recorded window, how a
+tool-tip FRF per feed is shown (live panels, report plot and indicators, labels) and the
+stability lobes it predicts.
 
 A window is a stretch of cycles with an exciter command (a hit, a sine step, a sweep). At a
 feed the axis accelerates, settles, runs windows back to back while the pass fits the stroke,
@@ -10,7 +12,7 @@ are never split by a reversal.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,13 +27,18 @@ from feedbench.protocols import cia401
 from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
 from feedbench.models.milling import engagement_angles
 from feedbench.units import MM_PER_MIN
-from feedbench.views.sections import Plot, RunSection, Table, new_figure, png_of
+from feedbench.views.panels import Curve, Panel
+from feedbench.views.sections import (
+    MIN_COHERENCE, FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, new_figure, png_of,
+)
 
 DAQ_STREAM = "daq"
 RESPONSE_CHANNEL = "acc_tool_x"
 """The tool-side accelerometer along the feed (the flexure's direction)."""
 FORCE_CHANNELS = {"shaker": "shaker_force", "actuator": "actuator_force",
                   "hammer": "hammer_force"}
+COMPLIANCE_LABEL = "|x/F| (m/N)"
+"""Axis label of the tool-tip compliance x_tip / F_tip, live and in the report."""
 
 MOTION_SCHEMA = {
     "stroke_mm": Field(float, 200.0, "longest travel of one pass at feed (mm)", positive),
@@ -154,6 +161,70 @@ def overloaded(samples: np.ndarray, channels: Sequence[str], share: float = 0.98
 def full_scale(channel: str) -> float:
     """The DAQ input's full scale (SI)."""
     return CHANNELS[CHANNEL_INDEX[channel]].full_scale
+
+
+# a tool-tip FRF per feed (the hammer's and the shaker chirp's results: each feed's
+# ``feed_mm_min``, ``peak_hz``, ``min_coherence`` and ``frf`` with ``f_hz``,
+# ``compliance_abs``, ``coherence``), as the live window, the report and the demo show it
+
+def feed_label(feed_mm_min: float) -> str:
+    """``500 mm/min`` (|feed|: both directions of a feed are one series)."""
+    return f"{abs(float(feed_mm_min)):g} mm/min"
+
+
+def feed_text(feed_mm_min: float | None) -> str:
+    """A feed in a headline; None (no feed from which the FRF is invariant): the highest."""
+    return "only the highest feed" if feed_mm_min is None else feed_label(feed_mm_min)
+
+
+def feed_frf_panels(feeds: Sequence[Mapping[str, Any]]) -> tuple[Panel, Panel]:
+    """Live panels: compliance |x/F| (m/N, log) and coherence γ², one curve per feed."""
+    def curves(key: str) -> tuple[Curve, ...]:
+        return tuple(Curve(feed_label(x["feed_mm_min"]), np.asarray(x["frf"]["f_hz"]),
+                           np.asarray(x["frf"][key])) for x in feeds)
+
+    return (Panel("tool-tip compliance", "frequency (Hz)", COMPLIANCE_LABEL,
+                  curves("compliance_abs"), log_y=True),
+            Panel("coherence", "frequency (Hz)", "γ²", curves("coherence"),
+                  y_range=(0.0, 1.05)))
+
+
+def feed_frf_summary(feeds: Sequence[Mapping[str, Any]], used: str, recorded: str, unit: str,
+                     notes: Sequence[str]) -> str:
+    """Live summary: per feed the records `used` of those `recorded` (result keys), the
+    compliance peak (Hz) and the lowest coherence in the band; then the latest note."""
+    if not feeds:
+        return "waiting for the first record" + (f" ({notes[-1]})" if notes else "")
+    parts = [f"{feed_label(x['feed_mm_min'])}: {x[used]} of {x[recorded]} {unit}, peak "
+             f"{x['peak_hz']:.2f} Hz, min γ² {x['min_coherence']:.3f}" for x in feeds]
+    return "; ".join(parts + list(notes[-1:]))
+
+
+def compliance_plot(feeds: Sequence[Mapping[str, Any]], estimate: str) -> Plot:
+    """Report plot: |x/F| (m/N) above the coherence per feed; `estimate` names the FRF."""
+    series = [FrfSeries(feed_label(x["feed_mm_min"]), np.array(x["frf"]["f_hz"]),
+                        np.array(x["frf"]["compliance_abs"]), np.array(x["frf"]["coherence"]))
+              for x in feeds]
+    return Plot(f"tool-tip compliance per feed ({estimate}) with coherence",
+                png_of(frf_figure(series, COMPLIANCE_LABEL)))
+
+
+def feed_lobes(feeds: Sequence[Mapping[str, Any]],
+               compliance: Callable[[Mapping[str, Any]], np.ndarray], section: RunSection) -> None:
+    """Report: the stability lobes (`lobes_results`) of the lowest and the highest feed
+    (Fig. 5.25); `compliance(feed)` gives a feed's complex x/F (m/N) at its ``f_hz``."""
+    lobes_results(extreme_feeds({feed_label(x["feed_mm_min"]): (np.array(x["frf"]["f_hz"]),
+                                                                compliance(x))
+                                 for x in feeds}), section)
+
+
+def feed_quality(feeds: Sequence[Mapping[str, Any]], notes: Sequence[str],
+                 *more: Indicator) -> list[Indicator]:
+    """Report indicators: the lowest coherence of the feeds (gate `MIN_COHERENCE`), `more`,
+    and the analysis's notes (records left out)."""
+    low = min((x["min_coherence"] for x in feeds), default=float("nan"))
+    return [Indicator("min coherence in the band", f"{low:.4f}", low >= MIN_COHERENCE), *more,
+            Indicator("notes", "; ".join(notes) or "none", not notes)]
 
 
 class ExciterOutputs:
