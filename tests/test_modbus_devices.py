@@ -313,10 +313,11 @@ def ask(connection: socket.socket, transaction: int, device_id: int, pdu: bytes)
     return body
 
 
-def test_only_the_documented_function_codes_are_served_raw_tcp():
+def test_only_the_documented_function_codes_are_served_raw_tcp(caplog):
     """A third-party client reading only the docs: every other function code (ones pymodbus
     knows and ones nobody does) → exception 1, function byte = code | 0x80; a malformed
-    request of a documented code → exception 3; an unknown device id → 0x0B."""
+    request of a documented code → exception 3; an unknown device id → 0x0B. Each exception
+    answered is one log line of the server's, none of pymodbus's."""
     with tcp_bench() as bench, socket.create_connection(
             ("127.0.0.1", bench.inverter.client.comm_params.port), timeout=5.0) as raw:
         for transaction, (code, data) in enumerate(UNDOCUMENTED_PDUS.items(), start=1):
@@ -335,6 +336,13 @@ def test_only_the_documented_function_codes_are_served_raw_tcp():
         assert ask(raw, 106, 1, bytes.fromhex("06 0006 0000")) == bytes.fromhex("86 03")
         assert ask(raw, 107, 9, bytes.fromhex("41 00")) == bytes.fromhex("c1 0b")
         assert ask(raw, 108, 9, bytes.fromhex("03 0000 0001")) == bytes.fromhex("83 0b")
+    answered = [r for r in caplog.records if r.name == "feedbench.sim_backends.modbus_devices"]
+    assert len(answered) == 2 * len(UNDOCUMENTED_PDUS) + 6
+    messages = [r.getMessage() for r in answered]
+    for device in ("spindle inverter (device id 1)", "load-cell amplifier (device id 2)"):
+        assert (f"modbus: {device}: function 65: answered with exception 1 (ILLEGAL_FUNCTION)"
+                in messages)
+    assert not [r for r in caplog.records if r.name.startswith("pymodbus")]
 
 
 def test_undocumented_function_codes_through_the_pymodbus_client():

@@ -31,6 +31,7 @@ import logging
 import os
 import pty
 import select
+import struct
 import threading
 import tty
 from typing import Awaitable, Callable, Sequence
@@ -390,11 +391,17 @@ class DocumentedFunctions(DecodePDU):
         super().__init__(is_server=True)
 
     def decode(self, frame: bytes) -> ModbusPDU:
-        """The request in `frame` (function code, then data; never empty)."""
+        """The request in `frame` (function code, then data; never empty). Decoded here, not
+        by `DecodePDU.decode`, which would log a malformed request a second time."""
         function_code = frame[0]
         if function_code not in FUNCTION_CODES:
             return RefusedRequest(function_code, ExcCodes.ILLEGAL_FUNCTION)
-        return super().decode(frame) or RefusedRequest(function_code, ExcCodes.ILLEGAL_VALUE)
+        request = self.pdu_table[function_code][self.pdu_inx]()
+        try:
+            request.decode(frame[1:])
+        except (ValueError, IndexError, struct.error):  # too short, a count out of range
+            return RefusedRequest(function_code, ExcCodes.ILLEGAL_VALUE)
+        return request
 
 
 def _sim_devices(devices: Sequence[SimulatedModbusDevice]) -> list[SimDevice]:
