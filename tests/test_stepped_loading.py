@@ -21,6 +21,8 @@ from feedbench.config import ConfigError
 from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
 from feedbench.experiments import stepped_loading
+from feedbench.experiments.plan import segment_event
+from test_live_offline import assert_live_equals_offline
 
 K_MASTER, K_SLAVE = 81e6, 100e6
 BACKLASH_MASTER, BACKLASH_SLAVE = 314e-6, 363e-6
@@ -97,8 +99,32 @@ def test_recording_has_both_drives_the_encoders_and_the_load_cell(run):
     assert recording.n_gaps == 0
     readings = np.isfinite(channels["load_cell.force"])
     assert readings.mean() == pytest.approx(0.2, abs=0.01), "read every fifth cycle"
-    settings = [e.text for e in recording.events if '"coupling"' in e.text]
+    steps = [segment_event(e.text) for e in recording.events if e.kind == "segment"]
+    settings = [commands for _, _, _, commands in steps if "coupling" in commands]
     assert len(settings) == 6  # backlash ×2, single ×2, coupled ×2
+    assert settings[-1] == {"coupling": "coupled", "preload_pct": 20.0}
+    assert not any("coupling" in info for _, _, info, _ in steps), "commands apart from info"
+
+
+def test_live_analysis_ends_with_the_offline_result_and_draws_every_step(run):
+    """The run replayed through the live analysis (issue 14): after the last step it is the
+    file's analysis, value for value; the view draws each loading step's mean load and δ
+    (the master alone, then the slave alone, then coupled per preload level) and the lines
+    of Eq. (3.26)."""
+    live = assert_live_equals_offline(run[0]["file"])
+    panel = live.view().panels[0]
+    steps = run[1]["steps"]
+    assert [c.name for c in panel.curves] == [*steps, "fit master", "fit slave"]
+    for curve, test in zip(panel.curves, steps.values()):
+        np.testing.assert_array_equal(curve.y, test["force_N"])
+        np.testing.assert_allclose(curve.x, np.array(test["delta_m"]) * 1e6, rtol=1e-12)
+    single = steps["single master"]
+    loaded = np.array(single["force_N"]) > 0.2 * max(single["force_N"])
+    k = np.polyfit(np.array(single["delta_m"])[loaded], np.array(single["force_N"])[loaded], 1)[0]
+    assert k == pytest.approx(K_MASTER, rel=0.02)  # the step means lie on Eq. (3.26)'s line
+    assert live.view().summary.endswith(
+        f"k_m {run[1]['stiffness']['master']['k_N_m'] / 1e6:.1f} N/µm, "
+        f"k_s {run[1]['stiffness']['slave']['k_N_m'] / 1e6:.1f} N/µm")
 
 
 def test_stepped_loading_needs_the_rack_pinion_axis():

@@ -68,11 +68,18 @@ def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
         raise ConfigError(
             f"experiment.f_start_Hz: must be below f_stop_Hz ({p['f_stop_Hz']:g} Hz)"
         )
+    mobility_band(p)
+    return p
+
+
+def mobility_band(p: Mapping[str, Any]) -> tuple[float, float]:
+    """The band (Hz) searched for f_t and f_r, from validated params ``band_low_Hz`` and
+    ``band_high_Hz``; a low end not below the high end is a `ConfigError`."""
     if p["band_low_Hz"] >= p["band_high_Hz"]:
         raise ConfigError(
             f"experiment.band_low_Hz: must be below band_high_Hz ({p['band_high_Hz']:g} Hz)"
         )
-    return p
+    return p["band_low_Hz"], p["band_high_Hz"]
 
 
 def build_plan(p: Mapping[str, Any], cycle_s: float) -> Plan:
@@ -155,7 +162,7 @@ def analyze_recording(recording) -> dict:
     searched in the configured mobility band.
     """
     p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
-    band = (p["band_low_Hz"], p["band_high_Hz"])
+    band = mobility_band(p)
     windows = recorded_windows(recording, "excite", at_least=1)
     force, velocity = sweep_records(recording, windows)
     fs = 1.0 / float(recording.metadata["cycle_s"])

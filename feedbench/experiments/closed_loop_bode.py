@@ -12,7 +12,9 @@ velocity or the position reference, at a feed that keeps friction sliding.
 
 Each frequency is held `settle_cycles` + `cycles_per_frequency` periods, phase-continuous; a
 sine fitted after the settle cycles gives the FRF point and R² (`analysis.sinefit`); a point
-below `r_squared_min` is flagged and left out.
+below `r_squared_min` is flagged and left out of the FRF (kept with its point, shown red
+live). The mobility's extrema are searched in `band_low_Hz` … `band_high_Hz`, the chirp's
+band parameters (Ch. 3.5.1).
 """
 
 from __future__ import annotations
@@ -24,12 +26,17 @@ import numpy as np
 from feedbench.analysis.servo import open_loop_mobility
 from feedbench.analysis.sinefit import stepped_sine_frf
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
-from feedbench.experiments.chirp import mobility_extrema
-from feedbench.experiments.family import Experiment
+from feedbench.experiments.chirp import SCHEMA as CHIRP_SCHEMA
+from feedbench.experiments.chirp import extrema_text, mobility_band, mobility_extrema
+from feedbench.experiments.family import Experiment, headline
 from feedbench.experiments.plan import Plan, Segment, recorded_windows
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
 from feedbench.protocols.cia402 import CSP, CSV
 from feedbench.units import MM_PER_MIN
+from feedbench.views.panels import ResultView, point_frf_panels
+from feedbench.views.sections import (
+    FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, new_figure, png_of,
+)
 
 NAME = "closed_loop_bode"
 
@@ -50,26 +57,12 @@ SCHEMA = {
     "settle_s": Field(float, 0.5, "time at feed before the first frequency of a pass (s)",
                       positive),
     "accel_m_s2": Field(float, 1.0, "acceleration of the ramps (m/s²)", positive),
+    "band_low_Hz": CHIRP_SCHEMA["band_low_Hz"],
+    "band_high_Hz": CHIRP_SCHEMA["band_high_Hz"],
 }
 
-MOBILITY_BAND_HZ = (20.0, 150.0)
 MIN_BAND_POINTS = 3
 """Frequencies the mobility's extrema need in the band: a resonance with a point below it."""
-
-
-def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
-    p = validate_table(params, SCHEMA, "experiment")
-    if not p["f_start_Hz"] <= p["f_stop_Hz"] < 0.25 / cycle_s:
-        raise ConfigError(f"experiment.f_stop_Hz: must lie at or above f_start_Hz and below "
-                          f"{0.25 / cycle_s:g} Hz (4 samples per period at the bus cycle)")
-    f = frequencies(p)
-    in_band = int(np.sum((f >= MOBILITY_BAND_HZ[0]) & (f <= MOBILITY_BAND_HZ[1])))
-    if p["loop"] == "velocity" and in_band < MIN_BAND_POINTS:
-        low, high = MOBILITY_BAND_HZ
-        raise ConfigError(f"experiment.f_start_Hz: the open-loop mobility (Eq. 4.20) is read in "
-                          f"{low:g}–{high:g} Hz and needs at least {MIN_BAND_POINTS} frequencies "
-                          f"there (f_start_Hz … f_stop_Hz by f_step_Hz give {in_band})")
-    return p
 
 
 def frequencies(p: Mapping[str, Any]) -> np.ndarray:
@@ -103,21 +96,6 @@ def _pass_groups(steps: list[tuple[float, np.ndarray]], travel_per_cycle: float,
         groups[-1].append(step)
         used += travel
     return groups
-
-
-def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
-    """Passes at the feed, each: accelerate, settle, frequencies back to back, stop."""
-    p = _validated(params, cycle_s)
-    speed = p["feed_mm_min"] * MM_PER_MIN
-    n_settle = int(round(p["settle_s"] / cycle_s))
-    stroke = p["stroke_mm"] * 1e-3 - n_settle * speed * cycle_s
-    segments: list[Segment] = []
-    x, direction = 0.0, 1.0
-    for group in _pass_groups(_sine_steps(p, cycle_s), speed * cycle_s, stroke):
-        more, x = _pass(group, direction * speed, x, n_settle, p, cycle_s)
-        segments += more
-        direction = -direction
-    return Plan(NAME, CSV if p["loop"] == "velocity" else CSP, segments, p, cycle_s)
 
 
 def _pass(group: list[tuple[float, np.ndarray]], velocity: float, x0: float, n_settle: int,
@@ -160,7 +138,8 @@ def loop_signals(recording, window, loop: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def measured_loop(recording, p: Mapping[str, Any]) -> dict:
-    """FRF points of every frequency with R²; points below the quality gate are flagged."""
+    """FRF points of every frequency with R² (Ch. 5.5.3, `analysis.sinefit`); points below
+    the quality gate are flagged: listed with their |H|, phase (rad) and R², not used."""
     fs = 1.0 / float(recording.metadata["cycle_s"])
     f, H, r2, flagged = [], [], [], []
     for window in recorded_windows(recording, "excite"):
@@ -169,7 +148,9 @@ def measured_loop(recording, p: Mapping[str, Any]) -> dict:
         fit = stepped_sine_frf(reference, response, fs, [(frequency, 0, len(reference))],
                                p["settle_cycles"])
         if fit.r_squared[0] < p["r_squared_min"]:
-            flagged.append({"frequency_hz": frequency, "r_squared": float(fit.r_squared[0])})
+            flagged.append({"frequency_hz": frequency, "r_squared": float(fit.r_squared[0]),
+                            "abs": float(np.abs(fit.H[0])),
+                            "phase_rad": float(np.angle(fit.H[0]))})
             continue
         f.append(frequency)
         H.append(complex(fit.H[0]))
@@ -187,42 +168,171 @@ def bandwidth(f: np.ndarray, H: np.ndarray) -> float:
     return float(f[k - 1] + (a - 1.0 / np.sqrt(2.0)) / (a - b) * (f[k] - f[k - 1]))
 
 
-def analyze_recording(recording) -> dict:
-    """The measured loop; for the velocity loop also Eq. (4.20) and the mobility's extrema.
+def open_loop(f: np.ndarray, H: np.ndarray, gains: Mapping[str, float],
+              band: tuple[float, float]) -> dict:
+    """The open-loop mobility G (m/(N·s)) of the closed velocity loop H by Eq. (4.20) with the
+    drive's K_p (N·s/m) and T_i (s), and its extrema f_t, f_r (Hz) in `band` (Eqs. 4.13,
+    4.14); `ValueError` while the band holds no resonance with a point below it."""
+    mobility = open_loop_mobility(f, H, gains["K_p"], gains["T_i"])
+    inside = (f >= band[0]) & (f <= band[1])
+    f_t, f_r = mobility_extrema(f[inside], mobility[inside], band)
+    return {"antiresonance_hz": f_t, "resonance_hz": f_r, "abs": np.abs(mobility).tolist(),
+            "phase_rad": np.angle(mobility).tolist()}
 
-    SI: frequencies Hz, mobility m/(N·s); gains from `metadata.drive_gains` (K_p N·s/m, T_i s).
-    """
-    p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
-    loop = measured_loop(recording, p)
-    f, H = loop["f"], loop["H"]
-    result = {"experiment": NAME, "loop": p["loop"], "feed_mm_min": p["feed_mm_min"],
-              "flagged": loop["flagged"], "min_r_squared": min(loop["r_squared"], default=None),
-              "bandwidth_hz": bandwidth(f, H),
-              "frf": {"f_hz": f.tolist(), "abs": np.abs(H).tolist(),
-                      "phase_rad": np.angle(H).tolist(), "r_squared": loop["r_squared"]}}
-    gains = recording.metadata.get("drive_gains")
-    if p["loop"] == "velocity" and gains:
-        mobility = open_loop_mobility(f, H, gains["K_p"], gains["T_i"])
-        inside = (f >= MOBILITY_BAND_HZ[0]) & (f <= MOBILITY_BAND_HZ[1])
-        f_t, f_r = mobility_extrema(f[inside], mobility[inside], MOBILITY_BAND_HZ)
-        result["mobility"] = {"antiresonance_hz": f_t, "resonance_hz": f_r,
-                              "abs": np.abs(mobility).tolist(),
-                              "phase_rad": np.angle(mobility).tolist()}
-    return result
+
+def _mobility_figure(f: np.ndarray, mobility: Mapping[str, Any]):
+    """|G| (m/s)/N over f (Hz) with f_t and f_r marked."""
+    figure = new_figure(8.0, 4.0)
+    ax = figure.subplots()
+    ax.semilogy(f, mobility["abs"], "o-", ms=3, lw=0.8, label="|G| open-loop mobility")
+    for key, name in (("antiresonance_hz", "f_t"), ("resonance_hz", "f_r")):
+        ax.axvline(mobility[key], color="k", ls="--", lw=0.8)
+        ax.annotate(f"{name} {mobility[key]:.1f} Hz", (mobility[key], 1.0),
+                    xycoords=("data", "axes fraction"), ha="left", va="top", fontsize=8)
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel("|G| ((m/s)/N)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, loc="lower left")
+    return figure
+
+
+def _points(result: Mapping[str, Any]) -> list[tuple[float, complex, float]]:
+    """Every measured point (f Hz, H, R²), the flagged ones included, by frequency."""
+    frf = result["frf"]
+    used = [(f, a * np.exp(1j * phase), r2) for f, a, phase, r2
+            in zip(frf["f_hz"], frf["abs"], frf["phase_rad"], frf["r_squared"])]
+    flagged = [(x["frequency_hz"], x["abs"] * np.exp(1j * x["phase_rad"]), x["r_squared"])
+               for x in result["flagged"]]
+    return sorted(used + flagged, key=lambda point: point[0])
+
 
 class ClosedLoopBode(Experiment):
-    """TRANSITION shell: the module's functions behind the family interface."""
+    """The closed-loop Bode of the drive (Ch. 4.3.1): the closed velocity or position loop
+    point by point, for the velocity loop the open-loop mobility by Eq. (4.20) and its f_t,
+    f_r (Eqs. 4.13, 4.14)."""
 
     name = NAME
     schema = SCHEMA
+    title = "closed-loop FRF point by point"
+    live_kinds = ("excite",)
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
-        return _validated(params, cycle_s)
+        """Frequencies below a quarter of the bus rate; the velocity loop needs
+        `MIN_BAND_POINTS` of them in the mobility band."""
+        p = validate_table(params, SCHEMA, "experiment")
+        if not p["f_start_Hz"] <= p["f_stop_Hz"] < 0.25 / cycle_s:
+            raise ConfigError(f"experiment.f_stop_Hz: must lie at or above f_start_Hz and below "
+                              f"{0.25 / cycle_s:g} Hz (4 samples per period at the bus cycle)")
+        low, high = mobility_band(p)
+        f = frequencies(p)
+        in_band = int(np.sum((f >= low) & (f <= high)))
+        if p["loop"] == "velocity" and in_band < MIN_BAND_POINTS:
+            raise ConfigError(f"experiment.f_start_Hz: the open-loop mobility (Eq. 4.20) is read "
+                              f"in {low:g}–{high:g} Hz and needs at least {MIN_BAND_POINTS} "
+                              f"frequencies there (f_start_Hz … f_stop_Hz by f_step_Hz give "
+                              f"{in_band})")
+        return p
 
     def plan(self) -> Plan:
-        return build_plan(self.settings, self.cycle_s)
+        """Passes at the feed, each: accelerate, settle, frequencies back to back, stop."""
+        p, cycle_s = self.settings, self.cycle_s
+        speed = p["feed_mm_min"] * MM_PER_MIN
+        n_settle = int(round(p["settle_s"] / cycle_s))
+        stroke = p["stroke_mm"] * 1e-3 - n_settle * speed * cycle_s
+        segments: list[Segment] = []
+        x, direction = 0.0, 1.0
+        for group in _pass_groups(_sine_steps(p, cycle_s), speed * cycle_s, stroke):
+            more, x = _pass(group, direction * speed, x, n_settle, p, cycle_s)
+            segments += more
+            direction = -direction
+        return Plan(NAME, CSV if p["loop"] == "velocity" else CSP, segments, p, cycle_s)
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
-        return analyze_recording(recording)
+        """The measured loop; for the velocity loop also Eq. (4.20) and the mobility's extrema
+        (while the run goes on, `final` False, only once the band allows them).
+
+        SI: frequencies Hz, mobility m/(N·s); gains from `metadata.drive_gains` (K_p N·s/m,
+        T_i s).
+        """
+        p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+        loop = measured_loop(recording, p)
+        f, H = loop["f"], loop["H"]
+        result = {"experiment": NAME, "loop": p["loop"], "feed_mm_min": p["feed_mm_min"],
+                  "frequencies_planned": len(frequencies(p)),
+                  "r_squared_min": p["r_squared_min"], "flagged": loop["flagged"],
+                  "min_r_squared": min(loop["r_squared"], default=None),
+                  "bandwidth_hz": bandwidth(f, H),
+                  "frf": {"f_hz": f.tolist(), "abs": np.abs(H).tolist(),
+                          "phase_rad": np.angle(H).tolist(), "r_squared": loop["r_squared"]}}
+        gains = recording.metadata.get("drive_gains")
+        if p["loop"] == "velocity" and gains:
+            try:
+                result["mobility"] = open_loop(f, H, gains, mobility_band(p))
+            except ValueError:
+                if final:
+                    raise
+        return result
+
+    @classmethod
+    def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
+        """Closed-loop FRF points with R² and −3 dB bandwidth; for the velocity loop the
+        open-loop mobility of Eq. (4.20) with f_t and f_r (Eqs. 4.13, 4.14)."""
+        frf = result["frf"]
+        f = np.array(frf["f_hz"])
+        gate = result["r_squared_min"]
+        series = [FrfSeries(f"{result['loop']} loop at {result['feed_mm_min']:g} mm/min", f,
+                            np.array(frf["abs"]), np.array(frf["r_squared"]))]
+        section.plots.append(Plot(f"closed {result['loop']} loop: points with R²", png_of(
+            frf_figure(series, "|H| closed loop (–)", "R² of the sine fits", gate, points=True))))
+        rows = [("−3 dB bandwidth", f"{result['bandwidth_hz']:.1f} Hz"),
+                ("frequencies flagged (R²)", str(len(result["flagged"])))]
+        mobility = result.get("mobility")
+        if mobility:
+            section.plots.append(Plot("open-loop mobility by Eq. (4.20)",
+                                      png_of(_mobility_figure(f, mobility))))
+            rows += [("anti-resonance f_t (Eq. 4.13)", f"{mobility['antiresonance_hz']:.2f} Hz"),
+                     ("resonance f_r (Eq. 4.14)", f"{mobility['resonance_hz']:.2f} Hz")]
+            section.headline = (f"f_t {mobility['antiresonance_hz']:.1f} Hz, "
+                                f"f_r {mobility['resonance_hz']:.1f} Hz")
+        else:
+            section.headline = f"bandwidth {result['bandwidth_hz']:.1f} Hz"
+        section.tables.append(Table(f"closed {result['loop']} loop", ("quantity", "value"),
+                                    tuple(rows)))
+        low = result["min_r_squared"]
+        section.quality += [
+            Indicator("min R² of the points used", "none" if low is None else f"{low:.5f}",
+                      low is not None and low >= gate),
+            Indicator("frequencies flagged", ", ".join(f"{x['frequency_hz']:g} Hz"
+                                                       for x in result["flagged"]) or "none",
+                      not result["flagged"]),
+        ]
+
+    @classmethod
+    def live_view(cls, result: Mapping[str, Any]) -> ResultView:
+        """|H| (–), phase (°) and R² of the frequencies so far, those below the gate red;
+        f_t and f_r (Eq. 4.20) in the summary once the band allows them."""
+        gate = result["r_squared_min"]
+        points = _points(result)
+        r2 = [point[2] for point in points]
+        panels = point_frf_panels({f"{result['loop']} loop": points}, "|H| (–)", gate)
+        summary = (f"{len(points)} of {result['frequencies_planned']} frequencies, min R² "
+                   f"{min(r2):.4f}, {sum(v < gate for v in r2)} below {gate:g}")
+        mobility = result.get("mobility")
+        if mobility:
+            summary += (f"; Eq. 4.20: f_t {mobility['antiresonance_hz']:.1f} Hz, "
+                        f"f_r {mobility['resonance_hz']:.1f} Hz")
+        return ResultView(cls.title, panels, summary)
+
+    @classmethod
+    def summary(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict:
+        """The open-loop mobility from the closed velocity loop by Eq. (4.20): f_t, f_r
+        against the model's (Eqs. 4.13, 4.14)."""
+        m = result["mobility"]
+        return {"antiresonance_hz": m["antiresonance_hz"], "resonance_hz": m["resonance_hz"],
+                "truth_f_t_hz": truth["f_t_hz"], "truth_f_r_hz": truth["f_r_hz"],
+                "min_r_squared": result["min_r_squared"], "flagged": len(result["flagged"]),
+                "headline": headline(extrema_text(m, truth, "Eq. 4.20: "),
+                                     f"min R² {result['min_r_squared']:.4f}, "
+                                     f"{len(result['flagged'])} points flagged")}

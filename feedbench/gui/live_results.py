@@ -13,17 +13,11 @@ bounded queue (`RecordQueue`).
 
 The registry `LIVE_RESULTS` maps an experiment name to its result class; a new experiment
 family adds one class with ``@live_result("name")``. Here, the drive-side families:
-``friction_sweep`` (friction point per measure step and the Andersson fit, Eq. 5.2),
-``chirp`` (servo mobility FRF of the sweeps so far, H1 with coherence), ``closed_loop_bode``
-(closed-loop FRF point per frequency with the R² of its sine fits), ``stepped_loading`` (load
-against displacement per loading step). The tool-tip and SMFE families (sine-stream FRF
-point by point, quasi-FRF of the hits so far, shaker-chirp FRF of the sweeps so far, spindle
-speed and force spectrogram) are in `feedbench.gui.live_structure`.
+``chirp`` (servo mobility FRF of the sweeps so far, H1 with coherence).
 """
 
 from __future__ import annotations
 
-import importlib
 from bisect import bisect_right
 from collections import deque
 from dataclasses import dataclass
@@ -32,13 +26,9 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 import numpy as np
 
 from feedbench.analysis.frf import estimate_frf
-from feedbench.analysis.friction import FrictionFit, fit_andersson
 from feedbench.analysis.sinefit import stepped_sine_frf
-from feedbench.experiments import closed_loop_bode, stepped_loading
 from feedbench.experiments.chirp import mobility_extrema
-from feedbench.experiments.friction_sweep import axis_signals
 from feedbench.experiments.plan import Plan, Segment
-from feedbench.units import MM_PER_MIN
 from feedbench.views.panels import *  # noqa TRANSITION
 
 FRF_NPERSEG = 2048
@@ -47,15 +37,9 @@ FRF_NPERSEG = 2048
 MOBILITY_BAND_HZ = (20.0, 150.0)
 """Band searched for the servo mobility's anti-resonance and resonance (as the analysis)."""
 
-MIN_POINTS_PER_FIT = 5
-"""Andersson has 4 parameters: fit a direction once it has one point more."""
-
 MAX_QUEUED_VALUES = 4_000_000
 """Values (32 MB) completed records may hold while the reader has not taken them; beyond,
 the oldest record is dropped (a window that falls behind skips results, never samples)."""
-
-STRUCTURE_MODULE = "feedbench.gui.live_structure"
-"""Registers the tool-tip and SMFE results (imported on first lookup)."""
 
 
 class StepTracker:
@@ -247,57 +231,8 @@ def live_result(name: str) -> Callable[[type[LiveResult]], type[LiveResult]]:
 
 def live_result_for(experiment: str) -> LiveResult | None:
     """A fresh result for `experiment`, or None if the family has none registered."""
-    importlib.import_module(STRUCTURE_MODULE)
     cls = LIVE_RESULTS.get(experiment)
     return cls() if cls else None
-
-
-@live_result("friction_sweep")
-class FrictionCurve(LiveResult):
-    """Friction point (mean velocity, mean motor force) per completed measure step, and
-    the Andersson fit, Eq. (5.2), of each direction once it has enough points. The axis's
-    velocity and force as the analysis takes them (`friction_sweep.axis_signals`: with
-    master and slave, the master's velocity and the sum of the forces)."""
-
-    title = "friction curve, Eq. (5.2)"
-
-    def __init__(self) -> None:
-        super().__init__()
-        self._sums: dict[int, list[float]] = {}
-        self.points: list[tuple[float, float]] = []
-
-    def collect(self, index: int, segment: Segment, rows: np.ndarray) -> None:
-        if segment.kind != "measure":
-            return
-        velocity, force = axis_signals({name: rows[:, i] for name, i in self.columns.items()})
-        acc = self._sums.setdefault(index, [0, 0.0, 0.0])
-        acc[0] += len(rows)
-        acc[1] += float(velocity.sum())
-        acc[2] += float(force.sum())
-        if acc[0] == segment.n_cycles:
-            self.points.append((acc[1] / acc[0], acc[2] / acc[0]))
-            self.version += 1
-
-    def build(self) -> ResultView:
-        points = np.array(list(self.points)).reshape(-1, 2)
-        v, force = points[:, 0], points[:, 1]
-        curves = [Curve("measured", v / MM_PER_MIN, force, points=True)]
-        notes = [f"{len(v)} points"]
-        for name, side in (("positive", v > 0), ("negative", v < 0)):
-            if side.sum() >= MIN_POINTS_PER_FIT:
-                fit = fit_andersson(v[side], force[side])
-                curves.append(_fitted_curve(name, fit, v[side]))
-                notes.append(f"{name}: F_c {fit.params.F_c:.1f} N, F_s {fit.params.F_s:.1f} N, "
-                             f"R² {fit.r_squared:.4f}")
-        panel = Panel("friction force vs feed", "feed (mm/min)", "motor force (N)", tuple(curves))
-        return ResultView(self.title, (panel,), "; ".join(notes))
-
-
-def _fitted_curve(name: str, fit: FrictionFit, v: np.ndarray) -> Curve:
-    """The fitted law of one direction over the range of its points (feed in mm/min)."""
-    sign = np.sign(v[0])
-    speed = np.linspace(np.abs(v).min(), np.abs(v).max(), 200)
-    return Curve(f"fit {name}", sign * speed / MM_PER_MIN, sign * fit.params.force(speed))
 
 
 @live_result("chirp")
@@ -369,100 +304,3 @@ def sine_point(reference: np.ndarray, response: np.ndarray, fs: float, f: float,
     smaller R² of the two sine fits after `settle_cycles` periods, `analysis.sinefit`."""
     fit = stepped_sine_frf(reference, response, fs, [(f, 0, len(reference))], settle_cycles)
     return complex(fit.H[0]), float(fit.r_squared[0])
-
-
-@live_result("closed_loop_bode")
-class ClosedLoopPoints(LiveResult):
-    """The closed-loop Bode (Ch. 4.3.1) point by point: at each completed frequency step a
-    sine is fitted to reference and response after the settle periods, as
-    `experiments.closed_loop_bode` does: velocity offset → velocity (velocity loop), or the
-    per-cycle increments of target and position (position loop; here from the step's own
-    first cycle on, one increment fewer than the analysis)."""
-
-    title = "closed-loop FRF point by point"
-    SCHEMA = closed_loop_bode.SCHEMA
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.done: list[tuple[float, np.ndarray]] = []
-        self.points: list[tuple[float, complex, float]] = []
-
-    def on_start(self, plan: Plan, channels: Sequence[str]) -> None:
-        super().on_start(plan, channels)
-        self.loop = self.param("loop")
-        self.signals = (("velocity_offset", "velocity") if self.loop == "velocity"
-                        else ("x_ref", "position"))
-
-    def collect(self, index: int, segment: Segment, rows: np.ndarray) -> None:
-        if segment.kind != "excite" or "frequency_hz" not in segment.info:
-            return
-        step = self.gather(index, segment, rows, self.signals)
-        if step is not None:
-            self.done.append((float(segment.info["frequency_hz"]), step))
-            self.version += 1
-
-    def build(self) -> ResultView:
-        for f, step in list(self.done)[len(self.points):]:
-            signals = step if self.loop == "velocity" else np.diff(step, axis=0)
-            self.points.append((f, *sine_point(signals[:, 0], signals[:, 1], 1.0 / self.cycle_s,
-                                               f, self.param("settle_cycles"))))
-        gate = self.param("r_squared_min")
-        panels = point_frf_panels({f"{self.loop} loop": self.points}, "|H| (–)", gate)
-        total = sum(s.kind == "excite" for s in self.segments)
-        r2 = [point[2] for point in self.points]
-        summary = (f"{len(r2)} of {total} frequencies, min R² {min(r2):.4f}, "
-                   f"{sum(v < gate for v in r2)} below {gate:g}" if r2
-                   else "waiting for the first frequency")
-        return ResultView(self.title, panels, summary)
-
-
-@live_result("stepped_loading")
-class LoadDisplacement(LiveResult):
-    """Stepped loading (Ch. 3.4.1, 3.4.3, Fig. 3.8): per completed measure step of a loading
-    test the mean load-cell force against the mean displacement δ = x_motor − x_load of the
-    loaded motor (the master when coupled), positive towards the bumper as the analysis
-    orients it; one series per test."""
-
-    title = "load against displacement, Eq. (3.26)"
-    SCHEMA = stepped_loading.SCHEMA
-
-    def __init__(self) -> None:
-        super().__init__()
-        self._sums: dict[int, list[float]] = {}
-        self.points: dict[str, list[tuple[float, float]]] = {}
-
-    def on_start(self, plan: Plan, channels: Sequence[str]) -> None:
-        super().on_start(plan, channels)
-        self.toward = -1.0 if self.param("direction") == "negative" else 1.0
-
-    def collect(self, index: int, segment: Segment, rows: np.ndarray) -> None:
-        test = str(segment.info.get("test", ""))
-        if segment.kind != "measure" or "phase" not in segment.info:
-            return
-        motor = "slave" if test == "single slave" else "master"
-        force = self.column(rows, "load_cell.force")
-        read = np.isfinite(force)
-        delta = (self.column(rows, f"{motor}.motor_position")
-                 - self.column(rows, "load_position"))[read]
-        acc = self._sums.setdefault(index, [0, 0, 0.0, 0.0])
-        acc[0] += len(rows)
-        acc[1] += int(read.sum())
-        acc[2] += float(force[read].sum())
-        acc[3] += float(delta.sum())
-        if acc[0] == segment.n_cycles and acc[1]:
-            self.points.setdefault(test, []).append(
-                (self.toward * acc[3] / acc[1], acc[2] / acc[1]))
-            self.version += 1
-
-    def build(self) -> ResultView:
-        curves = []
-        for test, points in list(self.points.items()):
-            delta, force = np.array(points).T
-            curves.append(Curve(test, delta * 1e6, force, points=True))
-        panel = Panel("load cell against δ = x_motor − x_load", "δ (µm)", "load (N)",
-                      tuple(curves))
-        n = sum(len(c.x) for c in curves)
-        summary = (f"{n} steps; " + ", ".join(f"{c.name}: {c.y.max():.0f} N at "
-                                             f"{c.x[np.argmax(c.y)]:.1f} µm" for c in curves)
-                   if n else "waiting for the first loading step")
-        return ResultView(self.title, (panel,), summary)
