@@ -26,7 +26,6 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 import numpy as np
 
 from feedbench.analysis.frf import estimate_frf
-from feedbench.analysis.sinefit import stepped_sine_frf
 from feedbench.experiments.chirp import mobility_extrema
 from feedbench.experiments.plan import Plan, Segment
 from feedbench.views.panels import *  # noqa TRANSITION
@@ -297,10 +296,3 @@ def _empty_frf_panels() -> tuple[Panel, Panel]:
     empty = np.zeros(0)
     return _frf_panels(empty, empty.astype(complex), empty)
 
-
-def sine_point(reference: np.ndarray, response: np.ndarray, fs: float, f: float,
-               settle_cycles: float) -> tuple[complex, float]:
-    """One stepped-sine FRF point (Ch. 5.5.3): H = response / reference phasor and the
-    smaller R² of the two sine fits after `settle_cycles` periods, `analysis.sinefit`."""
-    fit = stepped_sine_frf(reference, response, fs, [(f, 0, len(reference))], settle_cycles)
-    return complex(fit.H[0]), float(fit.r_squared[0])
