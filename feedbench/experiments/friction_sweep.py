@@ -1,10 +1,11 @@
-"""Friction sweep (Ch. 5.3.2, Fig. 5.11): constant-feed runs in both directions.
+"""Friction sweep (Ch. 5.3.2, Fig. 5.11; Ch. 5.5.2, Fig. 5.19): constant-feed runs in both
+directions, the friction curve and Andersson's law, Eq. (5.2), per direction.
 
 At each feed the axis accelerates, settles, and holds the feed over a measure window;
 the mean motor force over that window is the friction force at that velocity, and the
-points of each direction are fitted with Andersson's law, Eq. (5.2). On an axis driven by
-several drives (the rack-and-pinion master and slave) the force is the sum of the drives'
-forces, so an electronic preload cancels out, and the velocity is the first drive's.
+points of each direction are fitted with Eq. (5.2). On an axis driven by several drives
+(the rack-and-pinion master and slave, Ch. 3.2) the force is the sum of the drives' forces,
+so an electronic preload cancels out, and the velocity is the first drive's.
 """
 
 from __future__ import annotations
@@ -13,13 +14,18 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from feedbench.analysis.friction import FrictionFit, fit_andersson_directional
+from feedbench.analysis.friction import FrictionFit, fit_andersson
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
-from feedbench.experiments.family import Experiment
+from feedbench.experiments.family import Experiment, headline, percent_error
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import constant_feed_move
+from feedbench.models.friction import AnderssonFriction
 from feedbench.protocols.cia402 import CSP
-from feedbench.units import MIN_PER_MM, MM_PER_MIN
+from feedbench.units import MIN_PER_MM, MM_PER_MIN, N_MIN_PER_MM
+from feedbench.views.panels import Curve, Panel, ResultView
+from feedbench.views.sections import (
+    MIN_R_SQUARED, Indicator, Plot, RunSection, Table, new_figure, png_of,
+)
 
 NAME = "friction_sweep"
 
@@ -43,49 +49,16 @@ SCHEMA = {
 
 SIGNS = {"positive": 1.0, "negative": -1.0}
 MIN_FEEDS = 5
-"""Distinct feeds per direction the analysis needs: Eq. (5.2)'s fit has 4 free parameters
-(F_c, F_s, v_s, σ) and needs at least one point more (`analysis.friction`)."""
+"""Feeds per direction Eq. (5.2)'s fit needs: it has 4 free parameters (F_c, F_s, v_s, σ)
+and needs at least one point more (`analysis.friction`); the live view fits a direction
+once it has them."""
 
+UNITS = {"F_c": ("N", 1.0, 2), "F_s": ("N", 1.0, 2), "v_s": ("mm/min", MM_PER_MIN, 1),
+         "sigma": ("N·min/mm", N_MIN_PER_MM, 5)}
+"""Eq. (5.2)'s fitted parameters in the units of Fig. 5.11: unit, its size in SI, decimals."""
 
-def _validated(params: Mapping[str, Any]) -> dict:
-    """The checked params: what the analysis needs is known before anything moves."""
-    p = validate_table(params, SCHEMA, "experiment")
-    feeds = len(set(p["feeds_mm_min"]))
-    if feeds < MIN_FEEDS:
-        raise ConfigError(f"experiment.feeds_mm_min: the Andersson fit (Eq. 5.2) needs at "
-                          f"least {MIN_FEEDS} different feeds per direction (got {feeds})")
-    if set(p["directions"]) != set(SIGNS):
-        raise ConfigError(f"experiment.directions: the analysis fits Eq. (5.2) per direction "
-                          f"and needs both positive and negative (got {p['directions']})")
-    return p
-
-
-def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
-    """Back-and-forth constant-feed moves, one pair per feed (measured where asked)."""
-    p = _validated(params)
-    segments: list[Segment] = []
-    x = 0.0
-    for feed_mm_min in p["feeds_mm_min"]:
-        for direction in ("positive", "negative"):
-            feed = SIGNS[direction] * feed_mm_min * MM_PER_MIN
-            path, cruise_start, cruise_stop = constant_feed_move(
-                x, feed, p["accel_m_s2"], p["settle_s"] + p["measure_s"], cycle_s
-            )
-            settle_stop = cruise_start + int(round(p["settle_s"] / cycle_s))
-            measured = direction in p["directions"]
-            info = {"feed_mm_min": SIGNS[direction] * feed_mm_min}
-            label = f"{direction} {feed_mm_min:g} mm/min"
-            segments += [
-                Segment(f"accelerate {label}", "move", path[:cruise_start], info=info),
-                Segment(f"settle {label}", "settle", path[cruise_start:settle_stop], info=info),
-                Segment(
-                    f"measure {label}", "measure" if measured else "move",
-                    path[settle_stop:cruise_stop], info=info,
-                ),
-                Segment(f"stop {label}", "move", path[cruise_stop:], info=info),
-            ]
-            x = float(path[-1])
-    return Plan(NAME, CSP, segments, p, cycle_s)
+CURVE_POINTS = 300
+"""Points of a fitted law drawn over the range of its direction's feeds."""
 
 
 def friction_points(
@@ -95,17 +68,6 @@ def friction_points(
     v = np.array([velocity[w.start:w.stop].mean() for w in windows])
     f = np.array([force[w.start:w.stop].mean() for w in windows])
     return v, f
-
-
-def _fit_summary(fit: FrictionFit) -> dict:
-    p, s = fit.params, fit.std
-    return {
-        "identified": {"F_c": p.F_c, "F_s": p.F_s, "v_s": p.v_s, "sigma": p.sigma},
-        "std": {"F_c": s.F_c, "F_s": s.F_s, "v_s": s.v_s, "sigma": s.sigma},
-        "rms_N": fit.rms,
-        "r_squared": fit.r_squared,
-        "n_points": fit.n_points,
-    }
 
 
 def axis_signals(channels: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -122,45 +84,231 @@ def axis_signals(channels: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.nda
             np.sum([channels[f"{d}.force"] for d in drives], axis=0))
 
 
-def analyze_recording(recording) -> dict:
-    """Friction points of every measure window and the Andersson fit per direction (5.2).
+def _fit_summary(fit: FrictionFit) -> dict:
+    p, s = fit.params, fit.std
+    return {
+        "identified": {"F_c": p.F_c, "F_s": p.F_s, "v_s": p.v_s, "sigma": p.sigma},
+        "std": {"F_c": s.F_c, "F_s": s.F_s, "v_s": s.v_s, "sigma": s.sigma},
+        "rms_N": fit.rms,
+        "r_squared": fit.r_squared,
+        "n_points": fit.n_points,
+    }
 
-    Returns SI values: velocities (m/s), forces (N), F_c, F_s (N), v_s (m/s), σ (N·s/m).
-    """
-    params = validate_table(recording.config["experiment"], SCHEMA, "experiment")
-    windows = recorded_windows(recording, "measure")
-    v, f = friction_points(*axis_signals(recording.channels), windows)
+
+def _check_finite(recording, windows: list[Window], v: np.ndarray, f: np.ndarray) -> None:
+    """A NaN or inf in a measure window is a `ConfigError` naming the first such window."""
     for name, values in (("velocity", v), ("force", f)):
         if not np.all(np.isfinite(values)):
             label = windows[int(np.argmin(np.isfinite(values)))].label
             raise ConfigError(f"{recording.path}: {name}: NaN or inf samples in the measure "
                               f"window {label!r}")
-    for direction, sign in SIGNS.items():
-        feeds = int(np.sum(np.sign(v) == sign))
+
+
+def _check_feeds(recording, sides: Mapping[str, np.ndarray]) -> None:
+    """Fewer than `MIN_FEEDS` points in a direction is a `ConfigError` naming it."""
+    for direction, side in sides.items():
+        feeds = int(side.sum())
         if feeds < MIN_FEEDS:
             raise ConfigError(f"{recording.path}: {feeds} feeds measured in the {direction} "
                               f"direction; the Andersson fit (Eq. 5.2) needs at least {MIN_FEEDS}")
-    fit = fit_andersson_directional(v, f, k_tanh=params["k_tanh_min_mm"] * MIN_PER_MM)
-    return {
-        "experiment": NAME,
-        "points": {"velocity_m_s": v.tolist(), "force_N": f.tolist()},
-        "positive": _fit_summary(fit.positive),
-        "negative": _fit_summary(fit.negative),
-    }
+
+
+def law(result: Mapping[str, Any], direction: str) -> AnderssonFriction:
+    """The Eq. (5.2) law identified in `direction`, with the tanh constant it was fitted at."""
+    return AnderssonFriction(**result[direction]["identified"], k_tanh=result["k_tanh_s_m"])
+
+
+def fitted_curve(result: Mapping[str, Any], direction: str) -> tuple[np.ndarray, np.ndarray]:
+    """Feed (mm/min) and force (N) of the law fitted in `direction`, over its points' range."""
+    sign = SIGNS[direction]
+    v = np.asarray(result["points"]["velocity_m_s"])
+    speed = np.abs(v[np.sign(v) == sign])
+    speed = np.linspace(speed.min(), speed.max(), CURVE_POINTS)
+    return sign * speed / MM_PER_MIN, sign * law(result, direction).force(speed)
+
+
+def display(key: str, value: float) -> str:
+    """A fitted parameter (SI) in the units of Fig. 5.11 (`UNITS`), 8 characters wide."""
+    unit, size, decimals = UNITS[key]
+    return f"{value / size:8.{decimals}f} {unit}"
+
+
+def comparison(result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict:
+    """Per direction: the identified parameters, the world's, the error (%) and the std."""
+    out = {}
+    for direction in SIGNS:
+        identified = result[direction]["identified"]
+        true = {k: truth["friction"][direction][k] for k in UNITS}
+        out[direction] = {
+            "identified": identified,
+            "truth": true,
+            "error_pct": {k: percent_error(identified[k], true[k]) for k in UNITS},
+            "std": result[direction]["std"],
+        }
+    return out
+
+
+def comparison_lines(compared: Mapping[str, Any]) -> list[str]:
+    """`comparison`'s parameters beside the truth with the error, a line each (Fig. 5.11 units)."""
+    lines = []
+    for direction, comp in compared.items():
+        lines.append(f"  {direction}:")
+        lines += [f"    {k:<6s} {display(k, comp['identified'][k])}   truth "
+                  f"{display(k, comp['truth'][k])}   error {comp['error_pct'][k]:+6.2f} %"
+                  for k in UNITS]
+    return lines
+
+
+def parameter_table(result: Mapping[str, Any]) -> Table:
+    """Identified parameters ± one standard deviation, in the units of Fig. 5.11."""
+    rows = []
+    for name, (unit, size, _) in UNITS.items():
+        cells = [f"{name} ({unit})"]
+        for direction in SIGNS:
+            value = result[direction]["identified"][name] / size
+            std = result[direction]["std"][name] / size
+            cells.append(f"{value:.5g} ± {std:.2g}")
+        rows.append(tuple(cells))
+    return Table("identified friction parameters", ("parameter", "positive", "negative"),
+                 tuple(rows))
+
+
+def curve_figure(result: Mapping[str, Any]):
+    """The friction points and the fitted law per direction, feed (mm/min) against N."""
+    v = np.array(result["points"]["velocity_m_s"])
+    figure = new_figure(8.0, 4.5)
+    ax = figure.subplots()
+    ax.plot(v / MM_PER_MIN, result["points"]["force_N"], "o", ms=4,
+            label="measured (mean of each window)")
+    for direction in SIGNS:
+        ax.plot(*fitted_curve(result, direction), lw=1.5, label=f"Andersson fit, {direction}")
+    ax.set_xlabel("feed (mm/min)")
+    ax.set_ylabel("motor force (N)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return figure
+
 
 class FrictionSweep(Experiment):
-    """TRANSITION shell: the module's functions behind the family interface."""
+    """Friction sweep: the friction curve and Eq. (5.2) per direction (Ch. 5.3.2, Fig. 5.11).
+
+    Also on the rack-and-pinion axis (``master.*``/``slave.*`` channels, `axis_signals`).
+    """
 
     name = NAME
     schema = SCHEMA
+    title = "friction curve, Eq. (5.2)"
+    live_kinds = ("measure",)
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
-        return _validated(params)
+        """The schema's checks, then what the analysis needs, before anything moves: at least
+        `MIN_FEEDS` different feeds and both directions."""
+        p = validate_table(params, SCHEMA, "experiment")
+        feeds = len(set(p["feeds_mm_min"]))
+        if feeds < MIN_FEEDS:
+            raise ConfigError(f"experiment.feeds_mm_min: the Andersson fit (Eq. 5.2) needs at "
+                              f"least {MIN_FEEDS} different feeds per direction (got {feeds})")
+        if set(p["directions"]) != set(SIGNS):
+            raise ConfigError(f"experiment.directions: the analysis fits Eq. (5.2) per "
+                              f"direction and needs both positive and negative (got "
+                              f"{p['directions']})")
+        return p
 
     def plan(self) -> Plan:
-        return build_plan(self.settings, self.cycle_s)
+        """Back-and-forth constant-feed moves, one pair per feed, each measured after settling."""
+        p, cycle_s = self.settings, self.cycle_s
+        segments: list[Segment] = []
+        x = 0.0
+        for feed_mm_min in p["feeds_mm_min"]:
+            for direction, sign in SIGNS.items():
+                path, cruise_start, cruise_stop = constant_feed_move(
+                    x, sign * feed_mm_min * MM_PER_MIN, p["accel_m_s2"],
+                    p["settle_s"] + p["measure_s"], cycle_s)
+                settle_stop = cruise_start + int(round(p["settle_s"] / cycle_s))
+                info = {"feed_mm_min": sign * feed_mm_min}
+                label = f"{direction} {feed_mm_min:g} mm/min"
+                segments += [
+                    Segment(f"accelerate {label}", "move", path[:cruise_start], info=info),
+                    Segment(f"settle {label}", "settle", path[cruise_start:settle_stop],
+                            info=info),
+                    Segment(f"measure {label}", "measure", path[settle_stop:cruise_stop],
+                            info=info),
+                    Segment(f"stop {label}", "move", path[cruise_stop:], info=info),
+                ]
+                x = float(path[-1])
+        return Plan(NAME, CSP, segments, p, cycle_s)
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
-        return analyze_recording(recording)
+        """Friction points of every measure window and the Eq. (5.2) fit per direction.
+
+        SI values: velocities (m/s), forces (N), F_c, F_s (N), v_s (m/s), σ (N·s/m), the
+        tanh constant held in the fits (s/m). `final` False (live): a direction with fewer
+        than `MIN_FEEDS` points is left out instead of refused.
+        """
+        params = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+        windows = recorded_windows(recording, "measure")
+        v, f = friction_points(*axis_signals(recording.channels), windows)
+        _check_finite(recording, windows, v, f)
+        sides = {direction: np.sign(v) == sign for direction, sign in SIGNS.items()}
+        if final:
+            _check_feeds(recording, sides)
+        k_tanh = params["k_tanh_min_mm"] * MIN_PER_MM
+        fits = {direction: _fit_summary(fit_andersson(v[side], f[side], k_tanh=k_tanh))
+                for direction, side in sides.items() if side.sum() >= MIN_FEEDS}
+        return {"experiment": NAME, "points": {"velocity_m_s": v.tolist(), "force_N": f.tolist()},
+                "k_tanh_s_m": k_tanh, **fits}
+
+    @classmethod
+    def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
+        """Friction points and the fitted law per direction (Fig. 5.11), the parameters ± σ
+        and the R² of each fit."""
+        section.plots.append(Plot("friction curve and fitted model, Eq. (5.2)",
+                                  png_of(curve_figure(result))))
+        section.tables.append(parameter_table(result))
+        for direction in SIGNS:
+            r2 = result[direction]["r_squared"]
+            section.quality.append(Indicator(f"R² of the {direction} fit",
+                                             f"{r2:.5f} (rms {result[direction]['rms_N']:.2f} N)",
+                                             r2 >= MIN_R_SQUARED))
+        p = result["positive"]["identified"]
+        section.headline = f"F_c {p['F_c']:.1f} N, F_s {p['F_s']:.1f} N (positive)"
+
+    @classmethod
+    def live_view(cls, result: Mapping[str, Any]) -> ResultView:
+        """The points so far (feed mm/min, motor force N) and each direction's fit once it
+        has `MIN_FEEDS` points."""
+        v = np.asarray(result["points"]["velocity_m_s"])
+        curves = [Curve("measured", v / MM_PER_MIN, np.asarray(result["points"]["force_N"]),
+                        points=True)]
+        notes = [f"{len(v)} points"]
+        for direction in (d for d in SIGNS if d in result):
+            fit = result[direction]
+            curves.append(Curve(f"fit {direction}", *fitted_curve(result, direction)))
+            notes.append(f"{direction}: F_c {fit['identified']['F_c']:.1f} N, F_s "
+                         f"{fit['identified']['F_s']:.1f} N, R² {fit['r_squared']:.4f}")
+        panel = Panel("friction force vs feed", "feed (mm/min)", "motor force (N)", tuple(curves))
+        return ResultView(cls.title, (panel,), "; ".join(notes))
+
+    @classmethod
+    def summary(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict:
+        """Eq. (5.2) per direction against the world's friction (`truth["friction"]`)."""
+        compared = comparison(result, truth)
+        worst = max((abs(c["error_pct"][k]), k, d) for d, c in compared.items() for k in UNITS)
+        pos, neg = compared["positive"]["identified"], compared["negative"]["identified"]
+        return {**compared, "max_abs_error_pct": worst[0],
+                "headline": headline(f"Eq. 5.2: F_c {pos['F_c']:.1f} / {neg['F_c']:.1f} N, F_s "
+                                     f"{pos['F_s']:.1f} / {neg['F_s']:.1f} N (+/−)",
+                                     f"largest error vs truth {worst[0]:.2f} % ({worst[1]}, "
+                                     f"{worst[2]})")}
+
+    @classmethod
+    def describe(cls, result: Mapping[str, Any]) -> list[str]:
+        """Per direction the fit's R² and rms, then its parameters in Fig. 5.11's units."""
+        lines = []
+        for direction in SIGNS:
+            fit = result[direction]
+            lines.append(f"  {direction}: R² {fit['r_squared']:.5f}, rms {fit['rms_N']:.3f} N")
+            lines += [f"    {k:<6s} {display(k, fit['identified'][k])}" for k in UNITS]
+        return lines
