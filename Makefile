@@ -7,7 +7,7 @@ LOCK := requirements.lock
 PIP_VERSION := 26.3
 PYTEST_ARGS = -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
-.PHONY: demo test test-latest lock bench clean
+.PHONY: demo test test-latest lock bench docs clean
 
 $(STAMP): pyproject.toml $(LOCK)
 	$(PY) -m venv $(VENV)
@@ -43,6 +43,11 @@ lock: $(STAMP)
 	$(BIN)/pip install --quiet 'pip-tools>=7.4'
 	$(BIN)/pip-compile --quiet --upgrade --extra test --extra bench --strip-extras \
 		--no-emit-index-url --no-emit-find-links -o $(LOCK) pyproject.toml
+
+# the API reference (Sphinx autodoc of feedbench.api), warnings as errors, no network
+docs: $(STAMP)
+	$(BIN)/sphinx-build -W -q -b html docs/api docs/_build/html
+	@echo "docs/_build/html/index.html"
 
 bench: $(VENV)/.bench
 	QT_QPA_PLATFORM=offscreen $(BIN)/python benchmarks/run_all.py

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+import canopen
+
 from feedbench.config import ConfigError, Field, one_of, positive, read_toml, validate_table
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.clock import LockstepClock, RealtimeClock, one_core
@@ -26,6 +28,7 @@ from feedbench.experiments.family import Experiment, families, family
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan
 from feedbench.experiments.runner import Observer, ProgressPrinter, Runner, StopRequest
+from feedbench.rack_pinion_bench import RackPinionAxis
 from feedbench.units import kv_to_per_second
 
 GAINS_SCHEMA = {
@@ -160,12 +163,6 @@ def host_config(raw: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _packaged_eds() -> str:
-    from feedbench.sim_backends.eds import packaged_eds_path
-
-    return str(packaged_eds_path())
-
-
 def _drive_gains(drive) -> dict[str, float] | None:
     """The cascade gains the drive runs with (SDO), for analyses such as Eq. (4.20); None
     for an axis of several drives."""
@@ -184,13 +181,6 @@ def _gains_si(table: Mapping[str, Any]) -> dict[str, float]:
     return out
 
 
-def _device_needs(plan: Plan | None) -> dict[str, dict]:
-    """The devices besides the drive the plan's experiment needs (its family's `devices`)."""
-    if plan is None:
-        return {}
-    return family(plan.experiment)(plan.params, plan.cycle_s).devices()
-
-
 def _bus_options(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """python-can options beyond interface and channel: a socketcand server's host and port."""
     if cfg["interface"] != "socketcand":
@@ -199,97 +189,124 @@ def _bus_options(cfg: Mapping[str, Any]) -> dict[str, Any]:
     return {"host": host, "port": port}
 
 
+class LabAxis:
+    """The wiring of ``axis = "lab"``: one linear drive (``node_id``) and the devices the
+    plan's experiment needs (spindle inverter, DAQ, the exciters' I/O module;
+    `experiments.cycle_io`). Simulated: the drive alone, or, with devices, the whole
+    simulated bench (`sim_backends.process.SimulatedBench`: the workpiece prepared as
+    planned, the tool-tip exciters instead of the milling when the plan has an exciter)."""
+
+    pdo_config = None
+
+    def __init__(self, cfg: Mapping[str, Any], plan: Plan | None,
+                 needs: Mapping[str, dict]) -> None:
+        self.cfg = cfg
+        self.plan = plan
+        self.needs = needs
+
+    def nodes(self) -> dict[str, int]:
+        """Drive name → CANopen node id ("": the only drive)."""
+        return {"": self.cfg["node_id"]}
+
+    @staticmethod
+    def packaged_eds() -> str:
+        """The simulated drive's EDS."""
+        from feedbench.sim_backends.eds import packaged_eds_path
+
+        return str(packaged_eds_path())
+
+    def start_simulated(self, cycle_s: float, bus_options: Mapping[str, Any]):
+        """The simulated peer on the bench's bus; `close()` stops it."""
+        from feedbench.sim_backends.bench import start_simulated_axis
+        from feedbench.sim_backends.process import SimulatedBench
+        from feedbench.sim_backends.world import build_axis, build_sensor_noise
+
+        cfg = self.cfg
+        if self.needs:
+            exciter_node = self.needs.get("exciter", {}).get("node_id")
+            return SimulatedBench(cfg, self.plan.params.get("workpiece", ()),
+                                  bus_options=bus_options, exciter_node=exciter_node,
+                                  milling=exciter_node is None)
+        return start_simulated_axis(cfg["interface"], cfg["channel"], cfg["node_id"],
+                                    build_axis(cfg["world"], cycle_s),
+                                    noise=build_sensor_noise(cfg["world"]), **bus_options)
+
+    def devices(self, drives: Mapping[str, Cia402Drive], simulated: Any, stack: ExitStack,
+                network: canopen.Network) -> list:
+        """The host drivers of the needed devices, at the simulated bench's addresses (Modbus
+        host:port, DAQ port), else at the configured ones; `stack` closes them."""
+        if not self.needs:
+            return []
+        if simulated is not None:
+            host, port = simulated.modbus_address
+            modbus, daq_port = f"{host}:{port}", simulated.daq_port
+        else:
+            modbus, daq_port = self.cfg["modbus"], self.cfg["daq_port"]
+        return open_cycle_devices(self.needs, modbus, daq_port, stack, network)
+
+
+AXES = {"lab": LabAxis, "rack_pinion": RackPinionAxis}
+"""The wiring of each axis kind (``[bench] axis``): its simulated peer, drives, devices."""
+
+
 class Bench:
     """An open bench: the CAN network, the drive driver, the clock (and the simulated peer).
 
     Use as a context manager; `run(config)` executes one plan and returns its record.
+    `needs`: the devices besides the drives the plan's experiment needs (`Experiment.devices`).
+    `drive` is the axis's only drive, or its drives by name (rack-and-pinion: master, slave).
     """
 
-    def __init__(self, bench: Mapping[str, Any], plan: Plan | None = None) -> None:
+    def __init__(self, bench: Mapping[str, Any], plan: Plan | None = None,
+                 needs: Mapping[str, dict] | None = None) -> None:
         self.config = dict(bench)
         self.plan = plan
+        self.needs = dict(needs or {})
         self._stack = ExitStack()
-        self.simulated_drive = None
         self.simulated = None
         self.network = None
-        self.drive: Cia402Drive | None = None
+        self.drive: Cia402Drive | dict[str, Cia402Drive] | None = None
         self.clock = None
         self.devices: list = []
 
     def __enter__(self) -> Bench:
+        """The same steps for every axis kind (`AXES`): simulated peer, network, drives and
+        gains, clock, devices; what is open is closed again if a step fails."""
         cfg = self.config
         cycle_s = cfg["cycle_ms"] * 1e-3
         try:
             if cfg["one_core"] and cfg["simulated"] and cfg["clock"] == "lockstep":
                 self._stack.enter_context(one_core())  # first: every thread below inherits it
-            if cfg["axis"] == "rack_pinion":
-                self._open_rack_pinion(cycle_s)
-                return self
-            needs = _device_needs(self.plan)
+            axis = AXES[cfg["axis"]](cfg, self.plan, self.needs)
+            bus_options = _bus_options(cfg)
             if cfg["simulated"]:
-                self._start_simulated_peer(cycle_s, needs)
+                self.simulated = axis.start_simulated(cycle_s, bus_options)
+                self._stack.callback(self.simulated.close)
             self.network = open_network(cfg["interface"], cfg["channel"], cfg["bitrate"],
-                                        **_bus_options(cfg))
+                                        **bus_options)
             self._stack.callback(self.network.disconnect)
-            eds = cfg["eds"] or _packaged_eds()
-            self.drive = Cia402Drive(self.network, cfg["node_id"], eds)
-            self.drive.configure()
-            gains = _gains_si(cfg["gains"])
-            if gains:
-                self.drive.write_gains(**gains)
+            drives = self._open_drives(axis)
+            self.drive = drives[""] if "" in drives else drives
             if cfg["clock"] == "lockstep":
-                self.clock = LockstepClock(self.network, [self.drive], timeout_s=cfg["timeout_s"])
+                self.clock = LockstepClock(self.network, list(drives.values()),
+                                           timeout_s=cfg["timeout_s"])
             else:
-                self.clock = RealtimeClock(self.network, [self.drive], period_s=cycle_s)
-            self.devices = open_cycle_devices(needs, *self._device_addresses(), self._stack,
-                                              self.network)
+                self.clock = RealtimeClock(self.network, list(drives.values()), period_s=cycle_s)
+            self.devices = axis.devices(drives, self.simulated, self._stack, self.network)
         except BaseException:
             self._stack.close()
             raise
         return self
 
-    def _open_rack_pinion(self, cycle_s: float) -> None:
-        """Master and slave drives of the rack-and-pinion axis (`rack_pinion_bench`)."""
-        from feedbench.rack_pinion_bench import open_rack_pinion
-
-        axis = open_rack_pinion(self.config, cycle_s, _gains_si(self.config["gains"]),
-                                self._stack, _bus_options(self.config))
-        self.network, self.drive, self.clock = axis.network, axis.drives, axis.clock
-        self.devices, self.simulated = axis.devices, axis.simulated
-
-    def _start_simulated_peer(self, cycle_s: float, needs: Mapping[str, Any]) -> None:
-        from feedbench.sim_backends.bench import start_simulated_axis
-        from feedbench.sim_backends.world import build_axis, build_sensor_noise
-
-        cfg = self.config
-        if needs:  # devices besides the drive: the whole simulated bench
-            self._start_simulated_bench(needs.get("exciter", {}).get("node_id"))
-            return
-        simulator = build_axis(cfg["world"], cycle_s)
-        self.simulated_drive = start_simulated_axis(
-            cfg["interface"], cfg["channel"], cfg["node_id"], simulator,
-            noise=build_sensor_noise(cfg["world"]),
-        )
-        self._stack.callback(self.simulated_drive.close)
-
-    def _start_simulated_bench(self, exciter_node: int | None = None) -> None:
-        """Drive, inverter, DAQ and the milling world, the workpiece prepared as planned (with
-        `exciter_node`: the tool-tip exciters and their I/O module instead of the milling)."""
-        from feedbench.sim_backends.process import SimulatedBench
-
-        self.simulated = SimulatedBench(self.config, self.plan.params.get("workpiece", ()),
-                                        bus_options=_bus_options(self.config),
-                                        exciter_node=exciter_node,
-                                        milling=exciter_node is None)
-        self._stack.callback(self.simulated.close)
-        self.simulated_drive = self.simulated.drive
-
-    def _device_addresses(self) -> tuple[str, str]:
-        """Modbus host:port and DAQ port: the simulated bench's, else the configured ones."""
-        if self.simulated is not None:
-            host, port = self.simulated.modbus_address
-            return f"{host}:{port}", self.simulated.daq_port
-        return self.config["modbus"], self.config["daq_port"]
+    def _open_drives(self, axis: LabAxis | RackPinionAxis) -> dict[str, Cia402Drive]:
+        """The axis's drives, each configured by SDO with the bench's gains."""
+        eds = self.config["eds"] or axis.packaged_eds()
+        gains = _gains_si(self.config["gains"]) or None
+        drives = {name: Cia402Drive(self.network, node_id, eds, axis.pdo_config)
+                  for name, node_id in axis.nodes().items()}
+        for drive in drives.values():
+            drive.configure(gains=gains)
+        return drives
 
     def __exit__(self, *exc) -> None:
         self._stack.close()
@@ -331,7 +348,7 @@ def run_config(config: RunConfig, observers: Sequence[Observer] = (),
     The output directory and its catalog are made once the bench has opened: a bench that
     cannot be reached leaves nothing behind."""
     output_dir = Path(config.bench["output_dir"])
-    with Bench(config.bench, config.plan) as bench:
+    with Bench(config.bench, config.plan, config.experiment.devices()) as bench:
         output_dir.mkdir(parents=True, exist_ok=True)
         catalog = Catalog(output_dir / "catalog.sqlite")
         return bench.run(config, catalog, output_dir, observers, progress, stop)

@@ -2,9 +2,10 @@
 object table."""
 
 import pytest
+from canopen.profiles.p402 import State402
 
 from feedbench.config import ConfigError
-from feedbench.drivers.cia402 import PdoConfig, decode_state
+from feedbench.drivers.cia402 import PdoConfig, controlword_towards, decode_state
 from feedbench.protocols import cia301, cia402
 from feedbench.protocols.address import split_address
 from feedbench.sim_backends import eds
@@ -45,7 +46,30 @@ def test_every_state_the_simulated_drive_reports_decodes_to_itself_on_the_host()
 
 def test_the_supported_modes_are_the_bits_of_the_mode_codes():
     assert cia402.MODES == (8, 9, 10)
-    assert sum(1 << (mode - 1) for mode in cia402.MODES) == cia402.SUPPORTED_MODES == 0x0380
+    assert sum(cia402.mode_bit(mode) for mode in cia402.MODES) == cia402.SUPPORTED_MODES == 0x0380
+    assert cia402.mode_bit(1) == 0x01 and cia402.mode_bit(0) == cia402.mode_bit(11) == 0
+
+
+def test_the_command_words_are_canopens_and_the_device_decodes_each_to_itself():
+    assert cia402.COMMANDS == {"DISABLE VOLTAGE": State402.CW_DISABLE_VOLTAGE,
+                               "QUICK STOP": State402.CW_QUICK_STOP,
+                               "SHUTDOWN": State402.CW_SHUTDOWN, "SWITCH ON": State402.CW_SWITCH_ON,
+                               "ENABLE OPERATION": State402.CW_OPERATION_ENABLED}
+    reset = State402.TRANSITIONTABLE[(cia402.FAULT, cia402.SWITCH_ON_DISABLED)]
+    assert cia402.CW_FAULT_RESET == reset
+    for command, word in cia402.COMMANDS.items():
+        assert cia402.command_of(word) == cia402.command_of(word | cia402.CW_FAULT_RESET) == command
+
+
+def test_each_step_the_host_takes_to_enable_leads_the_device_there():
+    """The host's path to operation enabled (canopen's p402 table, one controlword a cycle)
+    walks the device's state machine from switch on disabled, one transition a step."""
+    state, path = cia402.SWITCH_ON_DISABLED, []
+    while state != cia402.OPERATION_ENABLED:
+        state = cia402.TRANSITIONS[(state, cia402.command_of(
+            controlword_towards(state, cia402.OPERATION_ENABLED)))]
+        path.append(state)
+    assert path == [cia402.READY, cia402.SWITCHED_ON, cia402.OPERATION_ENABLED]
 
 
 COMMUNICATION_NAMES = {

@@ -2,10 +2,11 @@
 
 From canopen: the RemoteNode (SDO client, NMT master, heartbeat and EMCY consumers, PDO
 mapping by SDO, PDO reception) and, from its p402 profile, the statusword masks, the
-transition table, the next-state rule (`State402`) and the supported-mode bits
-(`OperationMode`). Not from canopen: `BaseNode402`'s state / op-mode setters and fault reset
-wait on wall-clock timeouts and busy-wait for the statusword, and its controlword setter
-does not transmit a SYNC-type RPDO. In lockstep virtual time the controlword must advance
+transition table and the next-state rule (`State402`); the controlword commands and the
+supported-mode bits are `protocols.cia402`'s (the simulated drive decodes the same). Not
+from canopen: `BaseNode402`'s state / op-mode setters and fault reset wait on wall-clock
+timeouts and busy-wait for the statusword, and its controlword setter does not transmit a
+SYNC-type RPDO. In lockstep virtual time the controlword must advance
 one step per bus cycle, so `enable_step` / `disable_step` do that here. PDO payloads are
 packed and unpacked with one precompiled `struct` per PDO (canopen's per-variable PDO
 access costs tens of µs per cycle).
@@ -29,27 +30,28 @@ from typing import Callable, NamedTuple
 import canopen
 from canopen.emcy import EmcyError
 from canopen.pdo import PdoMap
-from canopen.profiles.p402 import OperationMode, State402
+from canopen.profiles.p402 import State402
 
 from feedbench.config import ConfigError
 from feedbench.protocols import cia301
 from feedbench.protocols.canbus import pdo_codec, remote_node
 from feedbench.protocols.cia402 import (
-    CONTROLWORD, CW_FAULT_RESET, CYCLE_COUNTER, DEFAULT_RPDO_MAPS, DEFAULT_TPDO_MAPS, FAULT,
-    FORCE_ACTUAL, FORCE_OFFSET_FINE, GAIN_OBJECTS, MODES_OF_OPERATION, NOT_READY, OPERATION_ENABLED,
-    POSITION_ACTUAL, QUICK_STOP_ACTIVE, RATED_TORQUE, STATUSWORD, SUPPORTED_DRIVE_MODES,
-    SWITCH_ON_DISABLED, SW_FAULT, SW_TARGET_REACHED, TARGET_POSITION, TARGET_TORQUE,
-    TARGET_VELOCITY, TORQUE_ACTUAL, TORQUE_OFFSET, VELOCITY_ACTUAL, VELOCITY_OFFSET,
+    COMMANDS, CONTROLWORD, CW_FAULT_RESET, CYCLE_COUNTER, DEFAULT_RPDO_MAPS, DEFAULT_TPDO_MAPS,
+    FAULT, FORCE_ACTUAL, FORCE_OFFSET_FINE, GAIN_OBJECTS, MODES_OF_OPERATION, NOT_READY,
+    OPERATION_ENABLED, POSITION_ACTUAL, QUICK_STOP_ACTIVE, RATED_TORQUE, STATUSWORD,
+    SUPPORTED_DRIVE_MODES, SWITCH_ON_DISABLED, SW_FAULT, SW_TARGET_REACHED, TARGET_POSITION,
+    TARGET_TORQUE, TARGET_VELOCITY, TORQUE_ACTUAL, TORQUE_OFFSET, VELOCITY_ACTUAL, VELOCITY_OFFSET,
+    mode_bit,
 )
 
 Entry = int | tuple[int, int]
 """A mapped object: index (sub-index 0) or (index, sub-index)."""
 
 DISABLED_STATES = (SWITCH_ON_DISABLED, NOT_READY, FAULT)
-CW_ENABLE_OPERATION = State402.CW_OPERATION_ENABLED
-CW_QUICK_STOP = State402.CW_QUICK_STOP
-CW_DISABLE_VOLTAGE = State402.CW_DISABLE_VOLTAGE
-CW_DISABLE_OPERATION = State402.CW_SWITCH_ON  # 0x07 from operation enabled: transition 5
+CW_ENABLE_OPERATION = COMMANDS["ENABLE OPERATION"]
+CW_QUICK_STOP = COMMANDS["QUICK STOP"]
+CW_DISABLE_VOLTAGE = COMMANDS["DISABLE VOLTAGE"]
+CW_DISABLE_OPERATION = COMMANDS["SWITCH ON"]  # 0x07 from operation enabled: transition 5
 
 
 @dataclass(frozen=True)
@@ -358,7 +360,7 @@ class Cia402Drive:
 
     def set_mode(self, mode: int) -> None:
         """Modes of operation 0x6060 (8 CSP, 9 CSV, 10 CST), by RPDO if mapped, else SDO."""
-        bit = OperationMode.SUPPORTED.get(OperationMode.CODE2NAME.get(mode, ""), 0)
+        bit = mode_bit(mode)
         if not bit or not self._supported_modes & bit:
             raise ValueError(f"mode {mode} not supported by node {self.node.id} "
                              f"(0x6502 = 0x{self._supported_modes:04X})")

@@ -1,6 +1,6 @@
 """Host devices the runner serves every bus cycle besides the drive (`runner.CycleDevice`).
 
-- `SpindleCommands`: the spindle inverter over Modbus. A plan segment whose info holds
+- `SpindleCommands`: the spindle inverter over Modbus. A plan segment whose commands hold
   ``spindle_rpm`` (and optionally ``spindle_ramp_rpm_s``) sets the inverter's ramp limit and
   speed setpoint in the cycle the segment starts (0 rpm: stop), so a linear speed ramp is the
   inverter's own ramp, as on the thesis's SMFE bench (Ch. 6.4.1); the actual speed is read
@@ -37,15 +37,16 @@ class DeviceLinkError(RuntimeError):
     """A per-cycle device stopped answering."""
 
 
+SPINDLE_COMMANDS = ("spindle_rpm", "spindle_ramp_rpm_s")
+"""Segment commands of the spindle inverter: speed setpoint (rpm), ramp limit (rpm/s)."""
+
+
 def spindle_commands(plan: Plan) -> dict[int, tuple[float, float | None]]:
-    """Plan cycle index → (speed setpoint rpm, ramp limit rpm/s or None) from segment infos."""
-    commands, first = {}, 0
-    for segment in plan.segments:
-        if "spindle_rpm" in segment.info:
-            commands[first] = (float(segment.info["spindle_rpm"]),
-                               segment.info.get("spindle_ramp_rpm_s"))
-        first += segment.n_cycles
-    return commands
+    """Plan cycle index → (speed setpoint rpm, ramp limit rpm/s or None) from the segments'
+    commands."""
+    return {index: (float(found["spindle_rpm"]), found.get("spindle_ramp_rpm_s"))
+            for index, found in plan.commands_at(SPINDLE_COMMANDS).items()
+            if "spindle_rpm" in found}
 
 
 class SpindleCommands:

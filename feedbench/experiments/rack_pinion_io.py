@@ -1,9 +1,9 @@
 """Per-cycle host devices of the rack-and-pinion axis (`runner.CycleDevice`).
 
-- `AxisSettings`: a plan segment whose info holds ``coupling`` (coupled, master, slave) or
-  ``preload_pct`` (and optionally ``K_Tm``, ``K_Ts``) sets the axis controller by SDO in
+- `AxisSettings`: a plan segment whose commands hold ``coupling`` (coupled, master, slave)
+  or ``preload_pct`` (and optionally ``K_Tm``, ``K_Ts``) sets the axis controller by SDO in
   the cycle the segment starts, as the thesis reconfigured its CNC between tests (Ch. 3.4).
-  The settings stay in the segment's event, so the analysis knows each test's setup.
+  The commands stay in the segment's event, so the recording tells each test's setup.
 - `AxisEncoders`: both motor encoders and the linear scale from the drives' TPDO 3,
   recorded as ``master.motor_position``, ``slave.motor_position``, ``load_position`` (m).
 - `LoadCellForce`: the bumper's load cell over Modbus every `every_cycles` (NaN between
@@ -23,21 +23,12 @@ from feedbench.drivers.rack_pinion import AxisController, load_position, motor_p
 from feedbench.experiments.plan import Plan
 
 SETTING_KEYS = ("coupling", "preload_pct", "K_Tm", "K_Ts")
+"""Segment commands of the axis controller: coupling name, preload (% of the rated torque),
+torque weighting factors."""
 
 
 class LoadCellOverload(RuntimeError):
     """The load on the bumper is beyond the load cell's range."""
-
-
-def axis_settings(plan: Plan) -> dict[int, dict[str, Any]]:
-    """Plan cycle index → the axis settings of the segment starting there."""
-    settings, first = {}, 0
-    for segment in plan.segments:
-        found = {k: segment.info[k] for k in SETTING_KEYS if k in segment.info}
-        if found:
-            settings[first] = found
-        first += segment.n_cycles
-    return settings
 
 
 class _Guard:
@@ -69,7 +60,7 @@ class AxisSettings:
         self._guard = _Guard()
 
     def start(self, plan: Plan, recorder) -> None:
-        self._settings = axis_settings(plan)
+        self._settings = plan.commands_at(SETTING_KEYS)
 
     def before_sync(self, index: int | None) -> None:
         found = self._settings.get(index) if index is not None else None

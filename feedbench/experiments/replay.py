@@ -7,32 +7,30 @@ speed; `recorded_plan` rebuilds the plan they see from the recording's segment e
 
 from __future__ import annotations
 
-import json
 import time
 from typing import Sequence
 
 import numpy as np
 
 from feedbench.daq.recorder import StreamSpec
-from feedbench.experiments.plan import Plan, Segment
+from feedbench.experiments.plan import Plan, Segment, segment_event
 from feedbench.experiments.runner import BLOCK_CYCLES, Observer, StopRequest
 
 
 def recorded_plan(recording) -> tuple[Plan, list[int]]:
     """The plan a recording was made from, rebuilt from its segment events.
 
-    Returns the plan (segments carry label, kind, info and their recorded length; their
-    setpoints are not needed to replay) and each segment's first cycle. Enable and
+    Returns the plan (segments carry label, kind, info, commands and their recorded length;
+    their setpoints are not needed to replay) and each segment's first cycle. Enable and
     disable steps are the runner's, not the plan's, and are left out as in a live run.
     """
     segments, starts = [], []
     for seg in recording.segments("segment"):
-        meta = json.loads(seg.label)
-        if meta.get("kind") in ("enable", "disable"):
+        label, kind, info, commands = segment_event(seg.label)
+        if kind in ("enable", "disable"):
             continue
-        info = {k: v for k, v in meta.items() if k not in ("label", "kind")}
         length = np.broadcast_to(np.float64(0.0), (seg.stop - seg.start,))
-        segments.append(Segment(meta["label"], meta["kind"], length, info=info))
+        segments.append(Segment(label, kind, length, info=info, commands=commands))
         starts.append(seg.start)
     cycle_s = float(recording.metadata.get("cycle_s", 1e-3))
     plan = Plan(recording.experiment, 0, segments, recording.config.get("experiment", {}), cycle_s)

@@ -397,10 +397,12 @@ def _where(name: str) -> str:
 
 
 def segment_text(segment: Segment | None, label: str = "") -> str:
-    """Event text of a segment start: JSON with label, kind and the segment's info."""
+    """Event text of a segment start: JSON with label, kind, the segment's info and, if it
+    has any, its commands under ``commands`` (read back by `plan.segment_event`)."""
     if segment is None:
         return json.dumps({"label": label, "kind": label})
-    return json.dumps({"label": segment.label, "kind": segment.kind, **segment.info})
+    commands = {"commands": segment.commands} if segment.commands else {}
+    return json.dumps({"label": segment.label, "kind": segment.kind, **segment.info, **commands})
 
 
 class ProgressPrinter:

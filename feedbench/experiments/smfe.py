@@ -197,7 +197,7 @@ def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
     n0, n1 = p["spindle_rpm_start"], p["spindle_rpm_stop"]
     accel, spin = p["accel_m_s2"], p["spindle_accel_rpm_s"]
     segments = [Segment("spindle start", "settle", _hold(0.0, n0 / spin + 0.5, cycle_s),
-                        info={"spindle_rpm": n0, "spindle_ramp_rpm_s": spin})]
+                        commands={"spindle_rpm": n0, "spindle_ramp_rpm_s": spin})]
     workpiece, x = [], 0.0
     for k, (mode, a_e) in enumerate(zip(p["cuts"], planning["a_e_mm"])):
         info = {"cut": k, "mode": mode, "a_e_mm": a_e}
@@ -215,16 +215,16 @@ def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
         ramp = {"spindle_rpm": n1, "spindle_ramp_rpm_s": (n1 - n0) / p["ramp_s"]}
         segments += [
             Segment(f"approach {mode}", "move", approach, info=info),
-            Segment(f"{mode} milling ramp", "measure", cut, info={**info, **ramp}),
+            Segment(f"{mode} milling ramp", "measure", cut, info=info, commands=ramp),
             Segment(f"stop {mode}", "move", stop, info=info),
             Segment(f"spindle back {mode}", "settle", _hold(float(stop[-1]), (n1 - n0) / spin + 0.2,
                                                             cycle_s),
-                    info={**info, "spindle_rpm": n0, "spindle_ramp_rpm_s": spin}),
+                    info=info, commands={"spindle_rpm": n0, "spindle_ramp_rpm_s": spin}),
         ]
         x = float(stop[-1])
     segments.append(Segment("return", "move", _point_to_point(
         x, 0.0, p["return_feed_mm_min"] * MM_PER_MIN, accel, cycle_s),
-        info={"spindle_rpm": 0.0, "spindle_ramp_rpm_s": spin}))
+        commands={"spindle_rpm": 0.0, "spindle_ramp_rpm_s": spin}))
     return Plan(NAME, CSP, segments, {**p, "planning": planning, "workpiece": workpiece}, cycle_s)
 
 

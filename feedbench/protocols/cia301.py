@@ -12,6 +12,8 @@ NMT_RESET_NODE = 0x81
 DEVICE_TYPE = 0x1000
 """Object: profile number in the low 16 bits, additional information above."""
 ERROR_REGISTER = 0x1001
+ERROR_REGISTER_GENERIC = 0x01
+"""Error register bit 0: generic error (set with every EMCY the drive sends)."""
 CYCLE_PERIOD = 0x1006
 """µs: one SYNC advances the simulated axis by this time."""
 HEARTBEAT_TIME = 0x1017
@@ -34,3 +36,12 @@ RPDO_COB_BASE, TPDO_COB_BASE = 0x200, 0x180
 """COB-ID of PDO 1 without the node id (predefined connection set; PDO n: + 0x100 (n − 1))."""
 TRANSMISSION_SYNC = 1
 """PDO transmission type: every SYNC."""
+
+SDO_ABORT_NO_OBJECT = 0x06020000
+"""SDO abort code: the object does not exist in the object dictionary."""
+SDO_ABORT_NOT_MAPPABLE = 0x06040041
+"""SDO abort code: the object cannot be mapped to the PDO."""
+SDO_ABORT_PDO_LENGTH = 0x06040042
+"""SDO abort code: the mapped objects exceed the PDO length (64 bits)."""
+SDO_ABORT_VALUE_RANGE = 0x06090030
+"""SDO abort code: the value is out of the parameter's range."""

@@ -16,6 +16,14 @@ from __future__ import annotations
 CSP, CSV, CST = 8, 9, 10
 """Cyclic synchronous position, velocity, torque."""
 MODES = (CSP, CSV, CST)
+
+
+def mode_bit(mode: int) -> int:
+    """The bit of 0x6502 (supported drive modes) that announces the profile mode code
+    `mode` (1–10); 0 for any other code."""
+    return 1 << (mode - 1) if 1 <= mode <= 10 else 0
+
+
 SUPPORTED_MODES = 0x0380
 """0x6502 bits 7, 8, 9: the three cyclic synchronous modes."""
 
@@ -98,8 +106,54 @@ SW_TARGET_REACHED = 0x0400
 """In quick stop active: the stop is complete."""
 SW_FOLLOWS_COMMAND = 0x1000
 SW_FOLLOWING_ERROR = 0x2000
+
+TRANSITIONS = {
+    (READY, "DISABLE VOLTAGE"): SWITCH_ON_DISABLED,  # 7
+    (SWITCHED_ON, "DISABLE VOLTAGE"): SWITCH_ON_DISABLED,  # 10
+    (OPERATION_ENABLED, "DISABLE VOLTAGE"): SWITCH_ON_DISABLED,  # 9
+    (QUICK_STOP_ACTIVE, "DISABLE VOLTAGE"): SWITCH_ON_DISABLED,  # 12
+    (READY, "QUICK STOP"): SWITCH_ON_DISABLED,  # 7
+    (SWITCHED_ON, "QUICK STOP"): SWITCH_ON_DISABLED,  # 10
+    (OPERATION_ENABLED, "QUICK STOP"): QUICK_STOP_ACTIVE,  # 11
+    (SWITCH_ON_DISABLED, "SHUTDOWN"): READY,  # 2
+    (SWITCHED_ON, "SHUTDOWN"): READY,  # 6
+    (OPERATION_ENABLED, "SHUTDOWN"): READY,  # 8
+    (READY, "SWITCH ON"): SWITCHED_ON,  # 3
+    (OPERATION_ENABLED, "SWITCH ON"): SWITCHED_ON,  # 5 (disable operation)
+    (READY, "ENABLE OPERATION"): OPERATION_ENABLED,  # 3 + 4
+    (SWITCHED_ON, "ENABLE OPERATION"): OPERATION_ENABLED,  # 4
+}
+"""The device's state machine: (state, `command_of` the controlword) → next state (CiA 402
+transition numbers); absent pairs leave the state unchanged. Quick-stop option code 2: no
+transition 16 back to operation enabled."""
+POWERED = (OPERATION_ENABLED, QUICK_STOP_ACTIVE)
+"""States in which the drive's power stage is on."""
+
+# -- controlword (0x6040) ------------------------------------------------------------------
+
+CW_SWITCH_ON_BIT, CW_ENABLE_VOLTAGE_BIT, CW_QUICK_STOP_BIT, CW_ENABLE_OPERATION_BIT = 1, 2, 4, 8
+"""Controlword bits 0–3 (bit 2 low: quick stop)."""
 CW_FAULT_RESET = 0x0080
 """Controlword bit 7: resets a fault on its rising edge."""
+COMMANDS = {"DISABLE VOLTAGE": 0x00, "QUICK STOP": 0x02, "SHUTDOWN": 0x06, "SWITCH ON": 0x07,
+            "ENABLE OPERATION": 0x0F}
+"""Controlword of each command (canopen's p402 values); "SWITCH ON" from operation enabled
+is disable operation (transition 5)."""
+
+
+def command_of(controlword: int) -> str:
+    """The command coded in controlword bits 0–3 (a `COMMANDS` name; bit 7 is an edge)."""
+    if not controlword & CW_ENABLE_VOLTAGE_BIT:
+        return "DISABLE VOLTAGE"
+    if not controlword & CW_QUICK_STOP_BIT:
+        return "QUICK STOP"
+    if not controlword & CW_SWITCH_ON_BIT:
+        return "SHUTDOWN"
+    return "ENABLE OPERATION" if controlword & CW_ENABLE_OPERATION_BIT else "SWITCH ON"
+
+
+FOLLOWING_ERROR_OFF = 0xFFFFFFFF
+"""0x6065 value that switches the following-error check off."""
 
 # -- emergency codes the simulated drive sends ---------------------------------------------
 

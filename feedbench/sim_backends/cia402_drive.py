@@ -47,59 +47,20 @@ from feedbench.protocols.canbus import connect, pdo_codec
 from feedbench.protocols.cia402 import (
     CONTROLWORD, CSP, CSV, CW_FAULT_RESET, CYCLE_COUNTER, EMCY_FOLLOWING_ERROR,
     EMCY_INTERNAL_SOFTWARE, EMCY_PDO_LENGTH, ERROR_CODE, FAULT, FAULT_INJECTION,
-    FOLLOWING_ERROR_ACTUAL, FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL, FORCE_LIMIT, FORCE_OFFSET_FINE,
-    GAIN_OBJECTS, MODES, MODES_OF_OPERATION, MODES_OF_OPERATION_DISPLAY, OPERATION_ENABLED,
-    POSITION_ACTUAL, QUICK_STOP_ACTIVE, QUICK_STOP_DECELERATION, RATED_TORQUE, READY, STATE_BITS,
-    STATUSWORD, SWITCHED_ON, SWITCH_ON_DISABLED, SW_FOLLOWING_ERROR, SW_FOLLOWS_COMMAND, SW_REMOTE,
-    TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY, TORQUE_ACTUAL, TORQUE_OFFSET, VELOCITY_ACTUAL,
-    VELOCITY_OFFSET, VELOCITY_WINDOW,
+    FOLLOWING_ERROR_ACTUAL, FOLLOWING_ERROR_OFF, FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL, FORCE_LIMIT,
+    FORCE_OFFSET_FINE, GAIN_OBJECTS, MODES, MODES_OF_OPERATION, MODES_OF_OPERATION_DISPLAY,
+    OPERATION_ENABLED, POSITION_ACTUAL, POWERED, QUICK_STOP_ACTIVE, QUICK_STOP_DECELERATION,
+    RATED_TORQUE, STATE_BITS, STATUSWORD, SWITCH_ON_DISABLED, SW_FOLLOWING_ERROR,
+    SW_FOLLOWS_COMMAND, SW_REMOTE, TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY, TORQUE_ACTUAL,
+    TORQUE_OFFSET, TRANSITIONS, VELOCITY_ACTUAL, VELOCITY_OFFSET, VELOCITY_WINDOW, command_of,
 )
 from feedbench.sim_backends import eds
 
-# controlword commands (CiA 402), decoded by `command_of`
-DISABLE_VOLTAGE, QUICK_STOP, SHUTDOWN, SWITCH_ON, ENABLE_OPERATION = range(5)
-
-TRANSITIONS = {  # (state, command) -> next state; absent pairs leave the state unchanged
-    (READY, DISABLE_VOLTAGE): SWITCH_ON_DISABLED,  # 7
-    (SWITCHED_ON, DISABLE_VOLTAGE): SWITCH_ON_DISABLED,  # 10
-    (OPERATION_ENABLED, DISABLE_VOLTAGE): SWITCH_ON_DISABLED,  # 9
-    (QUICK_STOP_ACTIVE, DISABLE_VOLTAGE): SWITCH_ON_DISABLED,  # 12
-    (READY, QUICK_STOP): SWITCH_ON_DISABLED,  # 7
-    (SWITCHED_ON, QUICK_STOP): SWITCH_ON_DISABLED,  # 10
-    (OPERATION_ENABLED, QUICK_STOP): QUICK_STOP_ACTIVE,  # 11
-    (SWITCH_ON_DISABLED, SHUTDOWN): READY,  # 2
-    (SWITCHED_ON, SHUTDOWN): READY,  # 6
-    (OPERATION_ENABLED, SHUTDOWN): READY,  # 8
-    (READY, SWITCH_ON): SWITCHED_ON,  # 3
-    (OPERATION_ENABLED, SWITCH_ON): SWITCHED_ON,  # 5 (disable operation)
-    (READY, ENABLE_OPERATION): OPERATION_ENABLED,  # 3 + 4
-    (SWITCHED_ON, ENABLE_OPERATION): OPERATION_ENABLED,  # 4
-}
-POWERED = (OPERATION_ENABLED, QUICK_STOP_ACTIVE)
-
 LOGGER = logging.getLogger(__name__)
 
-ERROR_REGISTER_GENERIC = 0x01
-FOLLOWING_ERROR_OFF = 0xFFFFFFFF
-
-ABORT_NO_OBJECT = 0x06020000
-ABORT_NOT_MAPPABLE = 0x06040041
-ABORT_PDO_LENGTH = 0x06040042
-ABORT_VALUE_RANGE = 0x06090030
 GAIN_FIELDS = {index: name for name, index in GAIN_OBJECTS.items()}  # → CascadeGains
 INT16_MAX = 0x7FFF
 INT32_MAX = 0x7FFFFFFF
-
-
-def command_of(controlword: int) -> int:
-    """The CiA 402 command coded in controlword bits 0–3 (bit 7 is handled as an edge)."""
-    if not controlword & 0x02:
-        return DISABLE_VOLTAGE
-    if not controlword & 0x04:
-        return QUICK_STOP
-    if not controlword & 0x01:
-        return SHUTDOWN
-    return ENABLE_OPERATION if controlword & 0x08 else SWITCH_ON
 
 
 def _int32_wrapped(value: float) -> int:
@@ -273,15 +234,15 @@ class SimulatedCia402Drive:
             try:
                 self._objects.write(index, value)
             except ValueError:
-                raise SdoAbortedError(ABORT_VALUE_RANGE) from None
+                raise SdoAbortedError(cia301.SDO_ABORT_VALUE_RANGE) from None
         if index in GAIN_FIELDS:
             try:
                 gains = dataclasses.replace(self.simulator.gains, **{GAIN_FIELDS[index]: value})
             except ValueError:  # CascadeGains refuses T_i <= 0, K_p < 0, K_v < 0
-                raise SdoAbortedError(ABORT_VALUE_RANGE) from None
+                raise SdoAbortedError(cia301.SDO_ABORT_VALUE_RANGE) from None
             self.simulator.set_gains(gains)
         elif index in (FORCE_LIMIT, RATED_TORQUE) and not value > 0:
-            raise SdoAbortedError(ABORT_VALUE_RANGE)
+            raise SdoAbortedError(cia301.SDO_ABORT_VALUE_RANGE)
         if index == FORCE_LIMIT:
             self.simulator.force_limit = value
         self.values[index] = value
@@ -293,17 +254,17 @@ class SimulatedCia402Drive:
         if subindex == 0:
             if value > 8 or sum(self.node.sdo[index][sub].raw & 0xFF
                                 for sub in range(1, value + 1)) > 64:
-                raise SdoAbortedError(ABORT_PDO_LENGTH)
+                raise SdoAbortedError(cia301.SDO_ABORT_PDO_LENGTH)
             return
         if value == 0:
             return
         mapped, sub, bits = value >> 16, value >> 8 & 0xFF, value & 0xFF
         od = self.node.object_dictionary.get_variable(mapped, sub)
         if od is None:
-            raise SdoAbortedError(ABORT_NO_OBJECT)
+            raise SdoAbortedError(cia301.SDO_ABORT_NO_OBJECT)
         allowed = od.writable if receive else od.readable
         if not (od.pdo_mappable and allowed and bits == len(od)):
-            raise SdoAbortedError(ABORT_NOT_MAPPABLE)
+            raise SdoAbortedError(cia301.SDO_ABORT_NOT_MAPPABLE)
 
     def _load_pdo_maps(self) -> None:
         """Reload the PDO maps from the SDO store (canopen keeps them apart, STACKS.md).
@@ -381,7 +342,7 @@ class SimulatedCia402Drive:
         try:
             self._received.update(zip(codec.indices, codec.layout.unpack(data)))
         except struct.error:
-            self.node.emcy.send(EMCY_PDO_LENGTH, ERROR_REGISTER_GENERIC)
+            self.node.emcy.send(EMCY_PDO_LENGTH, cia301.ERROR_REGISTER_GENERIC)
 
     def _advance_state_machine(self, controlword: int) -> None:
         values = self.values
@@ -412,8 +373,8 @@ class SimulatedCia402Drive:
     def _fault(self, code: int) -> None:
         self._enter(FAULT)
         self.values[ERROR_CODE] = code
-        self.values[cia301.ERROR_REGISTER] = ERROR_REGISTER_GENERIC
-        self.node.emcy.send(code, ERROR_REGISTER_GENERIC)
+        self.values[cia301.ERROR_REGISTER] = cia301.ERROR_REGISTER_GENERIC
+        self.node.emcy.send(code, cia301.ERROR_REGISTER_GENERIC)
 
     def _reset_fault(self) -> None:
         self._enter(SWITCH_ON_DISABLED)
