@@ -18,6 +18,7 @@ import subprocess
 import sys
 import tempfile
 import textwrap
+import time
 from importlib import resources
 from pathlib import Path
 
@@ -26,7 +27,8 @@ import pytest
 from feedbench.bench import parse_run_config, run_config
 from feedbench.cli import main
 from feedbench.daq.catalog import Catalog
-from feedbench.daq.recording import open_recording
+from feedbench.config import ConfigError
+from feedbench.daq.recording import open_recording, read_summary
 from feedbench.demo import example_config
 from test_report import friction_steps, record
 
@@ -92,6 +94,15 @@ def test_a_run_killed_mid_recording_is_listed_crashed_with_the_samples_of_its_fi
     assert line[:3] == [run_id, "crashed", str(in_file.n_samples)]
 
 
+def _flushed(directory: Path, at_least: int) -> bool:
+    """Whether the recording being written in `directory` holds `at_least` samples."""
+    try:
+        [path] = directory.glob("*.h5")
+        return read_summary(path).n_samples >= at_least
+    except (ValueError, ConfigError):  # no file yet, or not readable yet
+        return False
+
+
 def test_a_simulated_run_killed_mid_run_is_listed_crashed(tmp_path, can_channel, capsys):
     """`feedbench run` (bench, runner, recorder in one process) killed with SIGKILL."""
     text = (resources.files("feedbench") / "examples" / "friction_sweep.toml").read_text()
@@ -99,17 +110,15 @@ def test_a_simulated_run_killed_mid_run_is_listed_crashed(tmp_path, can_channel,
     config.write_text(text.replace('output_dir = "runs"', f'output_dir = "{tmp_path}"')
                       .replace('channel = "feedbench-demo"', f'channel = "{can_channel}"'))
     run = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "run", str(config)],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    progress = 0
-    for line in run.stderr:
-        progress += "%" in line
-        if progress == 1:  # a wall second into the run: chunks are on disk
-            break
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not _flushed(tmp_path, at_least=2000) and time.monotonic() < deadline:
+        time.sleep(0.05)
     run.send_signal(signal.SIGKILL)
     run.wait(10)
     [row] = runs_json(tmp_path, capsys)
     in_file = open_recording(row["file"])
-    assert in_file.status == "running" and in_file.n_samples >= 1000, in_file.n_samples
+    assert in_file.status == "running" and in_file.n_samples >= 2000, in_file.n_samples
     assert (row["status"], row["n_samples"], row["pid"]) == ("crashed", in_file.n_samples,
                                                              run.pid)
 
@@ -183,6 +192,21 @@ def test_runs_on_a_corrupt_catalog_says_so_in_one_line_and_lists_the_recordings(
                            f"database) moved to {aside.name}; rebuilt from 1 recording(s), "
                            "1 file(s) skipped\n")
     assert proc.stdout.split()[:3] == ["20261125-101010-friction_sweep-1", "complete", "4940"]
+
+
+def test_processes_finding_the_catalog_corrupt_at_once_replace_it_once(tmp_path):
+    record(tmp_path / "20261125-101010-friction_sweep-1.h5", "friction_sweep", friction_steps())
+    (tmp_path / "catalog.sqlite").write_text("not a database\n" * 20)
+    opening = ("import sys; from feedbench.daq.catalog import Catalog; "
+               "print(len(Catalog(sys.argv[1]).list()))")
+    processes = [subprocess.Popen([sys.executable, "-c", opening, str(tmp_path / "catalog.sqlite")],
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                 for _ in range(4)]
+    outputs = [process.communicate(timeout=60) for process in processes]
+    assert [(process.returncode, out) for process, (out, _) in zip(processes, outputs)] == [
+        (0, "1\n")] * 4
+    assert len(list(tmp_path.glob("catalog.sqlite.corrupt-*"))) == 1
+    assert sorted(err.count("corrupt run catalog") for _, err in outputs) == [0, 0, 0, 1]
 
 
 def test_catalog_rebuild_recreates_the_rows_from_the_recordings(tmp_path, capsys):

@@ -15,6 +15,7 @@ rebuilt when it is opened, with one warning line. A catalog that cannot be read 
 
 from __future__ import annotations
 
+import fcntl
 import json
 import logging
 import os
@@ -94,14 +95,20 @@ class Catalog:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self._problems():
+            with open(f"{self.path}.lock", "w") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)  # one process replaces it, the others wait
+                if problems := self._problems():  # and then find the new one sound
+                    self._replace_corrupt("; ".join(problems[:3]))
+
+    def _problems(self) -> list[str]:
+        """`_create`, and what makes the file a corrupt catalog (nothing: an empty list)."""
         try:
-            problems = self._create()
+            return self._create()
         except CatalogError as exc:
             if getattr(exc.__cause__, "sqlite_errorcode", None) not in CORRUPT:
                 raise
-            problems = [str(exc.__cause__)]
-        if problems:
-            self._replace_corrupt("; ".join(problems[:3]))
+            return [str(exc.__cause__)]
 
     def _create(self) -> list[str]:
         """Make the table (and the columns added since a catalog was made: under the write
@@ -119,21 +126,20 @@ class Catalog:
                     if row[0] != "ok"]
 
     def _replace_corrupt(self, problem: str) -> None:
-        """Move the corrupt file (and its WAL files) aside, make a new catalog and rebuild
-        it from the recordings, say so in one line. If another process moved it first, use
-        the catalog that process rebuilds."""
+        """Rebuild the catalog from the recordings in a new file, keep the corrupt one under
+        another name, put the new one in its place, say so in one line. The replacement is
+        one rename: no process ever finds the catalog missing or not yet rebuilt."""
         stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
         aside = self.path.with_name(f"{self.path.name}.corrupt-{stamp}")
-        try:
-            self.path.rename(aside)
-        except FileNotFoundError:
-            self._create()
-            return
-        for suffix in ("-wal", "-shm"):
+        fresh = self.path.with_name(f"{self.path.name}.rebuilding")
+        for suffix in ("", "-wal", "-shm"):  # what a rebuild cut short left
+            Path(f"{fresh}{suffix}").unlink(missing_ok=True)
+        added, skipped = Catalog(fresh).rebuild()
+        os.link(self.path, aside)
+        for suffix in ("-wal", "-shm"):  # the corrupt file's: never the new one's
             with suppress(FileNotFoundError):
                 Path(f"{self.path}{suffix}").rename(f"{aside}{suffix}")
-        self._create()
-        added, skipped = self.rebuild()
+        fresh.replace(self.path)
         LOGGER.warning("%s: corrupt run catalog (%s) moved to %s; rebuilt from %d recording(s)"
                        "%s", self.path, problem, aside.name, added,
                        f", {len(skipped)} file(s) skipped" if skipped else "")
