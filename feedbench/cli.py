@@ -305,7 +305,7 @@ def build_parser() -> argparse.ArgumentParser:
     from feedbench.closure_command import add_closure_parser
 
     add_closure_parser(sub)
-    for command in sub.choices.values():  # `--debug` after the sub-command too
+    for command in [*sub.choices.values(), *catalog_sub.choices.values()]:  # and after it
         command.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                              help=argparse.SUPPRESS)
     return parser

@@ -223,7 +223,7 @@ def test_catalog_rebuild_recreates_the_rows_from_the_recordings(tmp_path, capsys
         connection.execute("UPDATE runs SET pid = NULL WHERE id = ?", (stray,))
     (tmp_path / "foreign.h5").write_bytes(b"")
 
-    assert main(["catalog", "rebuild", "--dir", str(tmp_path)]) == 0
+    assert main(["catalog", "rebuild", "--dir", str(tmp_path), "--debug"]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out == [f"skipped {tmp_path / 'foreign.h5'}: not a readable HDF5 file "
                    "(Unable to synchronously open file (file signature not found))",
