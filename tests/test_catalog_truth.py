@@ -22,7 +22,6 @@ import time
 from importlib import resources
 from pathlib import Path
 
-import pytest
 
 from feedbench.bench import parse_run_config, run_config
 from feedbench.cli import main
