@@ -22,11 +22,10 @@ import time
 from importlib import resources
 from pathlib import Path
 
-
 from feedbench.bench import parse_run_config, run_config
 from feedbench.cli import main
-from feedbench.daq.catalog import Catalog
 from feedbench.config import ConfigError
+from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording, read_summary
 from feedbench.demo import example_config
 from test_report import friction_steps, record
