@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from feedbench.bench import EXPERIMENTS
 from feedbench.demo import describe_analysis
+from feedbench.experiments.family import families
 
 FRICTION_TOL = {"F_c": 0.02, "F_s": 0.02, "sigma": 0.02, "v_s": 0.05}
 F_T_HZ, F_R_HZ = 61.4, 74.9
@@ -72,7 +72,7 @@ def summary(demo: dict, name: str) -> dict:
 
 def test_every_family_ran_and_the_lab_bench_runs_are_in_the_report(demo):
     experiments = demo["experiments"]
-    assert {e["analysis"]["experiment"] for e in experiments.values()} == set(EXPERIMENTS)
+    assert {e["analysis"]["experiment"] for e in experiments.values()} == set(families())
     assert all(e["headline"] for e in experiments.values())
     report = Path(demo["report"]).read_text(encoding="utf-8")
     assert demo["report_left_out"] == []
@@ -124,6 +124,12 @@ def test_stepped_loading_stiffness_backlash_and_preload_loss(demo):
         assert s["backlash_m"][motor] == pytest.approx(truth, abs=2e-6), motor
     losses = {level["preload_pct"]: level["loss_force_N"] for level in s["preload"]}
     assert losses == pytest.approx(THESIS_LOSS_N, rel=0.2)
+
+
+def test_backlash_reversal_within_2_um_of_the_world(demo):
+    s = summary(demo, "backlash_reversal")
+    for motor, truth in BACKLASH.items():
+        assert s["motors"][motor]["value_m"] == pytest.approx(truth, abs=2e-6), motor
 
 
 def test_rack_pinion_friction_is_the_guideway_plus_the_motor_drag(demo):
