@@ -23,7 +23,7 @@ from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
 from feedbench.drivers.cia402 import decode_state
 from feedbench.daq.live import LiveStream
-from feedbench.experiments import sine_stream
+from feedbench.experiments.sine_stream import SineStream
 from feedbench.experiments.runner import StopRequest
 from feedbench.gui.live_window import (
     STOP_REASON, LiveWindow, Worker, bench_session, qt_app, replay_session, sticky_range,
@@ -160,7 +160,7 @@ def test_the_frf_builds_up_point_by_point_and_equals_the_analysis(stream_run):
     samples, same sine fits), its R² the analysis's."""
     session, row, _, _, points_at_shot = stream_run
     result = session.window.result
-    analysis = sine_stream.analyze_recording(open_recording(row["file"]))["streams"][0]
+    analysis = SineStream.analyze(open_recording(row["file"]))["streams"][0]
     assert result.version == analysis["steps"] == 21 and analysis["steps_used"] == 21
     assert 5 <= points_at_shot <= 16
     f, log_compliance = session.window.result_plots.curves[0]["1000 mm/min, 20 N"].getData()

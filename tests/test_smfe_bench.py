@@ -20,9 +20,8 @@ from feedbench.bench import analyze_file, parse_run_config, run_config
 from feedbench.config import ConfigError
 from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
-from feedbench.experiments import smfe
 from feedbench.experiments.plan import recorded_windows
-from feedbench.experiments.smfe import SmfePlanningWarning
+from feedbench.experiments.smfe import Smfe, SmfePlanningWarning
 from feedbench.models.milling import (
     SMFE_FEED_PER_TOOTH,
     SMFE_TOOL,
@@ -165,7 +164,7 @@ def test_smfe_reports_the_condition_number(smfe_run):
     assert cond["max"] < 100.0
     assert cond["planned_C_th"] == pytest.approx(9.06, abs=0.05)
     assert result["n_averages"] == 6 and result["warnings"] == []
-    lines = smfe.describe(result)
+    lines = Smfe.describe(result)
     assert lines[1].startswith("  Φ_tt peaks: xx ") and "median" in lines[3]
 
 

@@ -24,14 +24,18 @@ import numpy as np
 from feedbench.analysis.frf import accelerance_to_receptance
 from feedbench.analysis.sinefit import stepped_sine_frf
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
-from feedbench.experiments.family import Experiment
+from feedbench.experiments.family import Experiment, headline
 from feedbench.experiments.plan import Plan, Window, recorded_windows
 from feedbench.experiments.tool_tip import (
-    FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, ExcitationWindow, daq_needs,
-    overloaded, plan_over_feeds, window_samples,
+    COMPLIANCE_LABEL, FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL,
+    ExcitationWindow, daq_needs, feed_label, overloaded, plan_over_feeds, window_samples,
 )
 from feedbench.models.exciters import ExciterDynamics, InertialActuator, shaker
 from feedbench.protocols.cia402 import CSP
+from feedbench.views.panels import ResultView, point_frf_panels
+from feedbench.views.sections import (
+    FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, png_of,
+)
 
 NAME = "sine_stream"
 
@@ -63,18 +67,6 @@ SCHEMA = {
     "shaker_limit_N": Field(float, 500.0, "shaker datasheet: largest command (N)", positive),
     **MOTION_SCHEMA,
 }
-
-
-def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
-    p = validate_table(params, SCHEMA, "experiment")
-    if p["f_stop_Hz"] < p["f_start_Hz"]:
-        raise ConfigError("experiment.f_stop_Hz: must not be below f_start_Hz")
-    if p["f_stop_Hz"] >= 0.25 / cycle_s:
-        raise ConfigError(f"experiment.f_stop_Hz: must be below {0.25 / cycle_s:g} Hz "
-                          "(4 commands per period at the bus cycle)")
-    if not p["r_squared_min"] < 1.0:
-        raise ConfigError("experiment.r_squared_min: must be below 1")
-    return p
 
 
 def frequencies(p: Mapping[str, Any]) -> np.ndarray:
@@ -123,19 +115,6 @@ def step_windows(p: Mapping[str, Any], amplitude: float, cycle_s: float) -> list
     return windows
 
 
-def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
-    """The stream at every amplitude at each feed in turn (CSP)."""
-    p = _validated(params, cycle_s)
-    streams = [w for a in p["amplitudes_N"] for w in step_windows(p, a, cycle_s)]
-    return plan_over_feeds(NAME, CSP, p["feeds_mm_min"], lambda feed: streams, p, cycle_s,
-                           p["exciter"])
-
-
-def devices(p: Mapping[str, Any], cycle_s: float) -> dict[str, dict[str, Any]]:
-    """The DAQ (exciter force, tool-tip acceleration) and the I/O module driving the exciter."""
-    return daq_needs(p, p["exciter"])
-
-
 def fit_step(recording, window: Window, force_channel: str, fs: float, settle_cycles: int,
              r_squared_min: float) -> dict:
     """Sine fits of one recorded step: FRF point (m/s² per N), R², force amplitude, verdict."""
@@ -155,11 +134,13 @@ def fit_step(recording, window: Window, force_channel: str, fs: float, settle_cy
 
 
 def _combine_repeats(fits: list[dict], info: dict, tolerance: float) -> dict:
-    """One step's result from its repetitions: the mean FRF of the good ones, or flagged."""
+    """One step's result from its repetitions: the mean FRF of the good ones, or flagged
+    (`H_fitted`, the mean of every repetition, shows a flagged step; it is never used)."""
     good = [fit for fit in fits if not fit["reasons"]]
     step = {"frequency_hz": info["frequency_hz"], "limited": bool(info["limited"]),
             "held_N": info["held_N"], "repeats": len(fits), "good_repeats": len(good),
             "r_squared": min(fit["r_squared"] for fit in fits),
+            "H_fitted": complex(np.mean([fit["H"] for fit in fits])),
             "flagged": not good, "reasons": sorted({r for fit in fits for r in fit["reasons"]})}
     if good:
         H = np.mean([fit["H"] for fit in good])
@@ -178,8 +159,7 @@ def _stream_summary(feed: float, amplitude: float, steps: list[dict]) -> dict:
     return {
         "feed_mm_min": feed, "amplitude_N": amplitude,
         "steps": len(steps), "steps_used": len(used),
-        "flagged": [{"frequency_hz": s["frequency_hz"], "reasons": s["reasons"]}
-                    for s in steps if s["flagged"]],
+        "flagged": [_flagged_point(s) for s in steps if s["flagged"]],
         "limited_hz": [s["frequency_hz"] for s in steps if s["limited"]],
         "not_held_hz": [s["frequency_hz"] for s in used if not s["amplitude_held"]],
         "min_r_squared": min((s["r_squared"] for s in used), default=float("nan")),
@@ -187,9 +167,19 @@ def _stream_summary(feed: float, amplitude: float, steps: list[dict]) -> dict:
         "frf": {"f_hz": f.tolist(), "accelerance_abs": np.abs(H).tolist(),
                 "accelerance_phase_rad": np.angle(H).tolist(),
                 "compliance_abs": np.abs(compliance).tolist(),
+                "compliance_phase_rad": np.angle(compliance).tolist(),
                 "r_squared": [s["r_squared"] for s in used],
                 "force_amplitude_N": [s["force_amplitude_N"] for s in used]},
     }
+
+
+def _flagged_point(step: dict) -> dict:
+    """A flagged step: why, its least R² and the compliance (m/N) its fits gave, to show."""
+    compliance = complex(accelerance_to_receptance(np.array([step["frequency_hz"]]),
+                                                   np.array([step["H_fitted"]]))[0])
+    return {"frequency_hz": step["frequency_hz"], "reasons": step["reasons"],
+            "r_squared": step["r_squared"], "compliance_abs": abs(compliance),
+            "compliance_phase_rad": float(np.angle(compliance))}
 
 
 def amplitude_spread(streams: list[dict]) -> float:
@@ -205,53 +195,156 @@ def amplitude_spread(streams: list[dict]) -> float:
     return float(np.max(table.max(axis=0) - table.min(axis=0)) / table.max())
 
 
-def analyze_recording(recording) -> dict:
-    """FRF per feed and amplitude with the quality gate, and the amplitude spread per feed.
+def stream_label(stream: Mapping[str, Any]) -> str:
+    """``1000 mm/min, 20 N``: one stream's feed and force amplitude."""
+    return f"{feed_label(stream['feed_mm_min'])}, {stream['amplitude_N']:g} N"
 
-    SI: accelerance (m/s²)/N, compliance m/N, frequencies Hz; feeds mm/min, amplitudes N.
-    """
-    p = recording.config["experiment"]
-    p = validate_table(p, SCHEMA, "experiment")
-    fs = recording.streams["daq"].rate_hz
-    force_channel = FORCE_CHANNELS[p["exciter"]]
-    grouped: dict[tuple[float, float, int], list[tuple[dict, dict]]] = {}
-    for window in recorded_windows(recording, "excite"):
-        fit = fit_step(recording, window, force_channel, fs, p["settle_cycles"],
-                       p["r_squared_min"])
-        key = (abs(float(window.info["feed_mm_min"])), float(window.info["amplitude_N"]),
-               int(window.info["step"]))
-        grouped.setdefault(key, []).append((fit, window.info))
-    streams: dict[tuple[float, float], list[dict]] = {}
-    for (feed, amplitude, _), fits in sorted(grouped.items()):
-        step = _combine_repeats([fit for fit, _ in fits], fits[0][1], p["amplitude_tolerance"])
-        streams.setdefault((feed, amplitude), []).append(step)
-    summaries = [_stream_summary(feed, amplitude, steps)
-                 for (feed, amplitude), steps in streams.items()]
-    feeds = sorted({s["feed_mm_min"] for s in summaries})
-    return {
-        "experiment": NAME,
-        "streams": summaries,
-        "amplitude_spread": {f"{feed:g}": amplitude_spread(
-            [s for s in summaries if s["feed_mm_min"] == feed]) for feed in feeds},
-        "steps_flagged": sum(len(s["flagged"]) for s in summaries),
-    }
+
+def stream_points(stream: Mapping[str, Any]) -> list[tuple[float, complex, float]]:
+    """(f Hz, compliance m/N, R²) of every step of a stream, used and flagged, by frequency."""
+    frf = stream["frf"]
+    used = zip(frf["f_hz"], np.multiply(frf["compliance_abs"],
+                                        np.exp(1j * np.asarray(frf["compliance_phase_rad"]))),
+               frf["r_squared"])
+    flagged = ((x["frequency_hz"], x["compliance_abs"] * np.exp(1j * x["compliance_phase_rad"]),
+                x["r_squared"]) for x in stream["flagged"])
+    return sorted((float(f), complex(H), float(r2)) for f, H, r2 in [*used, *flagged])
+
+
+def _hz_list(values: list[float]) -> str:
+    return ", ".join(f"{v:g}" for v in values) or "none"
+
 
 class SineStream(Experiment):
-    """TRANSITION shell: the module's functions behind the family interface."""
+    """Sine-stream at the tool tip (Ch. 5.5.3, Figs. 5.20–5.22): per step the sine fits of
+    force and tool-tip acceleration give one FRF point with its R² (`analysis.sinefit`);
+    compliance x/F = (a/F)/(jω)² per feed and force amplitude, the quality gate and the
+    spread between amplitudes (the linearity of Fig. 5.22)."""
 
     name = NAME
     schema = SCHEMA
+    title = "sine-stream FRF point by point"
+    live_kinds = ("excite",)
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
-        return _validated(params, cycle_s)
+        """The schema's checks, a stop not below the start, 4 commands per period at the
+        bus cycle and a quality gate below 1."""
+        p = validate_table(params, SCHEMA, "experiment")
+        if p["f_stop_Hz"] < p["f_start_Hz"]:
+            raise ConfigError("experiment.f_stop_Hz: must not be below f_start_Hz")
+        if p["f_stop_Hz"] >= 0.25 / cycle_s:
+            raise ConfigError(f"experiment.f_stop_Hz: must be below {0.25 / cycle_s:g} Hz "
+                              "(4 commands per period at the bus cycle)")
+        if not p["r_squared_min"] < 1.0:
+            raise ConfigError("experiment.r_squared_min: must be below 1")
+        return p
 
     def plan(self) -> Plan:
-        return build_plan(self.settings, self.cycle_s)
+        """The stream at every amplitude at each feed in turn (CSP)."""
+        p, cycle_s = self.settings, self.cycle_s
+        streams = [w for a in p["amplitudes_N"] for w in step_windows(p, a, cycle_s)]
+        return plan_over_feeds(NAME, CSP, p["feeds_mm_min"], lambda feed: streams, p, cycle_s,
+                               p["exciter"])
 
     def devices(self) -> dict[str, dict[str, Any]]:
-        return devices(self.settings, self.cycle_s)
+        """The DAQ (exciter force, tool-tip acceleration) and the I/O module driving the
+        exciter."""
+        return daq_needs(self.settings, self.settings["exciter"])
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
-        return analyze_recording(recording)
+        """FRF per feed and amplitude with the quality gate, and the amplitude spread per
+        feed, of the steps recorded (live: those completed so far).
+
+        SI: accelerance (m/s²)/N, compliance m/N, frequencies Hz; feeds mm/min, amplitudes N.
+        """
+        p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+        fs = recording.streams["daq"].rate_hz
+        force_channel = FORCE_CHANNELS[p["exciter"]]
+        grouped: dict[tuple[float, float, int], list[tuple[dict, dict]]] = {}
+        for window in recorded_windows(recording, "excite"):
+            fit = fit_step(recording, window, force_channel, fs, p["settle_cycles"],
+                           p["r_squared_min"])
+            key = (abs(float(window.info["feed_mm_min"])), float(window.info["amplitude_N"]),
+                   int(window.info["step"]))
+            grouped.setdefault(key, []).append((fit, window.info))
+        streams: dict[tuple[float, float], list[dict]] = {}
+        for (feed, amplitude, _), fits in sorted(grouped.items()):
+            step = _combine_repeats([fit for fit, _ in fits], fits[0][1],
+                                    p["amplitude_tolerance"])
+            streams.setdefault((feed, amplitude), []).append(step)
+        summaries = [_stream_summary(feed, amplitude, steps)
+                     for (feed, amplitude), steps in streams.items()]
+        feeds = sorted({s["feed_mm_min"] for s in summaries})
+        return {
+            "experiment": NAME,
+            "streams": summaries,
+            "amplitude_spread": {f"{feed:g}": amplitude_spread(
+                [s for s in summaries if s["feed_mm_min"] == feed]) for feed in feeds},
+            "steps_flagged": sum(len(s["flagged"]) for s in summaries),
+            "steps_planned": (len(frequencies(p)) * len(p["amplitudes_N"])
+                              * len(p["feeds_mm_min"])),
+            "r_squared_min": p["r_squared_min"],
+        }
+
+    @classmethod
+    def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
+        """FRF points per feed and force amplitude with the R² of each step (Figs. 5.21,
+        5.22), the quality gate and the spread between amplitudes."""
+        gate = result["r_squared_min"]
+        streams = result["streams"]
+        series = [FrfSeries(stream_label(x), np.array(x["frf"]["f_hz"]),
+                            np.array(x["frf"]["compliance_abs"]), np.array(x["frf"]["r_squared"]))
+                  for x in streams]
+        section.plots.append(Plot("sine-stream compliance points with the R² of each step",
+                                  png_of(frf_figure(series, COMPLIANCE_LABEL,
+                                                    "R² of the sine fits", gate, points=True))))
+        section.tables.append(Table("sine-stream per feed and amplitude", (
+            "feed (mm/min)", "amplitude (N)", "steps used", "peak (Hz)", "min R²",
+            "force limited at (Hz)", "force not held at (Hz)"), tuple(
+            (f"{x['feed_mm_min']:g}", f"{x['amplitude_N']:g}",
+             f"{x['steps_used']} of {x['steps']}", f"{x['peak_hz']:.2f}",
+             f"{x['min_r_squared']:.4f}", _hz_list(x["limited_hz"]), _hz_list(x["not_held_hz"]))
+            for x in streams)))
+        low = min((x["min_r_squared"] for x in streams), default=float("nan"))
+        spread = result["amplitude_spread"]
+        section.quality += [
+            Indicator("steps flagged (quality gate)", str(result["steps_flagged"]),
+                      result["steps_flagged"] == 0),
+            Indicator("min R² of the steps used", f"{low:.5f}", low >= gate),
+            Indicator("spread between amplitudes (of the peak)", ", ".join(
+                f"{feed} mm/min: {100 * value:.1f} %" for feed, value in spread.items())),
+        ]
+        section.headline = "; ".join(f"{s.label}: peak {x['peak_hz']:.2f} Hz"
+                                     for s, x in zip(series, streams))
+
+    @classmethod
+    def live_view(cls, result: Mapping[str, Any]) -> ResultView:
+        """|x/F| (m/N), phase and R² of every step so far, one series per feed and amplitude,
+        the steps below the quality gate again in red; the latest stream in the summary."""
+        gate = result["r_squared_min"]
+        series = {stream_label(x): stream_points(x) for x in result["streams"]}
+        every = [r2 for points in series.values() for _, _, r2 in points]
+        latest = result["streams"][-1]
+        peak = max(latest["frf"]["compliance_abs"], default=float("nan"))
+        summary = (f"step {len(every)} of {result['steps_planned']}; {stream_label(latest)}: "
+                   f"{latest['steps']} points, peak {peak:.3g} m/N at {latest['peak_hz']:g} Hz; "
+                   f"min R² {min(every):.4f}, {sum(r2 < gate for r2 in every)} below {gate:g}")
+        return ResultView(cls.title, point_frf_panels(series, COMPLIANCE_LABEL, gate), summary)
+
+    @classmethod
+    def summary(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict:
+        """Quality gate and linearity of the streams (the demo adds the comparison with the
+        shaker chirp)."""
+        streams = result["streams"]
+        min_r2 = min(s["min_r_squared"] for s in streams)
+        spread = result["amplitude_spread"]
+        return {"streams": len(streams), "steps": sum(s["steps"] for s in streams),
+                "steps_flagged": result["steps_flagged"], "min_r_squared": min_r2,
+                "amplitude_spread": spread,
+                "headline": headline(
+                    f"{sum(s['steps_used'] for s in streams)} steps used, "
+                    f"{result['steps_flagged']} flagged, min R² {min_r2:.4f}",
+                    "amplitude spread (Fig. 5.22) "
+                    + ", ".join(f"{v:.3f} at {k} mm/min" for k, v in spread.items()))}

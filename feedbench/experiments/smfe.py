@@ -16,7 +16,11 @@ workpiece-side accelerometers at `daq_rate_Hz`.
 Analysis (`analysis.smfe.smfe_estimate`, Eqs. 6.12–6.15): Φ_tt from the force on the tool and
 the tool accelerations, Φ_ww from the force on the workpiece and its accelerations, Welch with
 Hann segments of `segment_s` (4 s: 0.25 Hz), 80 % overlap, F_x as reference; the condition
-number of the measured force-spectrum matrix (Eq. 6.14) and the coherence (Eq. 6.15).
+number of the measured force-spectrum matrix (Eq. 6.14) and the coherence (Eq. 6.15). The
+sweep the cuts excite the structure with is part of the result too, from the first segment
+on (the live window shows it while the cuts run, Ch. 6.4.1): the spindle speed read back from
+the inverter and the spectrogram of the dynamometer force, with the tooth-passing harmonics
+k·Z·N/60 over it.
 """
 
 from __future__ import annotations
@@ -26,6 +30,8 @@ import warnings
 from typing import Any, Mapping
 
 import numpy as np
+import scipy.signal
+from matplotlib.figure import Figure as MplFigure
 
 from feedbench.analysis.smfe import (
     OVERLAP,
@@ -35,7 +41,7 @@ from feedbench.analysis.smfe import (
     smfe_estimate,
 )
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
-from feedbench.experiments.family import Experiment
+from feedbench.experiments.family import Experiment, headline, percent_error
 from feedbench.experiments.plan import Plan, Segment, recorded_windows
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
 from feedbench.models.milling import (
@@ -45,8 +51,13 @@ from feedbench.models.milling import (
     CuttingCoefficients,
     Tool,
 )
+from feedbench.models.structure import POINT_DOF, ModalStructure
 from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN, RPM
+from feedbench.views.panels import Curve, Image, Panel, ResultView
+from feedbench.views.sections import (
+    MIN_COHERENCE, Indicator, Plot, RunSection, Table, new_figure, png_of,
+)
 
 NAME = "smfe"
 
@@ -93,6 +104,30 @@ SCHEMA = {
 DAQ_CHANNELS = ("dyn_fx", "dyn_fy", "dyn_fz", "acc_tool_x", "acc_tool_y", "acc_tool_z",
                 "acc_work_x", "acc_work_y", "acc_work_z")
 """What the DAQ records: the dynamometer under the workpiece and both triaxial accelerometers."""
+DYNAMOMETER = DAQ_CHANNELS[:3]
+
+SIDES = ("tool", "workpiece")
+SIDE_NAMES = ("Φ_tt", "Φ_ww")
+"""The two sides of the cut and their direct receptances (Eq. 6.13)."""
+
+SPEED_TRACE_CYCLES = 50
+"""Bus cycles averaged into one point of the spindle-speed trace (the runner's block)."""
+
+SPECTROGRAM_SEGMENT_S = 0.5
+SPECTROGRAM_HOP_S = 0.25
+"""Hann segments of the force spectrogram (2 Hz resolution) and their spacing (s)."""
+
+SPECTROGRAM_HARMONICS = (1, 2)
+"""Tooth-passing harmonics k·Z·N/60 drawn over the spectrogram (the analysis band is the
+second's); the spectrogram reaches half a harmonic above the last at N1."""
+
+SPECTROGRAM_DB_DECIMALS = 1
+"""The spectrogram is kept to 0.1 dB: a picture of the sweep, not a measurement."""
+
+SPECTROGRAM_RANGE_DB = 60.0
+"""Colour range below the loudest bin."""
+
+SPECTROGRAM_TITLE = "force spectrogram, Σ PSD (dB re 1 N²/Hz)"
 
 
 class SmfePlanningWarning(UserWarning):
@@ -143,29 +178,6 @@ def plan_engagement(p: Mapping[str, Any]) -> dict[str, Any]:
     return planning
 
 
-def _validated(params: Mapping[str, Any], cycle_s: float) -> dict[str, Any]:
-    p = validate_table(params, SCHEMA, "experiment")
-    if len(p["cuts"]) not in (2, 3):
-        raise ConfigError(f"experiment.cuts: give 2 or 3 cuts (one per direction), got {p['cuts']}")
-    if len(p["a_e_mm"]) not in (0, 1, len(p["cuts"])):
-        raise ConfigError(f"experiment.a_e_mm: give none, one, or one per cut ({len(p['cuts'])})")
-    if any(a > p["tool_diameter_mm"] for a in p["a_e_mm"]):
-        raise ConfigError("experiment.a_e_mm: must not exceed tool_diameter_mm")
-    if not p["spindle_rpm_start"] < p["spindle_rpm_stop"]:
-        raise ConfigError("experiment.spindle_rpm_stop: must be above spindle_rpm_start")
-    rotation = p["spindle_rpm_stop"] * RPM / p["daq_rate_Hz"]
-    if rotation > MAX_STEP_ROTATION:
-        raise ConfigError(
-            f"experiment.daq_rate_Hz: {p['daq_rate_Hz']} Hz gives {math.degrees(rotation):.1f}° "
-            f"of spindle rotation per sample at {p['spindle_rpm_stop']:g} rpm (at most "
-            f"{math.degrees(MAX_STEP_ROTATION):.0f}°)")
-    if p["segment_s"] > p["ramp_s"]:
-        raise ConfigError("experiment.segment_s: must not exceed ramp_s (one cut's record)")
-    if abs(p["daq_rate_Hz"] * cycle_s - round(p["daq_rate_Hz"] * cycle_s)) > 1e-9:
-        raise ConfigError("experiment.daq_rate_Hz: must give whole samples per bus cycle")
-    return p
-
-
 def feed_for_speed(rpm: np.ndarray | float, f_z: float, Z: int) -> np.ndarray | float:
     """Feed (m/s) that keeps the feed per tooth f_z (m) at spindle speed N (rpm): f_z·Z·N/60."""
     return f_z * Z * np.asarray(rpm) / 60.0
@@ -189,9 +201,9 @@ def _point_to_point(x0: float, x1: float, v_max: float, accel: float, cycle_s: f
     return x0 + math.copysign(1.0, x1 - x0) * covered
 
 
-def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
-    """Spindle start, then per cut: approach, ramp cut, stop, spindle back; spindle stop, return."""
-    p = _validated(params, cycle_s)
+def build_plan(p: Mapping[str, Any], cycle_s: float) -> Plan:
+    """Spindle start, then per cut: approach, ramp cut, stop, spindle back; spindle stop,
+    return (`p` validated)."""
     planning = plan_engagement(p)
     f_z, Z = p["f_z_mm"] * 1e-3, p["teeth"]
     n0, n1 = p["spindle_rpm_start"], p["spindle_rpm_stop"]
@@ -226,14 +238,6 @@ def build_plan(params: Mapping[str, Any], cycle_s: float) -> Plan:
         x, 0.0, p["return_feed_mm_min"] * MM_PER_MIN, accel, cycle_s),
         commands={"spindle_rpm": 0.0, "spindle_ramp_rpm_s": spin}))
     return Plan(NAME, CSP, segments, {**p, "planning": planning, "workpiece": workpiece}, cycle_s)
-
-
-def devices(p: Mapping[str, Any], cycle_s: float) -> dict[str, dict[str, Any]]:
-    """The devices besides the drive this experiment needs, with their settings (from the
-    plan's validated parameters)."""
-    readback = max(1, round(p["spindle_readback_ms"] * 1e-3 / cycle_s))
-    return {"spindle": {"readback_cycles": readback},
-            "daq": {"channels": DAQ_CHANNELS, "rate_hz": p["daq_rate_Hz"]}}
 
 
 Records = list[np.ndarray]
@@ -285,40 +289,45 @@ def _direct_peaks(result: SmfeResult, band: tuple[float, float]) -> list[dict[st
 
 
 def _side(result: SmfeResult, band: tuple[float, float]) -> dict[str, Any]:
+    """One side's direct peaks, |Φ_ii| (m/N) and the lowest coherence over the cuts of each
+    direct pair (Eq. 6.15) in `band`."""
     inside = (result.f >= band[0]) & (result.f <= band[1])
     axes = "xyz"[:result.Phi.shape[1]]
     return {"peaks": dict(zip(axes, _direct_peaks(result, band))),
-            "abs_m_N": {a: np.abs(result.Phi[inside, i, i]).tolist() for i, a in enumerate(axes)}}
+            "abs_m_N": {a: np.abs(result.Phi[inside, i, i]).tolist() for i, a in enumerate(axes)},
+            "coherence_min": {a: result.coherence[:, inside, i, i].min(axis=0).tolist()
+                              for i, a in enumerate(axes)}}
 
 
-def analyze_recording(recording) -> dict:
-    """Φ_tt, Φ_ww (Eq. 6.13), condition number (6.14), coherence (6.15) of the recorded cuts.
+def analysis_band(p: Mapping[str, Any]) -> tuple[float, float]:
+    """Where the second harmonic of the tooth-passing frequency swept, 2·Z·N0/60 … 2·Z·N1/60
+    (Hz; the first harmonic covers its lower half): below it only the start of the first
+    harmonic excites."""
+    return (2.0 * p["teeth"] * p["spindle_rpm_start"] / 60.0,
+            2.0 * p["teeth"] * p["spindle_rpm_stop"] / 60.0)
 
-    The band is where the second harmonic of the tooth-passing frequency swept,
-    2·Z·N0/60 … 2·Z·N1/60 (Hz; the first harmonic covers its lower half): below it only the
-    start of the first harmonic excites. Results in SI (m/N, Hz).
-    """
-    p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+
+def receptances(recording, p: Mapping[str, Any]) -> dict[str, Any]:
+    """Φ_tt, Φ_ww (Eq. 6.13), condition number (6.14) per frequency and coherence (6.15) of
+    the recorded cuts in the analysis band (SI: m/N, Hz); `ConfigError` unless every cut
+    was recorded."""
     fs = recording.streams["daq"].rate_hz
     forces, tools, works, notes = cut_records(recording, len(p["cuts"]))
     nfft = int(round(p["segment_s"] * fs))
-    band = (2.0 * p["teeth"] * p["spindle_rpm_start"] / 60.0,
-            2.0 * p["teeth"] * p["spindle_rpm_stop"] / 60.0)
+    band = analysis_band(p)
     tool = smfe_estimate(list(zip(forces, tools)), fs, nfft, OVERLAP, f_max=band[1])
     workpiece = smfe_estimate([(-f, a) for f, a in zip(forces, works)], fs, nfft, OVERLAP,
                               f_max=band[1])
     inside = (tool.f >= band[0]) & (tool.f <= band[1])
     planning = plan_engagement_quietly(p)
     return {
-        "experiment": NAME,
-        "cuts": list(p["cuts"]),
-        "band_hz": list(band),
         "f_hz": tool.f[inside].tolist(),
         "tool": _side(tool, band),
         "workpiece": _side(workpiece, band),
         "condition_number": {"median": float(np.median(tool.condition_number[inside])),
                              "max": float(tool.condition_number[inside].max()),
-                             "planned_C_th": planning["condition_number"]},
+                             "planned_C_th": planning["condition_number"],
+                             "per_f": tool.condition_number[inside].tolist()},
         "a_e_mm": planning["a_e_mm"],
         "n_averages": tool.n_averages,
         "samples_per_cut": int(forces[0].shape[1]),
@@ -334,43 +343,314 @@ def plan_engagement_quietly(p: Mapping[str, Any]) -> dict[str, Any]:
         return plan_engagement(p)
 
 
-def describe(result: dict) -> list[str]:
-    """Text lines of an SMFE analysis (`feedbench analyze`): peaks, condition number, warnings."""
-    lines = [f"  cuts {', '.join(result['cuts'])} at a_e "
-             f"{', '.join(f'{a:.1f}' for a in result['a_e_mm'])} mm, band "
-             f"{result['band_hz'][0]:g}-{result['band_hz'][1]:g} Hz, "
-             f"{result['n_averages']} averages"]
-    for side, name in (("tool", "Φ_tt"), ("workpiece", "Φ_ww")):
-        peaks = result[side]["peaks"]
-        lines.append(f"  {name} peaks: " + ", ".join(
-            f"{axis}{axis} {p['abs_m_N']:.3g} m/N at {p['f_hz']:.2f} Hz "
-            f"(γ² ≥ {p['coherence_min']:.3f})" for axis, p in peaks.items()))
+# the sweep the cuts excite the structure with: spindle speed and force spectrogram
+
+def spindle_trace(recording) -> dict[str, list[float]]:
+    """The inverter's read-back speed (rpm), the mean of every `SPEED_TRACE_CYCLES` cycles
+    that read it, at each bucket's middle cycle (s from the first); empty without it."""
+    speed = recording.channels.get("spindle_speed")
+    if speed is None or not len(speed):
+        return {"t_s": [], "rpm": []}
+    starts = np.arange(0, len(speed), SPEED_TRACE_CYCLES)
+    read = np.isfinite(speed)
+    sums = np.add.reduceat(np.where(read, speed, 0.0), starts)
+    counts = np.add.reduceat(read, starts)
+    middles = starts + (np.minimum(starts + SPEED_TRACE_CYCLES, len(speed)) - starts) // 2
+    t = (recording.cycle[middles] - recording.cycle[0]) * float(recording.metadata["cycle_s"])
+    keep = counts > 0
+    return {"t_s": t[keep].tolist(), "rpm": (sums[keep] / counts[keep] / RPM).tolist()}
+
+
+def force_spectrogram(recording, p: Mapping[str, Any]) -> dict[str, Any]:
+    """Σ PSD of the dynamometer's F_x, F_y, F_z (dB re 1 N²/Hz, `SPECTROGRAM_DB_DECIMALS`) over
+    the run: Hann segments of `SPECTROGRAM_SEGMENT_S` every `SPECTROGRAM_HOP_S`
+    (`scipy.signal.spectrogram`), bins 0 < f ≤ (last harmonic + ½)·Z·N1/60. Column k (one
+    row of ``db``) is centred at t0_s + k·dt_s (s from the first cycle), bin j at
+    f0_hz + j·df_hz."""
+    stream = recording.streams["daq"]
+    fs = stream.rate_hz
+    n_segment, hop = int(round(SPECTROGRAM_SEGMENT_S * fs)), int(round(SPECTROGRAM_HOP_S * fs))
+    f = np.fft.rfftfreq(n_segment, 1.0 / fs)
+    f_max = (max(SPECTROGRAM_HARMONICS) + 0.5) * p["teeth"] * p["spindle_rpm_stop"] / 60.0
+    keep = (f > 0) & (f <= f_max)
+    grid = {"dt_s": hop / fs, "f0_hz": float(f[1]), "df_hz": float(f[1]), "f_max_hz": f_max}
+    if len(stream.cycle) < n_segment:
+        return {**grid, "t0_s": 0.0, "db": []}
+    psd = sum(scipy.signal.spectrogram(stream.channels[c], fs, window="hann",
+                                       nperseg=n_segment, noverlap=n_segment - hop,
+                                       detrend=False)[2][keep] for c in DYNAMOMETER)
+    db = np.round(10.0 * np.log10(np.maximum(psd.T, 1e-30)), SPECTROGRAM_DB_DECIMALS)
+    t0 = (stream.cycle[n_segment // 2] - recording.cycle[0]) * float(recording.metadata["cycle_s"])
+    return {**grid, "t0_s": float(t0), "db": db.tolist()}
+
+
+def sweep_panels(result: Mapping[str, Any]) -> tuple[Panel, Panel]:
+    """Live panels: the spindle speed (rpm), and the force spectrogram with the
+    tooth-passing harmonics k·Z·N/60 over it."""
+    t, rpm = np.asarray(result["spindle"]["t_s"]), np.asarray(result["spindle"]["rpm"])
+    harmonics = tuple(Curve(f"{k}·Z·N/60", t, k * result["teeth"] * rpm / 60.0)
+                      for k in SPECTROGRAM_HARMONICS)
+    grid = result["spectrogram"]
+    db = np.asarray(grid["db"])
+    image = Image(db, grid["t0_s"] - 0.5 * grid["dt_s"], grid["dt_s"],
+                  grid["f0_hz"] - 0.5 * grid["df_hz"], grid["df_hz"],
+                  (float(db.max()) - SPECTROGRAM_RANGE_DB, float(db.max()))) if db.size else None
+    return (Panel("spindle speed", "time (s)", "N (rpm)", (Curve("spindle speed", t, rpm),)),
+            Panel(SPECTROGRAM_TITLE, "time (s)", "frequency (Hz)", harmonics,
+                  y_range=(0.0, grid["f_max_hz"]), image=image))
+
+
+def speed_text(result: Mapping[str, Any]) -> str:
+    """The latest spindle speed (rpm) read back and its tooth-passing frequency Z·N/60 (Hz)."""
+    rpm = result["spindle"]["rpm"]
+    if not rpm:
+        return "no spindle speed read back"
+    return f"spindle {rpm[-1]:.0f} rpm, tooth passing {result['teeth'] * rpm[-1] / 60.0:.1f} Hz"
+
+
+def receptance_panel(result: Mapping[str, Any]) -> Panel:
+    """Live panel: |Φ_tt,ii| and |Φ_ww,ii| (m/N, log) over the band."""
+    f = np.asarray(result["f_hz"])
+    return Panel("direct receptances", "frequency (Hz)", "receptance (m/N)", tuple(
+        Curve(f"|{name},{axis}{axis}|", f, np.asarray(magnitude))
+        for side, name in zip(SIDES, SIDE_NAMES)
+        for axis, magnitude in result[side]["abs_m_N"].items()), log_y=True)
+
+
+def sweep_figure(result: Mapping[str, Any]) -> MplFigure:
+    """Report figure: the spindle speed (rpm), and the force spectrogram with the
+    tooth-passing harmonics over it."""
+    speed_panel, spectrogram_panel = sweep_panels(result)
+    figure = new_figure(10.0, 4.5)
+    speed, spectrogram = figure.subplots(1, 2, width_ratios=(1, 2))
+    for ax, panel in ((speed, speed_panel), (spectrogram, spectrogram_panel)):
+        for curve in panel.curves:
+            ax.plot(curve.x, curve.y, lw=1.0, label=curve.name)
+        ax.set_title(panel.title, fontsize=9)
+        ax.set_xlabel(panel.x_label)
+        ax.set_ylabel(panel.y_label)
+        ax.grid(alpha=0.3)
+    image = spectrogram_panel.image
+    if image is not None:
+        extent = (image.x0, image.x0 + image.dx * image.z.shape[0],
+                  image.y0, image.y0 + image.dy * image.z.shape[1])
+        mesh = spectrogram.imshow(image.z.T, origin="lower", aspect="auto", extent=extent,
+                                  vmin=image.levels[0], vmax=image.levels[1], cmap="viridis")
+        figure.colorbar(mesh, ax=spectrogram, label="dB re 1 N²/Hz")
+    spectrogram.set_ylim(*spectrogram_panel.y_range)
+    spectrogram.legend(fontsize=8, loc="upper left")
+    return figure
+
+
+def quality_figure(result: Mapping[str, Any]) -> MplFigure:
+    """Report figure: C(f) (Eq. 6.14) with the planned C_th, and per direction the lowest
+    coherence over the cuts of the direct pair at the tool (Eq. 6.15), over the band."""
+    f = np.array(result["f_hz"])
     cond = result["condition_number"]
-    lines.append(f"  condition number (Eq. 6.14): median {cond['median']:.1f}, "
-                 f"max {cond['max']:.1f}; planned C_th {cond['planned_C_th']:.1f}")
-    lines += [f"  warning: {w}" for w in result["warnings"]]
-    return lines
+    figure = new_figure(10.0, 4.0)
+    condition, coherence = figure.subplots(1, 2)
+    condition.semilogy(f, cond["per_f"], lw=1.0)
+    condition.axhline(cond["planned_C_th"], color="r", ls="--", lw=0.8, label="planned C_th")
+    condition.set_ylabel("condition number C")
+    for axis, lowest in result["tool"]["coherence_min"].items():
+        coherence.plot(f, lowest, lw=1.0, label=f"γ²_{axis}{axis}")
+    coherence.axhline(MIN_COHERENCE, color="r", ls=":", lw=0.8)
+    coherence.set_ylim(0.0, 1.05)
+    coherence.set_ylabel("coherence, lowest over the cuts")
+    for ax in (condition, coherence):
+        ax.set_xlabel("frequency (Hz)")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    return figure
+
+
+def receptance_figure(result: Mapping[str, Any]) -> MplFigure:
+    """Report figure: |Φ_tt,ii| and |Φ_ww,ii| (m/N, log) over the band."""
+    f = np.array(result["f_hz"])
+    figure = new_figure(10.0, 4.5)
+    for ax, side, name in zip(figure.subplots(1, 2, sharey=True), SIDES, SIDE_NAMES):
+        for axis, magnitude in result[side]["abs_m_N"].items():
+            ax.semilogy(f, magnitude, lw=1.0, label=f"|{name},{axis}{axis}|")
+        ax.set_xlabel("frequency (Hz)")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    figure.axes[0].set_ylabel("receptance (m/N)")
+    return figure
+
+
+def peaks_text(result: Mapping[str, Any]) -> str:
+    """``Φ_tt peaks xx 51.2 Hz, …``: where the tool's direct receptances peak."""
+    return "Φ_tt peaks " + ", ".join(f"{axis}{axis} {p['f_hz']:.1f} Hz"
+                                     for axis, p in result["tool"]["peaks"].items())
+
+
+# the demo's summary against the simulated world's modal structure
+
+def _truth_peak(structure: ModalStructure, row: int, f: np.ndarray) -> tuple[float, float]:
+    """Largest analytic |Φ_ii| (m/N) over f's span on a 0.01 Hz grid, and its frequency."""
+    fine = np.arange(f[0], f[-1], 0.01)
+    magnitude = np.abs(structure.receptance(fine)[:, row, row])
+    return float(magnitude.max()), float(fine[np.argmax(magnitude)])
+
+
+def _peaks_against_truth(result: Mapping[str, Any], side: str, structure: ModalStructure,
+                         first_row: int) -> dict:
+    """Each direct peak of one side beside the truth's largest |Φ_ii| in the band."""
+    f = np.asarray(result["f_hz"])
+    out = {}
+    for row, (axis, peak) in enumerate(result[side]["peaks"].items(), start=first_row):
+        truth_abs, truth_f = _truth_peak(structure, row, f)
+        out[axis] = {**peak, "truth_abs_m_N": truth_abs, "truth_f_hz": truth_f,
+                     "error_pct": percent_error(peak["abs_m_N"], truth_abs)}
+    return out
+
+
+def _side_text(side: str, peaks: Mapping[str, dict]) -> str:
+    worst = max(abs(p["error_pct"]) for p in peaks.values())
+    return (f"Φ_{side[0] * 2} peaks "
+            + ", ".join(f"{axis * 2} {p['f_hz']:.2f} Hz" for axis, p in peaks.items())
+            + f": |Φ| within {worst:.1f} % of the truth")
+
 
 class Smfe(Experiment):
-    """TRANSITION shell: the module's functions behind the family interface."""
+    """SMFE spindle ramp (Ch. 6.2.3, 6.4.1, Fig. 6.12): the direct receptances at the tool
+    and the workpiece from the cutting forces of 2 or 3 cuts (Eqs. 6.12–6.13), the condition
+    number of the measured force spectra (6.14) and the coherence (6.15); while it runs, the
+    spindle speed and the force spectrogram with the tooth-passing harmonics it sweeps."""
 
     name = NAME
     schema = SCHEMA
+    title = "SMFE: spindle speed and force spectrogram"
+    live_kinds = ("settle", "move", "measure")
 
     @classmethod
-    def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
-        return _validated(params, cycle_s)
+    def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict[str, Any]:
+        """The schema's checks, 2 or 3 cuts with their engagements, a rising ramp, at most
+        `MAX_STEP_ROTATION` per DAQ sample, a Welch segment within a cut's record, whole DAQ
+        samples per bus cycle."""
+        p = validate_table(params, SCHEMA, "experiment")
+        if len(p["cuts"]) not in (2, 3):
+            raise ConfigError(f"experiment.cuts: give 2 or 3 cuts (one per direction), "
+                              f"got {p['cuts']}")
+        if len(p["a_e_mm"]) not in (0, 1, len(p["cuts"])):
+            raise ConfigError(f"experiment.a_e_mm: give none, one, or one per cut "
+                              f"({len(p['cuts'])})")
+        if any(a > p["tool_diameter_mm"] for a in p["a_e_mm"]):
+            raise ConfigError("experiment.a_e_mm: must not exceed tool_diameter_mm")
+        if not p["spindle_rpm_start"] < p["spindle_rpm_stop"]:
+            raise ConfigError("experiment.spindle_rpm_stop: must be above spindle_rpm_start")
+        rotation = p["spindle_rpm_stop"] * RPM / p["daq_rate_Hz"]
+        if rotation > MAX_STEP_ROTATION:
+            raise ConfigError(
+                f"experiment.daq_rate_Hz: {p['daq_rate_Hz']} Hz gives "
+                f"{math.degrees(rotation):.1f}° of spindle rotation per sample at "
+                f"{p['spindle_rpm_stop']:g} rpm (at most {math.degrees(MAX_STEP_ROTATION):.0f}°)")
+        if p["segment_s"] > p["ramp_s"]:
+            raise ConfigError("experiment.segment_s: must not exceed ramp_s (one cut's record)")
+        if abs(p["daq_rate_Hz"] * cycle_s - round(p["daq_rate_Hz"] * cycle_s)) > 1e-9:
+            raise ConfigError("experiment.daq_rate_Hz: must give whole samples per bus cycle")
+        return p
 
     def plan(self) -> Plan:
         return build_plan(self.settings, self.cycle_s)
 
     def devices(self) -> dict[str, dict[str, Any]]:
-        return devices(self.settings, self.cycle_s)
+        """The spindle inverter (read back every `spindle_readback_ms`) and the DAQ."""
+        p = self.settings
+        readback = max(1, round(p["spindle_readback_ms"] * 1e-3 / self.cycle_s))
+        return {"spindle": {"readback_cycles": readback},
+                "daq": {"channels": DAQ_CHANNELS, "rate_hz": p["daq_rate_Hz"]}}
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
-        return analyze_recording(recording)
+        """The spindle speed and force spectrogram of the run, and once every cut is
+        recorded the receptances (`receptances`; `final`: `ConfigError` before that).
+        SI (m/N, Hz, s), speeds rpm."""
+        p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+        cuts = len(recorded_windows(recording, "measure"))
+        sweep = {"experiment": NAME, "cuts": list(p["cuts"]), "cuts_recorded": cuts,
+                 "band_hz": list(analysis_band(p)), "teeth": p["teeth"],
+                 "spindle": spindle_trace(recording),
+                 "spectrogram": force_spectrogram(recording, p)}
+        if not final and cuts < len(p["cuts"]):
+            return sweep
+        return {**sweep, **receptances(recording, p)}
+
+    @classmethod
+    def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
+        """Direct receptances Φ_tt and Φ_ww (Eq. 6.13), the condition number of the measured
+        force-spectrum matrix (Eq. 6.14) against the planned C_th, the coherence of every
+        direct response/force pair per cut (Eq. 6.15), and the sweep: spindle speed and
+        force spectrogram."""
+        section.plots += [
+            Plot("SMFE direct receptances at the tool and the workpiece",
+                 png_of(receptance_figure(result))),
+            Plot("condition number (Eq. 6.14) and coherence (Eq. 6.15)",
+                 png_of(quality_figure(result))),
+            Plot("spindle speed and force spectrogram with the tooth-passing harmonics",
+                 png_of(sweep_figure(result))),
+        ]
+        section.tables.append(Table("SMFE peaks", ("side", "direction", "peak (Hz)",
+                                                   "|Φ| (m/N)", "min coherence at the peak"),
+                                    tuple((side, f"{axis}{axis}", f"{p['f_hz']:.2f}",
+                                           f"{p['abs_m_N']:.3g}", f"{p['coherence_min']:.3f}")
+                                          for side in SIDES
+                                          for axis, p in result[side]["peaks"].items())))
+        cond = result["condition_number"]
+        coherence = min(p["coherence_min"] for side in SIDES
+                        for p in result[side]["peaks"].values())
+        section.quality += [
+            Indicator("condition number (median / max / planned C_th)",
+                      f"{cond['median']:.1f} / {cond['max']:.1f} / {cond['planned_C_th']:.1f}"),
+            Indicator("min coherence at the peaks", f"{coherence:.3f}",
+                      coherence >= MIN_COHERENCE),
+            Indicator("warnings", "; ".join(result["warnings"]) or "none",
+                      not result["warnings"]),
+        ]
+        section.headline = peaks_text(result)
+
+    @classmethod
+    def live_view(cls, result: Mapping[str, Any]) -> ResultView:
+        """Spindle speed and force spectrogram so far; with every cut recorded, also the
+        direct receptances |Φ_tt,ii| and |Φ_ww,ii| (m/N)."""
+        parts = [speed_text(result),
+                 f"{len(result['spectrogram']['db'])} spectra of {SPECTROGRAM_SEGMENT_S:g} s",
+                 f"{result['cuts_recorded']} of {len(result['cuts'])} cuts"]
+        panels = sweep_panels(result)
+        if "f_hz" in result:
+            panels += (receptance_panel(result),)
+            parts.append(peaks_text(result))
+        return ResultView(cls.title, panels, "; ".join(parts))
+
+    @classmethod
+    def summary(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict:
+        """Direct receptance peaks of Φ_tt and Φ_ww (Eq. 6.13) against the world's modal
+        structure, condition number (6.14) against the planned C_th."""
+        structure = truth["milling_structure"]
+        sides = {"tool": _peaks_against_truth(result, "tool", structure, 0)}
+        if structure.n_dof > POINT_DOF:
+            sides["workpiece"] = _peaks_against_truth(result, "workpiece", structure, POINT_DOF)
+        cond = {k: result["condition_number"][k] for k in ("median", "max", "planned_C_th")}
+        return {**sides, "condition_number": cond, "warnings": result["warnings"],
+                "headline": headline(
+                    *(_side_text(side, peaks) for side, peaks in sides.items()),
+                    f"condition number (Eq. 6.14) median {cond['median']:.1f}, max "
+                    f"{cond['max']:.1f} (planned C_th {cond['planned_C_th']:.2f})")}
 
     @classmethod
     def describe(cls, result: Mapping[str, Any]) -> list[str]:
-        return describe(result)
+        """Peaks, condition number and warnings of an SMFE analysis."""
+        lines = [f"  cuts {', '.join(result['cuts'])} at a_e "
+                 f"{', '.join(f'{a:.1f}' for a in result['a_e_mm'])} mm, band "
+                 f"{result['band_hz'][0]:g}-{result['band_hz'][1]:g} Hz, "
+                 f"{result['n_averages']} averages"]
+        for side, name in zip(SIDES, SIDE_NAMES):
+            peaks = result[side]["peaks"]
+            lines.append(f"  {name} peaks: " + ", ".join(
+                f"{axis}{axis} {p['abs_m_N']:.3g} m/N at {p['f_hz']:.2f} Hz "
+                f"(γ² ≥ {p['coherence_min']:.3f})" for axis, p in peaks.items()))
+        cond = result["condition_number"]
+        lines.append(f"  condition number (Eq. 6.14): median {cond['median']:.1f}, "
+                     f"max {cond['max']:.1f}; planned C_th {cond['planned_C_th']:.1f}")
+        lines += [f"  warning: {w}" for w in result["warnings"]]
+        return lines
