@@ -74,9 +74,10 @@ class RunError(RuntimeError):
 
 
 class RunStopped(KeyboardInterrupt):
-    """A run ended by a stop request (Ctrl-C, SIGTERM, `BenchSession.stop`): the axis was
-    ramped down, the drive disabled and the recording closed ``aborted``; `run` is its
-    record. A `KeyboardInterrupt`, so an unhandled one ends the script as Ctrl-C does."""
+    """A stop request (Ctrl-C, SIGTERM, `BenchSession.stop`) arrived during a run: the axis
+    was ramped down, the drive disabled and the recording closed ``aborted`` (``complete``
+    if the plan had just finished); `run` is its record. A `KeyboardInterrupt`, so an
+    unhandled one ends the script as Ctrl-C does."""
 
     def __init__(self, run: Run) -> None:
         super().__init__(f"{run.id}: {run.reason}")
@@ -408,7 +409,7 @@ class BenchSession:
         result = (analyze_file(path) if complete and config.plan.experiment in families()
                   else {})
         run = Run(row["id"], path, row["status"], row["reason"], result, open_recording(path))
-        if self._stop.reason is not None and not complete:
+        if self._stop.reason is not None:  # Ctrl-C lands in the runner: the script stops too
             raise RunStopped(run)
         if not complete:
             raise RunError(run)
@@ -427,8 +428,9 @@ def open_bench(config: str | Path | Mapping[str, Any]) -> BenchSession:
     (how to reach the drive; ``simulated = true`` starts the simulated bench), ``[limits]``
     (mm, mm/min, N; ``[limits.gains]``: the ranges `Drive.set_gains` accepts) and,
     optionally, an ``[experiment]`` the session ignores (a run config serves as a bench
-    config). Bad input is a `ConfigError` naming the field; use the result as a context
-    manager."""
+    config). Bad input is a `ConfigError` naming the field. Use the result as a context
+    manager; in a notebook, where a ``with`` block cannot span cells, the bench opens on first
+    use and `BenchSession.close` closes it."""
     if isinstance(config, Mapping):
         return BenchSession(config)
     return BenchSession(read_toml(config), str(config))

@@ -68,6 +68,25 @@ def test_a_plan_past_a_limit_is_refused_before_anything_moves(bench):
     assert sorted(bench.output_dir.glob("*.h5")) == before
 
 
+def test_a_stop_request_ramps_down_disables_and_raises(bench):
+    bench.drive.enable()
+
+    def stop_at_a_third(done: float, step: str) -> None:
+        if done > 0.3:
+            bench.stop("enough")
+
+    start = bench.drive.read().position_mm
+    with pytest.raises(feedbench.RunStopped) as stopped:
+        bench.drive.jog(600.0, seconds=2.0, progress=stop_at_a_third)
+    run = stopped.value.run
+    assert (run.status, run.reason, run.result) == ("aborted", "enough", {})
+    assert (run.recording.status, run.recording.reason) == ("aborted", "enough")
+    assert [e.text for e in run.recording.events if e.kind == "abort"] == ["enough"]
+    assert abs(run.recording.channels["velocity"][-1]) < 1e-3  # m/s: ramped down to rest
+    assert bench.drive.state == "SWITCH ON DISABLED"
+    assert bench.drive.read().position_mm - start < 12.0  # well short of the 20 mm planned
+
+
 def test_gains_within_the_declared_ranges_only(bench):
     bench.drive.set_gains(K_p_Ns_m=8000.0)
     assert bench.drive.gains["K_p_Ns_m"] == pytest.approx(8000.0)

@@ -28,9 +28,9 @@ from feedbench.units import MM_PER_MIN, N_MIN_PER_MM, N_PER_UM
 ROOT = Path(__file__).parents[1]
 SCRIPTS = ROOT / "examples" / "scripts"
 SHORT = {
-    "friction_sweep_fit.py": ["--settle-s", "0.3", "--measure-s", "0.2",
-                              "--feeds", "25", "50", "100", "200", "400", "700", "1000", "1500"],
-    "chirp_three_gains.py": ["--duration-s", "2", "--repetitions", "2"],
+    "friction_sweep_fit.py": ["--settle-s", "0.25", "--measure-s", "0.15",
+                              "--feeds", "25", "50", "100", "200", "400", "800", "1500"],
+    "chirp_three_gains.py": ["--duration-s", "1.5", "--repetitions", "2"],
     "stepped_loading_schedule.py": ["--single", "master", "--preloads", "18", "--step-um", "20",
                                     "--depth-um", "240", "--measure-s", "0.1", "--setup-s", "1",
                                     "--load-cell-every", "10"],
