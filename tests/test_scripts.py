@@ -103,6 +103,7 @@ def test_stepped_loading_with_own_schedule(scripts):
     out = printed(scripts, "stepped_loading_schedule.py")
     assert close(out["k_master_N_um"], RACK["k_master"] / N_PER_UM, 0.03)  # 81 N/µm within 3 %
     assert "k_slave_N_um" not in out  # the schedule loads the master alone
+    assert "load_cell.force" in out["device_channels"].split(",")  # the bumper's load cell
     # Eq. (3.1): the preload is lost at twice the preload force, 2 × 18 % × 13.3 kN = 4788 N
     assert close(out["preload_18.loss_force_N"], 2 * 0.18 * RACK["rated_force"], 0.08)
     assert close(out["preload_18.torque_share"], 0.5, 0.05)  # master and slave share equally

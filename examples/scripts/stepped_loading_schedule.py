@@ -47,6 +47,8 @@ def main() -> None:
     with feedbench.open_bench(config) as bench:
         bench.drive.enable()
         run = bench.run("stepped_loading", **schedule)
+        channels = [channel for device in bench.devices for channel in device.channels]
+    print(f"device_channels = {','.join(channels)}")
     print(f"run = {run.id} ({run.status}, {run.path})")
     for motor, fit in run.result["stiffness"].items():
         print(f"k_{motor}_N_um = {fit['k_N_m'] / N_PER_UM:.3f}")
