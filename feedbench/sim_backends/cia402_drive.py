@@ -7,7 +7,8 @@ is the SYNC consumer. Lockstep virtual time: each SYNC
   1. counts the cycle (0x2020),
   2. applies the latest RPDO data (NMT operational only; every transmission type is applied
      at the SYNC, which is what CiA 301 prescribes for the synchronous ones),
-  3. advances the CiA 402 state machine on the controlword,
+  3. advances the CiA 402 state machine on the controlword (`protocols.cia402`: the
+     commands the host writes, `command_of`, `TRANSITIONS`),
   4. steps the physics one bus cycle (`AxisSimulator.step_cycle`, servo loops inside),
      between the world's `before_physics` and `after_physics` hooks,
   5. publishes the actual values and sends the synchronous TPDOs (types 0–240; the
