@@ -22,10 +22,10 @@ reads an export.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Callable
 
 import numpy as np
 import pyuff
@@ -34,10 +34,10 @@ import scipy.signal
 from feedbench.analysis.frf import convert_frf
 from feedbench.analysis.modal import fit_modes
 from feedbench.closure_io import read_recording, sidecar_path, write_csv_trace
-from feedbench.config import ConfigError, validate_table
+from feedbench.config import ConfigError
 from feedbench.daq.recording import open_recording
-from feedbench.experiments import impact_hammer, shaker_chirp, sine_stream
-from feedbench.experiments.tool_tip import FORCE_CHANNELS, RESPONSE_CHANNEL
+from feedbench.experiments.family import families
+from feedbench.views.frfs import Dof, ExchangeFrf
 
 UFF_SUFFIXES = (".uff", ".unv", ".uf")
 FRF, COHERENCE = 4, 6
@@ -78,121 +78,17 @@ MAX_MODES = 6
 """`analyze` fits at most this many modes (the most prominent peaks) per FRF."""
 
 
-@dataclass(frozen=True)
-class Dof:
-    """One end of an FRF: the recorded channel, the UFF node and direction, the quantity."""
-
-    channel: str
-    entity: str
-    node: int
-    direction: int
-    quantity: str
-
-
-@dataclass(frozen=True)
-class ExchangeFrf:
-    """One FRF H = response / reference over f (Hz), SI units, with its coherence if any."""
-
-    description: str
-    condition: str
-    f: np.ndarray
-    H: np.ndarray
-    response: Dof
-    reference: Dof
-    coherence: np.ndarray | None = None
-
-
-MOTOR_FORCE = Dof("force", "motor", 1, 1, "force")
-MOTOR_VELOCITY = Dof("velocity", "motor", 1, 1, "velocity")
-TIP_ACCELERATION = Dof(RESPONSE_CHANNEL, "tool_tip", 2, 1, "acceleration")
-
-
-def _tip_force(channel: str) -> Dof:
-    return Dof(channel, "tool_tip", 2, 1, "force")
-
-
-def _exciter_force(recording: Any, family: Any) -> Dof:
-    """The tool-tip force of the run's exciter (its config with the family's defaults)."""
-    params = validate_table(recording.config["experiment"], family.SCHEMA, "experiment")
-    return _tip_force(FORCE_CHANNELS[params["exciter"]])
-
-
-def _polar(block: dict, magnitude: str, phase: str) -> np.ndarray:
-    """Complex values from an analysis result's magnitude and phase (rad) lists."""
-    return np.asarray(block[magnitude]) * np.exp(1j * np.asarray(block[phase]))
-
-
-def _chirp(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
-    frf = result["frf"]
-    yield ExchangeFrf("chirp: servo mobility H1", f"{result['n_sweeps']} sweeps",
-                      np.asarray(frf["f_hz"]), _polar(frf, "H1_abs", "H1_phase_rad"),
-                      MOTOR_VELOCITY, MOTOR_FORCE, np.asarray(frf["coherence"]))
-
-
-def _shaker_chirp(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
-    force = _exciter_force(recording, shaker_chirp)
-    for feed in result["feeds"]:
-        frf = feed["frf"]
-        yield ExchangeFrf("shaker_chirp: tool-tip accelerance H1",
-                          f"feed {feed['feed_mm_min']:g} mm/min", np.asarray(frf["f_hz"]),
-                          _polar(frf, "H1_abs", "H1_phase_rad"), TIP_ACCELERATION, force,
-                          np.asarray(frf["coherence"]))
-
-
-def _sine_stream(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
-    force = _exciter_force(recording, sine_stream)
-    for stream in result["streams"]:
-        frf = stream["frf"]
-        yield ExchangeFrf("sine_stream: tool-tip accelerance (sine fits)",
-                          f"feed {stream['feed_mm_min']:g} mm/min, "
-                          f"{stream['amplitude_N']:g} N", np.asarray(frf["f_hz"]),
-                          _polar(frf, "accelerance_abs", "accelerance_phase_rad"),
-                          TIP_ACCELERATION, force)
-
-
-def _impact_hammer(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
-    for feed in result["feeds"]:
-        frf = feed["frf"]
-        yield ExchangeFrf("impact_hammer: tool-tip compliance (Eq. 5.3)",
-                          f"feed {feed['feed_mm_min']:g} mm/min", np.asarray(frf["f_hz"]),
-                          _polar(frf, "compliance_abs", "compliance_phase_rad"),
-                          replace(TIP_ACCELERATION, quantity="displacement"),
-                          _tip_force(impact_hammer.FORCE_CHANNEL), np.asarray(frf["coherence"]))
-
-
-def _closed_loop_bode(result: dict, recording: Any) -> Iterator[ExchangeFrf]:
-    frf, condition = result["frf"], f"feed {result['feed_mm_min']:g} mm/min"
-    f = np.asarray(frf["f_hz"])
-    if result["loop"] == "velocity":
-        reference = Dof("velocity_offset", "motor", 1, 1, "velocity")
-        response = MOTOR_VELOCITY
-    else:
-        reference = Dof("x_ref", "motor", 1, 1, "displacement")
-        response = Dof("position", "motor", 1, 1, "displacement")
-    yield ExchangeFrf(f"closed_loop_bode: closed {result['loop']} loop", condition, f,
-                      _polar(frf, "abs", "phase_rad"), response, reference)
-    if "mobility" in result:
-        yield ExchangeFrf("closed_loop_bode: open-loop mobility (Eq. 4.20)", condition, f,
-                          _polar(result["mobility"], "abs", "phase_rad"), MOTOR_VELOCITY,
-                          MOTOR_FORCE)
-
-
-RUN_FRFS: dict[str, Callable[[dict, Any], Iterator[ExchangeFrf]]] = {
-    "chirp": _chirp, "shaker_chirp": _shaker_chirp, "sine_stream": _sine_stream,
-    "impact_hammer": _impact_hammer, "closed_loop_bode": _closed_loop_bode,
-}
-"""Experiment family → the FRFs of its analysis result (`analyze_recording`)."""
-
-
 def export_uff58(recording_path: str | Path, path: str | Path,
                  analyze: Callable[[str | Path], dict]) -> Path:
     """Write the FRFs of a run to a UFF58 file; `analyze` is its analysis step
-    (`bench.analyze_file`), run only for a family with FRFs (RUN_FRFS)."""
+    (`bench.analyze_file`), run only for a family with FRFs (`Experiment.has_frfs`)."""
     recording = open_recording(recording_path)
-    if recording.experiment not in RUN_FRFS:
+    with_frfs = [name for name, cls in families().items() if cls.has_frfs]
+    if recording.experiment not in with_frfs:
         raise ConfigError(f"{recording_path}: a {recording.experiment} run has no FRF to "
-                          f"export (FRFs come from {', '.join(RUN_FRFS)})")
-    frfs = list(RUN_FRFS[recording.experiment](analyze(recording_path), recording))
+                          f"export (FRFs come from {', '.join(with_frfs)})")
+    experiment = families()[recording.experiment]
+    frfs = list(experiment.frfs(analyze(recording_path), recording))
     started = datetime.fromisoformat(recording.started_at)
     return write_uff58(path, frfs, Path(recording_path).stem,
                        started.strftime("%d-%b-%y %H:%M:%S"))

@@ -17,23 +17,19 @@ from __future__ import annotations
 
 import base64
 import html
-import io
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure as MplFigure
 
-from feedbench.analysis.stability import Lobes, zoa_lobes
 from feedbench.daq.live import bucket_size, minmax_decimate
 from feedbench.daq.recording import Recording, open_recording
 from feedbench.experiments.family import families
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import recorded_windows
-from feedbench.models.milling import engagement_angles
 from feedbench.units import MM_PER_MIN, RPM
+from feedbench.views.sections import Indicator, Plot, RunSection, Table, new_figure, png_of
 
 TRACE_POINTS = 3000
 """Min/max buckets per trace: enough for a 1000-pixel-wide plot at any run length."""
@@ -50,21 +46,6 @@ TRACE_PANELS = (
 
 STREAM_PANELS = (("DAQ forces (N)", "N"), ("accelerations (m/s²)", "m/s^2"))
 """Panels of the high-rate streams' channels, by unit."""
-
-
-from feedbench.views.sections import *  # noqa  TRANSITION: removed when every family draws its own
-
-REPORT_RESULTS: dict[str, Callable[[Recording, dict, RunSection], None]] = {}
-
-
-def report_result(name: str):
-    """Decorator: register how experiment `name`'s results are drawn into its section."""
-
-    def register(draw: Callable[[Recording, dict, RunSection], None]):
-        REPORT_RESULTS[name] = draw
-        return draw
-
-    return register
 
 
 # figures

@@ -54,7 +54,7 @@ def test_servo_mobility_matches_thesis_lab_bench(demo):
     m = demo["servo_mobility"]
     assert m["antiresonance_hz"] == pytest.approx(61.3, abs=1.0)
     assert m["resonance_hz"] == pytest.approx(75.0, abs=1.5)
-    assert m["min_coherence_20_150hz"] > 0.95
+    assert m["min_coherence"] > 0.95
 
 
 def test_runs_listed_complete_with_files(demo):

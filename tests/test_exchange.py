@@ -13,9 +13,8 @@ import pyuff
 from feedbench.bench import analyze_file
 from feedbench.cli import main
 from feedbench.closure_io import read_csv_trace, read_recording
-from feedbench.exchange import (
-    HEADER_BYTES_FIELD, Dof, ExchangeFrf, read_uff58, write_uff58,
-)
+from feedbench.exchange import HEADER_BYTES_FIELD, read_uff58, write_uff58
+from feedbench.views.frfs import Dof, ExchangeFrf
 from test_report import (
     K_P, SDOF, T_I, bode_steps, chirp_steps, friction_steps, hammer_steps, record,
     record_with_daq, shaker_chirp_steps, sine_stream_steps,
@@ -249,7 +248,7 @@ def test_export_errors_are_one_line(runs, tmp_path, capsys):
         (["export", str(runs["chirp"])], "export: give --uff58 FILE and/or --csv FILE"),
         (["export", str(friction), "--uff58", str(tmp_path / "f.uff")],
          f"{friction}: a friction_sweep run has no FRF to export (FRFs come from chirp, "
-         "shaker_chirp, sine_stream, impact_hammer, closed_loop_bode)"),
+         "closed_loop_bode, impact_hammer, shaker_chirp, sine_stream)"),
         (["export", str(runs["chirp"]), "--csv", str(tmp_path / "c.txt")],
          f"{tmp_path / 'c.txt'}: a CSV export must end in .csv (its sidecar is c.toml)"),
         (["analyze", str(tmp_path / "missing.uff")], f"{tmp_path / 'missing.uff'}: no such file"),

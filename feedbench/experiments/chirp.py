@@ -8,7 +8,7 @@ a return move between repetitions keeps every sweep in one direction.
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
@@ -19,6 +19,7 @@ from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import chirp, integrate_velocity, move_to, ramp_to_feed
 from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN
+from feedbench.views.frfs import MOTOR_FORCE, MOTOR_VELOCITY, ExchangeFrf, polar
 from feedbench.views.panels import Curve, Panel, ResultView
 from feedbench.views.sections import (
     MIN_COHERENCE, Indicator, Plot, RunSection, Table, new_figure, png_of,
@@ -201,6 +202,7 @@ class Chirp(Experiment):
 
     name = NAME
     schema = SCHEMA
+    has_frfs = True
     title = "servo mobility of the sweeps so far"
     live_kinds = ("excite",)
 
@@ -267,6 +269,14 @@ class Chirp(Experiment):
                    f"f_r {result['resonance_hz']:.1f} Hz, min coherence "
                    f"{result['min_coherence']:.3f}")
         return ResultView(cls.title, panels, summary)
+
+    @classmethod
+    def frfs(cls, result: Mapping[str, Any], recording) -> Iterator[ExchangeFrf]:
+        """The servo mobility H1, motor velocity over motor force."""
+        frf = result["frf"]
+        yield ExchangeFrf("chirp: servo mobility H1", f"{result['n_sweeps']} sweeps",
+                          np.asarray(frf["f_hz"]), polar(frf, "H1_abs", "H1_phase_rad"),
+                          MOTOR_VELOCITY, MOTOR_FORCE, np.asarray(frf["coherence"]))
 
     @classmethod
     def summary(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict:

@@ -19,7 +19,7 @@ band parameters (Ch. 3.5.1).
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
@@ -33,6 +33,7 @@ from feedbench.experiments.plan import Plan, Segment, recorded_windows
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
 from feedbench.protocols.cia402 import CSP, CSV
 from feedbench.units import MM_PER_MIN
+from feedbench.views.frfs import MOTOR_FORCE, MOTOR_VELOCITY, Dof, ExchangeFrf, polar
 from feedbench.views.panels import ResultView, point_frf_panels
 from feedbench.views.sections import (
     FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, new_figure, png_of,
@@ -213,6 +214,7 @@ class ClosedLoopBode(Experiment):
 
     name = NAME
     schema = SCHEMA
+    has_frfs = True
     title = "closed-loop FRF point by point"
     live_kinds = ("excite",)
 
@@ -324,6 +326,24 @@ class ClosedLoopBode(Experiment):
             summary += (f"; Eq. 4.20: f_t {mobility['antiresonance_hz']:.1f} Hz, "
                         f"f_r {mobility['resonance_hz']:.1f} Hz")
         return ResultView(cls.title, panels, summary)
+
+    @classmethod
+    def frfs(cls, result: Mapping[str, Any], recording) -> Iterator[ExchangeFrf]:
+        """The closed loop's FRF, and the open-loop mobility by Eq. (4.20) where derived."""
+        frf, condition = result["frf"], f"feed {result['feed_mm_min']:g} mm/min"
+        f = np.asarray(frf["f_hz"])
+        if result["loop"] == "velocity":
+            reference = Dof("velocity_offset", "motor", 1, 1, "velocity")
+            response = MOTOR_VELOCITY
+        else:
+            reference = Dof("x_ref", "motor", 1, 1, "displacement")
+            response = Dof("position", "motor", 1, 1, "displacement")
+        yield ExchangeFrf(f"closed_loop_bode: closed {result['loop']} loop", condition, f,
+                          polar(frf, "abs", "phase_rad"), response, reference)
+        if "mobility" in result:
+            yield ExchangeFrf("closed_loop_bode: open-loop mobility (Eq. 4.20)", condition, f,
+                              polar(result["mobility"], "abs", "phase_rad"), MOTOR_VELOCITY,
+                              MOTOR_FORCE)
 
     @classmethod
     def summary(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict:

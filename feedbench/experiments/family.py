@@ -26,10 +26,11 @@ from __future__ import annotations
 import dataclasses
 from functools import cache
 from importlib.metadata import entry_points
-from typing import Any, ClassVar, Mapping
+from typing import Any, ClassVar, Iterator, Mapping
 
 from feedbench.config import ConfigError, Field, validate_table
 from feedbench.experiments.plan import Plan
+from feedbench.views.frfs import ExchangeFrf
 from feedbench.views.panels import ResultView
 from feedbench.views.sections import RunSection
 
@@ -42,7 +43,8 @@ class Experiment:
     `name`: the config's ``experiment.type``; `schema`: its parameters (`config.Field`,
     units in the names); `axes`: the bench axes it runs on (empty: any); `live_kinds`: the
     segment kinds whose completion brings something new to analyse (the live result is
-    recomputed then); `title`: what the live panel and the report call it.
+    recomputed then); `title`: what the live panel and the report call it; `has_frfs`: its
+    result holds FRFs that `frfs` lists for export.
     """
 
     name: ClassVar[str]
@@ -50,6 +52,7 @@ class Experiment:
     title: ClassVar[str] = ""
     axes: ClassVar[tuple[str, ...]] = ()
     live_kinds: ClassVar[tuple[str, ...]] = ("measure", "excite")
+    has_frfs: ClassVar[bool] = False
 
     def __init__(self, params: Mapping[str, Any], cycle_s: float) -> None:
         """Check `params` (the config's [experiment] table) for a bus cycle of `cycle_s` s;
@@ -90,6 +93,11 @@ class Experiment:
     def live_view(cls, result: Mapping[str, Any]) -> ResultView:
         """The live window's panels and one-line summary of a (partial) result."""
         return ResultView(cls.title or cls.name, (), scalar_text(result))
+
+    @classmethod
+    def frfs(cls, result: Mapping[str, Any], recording) -> Iterator[ExchangeFrf]:
+        """The result's FRFs with their ends, for UFF58 export (families with `has_frfs`)."""
+        return iter(())
 
     @classmethod
     def summary(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict[str, Any]:

@@ -13,7 +13,8 @@ record with an overloaded accelerometer or lost samples too. The compliance x_ti
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+from dataclasses import replace
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
@@ -22,11 +23,13 @@ from feedbench.config import ConfigError, Field, positive, validate_table
 from feedbench.experiments.family import Experiment, headline
 from feedbench.experiments.plan import Plan, recorded_windows
 from feedbench.experiments.tool_tip import (
-    FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, ExcitationWindow,
-    compliance_plot, daq_needs, feed_frf_panels, feed_frf_summary, feed_lobes,
-    feed_quality, feed_text, full_scale, overloaded, plan_over_feeds, window_samples,
+    FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, TIP_ACCELERATION,
+    ExcitationWindow, compliance_plot, daq_needs, feed_frf_panels, feed_frf_summary,
+    feed_lobes, feed_quality, feed_text, full_scale, overloaded, plan_over_feeds, tip_force,
+    window_samples,
 )
 from feedbench.protocols.cia402 import CSP
+from feedbench.views.frfs import ExchangeFrf, polar
 from feedbench.views.panels import ResultView
 from feedbench.views.sections import Indicator, RunSection, Table
 
@@ -164,6 +167,7 @@ class ImpactHammer(Experiment):
 
     name = NAME
     schema = SCHEMA
+    has_frfs = True
     title = "impact hammer: quasi-FRF of the hits so far"
     live_kinds = ("excite",)
 
@@ -251,6 +255,17 @@ class ImpactHammer(Experiment):
         feeds = result["feeds"]
         return ResultView(cls.title, feed_frf_panels(feeds),
                           feed_frf_summary(feeds, "hits_used", "hits", "hits", result["notes"]))
+
+    @classmethod
+    def frfs(cls, result: Mapping[str, Any], recording) -> Iterator[ExchangeFrf]:
+        """The tool-tip compliance (Eq. 5.3) of each feed, over the hammer's force."""
+        for feed in result["feeds"]:
+            frf = feed["frf"]
+            yield ExchangeFrf("impact_hammer: tool-tip compliance (Eq. 5.3)",
+                              f"feed {feed['feed_mm_min']:g} mm/min", np.asarray(frf["f_hz"]),
+                              polar(frf, "compliance_abs", "compliance_phase_rad"),
+                              replace(TIP_ACCELERATION, quantity="displacement"),
+                              tip_force(FORCE_CHANNEL), np.asarray(frf["coherence"]))
 
     @classmethod
     def summary(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict:

@@ -11,7 +11,7 @@ compliance x_tip / F_tip = H1 / (jω)². The drive-offset chirp is `experiments.
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
@@ -21,11 +21,13 @@ from feedbench.experiments.family import Experiment, headline
 from feedbench.experiments.plan import Plan, recorded_windows
 from feedbench.experiments.signals import chirp
 from feedbench.experiments.tool_tip import (
-    FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, ExcitationWindow,
+    FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, TIP_ACCELERATION,
+    ExcitationWindow, exciter_channel, tip_force,
     compliance_plot, daq_needs, feed_frf_panels, feed_frf_summary, feed_lobes,
     feed_quality, feed_text, overloaded, plan_over_feeds, window_samples,
 )
 from feedbench.protocols.cia402 import CSP
+from feedbench.views.frfs import ExchangeFrf, polar
 from feedbench.views.panels import ResultView
 from feedbench.views.sections import Indicator, RunSection, Table
 
@@ -115,6 +117,7 @@ class ShakerChirp(Experiment):
 
     name = NAME
     schema = SCHEMA
+    has_frfs = True
     title = "shaker chirp: tool-tip FRF of the sweeps so far"
     live_kinds = ("excite",)
 
@@ -178,6 +181,17 @@ class ShakerChirp(Experiment):
         feeds = result["feeds"]
         return ResultView(cls.title, feed_frf_panels(feeds), feed_frf_summary(
             feeds, "n_averages", "n_averages", "sweeps", result["notes"]))
+
+    @classmethod
+    def frfs(cls, result: Mapping[str, Any], recording) -> Iterator[ExchangeFrf]:
+        """The tool-tip accelerance H1 of each feed, over the exciter's force."""
+        force = tip_force(exciter_channel(recording, SCHEMA))
+        for feed in result["feeds"]:
+            frf = feed["frf"]
+            yield ExchangeFrf("shaker_chirp: tool-tip accelerance H1",
+                              f"feed {feed['feed_mm_min']:g} mm/min", np.asarray(frf["f_hz"]),
+                              polar(frf, "H1_abs", "H1_phase_rad"), TIP_ACCELERATION, force,
+                              np.asarray(frf["coherence"]))
 
     @classmethod
     def summary(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict:

@@ -17,7 +17,7 @@ left out, never silently used. The measured force amplitude is checked against t
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
@@ -28,10 +28,12 @@ from feedbench.experiments.family import Experiment, headline
 from feedbench.experiments.plan import Plan, Window, recorded_windows
 from feedbench.experiments.tool_tip import (
     COMPLIANCE_LABEL, FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL,
-    ExcitationWindow, daq_needs, feed_label, overloaded, plan_over_feeds, window_samples,
+    TIP_ACCELERATION, ExcitationWindow, daq_needs, exciter_channel, feed_label, overloaded,
+    plan_over_feeds, tip_force, window_samples,
 )
 from feedbench.models.exciters import ExciterDynamics, InertialActuator, shaker
 from feedbench.protocols.cia402 import CSP
+from feedbench.views.frfs import ExchangeFrf, polar
 from feedbench.views.panels import ResultView, point_frf_panels
 from feedbench.views.sections import (
     FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, png_of,
@@ -223,6 +225,7 @@ class SineStream(Experiment):
 
     name = NAME
     schema = SCHEMA
+    has_frfs = True
     title = "sine-stream FRF point by point"
     live_kinds = ("excite",)
 
@@ -332,6 +335,18 @@ class SineStream(Experiment):
                    f"{latest['steps']} points, peak {peak:.3g} m/N at {latest['peak_hz']:g} Hz; "
                    f"min R² {min(every):.4f}, {sum(r2 < gate for r2 in every)} below {gate:g}")
         return ResultView(cls.title, point_frf_panels(series, COMPLIANCE_LABEL, gate), summary)
+
+    @classmethod
+    def frfs(cls, result: Mapping[str, Any], recording) -> Iterator[ExchangeFrf]:
+        """The tool-tip accelerance of each stream (feed, amplitude), from the sine fits."""
+        force = tip_force(exciter_channel(recording, SCHEMA))
+        for stream in result["streams"]:
+            frf = stream["frf"]
+            yield ExchangeFrf("sine_stream: tool-tip accelerance (sine fits)",
+                              f"feed {stream['feed_mm_min']:g} mm/min, "
+                              f"{stream['amplitude_N']:g} N", np.asarray(frf["f_hz"]),
+                              polar(frf, "accelerance_abs", "accelerance_phase_rad"),
+                              TIP_ACCELERATION, force)
 
     @classmethod
     def summary(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> dict:

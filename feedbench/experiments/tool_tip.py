@@ -19,14 +19,15 @@ from typing import Any
 import numpy as np
 
 from feedbench.analysis.stability import Lobes, zoa_lobes
-from feedbench.config import Field, non_negative, positive
+from feedbench.config import Field, non_negative, positive, validate_table
 from feedbench.daq.recorder import StreamSpec
 from feedbench.experiments.plan import Plan, Segment, Window
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
+from feedbench.models.milling import engagement_angles
 from feedbench.protocols import cia401
 from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
-from feedbench.models.milling import engagement_angles
 from feedbench.units import MM_PER_MIN
+from feedbench.views.frfs import Dof
 from feedbench.views.panels import Curve, Panel
 from feedbench.views.sections import (
     MIN_COHERENCE, FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, new_figure, png_of,
@@ -37,6 +38,20 @@ RESPONSE_CHANNEL = "acc_tool_x"
 """The tool-side accelerometer along the feed (the flexure's direction)."""
 FORCE_CHANNELS = {"shaker": "shaker_force", "actuator": "actuator_force",
                   "hammer": "hammer_force"}
+TIP_ACCELERATION = Dof(RESPONSE_CHANNEL, "tool_tip", 2, 1, "acceleration")
+"""The accelerometer's end of a tool-tip FRF (node 2, +X along the feed) for export."""
+
+
+def tip_force(channel: str) -> Dof:
+    """The exciter's force end of a tool-tip FRF (node 2, +X)."""
+    return Dof(channel, "tool_tip", 2, 1, "force")
+
+
+def exciter_channel(recording, schema: Mapping[str, Field]) -> str:
+    """The force channel of the exciter a recorded run used (its config, the family's
+    defaults filled in)."""
+    return FORCE_CHANNELS[validate_table(recording.config["experiment"], schema,
+                                         "experiment")["exciter"]]
 COMPLIANCE_LABEL = "|x/F| (m/N)"
 """Axis label of the tool-tip compliance x_tip / F_tip, live and in the report."""
 

@@ -1,4 +1,4 @@
-"""Live window (pyqtgraph + PySide6) and the results it draws while a run acquires.
-
-`feedbench.gui.live_results` needs no Qt; `feedbench.gui.live_window` imports PySide6.
+"""Live window (pyqtgraph + PySide6): traces, progress and the experiment family's result
+while a run acquires. The result itself is the family's own analysis
+(`feedbench.experiments.incremental.LiveAnalysis`) drawn from its `views.panels`.
 """
