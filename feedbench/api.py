@@ -32,7 +32,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from feedbench.bench import (
-    BENCH_SCHEMA, GAINS_SCHEMA, RUN_SCHEMA, Bench, RunConfig, _gains_si, analyze_file,
+    BENCH_SCHEMA, GAINS_SCHEMA, RUN_SCHEMA, Bench, RunConfig, gains_si, analyze_file,
     parse_run_config,
 )
 from feedbench.config import ConfigError, Field, interval, read_toml, validate_table
@@ -345,7 +345,7 @@ class BenchSession:
         self.bench_config["gains"] = {**self.bench_config["gains"], **given}
         drive = self._current_bench().drive
         for each in (drive.values() if isinstance(drive, Mapping) else [drive]):
-            each.write_gains(**_gains_si(given))
+            each.write_gains(**gains_si(given))
 
     @property
     def devices(self) -> tuple[DeviceView, ...]:

@@ -169,7 +169,7 @@ def _drive_gains(drive) -> dict[str, float] | None:
     return drive.read_gains()._asdict() if isinstance(drive, Cia402Drive) else None
 
 
-def _gains_si(table: Mapping[str, Any]) -> dict[str, float]:
+def gains_si(table: Mapping[str, Any]) -> dict[str, float]:
     g = validate_table(table, GAINS_SCHEMA, "bench.gains")
     out = {}
     if g["K_p_Ns_m"] is not None:
@@ -301,7 +301,7 @@ class Bench:
     def _open_drives(self, axis: LabAxis | RackPinionAxis) -> dict[str, Cia402Drive]:
         """The axis's drives, each configured by SDO with the bench's gains."""
         eds = self.config["eds"] or axis.packaged_eds()
-        gains = _gains_si(self.config["gains"]) or None
+        gains = gains_si(self.config["gains"]) or None
         drives = {name: Cia402Drive(self.network, node_id, eds, axis.pdo_config)
                   for name, node_id in axis.nodes().items()}
         for drive in drives.values():
