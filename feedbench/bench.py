@@ -170,6 +170,7 @@ def _drive_gains(drive) -> dict[str, float] | None:
 
 
 def gains_si(table: Mapping[str, Any]) -> dict[str, float]:
+    """A `[bench.gains]` table in SI, only the gains it gives: K_p (N·s/m), T_i (s), K_v (1/s)."""
     g = validate_table(table, GAINS_SCHEMA, "bench.gains")
     out = {}
     if g["K_p_Ns_m"] is not None:
