@@ -133,8 +133,10 @@ def milling_cycle_us() -> tuple[float, float, float]:
         simulate_smfe_cut(SMFE_TOOL_STRUCTURE, SMFE_TOOL, TABLE_6_1, 2e-3, 12e-3, "down", rpm, FS)
 
     offline()  # compile (or load the numba cache) outside the timing
-    with SimulatedBench(_bench_table(channel=f"bench-world-{uuid.uuid4().hex[:8]}")) as bench:
-        bench.inverter.setpoint_rpm, bench.inverter.run_commanded = 1000.0, True
+    with SimulatedBench(_bench_table(channel=f"bench-world-{uuid.uuid4().hex[:8]}"),
+                        {"spindle": {}, "load_cell": {}, "daq": {}}) as bench:
+        inverter = bench.peers["spindle"].inverter
+        inverter.setpoint_rpm, inverter.run_commanded = 1000.0, True
         world = _best_us(lambda: [hook() for _ in range(cycles)
                                   for hook in bench.drive.after_physics], cycles)
     return _best_us(stepped, cycles), _best_us(offline, cycles), world

@@ -13,8 +13,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-import canopen
-
 from feedbench.config import ConfigError, Field, one_of, positive, read_toml, validate_table
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.clock import LockstepClock, RealtimeClock, one_core
@@ -23,7 +21,7 @@ from feedbench.daq.recording import open_recording
 from feedbench.protocols.address import split_address
 from feedbench.protocols.canbus import open_network
 from feedbench.drivers.cia402 import Cia402Drive
-from feedbench.experiments.cycle_io import open_cycle_devices
+from feedbench.experiments.devices import DeviceLinks, open_cycle_devices
 from feedbench.experiments.family import Experiment, families, family
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan
@@ -192,10 +190,9 @@ def _bus_options(cfg: Mapping[str, Any]) -> dict[str, Any]:
 
 class LabAxis:
     """The wiring of ``axis = "lab"``: one linear drive (``node_id``) and the devices the
-    plan's experiment needs (spindle inverter, DAQ, the exciters' I/O module;
-    `experiments.cycle_io`). Simulated: the drive alone, or, with devices, the whole
-    simulated bench (`sim_backends.process.SimulatedBench`: the workpiece prepared as
-    planned, the tool-tip exciters instead of the milling when the plan has an exciter)."""
+    plan's experiment needs (`needs`, kind name → settings: `experiments.devices`).
+    Simulated: the drive and the simulated peers of those devices
+    (`sim_backends.process.SimulatedBench`, the workpiece prepared as planned)."""
 
     pdo_config = None
 
@@ -218,36 +215,20 @@ class LabAxis:
 
     def start_simulated(self, cycle_s: float, bus_options: Mapping[str, Any]):
         """The simulated peer on the bench's bus; `close()` stops it."""
-        from feedbench.sim_backends.bench import start_simulated_axis
         from feedbench.sim_backends.process import SimulatedBench
-        from feedbench.sim_backends.world import build_axis, build_sensor_noise
 
-        cfg = self.cfg
-        if self.needs:
-            exciter_node = self.needs.get("exciter", {}).get("node_id")
-            return SimulatedBench(cfg, self.plan.params.get("workpiece", ()),
-                                  bus_options=bus_options, exciter_node=exciter_node,
-                                  milling=exciter_node is None)
-        return start_simulated_axis(cfg["interface"], cfg["channel"], cfg["node_id"],
-                                    build_axis(cfg["world"], cycle_s),
-                                    noise=build_sensor_noise(cfg["world"]), **bus_options)
+        workpiece = self.plan.params.get("workpiece", ()) if self.plan is not None else ()
+        return SimulatedBench(self.cfg, self.needs, workpiece, bus_options=bus_options)
 
-    def devices(self, drives: Mapping[str, Cia402Drive], simulated: Any, stack: ExitStack,
-                network: canopen.Network) -> list:
-        """The host drivers of the needed devices, at the simulated bench's addresses (Modbus
-        host:port, DAQ port), else at the configured ones; `stack` closes them."""
-        if not self.needs:
-            return []
-        if simulated is not None:
-            host, port = simulated.modbus_address
-            modbus, daq_port = f"{host}:{port}", simulated.daq_port
-        else:
-            modbus, daq_port = self.cfg["modbus"], self.cfg["daq_port"]
-        return open_cycle_devices(self.needs, modbus, daq_port, stack, network)
+    @staticmethod
+    def addresses(simulated: Any) -> dict[str, str]:
+        """[bench] address keys → where the simulated peers listen."""
+        return simulated.addresses
 
 
 AXES = {"lab": LabAxis, "rack_pinion": RackPinionAxis}
-"""The wiring of each axis kind (``[bench] axis``): its simulated peer, drives, devices."""
+"""The wiring of each axis kind (``[bench] axis``): its simulated peer, drives, the devices
+it `needs` and the `addresses` of their simulated peers."""
 
 
 class Bench:
@@ -272,7 +253,8 @@ class Bench:
 
     def __enter__(self) -> Bench:
         """The same steps for every axis kind (`AXES`): simulated peer, network, drives and
-        gains, clock, devices; what is open is closed again if a step fails."""
+        gains, clock, the devices the axis needs (at its simulated peers' addresses, else
+        the configured ones); what is open is closed again if a step fails."""
         cfg = self.config
         cycle_s = cfg["cycle_ms"] * 1e-3
         try:
@@ -293,7 +275,9 @@ class Bench:
                                            timeout_s=cfg["timeout_s"])
             else:
                 self.clock = RealtimeClock(self.network, list(drives.values()), period_s=cycle_s)
-            self.devices = axis.devices(drives, self.simulated, self._stack, self.network)
+            addresses = axis.addresses(self.simulated) if self.simulated is not None else {}
+            links = DeviceLinks({**cfg, **addresses}, self.network, drives, self._stack)
+            self.devices = open_cycle_devices(axis.needs, links)
         except BaseException:
             self._stack.close()
             raise

@@ -13,6 +13,8 @@ from __future__ import annotations
 import math
 import tomllib
 from dataclasses import dataclass
+from functools import cache
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -137,3 +139,19 @@ def read_toml(path: str | Path) -> dict:
         raise ConfigError(f"{path}: no such config file") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+
+
+@cache
+def registered(group: str, base: type) -> dict[str, type]:
+    """The classes registered under the entry-point `group`, by entry-point name: each a
+    subclass of `base` whose ``name`` is that name (what a config calls it: an
+    ``experiment.type``, a device a family needs). A lab's own package adds to a group
+    with one line in its pyproject.toml, as python-can finds its bus interfaces."""
+    found: dict[str, type] = {}
+    for point in entry_points(group=group):
+        cls = point.load()
+        if not (isinstance(cls, type) and issubclass(cls, base)) or cls.name != point.name:
+            raise TypeError(f"entry point {point.name} = {point.value}: not a {base.__name__} "
+                            "subclass of that name")
+        found[point.name] = cls
+    return found

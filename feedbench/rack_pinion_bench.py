@@ -5,38 +5,74 @@ kind and asks this class what differs. Simulated (``simulated = true``), the pee
 simulated axis (master and slave nodes on one bus sharing one world, Ch. 3.2, the bumper's
 load cell on a Modbus server on 127.0.0.1); the drives are the master and the slave node,
 with the axis's PDO maps; the per-cycle devices are the axis controller's settings, the
-encoders and the load cell (`experiments.rack_pinion_io`).
+encoders and the load cell (`experiments.rack_pinion_io`), whose device kinds
+(`experiments.devices.Device`: ``axis_settings``, ``encoders``, ``load_cell``) are here.
 """
 
 from __future__ import annotations
 
-from contextlib import ExitStack
 from typing import Any, Mapping
 
-import canopen
-
-from feedbench.drivers.cia402 import Cia402Drive
-from feedbench.drivers.modbus_devices import LoadCellAmplifier, connect_tcp
+from feedbench.drivers.modbus_devices import LoadCellAmplifier
 from feedbench.drivers.rack_pinion import AXIS_PDOS, AxisController
+from feedbench.experiments.devices import Device, DeviceLinks
 from feedbench.experiments.plan import Plan
 from feedbench.experiments.rack_pinion_io import AxisEncoders, AxisSettings, LoadCellForce
-from feedbench.protocols.address import split_address
 
 LOAD_CELL_ID = 2
 """Modbus device id of the load-cell amplifier (the simulated one's default)."""
 
 
+class AxisSettingsDevice(Device):
+    """The axis controller's coupling, preload and weights, set by SDO on the master drive
+    from the plan's commands (`rack_pinion_io.AxisSettings`)."""
+
+    name = "axis_settings"
+
+    @classmethod
+    def open(cls, settings: Mapping[str, Any], links: DeviceLinks) -> AxisSettings:
+        return AxisSettings(AxisController(links.drives["master"]))
+
+
+class EncodersDevice(Device):
+    """Both motor encoders and the linear scale from the drives' TPDOs
+    (`rack_pinion_io.AxisEncoders`)."""
+
+    name = "encoders"
+
+    @classmethod
+    def open(cls, settings: Mapping[str, Any], links: DeviceLinks) -> AxisEncoders:
+        return AxisEncoders(links.drives)
+
+
+class LoadCellDevice(Device):
+    """The bumper's load-cell amplifier over Modbus TCP at ``bench.load_cell`` (device id
+    `LOAD_CELL_ID`), read every ``every_cycles`` (setting) bus cycles
+    (`rack_pinion_io.LoadCellForce`)."""
+
+    name = "load_cell"
+    address_key = "load_cell"
+
+    @classmethod
+    def open(cls, settings: Mapping[str, Any], links: DeviceLinks) -> LoadCellForce:
+        return LoadCellForce(LoadCellAmplifier(cls.modbus_client(links), LOAD_CELL_ID),
+                             **settings)
+
+
 class RackPinionAxis:
     """Master (``node_id``) and slave (``slave_node_id``) drives of the validated ``[bench]``
-    table `cfg`, the load cell at ``load_cell`` (host:port) every ``load_cell_every`` cycles;
-    the same whatever the `plan` and its experiment's `needs` (taken as by every axis kind
-    of `bench.AXES`)."""
+    table `cfg`; its devices (`needs`): the axis settings, the encoders and the load cell at
+    ``load_cell`` (host:port) every ``load_cell_every`` cycles, whatever the family, and the
+    devices the plan's experiment `needs` besides (taken as by every axis kind of
+    `bench.AXES`)."""
 
     pdo_config = AXIS_PDOS
 
     def __init__(self, cfg: Mapping[str, Any], plan: Plan | None,
                  needs: Mapping[str, dict]) -> None:
         self.cfg = cfg
+        self.needs = {"axis_settings": {}, "encoders": {},
+                      "load_cell": {"every_cycles": cfg["load_cell_every"]}, **needs}
 
     def nodes(self) -> dict[str, int]:
         """Drive name → CANopen node id."""
@@ -61,14 +97,7 @@ class RackPinionAxis:
             (cfg["node_id"], cfg["slave_node_id"]),
             {"device_id": LOAD_CELL_ID, **load_cell_settings(cfg["world"])}, **bus_options)
 
-    def devices(self, drives: Mapping[str, Cia402Drive], simulated: Any, stack: ExitStack,
-                network: canopen.Network) -> list:
-        """Axis settings, encoders and load cell (the simulated axis's server, else the
-        configured one); `stack` closes the Modbus client."""
-        address = (simulated.modbus_address if simulated is not None
-                   else split_address(self.cfg["load_cell"], "bench.load_cell"))
-        client = connect_tcp(*address)
-        stack.callback(client.close)
-        return [AxisSettings(AxisController(drives["master"])), AxisEncoders(drives),
-                LoadCellForce(LoadCellAmplifier(client, LOAD_CELL_ID),
-                              self.cfg["load_cell_every"])]
+    @staticmethod
+    def addresses(simulated: Any) -> dict[str, str]:
+        """[bench] address keys → where the simulated axis listens (its load cell)."""
+        return {"load_cell": "{}:{}".format(*simulated.modbus_address)}

@@ -12,18 +12,22 @@
 
 Either raises on its first failure (the runner aborts the run) and goes silent afterwards,
 so the drive's safe stop never waits on a broken link.
+
+Their device kinds (`experiments.devices.Device`, entry points ``feedbench.devices``):
+`SpindleDevice` (``spindle``), `DaqDevice` (``daq``) and `ExciterDevice` (``exciter``, the
+tool-tip exciters' I/O module driving `tool_tip.ExciterOutputs`).
 """
 
 from __future__ import annotations
 
 import math
 import time
-from contextlib import ExitStack
+from typing import Any, Mapping
 
-from feedbench.config import ConfigError
 from feedbench.daq.recorder import StreamSpec
+from feedbench.experiments.devices import Device, DeviceLinks
 from feedbench.experiments.plan import Plan
-from feedbench.protocols.address import split_address
+from feedbench.experiments.runner import CycleDevice
 from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
 from feedbench.units import RPM
 
@@ -174,37 +178,47 @@ class DaqStream:
         return n
 
 
-def open_cycle_devices(needs: dict[str, dict], modbus: str, daq_port: str,
-                       stack: ExitStack, network=None) -> list:
-    """Connect the host drivers of the devices an experiment needs (`needs`, from its
-    module's `devices(params, cycle_s)`): ``spindle`` over Modbus TCP at `modbus`
-    (host:port), ``daq`` on the serial port `daq_port`, ``exciter``: the CiA 401 I/O module
-    (node ``node_id``) on the drive's canopen `network`. Closed by `stack`."""
-    from feedbench.drivers.modbus_devices import SpindleInverter, connect_tcp
-    from feedbench.drivers.serial_daq import SerialDaq
+class SpindleDevice(Device):
+    """The spindle inverter over Modbus TCP at ``bench.modbus``; settings: `SpindleCommands`'s
+    (``readback_cycles``)."""
 
-    devices = []
-    if "spindle" in needs:
-        client = connect_tcp(*split_address(modbus, "bench.modbus"))
-        stack.callback(client.close)
-        devices.append(SpindleCommands(SpindleInverter(client), **needs["spindle"]))
-    if "daq" in needs:
-        if not daq_port:
-            raise ConfigError("bench.daq_port: the experiment records the DAQ; give its "
-                              "serial port")
-        daq = stack.enter_context(SerialDaq(daq_port, needs["daq"]["channels"],
-                                            needs["daq"]["rate_hz"]))
-        devices.append(DaqStream(daq))
-    if "exciter" in needs:
-        devices.append(_exciter_outputs(network, needs["exciter"]["node_id"]))
-    return devices
+    name = "spindle"
+    address_key = "modbus"
+
+    @classmethod
+    def open(cls, settings: Mapping[str, Any], links: DeviceLinks) -> SpindleCommands:
+        from feedbench.drivers.modbus_devices import SpindleInverter
+
+        return SpindleCommands(SpindleInverter(cls.modbus_client(links)), **settings)
 
 
-def _exciter_outputs(network, node_id: int):
-    """The I/O module, checked and started, as the runner's exciter device."""
-    from feedbench.drivers.io_module import IoModule
-    from feedbench.experiments.tool_tip import ExciterOutputs
+class DaqDevice(Device):
+    """The streaming DAQ on the serial port ``bench.daq_port``; settings: ``channels`` (names
+    of `protocols.serial_frames.CHANNELS`) and ``rate_hz`` (samples/s)."""
 
-    io = IoModule(network, node_id)
-    io.configure()
-    return ExciterOutputs(io)
+    name = "daq"
+    address_key = "daq_port"
+
+    @classmethod
+    def open(cls, settings: Mapping[str, Any], links: DeviceLinks) -> DaqStream:
+        from feedbench.drivers.serial_daq import SerialDaq
+
+        daq = links.stack.enter_context(SerialDaq(cls.address(links), settings["channels"],
+                                                  settings["rate_hz"]))
+        return DaqStream(daq)
+
+
+class ExciterDevice(Device):
+    """The tool-tip exciters' CiA 401 I/O module, node ``node_id`` (setting) on the drives'
+    CAN network, checked and started; the runner's `tool_tip.ExciterOutputs`."""
+
+    name = "exciter"
+
+    @classmethod
+    def open(cls, settings: Mapping[str, Any], links: DeviceLinks) -> CycleDevice:
+        from feedbench.drivers.io_module import IoModule
+        from feedbench.experiments.tool_tip import ExciterOutputs
+
+        io = IoModule(links.network, settings["node_id"])
+        io.configure()
+        return ExciterOutputs(io)

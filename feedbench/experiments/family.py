@@ -25,10 +25,9 @@ from __future__ import annotations
 
 import dataclasses
 from functools import cache
-from importlib.metadata import entry_points
 from typing import Any, ClassVar, Iterator, Mapping
 
-from feedbench.config import ConfigError, Field, validate_table
+from feedbench.config import ConfigError, Field, registered, validate_table
 from feedbench.experiments.plan import Plan
 from feedbench.views.frfs import ExchangeFrf
 from feedbench.views.panels import ResultView
@@ -140,17 +139,9 @@ def params_type(family: type[Experiment]) -> type:
                                       [(key, Any) for key in family.schema], frozen=True)
 
 
-@cache
 def families() -> dict[str, type[Experiment]]:
     """Every registered family by name (entry points of `ENTRY_POINT_GROUP`)."""
-    found: dict[str, type[Experiment]] = {}
-    for point in entry_points(group=ENTRY_POINT_GROUP):
-        cls = point.load()
-        if not (isinstance(cls, type) and issubclass(cls, Experiment)) or cls.name != point.name:
-            raise TypeError(f"entry point {point.name} = {point.value}: not an Experiment "
-                            "subclass of that name")
-        found[point.name] = cls
-    return found
+    return registered(ENTRY_POINT_GROUP, Experiment)
 
 
 def family(name: Any, where: str = "experiment.type") -> type[Experiment]:

@@ -1,10 +1,12 @@
 """The whole simulated bench, in the host's process or as its own (`feedbench sim BENCH.toml`).
 
-`SimulatedBench` starts every simulated device of a lab-axis ``[bench]`` table on its real
-transport: the CiA 402 drive on its CAN bus, and with the peripherals one Modbus TCP server
-on 127.0.0.1 for the spindle inverter (device id 1) and the load-cell amplifier (device id 2),
-the streaming DAQ (a pseudo-terminal) and the worlds at the tool tip that feed it: the
-milling process (`smfe_world.SmfeWorld`) and/or the exciters with their CiA 401 I/O module
+`SimulatedBench` starts the CiA 402 drive of a lab-axis ``[bench]`` table on its CAN bus
+and the simulated peer of each device kind a run needs (`SimulatedPeer`, entry points
+``feedbench.sim_devices``, the kind's name: `experiments.devices`), each on its real
+transport: the spindle inverter (device id 1) and the load-cell amplifier (device id 2) on
+one Modbus TCP server on 127.0.0.1, the streaming DAQ on a pseudo-terminal, the exciters'
+CiA 401 I/O module on the drive's bus. The worlds at the tool tip feed the DAQ: the
+milling process (`smfe_world.SmfeWorld`, spindle and DAQ) and/or the exciters
 (`structure_world`), summed on the DAQ's inputs (`DaqInputs`), stepped in the drive's SYNC
 handler after the axis physics. Virtual time stays lockstep: the host's SYNC advances the
 world one bus cycle.
@@ -28,11 +30,13 @@ import sys
 import threading
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import ExitStack, contextmanager
-from typing import Any, TextIO
+from typing import Any, Callable, ClassVar, TextIO
 
 import numpy as np
 
+from feedbench.config import registered
 from feedbench.protocols.address import LOOPBACK, split_address
+from feedbench.protocols.serial_frames import CHANNELS
 from feedbench.sim_backends.bench import start_simulated_axis
 from feedbench.sim_backends.modbus_devices import (
     SimulatedLoadCell, SimulatedModbusDevice, SimulatedModbusTcpServer, SimulatedSpindleInverter,
@@ -50,10 +54,14 @@ READY = "feedbench-sim ready"
 """First word of the line `serve` prints once every device listens."""
 
 
+SIM_PEER_GROUP = "feedbench.sim_devices"
+"""Entry-point group of the simulated peers, one per device kind, by the kind's name."""
+
+
 class DaqInputs:
     """The DAQ's 12 inputs fed by several worlds in one bus cycle: each world `push`es its
     samples (SI) as it would to the instrument; `flush()`, the last hook of the cycle, sends
-    their sum to `daq` (a `SimulatedSerialDaq`)."""
+    their sum to `daq` (a `SimulatedSerialDaq`); inputs no world drives read 0."""
 
     def __init__(self, daq: SimulatedSerialDaq) -> None:
         self.daq = daq
@@ -70,88 +78,187 @@ class DaqInputs:
 
     def flush(self) -> None:
         """The cycle's summed samples to the instrument."""
-        if self._sum is not None:
-            self.daq.push(self._sum)
-            self._sum = None
+        if self._sum is None:
+            self._sum = np.zeros((self.samples_per_cycle, len(CHANNELS)))
+        self.daq.push(self._sum)
+        self._sum = None
+
+
+class SimulatedPeer:
+    """The simulated peer of one device kind (`experiments.devices.Device` of the same
+    `name`), registered under that name in the entry-point group ``feedbench.sim_devices``.
+
+    `SimulatedBench` constructs the peer of each kind a run needs (`settings`: what the
+    family asked the kind for) on the bench `sim`: it starts its device and transport there
+    (`SimulatedBench.serve_modbus`, a pseudo-terminal, a node on `sim.drive`'s network) and
+    puts its address under the kind's ``[bench]`` key in `sim.addresses`. Once every peer
+    exists, `attach()` hooks it into the world (the drive's `before_physics` /
+    `after_physics`; a world two peers share looks the other up in `sim.peers`);
+    `end_of_cycle`, if set, runs after every peer's hooks.
+    """
+
+    name: ClassVar[str]
+    end_of_cycle: Callable[[], None] | None = None
+
+    def __init__(self, sim: SimulatedBench, settings: Mapping[str, Any]) -> None:
+        self.sim = sim
+        self.settings = settings
+
+    def attach(self) -> None:
+        """Hook into the world; nothing by default."""
+
+
+def simulated_peers() -> dict[str, type[SimulatedPeer]]:
+    """Every registered simulated peer by device kind (entry points of `SIM_PEER_GROUP`)."""
+    return registered(SIM_PEER_GROUP, SimulatedPeer)
+
+
+def milling_runs(peers: Mapping[str, SimulatedPeer]) -> bool:
+    """The milling process runs where the spindle turns and the DAQ records its forces."""
+    return "spindle" in peers and "daq" in peers
+
+
+class SpindlePeer(SimulatedPeer):
+    """The spindle inverter (Modbus device id 1 at ``bench.modbus``); with the DAQ, the
+    milling process it drives (`smfe_world.SmfeWorld`: the ``[bench.world.milling]`` table,
+    cutting `sim.workpiece`), else the inverter's own speed ramp alone."""
+
+    name = "spindle"
+
+    def __init__(self, sim: SimulatedBench, settings: Mapping[str, Any]) -> None:
+        super().__init__(sim, settings)
+        self.inverter = SimulatedSpindleInverter()
+        self.milling: SmfeWorld | None = None
+        sim.serve_modbus(self.inverter, "modbus")
+
+    def attach(self) -> None:
+        sim = self.sim
+        if not milling_runs(sim.peers):
+            sim.drive.after_physics.append(lambda: self.inverter.advance(sim.cycle_s))
+            return
+        process, table = build_process(sim.world.get("milling", {}))
+        lanes = lanes_from_list(sim.workpiece, "experiment.workpiece")
+        self.milling = SmfeWorld(process, Workpiece(lanes), lambda: sim.drive.simulator.tip_position,
+                                 self.inverter, sim.peers["daq"].inputs, sim.cycle_s,
+                                 table["noise_m_s2"], table["seed"])
+        sim.drive.after_physics.append(self.milling.step)
+
+
+class LoadCellPeer(SimulatedPeer):
+    """The load-cell amplifier (Modbus device id 2 at ``bench.load_cell``): the force the
+    exciters apply to the tool tip (the drive's `tip_force`, N), sampled once per bus cycle."""
+
+    name = "load_cell"
+
+    def __init__(self, sim: SimulatedBench, settings: Mapping[str, Any]) -> None:
+        super().__init__(sim, settings)
+        self.load_cell = SimulatedLoadCell(lambda: sim.drive.tip_force)
+        sim.serve_modbus(self.load_cell, "load_cell")
+        sim.drive.after_physics.append(lambda: self.load_cell.advance(sim.cycle_s))
+
+
+class DaqPeer(SimulatedPeer):
+    """The streaming DAQ on a pseudo-terminal (``bench.daq_port``); the worlds push their
+    samples to `inputs`, summed and sent at the end of each cycle."""
+
+    name = "daq"
+
+    def __init__(self, sim: SimulatedBench, settings: Mapping[str, Any]) -> None:
+        super().__init__(sim, settings)
+        self.daq = SimulatedSerialDaq(sim.cycle_s)
+        sim.stack.callback(self.daq.close)
+        sim.addresses["daq_port"] = self.daq.port
+        self.inputs = DaqInputs(self.daq)
+        self.end_of_cycle = self.inputs.flush
+
+
+class ExciterPeer(SimulatedPeer):
+    """The tool-tip exciters (`structure_world`: shaker, inertial actuator, impact hammer)
+    commanded by a CiA 401 I/O module at node ``node_id`` (setting; `feedbench sim`: the
+    bench's ``io_node_id``), feeding the DAQ if there is one. Beside the milling process the
+    accelerometers' noise is the milling table's (``noise_m_s2``), counted once: the
+    structure table's accelerometer noise is not added to it."""
+
+    name = "exciter"
+
+    def __init__(self, sim: SimulatedBench, settings: Mapping[str, Any]) -> None:
+        super().__init__(sim, settings)
+        self.structure: StructureWorld | None = None
+
+    def attach(self) -> None:
+        sim = self.sim
+        table = sim.world.get("structure", {})
+        if milling_runs(sim.peers):
+            table = {**table, "accelerometer_noise_m_s2": [0.0, 0.0, 0.0]}
+        daq = sim.peers.get("daq")
+        self.structure = start_structure_world(
+            sim.drive, daq.inputs if daq is not None else None,
+            self.settings.get("node_id", sim.bench["io_node_id"]), table, sim.cycle_s)
 
 
 class SimulatedBench:
-    """The simulated devices of a validated lab-axis ``[bench]`` table; `close()` stops them.
+    """The simulated lab axis of a validated ``[bench]`` table and the simulated peers of the
+    devices a run `needs` (kind name → settings; kinds without a registered peer are left
+    to the drive); `close()` stops them.
 
-    `workpiece`: lane tables (mode, a_e_mm, a_p_mm, start_mm, stop_mm) the milling process
-    cuts (the SMFE plan's ``workpiece``); `peripherals`: also start the inverter, the load
-    cell, the DAQ and the worlds at the tool tip (an experiment on the drive alone does
-    without them); `bus_options` go to python-can (``host``, ``port`` of a socketcand server);
-    `modbus_address`: where the Modbus server listens (port 0: a free one). `exciter_node`:
-    the lab bench's tool-tip exciters (`structure_world`: shaker, inertial actuator, impact
-    hammer, commanded by a CiA 401 I/O module at this node id) feed the DAQ; `milling`: the
-    milling process feeds it. With both, the accelerometers' noise is the milling table's
-    (``noise_m_s2``), once; the structure table's accelerometer noise is not added to it.
-    The load cell measures the force the exciters apply to the tool tip (the drive's
-    `tip_force`, N), sampled once per bus cycle.
+    The drive (CiA 402 on its CAN bus, `bus_options` to python-can: ``host``, ``port`` of a
+    socketcand server) starts first, then each peer (`SimulatedPeer`); the peers on Modbus
+    share one server on 127.0.0.1 at port ``modbus_address[1]`` (0: a free one). `addresses`:
+    ``[bench]`` key → where each peer is reached, as the host config would give it.
+    `workpiece`: lane tables (mode, a_e_mm, a_p_mm, start_mm, stop_mm) a milling process
+    cuts (the SMFE plan's ``workpiece``).
     """
 
-    def __init__(self, bench: Mapping[str, Any], workpiece: Sequence[Mapping[str, Any]] = (),
-                 peripherals: bool = True, bus_options: Mapping[str, Any] | None = None,
-                 modbus_address: tuple[str, int] = (LOOPBACK, 0),
-                 exciter_node: int | None = None, milling: bool = True) -> None:
-        self._stack = ExitStack()
-        cycle_s = bench["cycle_ms"] * 1e-3
-        world = bench["world"]
-        self.modbus_address: tuple[str, int] | None = None
-        self.daq_port: str | None = None
+    def __init__(self, bench: Mapping[str, Any], needs: Mapping[str, Mapping[str, Any]],
+                 workpiece: Sequence[Mapping[str, Any]] = (),
+                 bus_options: Mapping[str, Any] | None = None,
+                 modbus_address: tuple[str, int] = (LOOPBACK, 0)) -> None:
+        self.stack = ExitStack()
+        self.bench = bench
+        self.cycle_s = bench["cycle_ms"] * 1e-3
+        self.world = bench["world"]
+        self.workpiece = workpiece
+        self.addresses: dict[str, str] = {}
         self.modbus_devices: list[SimulatedModbusDevice] = []
-        self.structure: StructureWorld | None = None
-        self.milling: SmfeWorld | None = None
+        self._modbus_keys: set[str] = set()
+        self.peers: dict[str, SimulatedPeer] = {}
         try:
-            simulator = build_axis(world, cycle_s)
-            process, milling_table = build_process(world.get("milling", {}))
-            lanes = lanes_from_list(workpiece, "experiment.workpiece")
             self.drive = start_simulated_axis(bench["interface"], bench["channel"],
-                                              bench["node_id"], simulator,
-                                              noise=build_sensor_noise(world),
+                                              bench["node_id"], build_axis(self.world, self.cycle_s),
+                                              noise=build_sensor_noise(self.world),
                                               **(bus_options or {}))
-            self._stack.callback(self.drive.close)
-            if peripherals:
-                self._start_peripherals(cycle_s, modbus_address)
-                inputs = DaqInputs(self.daq)
-                if exciter_node is not None:
-                    self._start_structure(world.get("structure", {}), inputs, exciter_node,
-                                          milling, cycle_s)
-                if milling:
-                    self.milling = SmfeWorld(process, Workpiece(lanes),
-                                             lambda: simulator.tip_position, self.inverter,
-                                             inputs, cycle_s, milling_table["noise_m_s2"],
-                                             milling_table["seed"])
-                    self.drive.after_physics.append(self.milling.step)
-                self.drive.after_physics.append(inputs.flush)
+            self.stack.callback(self.drive.close)
+            self._start_peers(needs, modbus_address)
         except BaseException:
-            self._stack.close()
+            self.stack.close()
             raise
 
-    def _start_structure(self, table: Mapping[str, Any], inputs: DaqInputs, node_id: int,
-                         with_milling: bool, cycle_s: float) -> None:
-        """The exciters' world and its I/O module; beside the milling process its
-        accelerometer noise is left to the milling world's (counted once)."""
-        if with_milling:
-            table = {**table, "accelerometer_noise_m_s2": [0.0, 0.0, 0.0]}
-        self.structure = start_structure_world(self.drive, inputs, node_id, table, cycle_s)
+    def _start_peers(self, needs: Mapping[str, Mapping[str, Any]],
+                     modbus_address: tuple[str, int]) -> None:
+        """Each needed kind's peer, the Modbus server they share, their world hooks."""
+        known = simulated_peers()
+        for name, settings in needs.items():
+            if name in known:
+                self.peers[name] = known[name](self, settings)
+        if self.modbus_devices:
+            server = SimulatedModbusTcpServer(self.modbus_devices, port=modbus_address[1])
+            address = "{}:{}".format(*server.start())
+            self.stack.callback(server.stop)
+            self.addresses.update(dict.fromkeys(self._modbus_keys, address))
+        for peer in self.peers.values():
+            peer.attach()
+        self.drive.after_physics.extend(peer.end_of_cycle for peer in self.peers.values()
+                                        if peer.end_of_cycle is not None)
 
-    def _start_peripherals(self, cycle_s: float, modbus_address: tuple[str, int]) -> None:
-        self.inverter = SimulatedSpindleInverter()
-        self.load_cell = SimulatedLoadCell(lambda: self.drive.tip_force)
-        self.drive.after_physics.append(lambda: self.load_cell.advance(cycle_s))
-        self.modbus_devices = [self.inverter, self.load_cell]
-        server = SimulatedModbusTcpServer(self.modbus_devices, port=modbus_address[1])
-        self.modbus_address = server.start()
-        self._stack.callback(server.stop)
-        self.daq = SimulatedSerialDaq(cycle_s)
-        self._stack.callback(self.daq.close)
-        self.daq_port = self.daq.port
+    def serve_modbus(self, device: SimulatedModbusDevice, address_key: str) -> None:
+        """Serve `device` (at its own device id) on the bench's Modbus server, whose address
+        goes under the ``[bench]`` key `address_key`."""
+        self.modbus_devices.append(device)
+        self._modbus_keys.add(address_key)
 
     def close(self) -> None:
         """Stop every device (in reverse order of starting)."""
-        self._stack.close()
+        self.stack.close()
 
     def __enter__(self) -> SimulatedBench:
         return self
@@ -199,12 +306,12 @@ def _start_bench(bench: Mapping[str, Any], workpiece: Sequence[Mapping[str, Any]
                 "slave_node_id": bench["slave_node_id"], "modbus": address,
                 "modbus_devices": _device_ids([axis.load_cell]), "load_cell": address}
     simulated = stack.enter_context(SimulatedBench(
-        bench, workpiece, bus_options=bus_options, modbus_address=modbus,
-        exciter_node=bench["io_node_id"], milling=True))
+        bench, {name: {} for name in simulated_peers()}, workpiece, bus_options=bus_options,
+        modbus_address=modbus))
     return {"axis": "lab", "node_id": bench["node_id"], "io_node_id": bench["io_node_id"],
-            "modbus": "{}:{}".format(*simulated.modbus_address),
+            "modbus": simulated.addresses["modbus"],
             "modbus_devices": _device_ids(simulated.modbus_devices),
-            "daq_port": simulated.daq_port}
+            "daq_port": simulated.addresses["daq_port"]}
 
 
 def _device_ids(devices: Sequence[SimulatedModbusDevice]) -> dict[str, int]:

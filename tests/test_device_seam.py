@@ -1,0 +1,83 @@
+"""The device seam (issue 14): a device kind is one registered class (`experiments.devices`)
+with its simulated peer registered under the same name (`sim_backends.process`);
+`open_cycle_devices` and `SimulatedBench` iterate over a run's needs and know no kind by
+name. The proof: the bumper's load-cell kind of the rack-and-pinion axis, asked for by a
+tool-tip run on the lab axis, is started, served and recorded there with no wiring added.
+"""
+
+from __future__ import annotations
+
+import uuid
+from contextlib import ExitStack
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import feedbench
+from feedbench.bench import Bench, parse_run_config
+from feedbench.config import ConfigError, read_toml
+from feedbench.daq.catalog import Catalog
+from feedbench.daq.recording import open_recording
+from feedbench.experiments.devices import DeviceLinks, devices, open_cycle_devices
+from feedbench.experiments.plan import segment_event
+from feedbench.sim_backends.process import simulated_peers
+
+EXAMPLES = Path(feedbench.__file__).parent / "examples"
+
+
+def test_every_kind_is_registered_by_its_name_with_its_simulated_peer():
+    kinds = devices()
+    assert set(kinds) == {"spindle", "daq", "exciter", "axis_settings", "encoders",
+                          "load_cell"}
+    assert all(kind.name == name for name, kind in kinds.items())
+    # the rack-and-pinion axis's simulator serves its settings and encoders (its drives)
+    assert set(simulated_peers()) == {"spindle", "daq", "exciter", "load_cell"}
+    assert all(peer.name == name for name, peer in simulated_peers().items())
+
+
+def test_an_unregistered_device_is_a_config_error():
+    with ExitStack() as stack, pytest.raises(
+            ConfigError, match=r"^experiment.type: needs the device thermometer, which is not "
+                               r"registered \(known: axis_settings, daq, "):
+        open_cycle_devices({"thermometer": {}}, DeviceLinks({}, None, {}, stack))
+
+
+@pytest.mark.parametrize("kind, key", [("daq", "daq_port"), ("spindle", "modbus"),
+                                       ("load_cell", "load_cell")])
+def test_a_device_without_an_address_names_its_bench_key(kind, key):
+    with ExitStack() as stack, pytest.raises(
+            ConfigError, match=rf"^bench.{key}: the experiment uses the {kind} device; give "
+                               "its address$"):
+        open_cycle_devices({kind: {}}, DeviceLinks({key: ""}, None, {}, stack))
+
+
+def test_a_lab_run_records_the_load_cell_it_asks_for(tmp_path):
+    """A shaker chirp (1 sweep of 1 s, 20 N) on the lab axis with the load-cell kind added
+    to its needs: the simulated bench starts the load cell's peer on its Modbus server (it
+    samples the exciters' force on the tool tip once per bus cycle), the host opens it at
+    the address the bench reports and records ``load_cell.force`` beside the DAQ's
+    ``shaker_force``: per bus cycle the force at the cycle's end, within the load cell's noise
+    (2 N; measured: residual 2.03 N std, −0.07 N mean over 1500 cycles)."""
+    raw = read_toml(EXAMPLES / "shaker_chirp.toml")
+    raw["bench"].update(channel=f"seam-{uuid.uuid4().hex[:8]}", output_dir=str(tmp_path))
+    raw["experiment"].update(duration_s=1.0, repetitions=1)
+    config = parse_run_config(raw)
+    needs = {**config.experiment.devices(), "load_cell": {"every_cycles": 1}}
+    with Bench(config.bench, config.plan, needs) as bench:
+        assert set(bench.simulated.peers) == {"daq", "exciter", "load_cell"}
+        assert bench.simulated.addresses["load_cell"].startswith("127.0.0.1:")
+        record = bench.run(config, Catalog(tmp_path / "catalog.sqlite"), tmp_path,
+                           progress=False)
+    assert record["status"] == "complete", record["reason"]
+    recording = open_recording(record["file"])
+    sweep, = [s for s in recording.segments() if segment_event(s.label)[1] == "excite"]
+    window = recording.mask(sweep)
+    cycles, load_cell = recording.cycle[window], recording.channels["load_cell.force"][window]
+    stream = recording.streams["daq"]
+    at_cycle_end = dict(zip(stream.cycle, stream.channels["shaker_force"]))  # last sample wins
+    shaker = np.array([at_cycle_end[cycle] for cycle in cycles])
+    residual = load_cell - shaker
+    assert np.sqrt(np.mean(shaker ** 2)) > 10.0  # N: the 20 N chirp through the shaker
+    assert abs(residual.mean()) < 0.3  # N
+    assert residual.std() == pytest.approx(2.0, abs=0.3)  # N: the load cell's noise
