@@ -1,4 +1,4 @@
-"""The `feedbench` command: run, runs, analyze, live, report, demo, sim, export, closure.
+"""The `feedbench` command: run, runs, analyze, live, report, demo, campaign, sim, export, closure.
 
 Errors the user can fix (a config key, a limit, an unknown run, a file that is not what it
 should be) print one line ``feedbench: error: <file or field>: <reason>`` and exit with
@@ -183,6 +183,24 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0 if all(r["status"] == "complete" for r in runs) else 1
 
 
+def cmd_campaign(args: argparse.Namespace) -> int:
+    """Run a campaign config's runs as Dask tasks (progress on stderr), write its summary
+    table (JSON + CSV) and print it."""
+    from feedbench.campaign import (describe_campaign, load_campaign, progress_line,
+                                    run_campaign, write_summary)
+
+    campaign = load_campaign(args.config)
+    summary = run_campaign(campaign, args.scheduler, args.workers, progress=None if args.json
+                           else lambda *done: print(progress_line(*done), file=sys.stderr))
+    files = write_summary(summary, campaign.output_dir)
+    if args.json:
+        _print_json({**summary, "files": [str(f) for f in files]})
+    else:
+        print(describe_campaign(summary))
+        print("Summary: " + ", ".join(map(str, files)))
+    return 0 if summary["complete"] == len(summary["runs"]) else 1
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     """Serve the simulated bench of a config as its own process until Ctrl-C / SIGTERM."""
     from feedbench.bench import sim_config
@@ -286,6 +304,16 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--quick", action="store_true",
                       help="shortened runs (feedbench.demo.QUICK_OVERRIDES): a few minutes")
     demo.set_defaults(func=cmd_demo)
+
+    campaign = sub.add_parser("campaign", help="a grid or Monte-Carlo set of simulated runs "
+                              "as Dask tasks ([campaign] table + a run config)")
+    campaign.add_argument("config")
+    campaign.add_argument("--workers", type=int, help="worker processes of the local Dask "
+                          "cluster (default: campaign.workers)")
+    campaign.add_argument("--scheduler", metavar="ADDRESS", help="use the Dask cluster at "
+                          "ADDRESS (e.g. tcp://host:8786) instead of a local one")
+    campaign.add_argument("--json", action="store_true", help="print the summary as JSON")
+    campaign.set_defaults(func=cmd_campaign)
 
     sim = sub.add_parser("sim", help="serve the simulated bench as its own process (CAN via "
                          "socketcand, Modbus TCP, DAQ pty on loopback)")
