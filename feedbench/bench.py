@@ -8,18 +8,19 @@ the same bus. Everything else stays in its room.
 from __future__ import annotations
 
 import json
+import shutil
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from feedbench.config import ConfigError, Field, one_of, positive, read_toml, validate_table
-from feedbench.daq.catalog import Catalog
+from feedbench.daq.catalog import Catalog, CatalogError
 from feedbench.daq.clock import LockstepClock, RealtimeClock, one_core
-from feedbench.daq.recorder import Recorder
+from feedbench.daq.recorder import Recorder, expected_size
 from feedbench.daq.recording import open_recording
 from feedbench.protocols.address import split_address
-from feedbench.protocols.canbus import open_network
+from feedbench.protocols.canbus import disconnect, open_network
 from feedbench.drivers.cia402 import Cia402Drive
 from feedbench.experiments.devices import DeviceLinks, open_cycle_devices
 from feedbench.experiments.family import Experiment, families, family
@@ -267,7 +268,7 @@ class Bench:
                 self._stack.callback(self.simulated.close)
             self.network = open_network(cfg["interface"], cfg["channel"], cfg["bitrate"],
                                         **bus_options)
-            self._stack.callback(self.network.disconnect)
+            self._stack.callback(disconnect, self.network)
             drives = self._open_drives(axis)
             self.drive = drives[""] if "" in drives else drives
             if cfg["clock"] == "lockstep":
@@ -309,6 +310,8 @@ class Bench:
                         devices=self.devices)
         start = runner.read_position()
         runner.absolute_targets(config.plan, start)
+        check_free_space(output_dir, FREE_SPACE_MARGIN * expected_size(
+            config.plan.n_cycles, config.plan.cycle_s, runner.channels, runner.streams))
         run_id = catalog.new_run_id(config.plan.experiment)
         path = output_dir / f"{run_id}.h5"
         metadata = {"experiment": config.plan.experiment, "run_id": run_id,
@@ -321,9 +324,26 @@ class Bench:
             if hasattr(observer, "on_metadata"):  # what the recording's analysis reads
                 observer.on_metadata(metadata)
         outcome = runner.run(config.plan, recorder, start)
-        catalog.finish(run_id, outcome.status, outcome.reason, recorder.n_samples)
-        return {"id": run_id, "file": str(path), "status": outcome.status,
-                "reason": outcome.reason}
+        reason = outcome.reason
+        try:
+            catalog.finish(run_id, outcome.status, reason, recorder.n_samples)
+        except CatalogError as exc:  # full disk: `feedbench runs` settles it from the file
+            reason = f"{reason}; {exc}" if reason else str(exc)
+        return {"id": run_id, "file": str(path), "status": outcome.status, "reason": reason}
+
+
+FREE_SPACE_MARGIN = 1.5
+"""A run starts only with this many times its recording's expected size free on disk
+(`daq.recorder.expected_size`: the stop ramp, events and HDF5's own metadata besides)."""
+
+
+def check_free_space(directory: Path, needed: float) -> None:
+    """Raise `ConfigError` naming `bench.output_dir` if `directory`'s disk has fewer than
+    `needed` bytes free."""
+    free = shutil.disk_usage(directory).free
+    if free < needed:
+        raise ConfigError(f"bench.output_dir: {directory}: the run needs {needed / 1e6:.1f} MB "
+                          f"free (its recording with margin), the disk has {free / 1e6:.1f} MB")
 
 
 def run_config(config: RunConfig, observers: Sequence[Observer] = (),

@@ -5,13 +5,22 @@ the datasets, writes the rows and flushes, so the file on disk always holds ever
 chunk. The file is in SWMR mode (single writer, multiple readers): a live plot can read it
 while it is written, and a writer killed mid-run leaves a readable file with status
 `running`. The layout is described in `feedbench.daq.recording`.
+
+A full disk (or a file-size limit) is found before HDF5 writes: the recorder keeps
+`RESERVE_BYTES` allocated ahead of what the file has used, so a write that cannot get its
+space raises `RecordingError` while the file is still whole; it can then be closed and
+marked `aborted` with the reason, and the samples flushed before stay readable. After that
+first failure the recorder drops what it is given without I/O: the safe stop of the drive
+goes on without the file.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import platform
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager, suppress
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 from types import TracebackType
@@ -31,6 +40,18 @@ VERSIONED_DISTRIBUTIONS = (
 EVENTS_CHUNK_ROWS = 64
 STREAM_CHUNK_ROWS = 10_000
 """Rows of a high-rate stream held in memory before they are written (1 s at 10 kHz)."""
+RESERVE_BYTES = 1 << 20
+"""Disk space (bytes) held allocated beyond what the file has used: HDF5's own writes
+(chunks, metadata, the final flush and status) land in space already held."""
+RESERVE_STEP_BYTES = 1 << 16
+"""The reserve is topped up in steps of this many bytes (64 KiB)."""
+WRITE_OVERHEAD_BYTES = 4096
+"""Metadata HDF5 may add per write (chunk index, dataset extents), counted generously."""
+
+
+class RecordingError(RuntimeError):
+    """The recording cannot be written (disk full, file-size limit): raised once, by the
+    write that found it; the recorder drops everything after it without I/O."""
 
 
 class StreamSpec(NamedTuple):
@@ -39,6 +60,17 @@ class StreamSpec(NamedTuple):
     channels: tuple[str, ...]
     units: Mapping[str, str]
     rate_hz: float
+
+
+def expected_size(n_cycles: int, cycle_s: float, channels: Sequence[str],
+                  streams: Mapping[str, StreamSpec]) -> int:
+    """Bytes of a recording of `n_cycles` bus cycles of `cycle_s` (s) with `channels` and
+    the `streams`: 8 bytes per value, per row the cycle counter besides, per stream sample
+    its bus cycle and counter besides; plus the disk space the recorder holds in reserve."""
+    row_values = n_cycles * (len(channels) + 1)
+    stream_values = sum(round(spec.rate_hz * n_cycles * cycle_s) * (len(spec.channels) + 2)
+                        for spec in streams.values())
+    return 8 * (row_values + stream_values) + 2 * RESERVE_BYTES
 
 
 def software_versions() -> dict[str, str | None]:
@@ -85,8 +117,12 @@ class Recorder:
         self._written = 0
         self._next_cycle: int | None = None
         self._closed = False
+        self.failure = ""
+        """Why the recording stopped being written ('' while it is written)."""
         self._file = self._create_file(units, metadata, streams or {})
-        self._streams = {name: _StreamWriter(self._file[STREAMS][name], len(spec.channels))
+        self._space = _DiskSpace(self._file)
+        self._streams = {name: _StreamWriter(self, self._file[STREAMS][name],
+                                             len(spec.channels))
                          for name, spec in (streams or {}).items()}
         self._cycle_set = self._file[CYCLE]
         self._data_sets = [self._file[DATA][name] for name in self.channels]
@@ -94,8 +130,8 @@ class Recorder:
 
     @property
     def n_samples(self) -> int:
-        """Samples appended so far (on disk plus buffered)."""
-        return self._written + self._buffered
+        """Samples appended so far (on disk plus buffered; after a failure: on disk)."""
+        return self._written + (0 if self.failure else self._buffered)
 
     @property
     def buffer_rows(self) -> int:
@@ -155,29 +191,52 @@ class Recorder:
         """Write an event marker and flush it at once (kinds: segment, fault, limit, abort,
         gap, info)."""
         self._require_open()
-        row = len(self._event_set)
-        self._event_set.resize((row + 1,))
-        self._event_set[row] = (cycle, kind, text)
-        self._file.flush()
-
-    def close(self, status: str = "complete", reason: str = "") -> None:
-        """Write the buffered rows and the final status; a second call does nothing."""
-        if self._closed:
+        if self.failure:
             return
-        self._write_buffer()
-        for stream in self._streams.values():
-            stream.write()
+        with self.writing(WRITE_OVERHEAD_BYTES):
+            row = len(self._event_set)
+            self._event_set.resize((row + 1,))
+            self._event_set[row] = (cycle, kind, text)
+            self._file.flush()
+
+    @contextmanager
+    def writing(self, n_bytes: int) -> Iterator[None]:
+        """Hold `n_bytes` (+ the reserve) on disk, then run the block's HDF5 writes; a failure
+        becomes `failure` and one `RecordingError`."""
+        try:
+            self._space.hold(n_bytes + WRITE_OVERHEAD_BYTES)
+            yield
+        except (OSError, RuntimeError) as exc:  # h5py reports a failed write as either
+            self.failure = f"recording failed: {' '.join(str(exc).split())[:200]}"
+            raise RecordingError(f"{self.path}: {self.failure}") from None
+
+    def close(self, status: str = "complete", reason: str = "") -> tuple[str, str]:
+        """Write the buffered rows and the final status; returns the status and reason
+        written: ``aborted`` with the failure if the recording failed (a complete run whose
+        last rows could not be written is not complete). A second call does nothing.
+
+        The status is written in a second opening of the file (outside SWMR mode: SWMR
+        writers must not modify attributes), after HDF5 has given back the reserve; if that
+        fails too, `RecordingError` says so and the file keeps status `running`."""
+        if self._closed:
+            return status, reason
+        with suppress(RecordingError):  # kept in `failure`
+            self._write_buffer()
+            for stream in self._streams.values():
+                stream.write()
         self._file.close()
         self._closed = True
-        # Final attributes are written outside SWMR mode: SWMR writers must not modify attributes.
-        with h5py.File(self.path, "r+") as file:
-            file.attrs.update(
-                status=status,
-                reason=reason,
-                stopped_at=utc_now_iso(),
-                n_samples=self._written,
-                n_gaps=self.gaps,
-            )
+        if self.failure:
+            status, reason = "aborted", reason or self.failure
+            if self.failure not in reason:
+                reason = f"{reason}; {self.failure}"
+        try:
+            with h5py.File(self.path, "r+") as file:
+                file.attrs.update(status=status, reason=reason, stopped_at=utc_now_iso(),
+                                  n_samples=self._written, n_gaps=self.gaps)
+        except (OSError, RuntimeError) as exc:
+            raise RecordingError(f"{self.path}: status {status} not written ({exc})") from None
+        return status, reason
 
     def __enter__(self) -> Recorder:
         return self
@@ -235,15 +294,15 @@ class Recorder:
 
     def _write_buffer(self) -> None:
         """Extend every dataset by the buffered rows, write them and flush."""
-        count = self._buffered
-        if not count:
-            return
-        for column, dataset in enumerate(self._data_sets):
-            _write_rows(dataset, self._written, self._values[:count, column])
-        _write_rows(self._cycle_set, self._written, self._cycles[:count])
-        self._file.flush()
+        count, self._buffered = self._buffered, 0
+        if not count or self.failure:
+            return  # after a failure the rows are dropped
+        with self.writing(count * (len(self._data_sets) + 1) * 8):
+            for column, dataset in enumerate(self._data_sets):
+                _write_rows(dataset, self._written, self._values[:count, column])
+            _write_rows(self._cycle_set, self._written, self._cycles[:count])
+            self._file.flush()
         self._written += count
-        self._buffered = 0
 
     def _check_step(self, cycle: int) -> None:
         """Called when `cycle` is not the expected next one (or for the first sample)."""
@@ -270,7 +329,8 @@ class Recorder:
 class _StreamWriter:
     """Buffers one stream's samples and writes them in chunks of `STREAM_CHUNK_ROWS`."""
 
-    def __init__(self, group: h5py.Group, n_channels: int) -> None:
+    def __init__(self, recorder: Recorder, group: h5py.Group, n_channels: int) -> None:
+        self._recorder = recorder
         self._cycle_set, self._sequence_set = group[CYCLE], group[SEQUENCE]
         self._data_sets = [group[DATA][name] for name in json.loads(group.attrs["channels"])]
         self._cycles: list[np.ndarray] = []
@@ -293,17 +353,44 @@ class _StreamWriter:
             self.write()
 
     def write(self) -> None:
-        """Write the buffered samples and flush (SWMR readers then see them)."""
-        if not self._buffered:
-            return
-        samples = np.concatenate(self._samples)
-        for column, dataset in enumerate(self._data_sets):
-            _write_rows(dataset, self._written, np.ascontiguousarray(samples[:, column]))
-        _write_rows(self._sequence_set, self._written, np.concatenate(self._sequences))
-        _write_rows(self._cycle_set, self._written, np.concatenate(self._cycles))
-        self._cycle_set.file.flush()
-        self._written += self._buffered
+        """Write the buffered samples and flush (SWMR readers then see them); after the
+        recorder's failure they are dropped."""
+        samples, sequences, cycles = self._samples, self._sequences, self._cycles
+        count = self._buffered
         self._cycles, self._sequences, self._samples, self._buffered = [], [], [], 0
+        if not count or self._recorder.failure:
+            return
+        samples = np.concatenate(samples)
+        with self._recorder.writing(count * (self._n_channels + 2) * 8):
+            for column, dataset in enumerate(self._data_sets):
+                _write_rows(dataset, self._written, np.ascontiguousarray(samples[:, column]))
+            _write_rows(self._sequence_set, self._written, np.concatenate(sequences))
+            _write_rows(self._cycle_set, self._written, np.concatenate(cycles))
+            self._cycle_set.file.flush()
+        self._written += count
+
+
+class _DiskSpace:
+    """Keeps `RESERVE_BYTES` of disk allocated beyond what an HDF5 file has used (an
+    estimate from the bytes written, counted generously), in steps of `RESERVE_STEP_BYTES`.
+
+    ``posix_fallocate`` raises `OSError` (ENOSPC, EFBIG) when the space is not there, before
+    HDF5 writes into it; HDF5 truncates the file to its used size when it is closed.
+    """
+
+    def __init__(self, file: h5py.File) -> None:
+        self._fd = file.id.get_vfd_handle()
+        self._used = file.id.get_filesize()
+        self._held = self._used
+        self.hold(0)
+
+    def hold(self, n_bytes: int) -> None:
+        """Count `n_bytes` as used and make sure the reserve beyond them is allocated."""
+        self._used += n_bytes
+        if self._used + RESERVE_BYTES > self._held:
+            target = self._used + RESERVE_BYTES + RESERVE_STEP_BYTES
+            os.posix_fallocate(self._fd, self._held, target - self._held)
+            self._held = target
 
 
 def _create_streams(group: h5py.Group, streams: Mapping[str, StreamSpec]) -> None:

@@ -52,6 +52,8 @@ CW_ENABLE_OPERATION = COMMANDS["ENABLE OPERATION"]
 CW_QUICK_STOP = COMMANDS["QUICK STOP"]
 CW_DISABLE_VOLTAGE = COMMANDS["DISABLE VOLTAGE"]
 CW_DISABLE_OPERATION = COMMANDS["SWITCH ON"]  # 0x07 from operation enabled: transition 5
+SAFE_STATES = (*DISABLED_STATES, QUICK_STOP_ACTIVE)
+"""States that command no motion: de-energised, or ramping down by the drive's own quick stop."""
 
 
 @dataclass(frozen=True)
@@ -338,6 +340,24 @@ class Cia402Drive:
     def quick_stop(self) -> None:
         """Controlword quick stop (0x02) from the next transmit on."""
         self._write_controlword(CW_QUICK_STOP)
+
+    def quick_stop_by_sdo(self, timeout_s: float) -> str:
+        """Quick stop (0x02) by SDO and in the RPDO payload, then the state from the
+        statusword read by SDO: for when the cycle's PDOs fail. Raises canopen's or the
+        bus's error if the drive does not answer within `timeout_s` (s) per request."""
+        self.quick_stop()
+        sdo = self.node.sdo
+        waited, sdo.RESPONSE_TIMEOUT = sdo.RESPONSE_TIMEOUT, timeout_s
+        try:
+            sdo[CONTROLWORD].raw = CW_QUICK_STOP
+            return decode_state(sdo[STATUSWORD].raw)
+        finally:
+            sdo.RESPONSE_TIMEOUT = waited
+
+    def nmt_stop(self) -> None:
+        """NMT stop to the node (unconfirmed: NMT has no answer)."""
+        self.node.nmt.state = "STOPPED"
+
 
     def enable(self, tick: Callable[[], int], max_cycles: int = 100) -> None:
         """Run `enable_step` and `tick` until operation enabled (DriveError after max_cycles)."""

@@ -7,6 +7,12 @@ and the bus; a trip, a fault, a bus timeout or a stop request (Ctrl-C, the live 
 Stop button) ramps the setpoint down, removes the excitation, disables the drive through
 the controlword sequence and closes the recording as aborted with the reason. Every
 sample up to the stop stays on disk.
+
+The safe stop depends on nothing but the bus: a recording that fails (full disk) aborts the
+run like any fault, and the stop goes on without it; the file is finalized after the drives
+are stopped. If the bus fails during the stop, the host keeps trying for `STOP_RETRY_S`
+(quick stop by SDO and a bus cycle, then NMT stop) and, if no drive state is confirmed,
+says so in the run's reason: "drive state unknown".
 """
 
 from __future__ import annotations
@@ -22,7 +28,8 @@ from typing import Any, Iterator, Mapping, Protocol, Sequence
 
 import numpy as np
 
-from feedbench.drivers.cia402 import Actual
+from feedbench.daq.recorder import RecordingError
+from feedbench.drivers.cia402 import SAFE_STATES, Actual
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan, Segment
 
@@ -39,6 +46,10 @@ ENABLE_TIMEOUT_CYCLES = 200
 DISABLE_TIMEOUT_CYCLES = 50
 BLOCK_CYCLES = 50
 """Cycles per block handed to observers (live plot, progress); the recorder gets every row."""
+STOP_RETRY_S = 5.0
+"""How long the host keeps trying to stop the drives after the stop sequence failed (s)."""
+SDO_STOP_TIMEOUT_S = 0.3
+"""How long each SDO request of those tries waits for its answer (s)."""
 
 
 class StopRequest:
@@ -241,17 +252,18 @@ class Runner:
                         i += 1
             except RunAborted as exc:
                 status, reason = "aborted", str(exc)
-            except Exception as exc:  # bus timeout, driver error: still stop safely
+            except Exception as exc:  # bus timeout, driver error, full disk: still stop safely
                 status, reason = "aborted", f"{type(exc).__name__}: {exc}"
+            velocity = 0.0
             if status == "aborted":
-                recorder.event(self._next_cycle(), "abort", reason)
+                self._note(recorder, "abort", reason)
                 velocity = (targets[i] - targets[i - 1]) / plan.cycle_s if 0 < i < len(targets) else 0.0
-                self._safe_stop(recorder, last_target, velocity, plan.cycle_s)
-            else:
-                self._disable(recorder, last_target)
+            unknown = self._safe_stop(recorder, last_target, velocity, plan.cycle_s)
+            if unknown:
+                status, reason = "aborted", f"{reason}; {unknown}" if reason else unknown
             self._stop_devices(device_recorder)
         self._flush_block()
-        recorder.close(status, reason)
+        status, reason = _finalize(recorder, status, reason)
         for obs in self.observers:
             obs.on_stop(status, reason)
         return RunOutcome(status, reason, i, start)
@@ -324,31 +336,78 @@ class Runner:
         states = ", ".join(drive.state for drive in self.drives.values())
         raise RunAborted(f"drive did not reach operation enabled (state {states})")
 
-    def _safe_stop(self, recorder, x: float, velocity: float, dt: float) -> None:
-        """Ramp the commanded velocity to zero at `stop_accel`, excitation off, disable."""
+    def _safe_stop(self, recorder, x: float, velocity: float, dt: float) -> str:
+        """Ramp the commanded velocity (m/s) to zero at `stop_accel`, excitation off, disable;
+        if that fails, `_stop_by_sdo`. Returns "" once the drives are stopped, else the one
+        line saying the drive state is unknown."""
         try:
             steps = int(np.ceil(abs(velocity) / (self.stop_accel * dt)))
             for v in np.linspace(velocity, 0.0, steps + 1)[1:]:
                 x += v * dt
-                self._cycle(recorder, x, 0.0, 0.0, watch=False, velocity=v)
-            self._disable(recorder, x)
+                self._stop_cycle(recorder, x, v)
+            if self._disable(recorder, x):
+                return ""
+            why = "not disabled by the controlword sequence"
         except Exception as exc:  # the bus may be gone: record why the ramp ended early
-            recorder.event(self._next_cycle(), "fault", f"safe stop incomplete: {exc}")
+            why = f"{type(exc).__name__}: {exc}"
+        self._note(recorder, "fault", f"safe stop incomplete: {why}")
+        unknown = self._stop_by_sdo(why)
+        self._note(recorder, "fault", unknown or "drives in a safe state by SDO quick stop")
+        return unknown
 
-    def _disable(self, recorder, hold: float) -> None:
+    def _stop_by_sdo(self, why: str) -> str:
+        """Quick stop by SDO to every drive and a bus cycle, again until each reports a safe
+        state (`SAFE_STATES`), for at most `STOP_RETRY_S`; else NMT stop. Returns "" once
+        confirmed, else "drive state unknown (…)" with the last answer or error."""
+        deadline = time.monotonic() + STOP_RETRY_S
+        last = why
+        while time.monotonic() < deadline:
+            try:
+                states = [d.quick_stop_by_sdo(SDO_STOP_TIMEOUT_S) for d in self.drives.values()]
+                if all(state in SAFE_STATES for state in states):
+                    return ""
+                last = f"state {', '.join(states)}"
+                self.clock.tick()  # a drive that acts on the SYNC (lockstep) acts now
+            except Exception as exc:  # no answer (yet): a hung peer may come back
+                last = f"{type(exc).__name__}: {exc}"
+                time.sleep(SDO_STOP_TIMEOUT_S / 3)
+        for drive in self.drives.values():
+            try:
+                drive.nmt_stop()
+            except Exception as exc:  # the bus is gone: nothing more the host can send
+                last = f"{last}; NMT stop not sent: {type(exc).__name__}"
+        return (f"drive state unknown: no safe state confirmed within {STOP_RETRY_S:g} s "
+                f"({' '.join(last.split())})")
+
+    def _stop_cycle(self, recorder, x: float, velocity: float = 0.0) -> None:
+        """One cycle of the stop (setpoint `x` m, `velocity` m/s, no excitation): a
+        recording failure, raised once, does not end the stop (the cycle has run)."""
+        try:
+            self._cycle(recorder, x, 0.0, 0.0, watch=False, velocity=velocity)
+        except RecordingError:  # kept in the recorder's `failure`
+            pass
+
+    def _note(self, recorder, kind: str, text: str) -> None:
+        """An event at the next cycle; a recording failure does not stop the caller."""
+        try:
+            recorder.event(self._next_cycle(), kind, text)
+        except RecordingError:  # kept in the recorder's `failure`
+            pass
+
+    def _disable(self, recorder, hold: float) -> bool:
         """Controlword sequence back to switch-on-disabled, one step per cycle.
 
         The setpoint is already at standstill, so operation is disabled directly (0x07,
         then 0x00) rather than through the drive's own quick-stop ramp.
         """
-        recorder.event(self._next_cycle(), "segment", segment_text(None, "disable"))
+        self._note(recorder, "segment", segment_text(None, "disable"))
         for _ in range(DISABLE_TIMEOUT_CYCLES):
             if all([drive.disable_step(at_standstill=True) for drive in self.drives.values()]):
-                return
-            self._cycle(recorder, hold, 0.0, 0.0, watch=False)
+                return True
+            self._stop_cycle(recorder, hold)
         states = ", ".join(drive.state for drive in self.drives.values())
-        recorder.event(self._next_cycle(), "fault",
-                       f"drive still {states} after {DISABLE_TIMEOUT_CYCLES} cycles")
+        self._note(recorder, "fault", f"drive still {states} after {DISABLE_TIMEOUT_CYCLES} cycles")
+        return False
 
     def _stop_devices(self, recorder) -> None:
         """Every device's `stop` (spindle off, stream drained); a failure is recorded."""
@@ -356,8 +415,7 @@ class Runner:
             try:
                 device.stop(recorder)
             except Exception as exc:  # the link may be gone: the run still closes its file
-                recorder.event(self._next_cycle(), "fault",
-                               f"{type(device).__name__} stop failed: {exc}")
+                self._note(recorder, "fault", f"{type(device).__name__} stop failed: {exc}")
 
     @contextmanager
     def _interrupts_request_stop(self) -> Iterator[None]:
@@ -374,6 +432,16 @@ class Runner:
         finally:
             for s, h in previous.items():
                 signal.signal(s, h)
+
+
+def _finalize(recorder, status: str, reason: str) -> tuple[str, str]:
+    """Close the recording with the run's status, after the drives are stopped; returns
+    the status and reason of the run (`Recorder.close`: a failed recording is aborted; a
+    file whose status cannot be written says so in the reason)."""
+    try:
+        return recorder.close(status, reason)
+    except RecordingError as exc:
+        return "aborted", f"{reason}; {exc}" if reason else str(exc)
 
 
 def drive_channels(names: Sequence[str]) -> tuple[tuple[str, ...], dict[str, str]]:

@@ -7,7 +7,9 @@ The interface names are python-can's: ``virtual`` (tests, simulation: any channe
 from __future__ import annotations
 
 import logging
+import socket
 import struct
+import time
 from typing import Any, NamedTuple
 
 import can
@@ -24,23 +26,53 @@ busy for a moment, e.g. a simulated world compiling its physics on first use).""
 NOTIFIER_POLL_S = 0.05
 """Receive-thread poll period: bounds how long `Network.disconnect` waits (canopen: 1 s)."""
 
+CONNECT_TIMEOUT_S = 2.0
+"""How long a socketcand server may take to accept the connection (s); python-can itself
+retries for 10 s, then raises `TimeoutError`."""
+
+
+class ReceiveErrors(can.Listener):
+    """Keeps a network's receive thread alive through a receive error (a socketcand peer
+    that reset the connection, an error on the adapter): the error is kept in `last`, the
+    thread waits one poll period and receives again. A dead peer is then seen as what it
+    is, a missing answer (`BusTimeout`, an SDO timeout) or a failed send, not as a receive
+    thread's traceback and every later send raising the old error."""
+
+    def __init__(self, notifier: can.Notifier) -> None:
+        self.notifier = notifier
+        self.last: Exception | None = None
+
+    def on_message_received(self, msg: can.Message) -> None:
+        """Frames are the network's own listener's."""
+
+    def on_error(self, exc: Exception) -> None:
+        """Keep `exc`, clear it from the notifier (canopen raises it on every send), wait."""
+        self.last = exc
+        self.notifier.exception = None
+        time.sleep(NOTIFIER_POLL_S)
+
 
 def connect(network: canopen.Network) -> canopen.Network:
-    """Start the network's receive thread with a short poll period, so it closes quickly."""
+    """Start the network's receive thread with a short poll period, so it closes quickly,
+    and `ReceiveErrors` handling its receive errors."""
     network.NOTIFIER_CYCLE = NOTIFIER_POLL_S
-    return network.connect()
+    network.connect()
+    network.notifier.add_listener(ReceiveErrors(network.notifier))
+    return network
 
 
 def open_bus(interface: str, channel: str, bitrate: int = 1_000_000, **options: Any) -> can.BusABC:
-    """A python-can bus; for ``socketcand`` the TCP tuning is on and its per-frame warnings off.
+    """A python-can bus; for ``socketcand`` the TCP tuning is on and its log off (a warning
+    per frame; a receive error per poll once the peer is gone: `ReceiveErrors`).
 
     An unknown interface, or a channel or server that cannot be opened, raises `ConfigError`
     naming the [bench] key.
     """
-    if interface == "socketcand":
-        logging.getLogger("can.interfaces.socketcand").setLevel(logging.ERROR)
-        options.setdefault("tcp_tune", True)
     try:
+        if interface == "socketcand":
+            logging.getLogger("can.interfaces.socketcand").setLevel(logging.CRITICAL)
+            options.setdefault("tcp_tune", True)
+            reach(options["host"], options["port"])
         return can.Bus(interface=interface, channel=channel, bitrate=bitrate, **options)
     except can.CanInterfaceNotImplementedError as exc:
         raise ConfigError(f"bench.interface: {exc}") from None
@@ -48,6 +80,35 @@ def open_bus(interface: str, channel: str, bitrate: int = 1_000_000, **options: 
         where = (f"bench.socketcand: {options.get('host')}:{options.get('port')}"
                  if interface == "socketcand" else f"bench.channel: {interface} {channel!r}")
         raise ConfigError(f"{where}: cannot open ({exc})") from None
+
+
+def reach(host: str, port: int, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+    """Connect to a TCP server once and close again, retrying a refused connection (a server
+    still starting) until `timeout_s`; raises `OSError` if it cannot be reached by then."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with socket.create_connection((host, port), timeout=timeout_s):
+                return
+        except ConnectionRefusedError:
+            if time.monotonic() >= deadline:
+                raise
+            time.sleep(0.1)
+
+
+def disconnect(network: canopen.Network) -> None:
+    """Stop the network's receive thread and close its bus. A bus whose peer has gone (a
+    socketcand server killed: connection reset) is closed all the same, without an error:
+    closing is all that is left to do."""
+    try:
+        network.disconnect()  # raises the receive thread's last error after closing the bus
+    except (can.CanError, OSError):
+        if network.bus is not None:
+            try:
+                network.bus.shutdown()
+            except (can.CanError, OSError):  # already gone
+                pass
+            network.bus = None
 
 
 def open_network(interface: str, channel: str, bitrate: int = 1_000_000,
