@@ -138,9 +138,10 @@ class SpindlePeer(SimulatedPeer):
             return
         process, table = build_process(sim.world.get("milling", {}))
         lanes = lanes_from_list(sim.workpiece, "experiment.workpiece")
-        self.milling = SmfeWorld(process, Workpiece(lanes), lambda: sim.drive.simulator.tip_position,
-                                 self.inverter, sim.peers["daq"].inputs, sim.cycle_s,
-                                 table["noise_m_s2"], table["seed"])
+        self.milling = SmfeWorld(process, Workpiece(lanes),
+                                 lambda: sim.drive.simulator.tip_position, self.inverter,
+                                 sim.peers["daq"].inputs, sim.cycle_s, table["noise_m_s2"],
+                                 table["seed"])
         sim.drive.after_physics.append(self.milling.step)
 
 
@@ -223,8 +224,9 @@ class SimulatedBench:
         self._modbus_keys: set[str] = set()
         self.peers: dict[str, SimulatedPeer] = {}
         try:
+            simulator = build_axis(self.world, self.cycle_s)
             self.drive = start_simulated_axis(bench["interface"], bench["channel"],
-                                              bench["node_id"], build_axis(self.world, self.cycle_s),
+                                              bench["node_id"], simulator,
                                               noise=build_sensor_noise(self.world),
                                               **(bus_options or {}))
             self.stack.callback(self.drive.close)
