@@ -10,11 +10,13 @@ hangs for 3 s (SIGSTOP, SIGCONT), a peer that dies (SIGKILL), an address nobody 
 from __future__ import annotations
 
 import json
+import os
 import resource
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import uuid
@@ -31,6 +33,7 @@ from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording
 from feedbench.drivers.cia402 import SAFE_STATES
 from feedbench.sim_backends.process import READY
+from prerequisites import requires
 from test_sim_process import _host_bench
 
 OPERATION_ENABLED_MASK, OPERATION_ENABLED = 0x6F, 0x27
@@ -42,6 +45,20 @@ CHIRP = ('[limits]\nexcitation_N = 300.0\n[experiment]\ntype = "chirp"\namplitud
 FILE_LIMIT_BYTES = 1_250_000
 """The host's file-size limit in the disk-full test: the recorder's 1 MiB reserve and about
 100 kB of samples (the chirp records about 4 MB)."""
+
+
+def _mount_tmpfs(directory: Path, size: str) -> bool:
+    """Mount a tmpfs of `size` (e.g. "1m") on `directory`; False where that is not allowed."""
+    return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(directory)],
+                          capture_output=True).returncode == 0
+
+
+def _can_mount_tmpfs() -> bool:
+    with tempfile.TemporaryDirectory() as directory:
+        if os.geteuid() != 0 or not _mount_tmpfs(Path(directory), "64k"):
+            return False
+        subprocess.run(["umount", directory], check=True)
+        return True
 
 
 def _start_sim(directory: Path) -> tuple[subprocess.Popen, dict]:
@@ -188,3 +205,23 @@ def test_unreachable_address_is_one_line_within_5_s(tmp_path, capsys):
     assert err.startswith(f"feedbench: error: bench.socketcand: 127.0.0.1:{port}: cannot open")
     assert len(err.splitlines()) == 1
     assert not list(tmp_path.glob("*.h5"))
+
+
+@requires(_can_mount_tmpfs(), "mounting a 1 MiB tmpfs (root with the mount capability)")
+def test_run_without_room_for_its_recording_is_refused_before_anything_moves(tmp_path, capsys,
+                                                                                 can_channel):
+    """A friction sweep (≈ 1.3 MB of recording, 2 MiB of recorder reserve, × 1.5) on a 1 MiB
+    disk: one line naming bench.output_dir, status 2, no recording."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    assert _mount_tmpfs(disk, "1m")
+    try:
+        config = tmp_path / "run.toml"
+        config.write_text(f'[bench]\nchannel = "{can_channel}"\noutput_dir = "{disk}"\n' + SWEEP)
+        assert main(["run", str(config)]) == 2
+        [line] = capsys.readouterr().err.splitlines()
+        assert line.startswith(f"feedbench: error: bench.output_dir: {disk}: the run needs ")
+        assert line.endswith("the disk has 1.0 MB")
+        assert not list(disk.glob("*.h5"))
+    finally:
+        subprocess.run(["umount", str(disk)], check=True)
