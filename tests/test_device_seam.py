@@ -16,10 +16,10 @@ import pytest
 
 import feedbench
 from feedbench.bench import Bench, parse_run_config
-from feedbench.config import ConfigError, read_toml
+from feedbench.config import ConfigError, read_toml, registered
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording
-from feedbench.experiments.devices import DeviceLinks, devices, open_cycle_devices
+from feedbench.experiments.devices import Device, DeviceLinks, devices, open_cycle_devices
 from feedbench.experiments.plan import segment_event
 from feedbench.sim_backends.process import simulated_peers
 
@@ -34,6 +34,48 @@ def test_every_kind_is_registered_by_its_name_with_its_simulated_peer():
     # the rack-and-pinion axis's simulator serves its settings and encoders (its drives)
     assert set(simulated_peers()) == {"spindle", "daq", "exciter", "load_cell"}
     assert all(peer.name == name for name, peer in simulated_peers().items())
+
+
+class Thermometer(Device):
+    """A lab's own device kind, registered by its own package's metadata below."""
+
+    name = "thermometer"
+
+
+class Misnamed(Device):
+    name = "not_its_entry_point"
+
+
+def _lab_package(directory: Path, line: str) -> None:
+    """An installed package of a lab whose pyproject.toml has `line` under
+    ``[project.entry-points."feedbench.devices"]``: its metadata, as pip leaves it."""
+    metadata = directory / "lab_devices-1.0.dist-info"
+    metadata.mkdir()
+    (metadata / "METADATA").write_text("Metadata-Version: 2.1\nName: lab-devices\n"
+                                       "Version: 1.0\n")
+    (metadata / "entry_points.txt").write_text(f"[feedbench.devices]\n{line}\n")
+
+
+@pytest.fixture
+def lab_package(tmp_path, monkeypatch):
+    """Install a lab's package (on sys.path) for one test; the registry reads it afresh."""
+    monkeypatch.syspath_prepend(str(tmp_path))
+    registered.cache_clear()
+    yield lambda line: _lab_package(tmp_path, line)
+    registered.cache_clear()
+
+
+def test_a_lab_package_adds_a_kind_with_one_entry_point_line(lab_package):
+    lab_package("thermometer = test_device_seam:Thermometer")
+    assert devices()["thermometer"] is Thermometer
+    assert {"spindle", "daq", "exciter"} <= set(devices())
+
+
+def test_a_kind_not_named_as_its_entry_point_is_refused(lab_package):
+    lab_package("thermometer = test_device_seam:Misnamed")
+    with pytest.raises(TypeError, match="^entry point thermometer = test_device_seam:Misnamed: "
+                                        "not a Device subclass of that name$"):
+        devices()
 
 
 def test_an_unregistered_device_is_a_config_error():
