@@ -32,6 +32,7 @@ from feedbench.config import validate_table
 from feedbench.models.milling import SMFE_TOOL, TABLE_6_1, simulate_smfe_cut, spindle_ramp
 from feedbench.models.structure import SMFE_TOOL_STRUCTURE
 from feedbench.protocols.canbus import open_bus
+from feedbench.protocols.modbus_registers import INVERTER_CONTROL_RUN
 from feedbench.sim_backends.process import READY, SimulatedBench
 from feedbench.sim_backends.smfe_world import CutLane, MillingProcess
 from feedbench.sim_backends.socketcand_hub import SocketcandHub
@@ -135,8 +136,9 @@ def milling_cycle_us() -> tuple[float, float, float]:
     offline()  # compile (or load the numba cache) outside the timing
     with SimulatedBench(_bench_table(channel=f"bench-world-{uuid.uuid4().hex[:8]}"),
                         {"spindle": {}, "load_cell": {}, "daq": {}}) as bench:
-        inverter = bench.peers["spindle"].inverter
-        inverter.setpoint_rpm, inverter.run_commanded = 1000.0, True
+        inverter = bench.peers["spindle"].inverter  # as the host's register writes set it
+        inverter.apply("SPEED_SETPOINT", 1000.0)
+        inverter.apply("CONTROL", INVERTER_CONTROL_RUN)
         world = _best_us(lambda: [hook() for _ in range(cycles)
                                   for hook in bench.drive.after_physics], cycles)
     return _best_us(stepped, cycles), _best_us(offline, cycles), world
