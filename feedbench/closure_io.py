@@ -29,8 +29,10 @@ from __future__ import annotations
 import csv
 import io
 import math
+import struct
+import zlib
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping, TypeVar
 
 import numpy as np
 import scipy.io
@@ -56,6 +58,14 @@ SIDECAR_SCHEMA = {
     "units": Field(dict, {}, "channel → unit of its column"),
     "controller": Field(dict, {}, "the drive's controller, as in a model config"),
 }
+
+T = TypeVar("T")
+
+MAT_MATRIX, MAT_COMPRESSED = 14, 15
+MAT_V5_TYPES = frozenset({1, 2, 3, 4, 5, 6, 7, 9, 12, 13, MAT_MATRIX, MAT_COMPRESSED, 16, 17, 18})
+"""The data-element types of a MATLAB v5 file (miINT8 … miUTF32)."""
+MAT_NUMERIC_CLASSES = frozenset(range(6, 16))  # mxDOUBLE … mxUINT64
+MAT_COMPLEX = 0x800
 
 EMPS_GAIN_KEY = "gtau"
 """EMPS: drive gain (N/V); force = gtau · vir, the excitation pulses are in volts too."""
@@ -101,11 +111,31 @@ def read_csv_trace(path: str | Path, sidecar: Mapping[str, Any] | None = None
         if not side["sample_rate_Hz"] > 0.0:
             raise ConfigError("sidecar.sample_rate_Hz: required when there is no time column")
         time = np.arange(data.shape[0]) / side["sample_rate_Hz"]
-    trace = Trace(time, signals["position"], signals["force"], signals.get("reference"),
-                  signals.get("excitation"), side["name"] or path.name,
-                  side["force_lag_ms"] * 1e-3, signals.get("external_force"),
-                  signals.get("tip_acceleration"))
+    trace = _trace(path, time, signals["position"], signals["force"], signals.get("reference"),
+                   signals.get("excitation"), side["name"] or path.name,
+                   side["force_lag_ms"] * 1e-3, signals.get("external_force"),
+                   signals.get("tip_acceleration"))
     return trace, side["controller"]
+
+
+def _trace(path: Path, *args: Any, **options: Any) -> Trace:
+    """A Trace of what `path` holds; a check of the Trace failing (too few samples, NaN,
+    uneven time) is a ConfigError naming the file."""
+    try:
+        return Trace(*args, **options)
+    except ValueError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def _parsed(path: Path, kind: str, read: Callable[[], T]) -> T:
+    """`read()`; a variable of a .mat file missing or of another type or shape is a
+    ConfigError "<path>: not <kind> (<what failed>)"."""
+    try:
+        return read()
+    except ConfigError:
+        raise
+    except (AttributeError, IndexError, KeyError, TypeError, ValueError) as exc:
+        raise ConfigError(f"{path}: not {kind} ({type(exc).__name__}: {exc})") from None
 
 
 def _unit(units: Mapping[str, Any], channel: str) -> float:
@@ -124,6 +154,8 @@ def _read_table(path: Path, delimiter: str, decimal: str) -> tuple[list[str], np
         text = path.read_text()
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such file") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a text file ({exc})") from None
     lines = text.splitlines()
     if len(lines) < 2:
         raise ConfigError(f"{path}: no data rows (a header row of column names, then one row "
@@ -196,13 +228,18 @@ def read_emps(path: str | Path) -> Trace:
     """
     path = Path(path)
     raw = _load_mat(path)
+    return _parsed(path, "an EMPS file", lambda: _emps_trace(path, raw))
+
+
+def _emps_trace(path: Path, raw: dict[str, Any]) -> Trace:
     data = {k: np.asarray(v, dtype=float).ravel() for k, v in raw.items() if not k.startswith("__")}
     missing = [k for k in ("t", "qm", "qg", "vir", EMPS_GAIN_KEY) if k not in data]
     if missing:
         raise ConfigError(f"{path}: not an EMPS file (missing {', '.join(missing)})")
     gain = float(data[EMPS_GAIN_KEY][0])
     excitation = gain * data["pulses_N"] if "pulses_N" in data else None
-    return Trace(data["t"], data["qm"], gain * data["vir"], data["qg"], excitation, path.name)
+    return _trace(path, data["t"], data["qm"], gain * data["vir"], data["qg"], excitation,
+                  path.name)
 
 
 def read_kuka(path: str | Path, axis: int) -> Trace:
@@ -220,6 +257,10 @@ def read_kuka(path: str | Path, axis: int) -> Trace:
     """
     path = Path(path)
     raw = _load_mat(path, squeeze_me=True, struct_as_record=False)
+    return _parsed(path, "a KUKA recording", lambda: _kuka_trace(path, raw, axis))
+
+
+def _kuka_trace(path: Path, raw: dict[str, Any], axis: int) -> Trace:
     rec, para = raw["rec"], raw["para"]
     count = int(raw["n_axis"])
     if not 1 <= axis <= count:
@@ -228,9 +269,9 @@ def read_kuka(path: str | Path, axis: int) -> Trace:
     deg = math.pi / 180.0
     external = (raw["m_all"][i] * raw["ref_kin"].phi_r_all_d2[:, i] + raw["tau_a_all"][i]
                 + raw["tau_c_all"][i] + raw["tau_g_all"][i] + raw["tau_g_init"][i])
-    return Trace(rec.time_cont, deg * rec.act_pos_mot_deg[i], ratio * rec.act_torque_abs_nm[i],
-                 deg * rec.ref_pos_deg[i], None, f"{path.name} axis {axis}",
-                 external_force=external)
+    return _trace(path, rec.time_cont, deg * rec.act_pos_mot_deg[i],
+                  ratio * rec.act_torque_abs_nm[i], deg * rec.ref_pos_deg[i], None,
+                  f"{path.name} axis {axis}", external_force=external)
 
 
 def kuka_parameters(path: str | Path, axis: int) -> dict[str, float]:
@@ -245,11 +286,77 @@ def kuka_parameters(path: str | Path, axis: int) -> dict[str, float]:
 
 
 def _load_mat(path: Path, **options: Any) -> dict[str, Any]:
-    """The variables of a MATLAB file; a missing file is a one-line ConfigError."""
+    """The variables of a MATLAB file; a missing or unreadable file is a one-line
+    ConfigError (a v5 file is checked by `_mat_v5_problem` first)."""
     try:
-        return scipy.io.loadmat(path, **options)
+        data = path.read_bytes()
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such file") from None
+    if data[124:128] in (b"\x00\x01IM", b"\x01\x00MI"):  # v5: version 0x0100, byte order
+        problem = _mat_v5_problem(data[128:], "<" if data[126:128] == b"IM" else ">")
+        if problem:
+            raise ConfigError(f"{path}: not a readable MATLAB file ({problem})")
+    try:
+        return scipy.io.loadmat(io.BytesIO(data), **options)
+    except Exception as exc:  # scipy raises many kinds for a damaged or foreign file
+        raise ConfigError(f"{path}: not a readable MATLAB file ({type(exc).__name__}: "
+                          f"{exc})") from None
+
+
+def _mat_v5_problem(elements: bytes, order: str) -> str | None:
+    """What is wrong with the data elements of a MATLAB v5 file (`order`: struct byte
+    order), looking into matrices and compressed elements; None if every tag is sound.
+    scipy's reader trusts the tags and crashes the process (SIGSEGV/SIGBUS) on a data
+    element of an unknown type."""
+    pos = 0
+    while pos < len(elements):
+        if pos + 8 > len(elements):
+            return f"a data element tag cut after {len(elements) - pos} bytes"
+        mdtype, nbytes = struct.unpack_from(order + "II", elements, pos)
+        if mdtype >> 16:  # small data element: size and type in 4 bytes, data in the next 4
+            mdtype, nbytes, start, step = mdtype & 0xFFFF, mdtype >> 16, pos + 4, 8
+            if nbytes > 4:
+                return f"a small data element of {nbytes} bytes (at most 4)"
+        else:
+            start = pos + 8
+            step = 8 + nbytes + (0 if mdtype == MAT_COMPRESSED else -nbytes % 8)
+        body = elements[start:start + nbytes]
+        if mdtype not in MAT_V5_TYPES:
+            return f"a data element of unknown type {mdtype}"
+        if len(body) < nbytes:
+            return f"a data element of {nbytes} bytes with {len(body)} left in the file"
+        if mdtype == MAT_COMPRESSED:
+            try:
+                body = zlib.decompress(body)
+            except zlib.error as exc:
+                return f"a compressed element that does not decompress ({exc})"
+        if mdtype in (MAT_MATRIX, MAT_COMPRESSED) and (problem := _mat_v5_problem(body, order)
+                                                       or _matrix_problem(mdtype, body, order)):
+            return problem
+        pos += step
+    return None
+
+
+def _matrix_problem(mdtype: int, body: bytes, order: str) -> str | None:
+    """A numeric matrix flagged complex needs its imaginary part (scipy reads it blindly)."""
+    if mdtype != MAT_MATRIX or len(body) < 16:
+        return None
+    flags = struct.unpack_from(order + "I", body, 8)[0]
+    if (flags & 0xFF in MAT_NUMERIC_CLASSES and flags & MAT_COMPLEX
+            and _count_elements(body, order) < 5):
+        return "a complex matrix without its imaginary part"
+    return None
+
+
+def _count_elements(elements: bytes, order: str) -> int:
+    """How many data elements follow each other in `elements` (tags checked before):
+    flags, dimensions, name, real part, imaginary part."""
+    count, pos = 0, 0
+    while pos + 8 <= len(elements):
+        mdtype, nbytes = struct.unpack_from(order + "II", elements, pos)
+        pos += 8 if mdtype >> 16 else 8 + nbytes + -nbytes % 8
+        count += 1
+    return count
 
 
 def read_mat(path: str | Path, axis: int | None = None) -> Trace:

@@ -216,8 +216,20 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
+def _open(path: Path) -> h5py.File:
+    """The file read-only, by SWMR only while a writer has it open (or died with it open):
+    HDF5 retries a SWMR reader's failed metadata reads with growing sleeps, so a damaged
+    file opened by SWMR can block for minutes instead of failing."""
+    try:
+        return h5py.File(path, "r", libver="latest")
+    except OSError as exc:
+        if "already open for write" not in str(exc):
+            raise
+    return h5py.File(path, "r", libver="latest", swmr=True)
+
+
 def _read_summary(path: Path) -> RecordingSummary:
-    with h5py.File(path, "r", libver="latest", swmr=True) as file:
+    with _open(path) as file:
         attrs = file.attrs
         return RecordingSummary(
             path=path,
@@ -233,7 +245,7 @@ def _read_summary(path: Path) -> RecordingSummary:
 
 
 def _read_recording(path: Path) -> Recording:
-    with h5py.File(path, "r", libver="latest", swmr=True) as file:
+    with _open(path) as file:
         attrs = dict(file.attrs)
         names = json.loads(attrs["channels"])
         rows = _complete_rows(file, names)

@@ -6,11 +6,12 @@ The interface names are python-can's: ``virtual`` (tests, simulation: any channe
 
 from __future__ import annotations
 
+import collections
 import logging
 import socket
 import struct
 import time
-from typing import Any, NamedTuple
+from typing import Any, Callable, Iterable, NamedTuple
 
 import can
 import canopen
@@ -29,6 +30,12 @@ NOTIFIER_POLL_S = 0.05
 CONNECT_TIMEOUT_S = 2.0
 """How long a socketcand server may take to accept the connection (s); python-can itself
 retries for 10 s, then raises `TimeoutError`."""
+
+SDO_BYTES, EMCY_BYTES, NMT_BYTES, HEARTBEAT_BYTES = 8, 8, 2, 1
+"""Data bytes of an SDO, EMCY, NMT command and heartbeat frame (CiA 301)."""
+
+Handler = Callable[[int, bytearray, float], None]
+"""A frame handler of a canopen Network: (COB-ID, data, timestamp)."""
 
 
 class ReceiveErrors(can.Listener):
@@ -140,10 +147,39 @@ def pdo_codec(pdo_map: PdoMap) -> PdoCodec:
                     tuple(var.index for var in pdo_map.map), tuple(offsets), tuple(formats))
 
 
+def length_checked(handler: Handler, length: int,
+                   rejected: collections.Counter[str]) -> Handler:
+    """`handler` for frames of at least `length` data bytes; a shorter frame is dropped and
+    counted in `rejected` under its reason (canopen's decoders would raise struct.error)."""
+    def checked(can_id: int, data: bytearray, timestamp: float) -> None:
+        if len(data) >= length:
+            handler(can_id, data, timestamp)
+        else:
+            rejected[f"COB-ID 0x{can_id:03X}: {len(data)} data bytes, "
+                     f"the service needs {length}"] += 1
+    return checked
+
+
+def check_lengths(network: canopen.Network, subscriptions: Iterable[tuple[int, Handler, int]],
+                  rejected: collections.Counter[str]) -> None:
+    """Replace each subscribed (COB-ID, canopen handler, data bytes) by its `length_checked`."""
+    for can_id, handler, length in subscriptions:
+        network.unsubscribe(can_id, handler)
+        network.subscribe(can_id, length_checked(handler, length, rejected))
+
+
 def remote_node(network: canopen.Network, node_id: int,
-                object_dictionary: str | canopen.ObjectDictionary) -> canopen.RemoteNode:
-    """A RemoteNode added to `network`, its SDO client waiting `SDO_TIMEOUT_S` per answer."""
+                object_dictionary: str | canopen.ObjectDictionary,
+                rejected: collections.Counter[str] | None = None) -> canopen.RemoteNode:
+    """A RemoteNode added to `network`, its SDO client waiting `SDO_TIMEOUT_S` per answer;
+    its SDO, heartbeat, EMCY and NMT frames shorter than CiA 301's are dropped and counted
+    in `rejected`."""
     node = canopen.RemoteNode(node_id, object_dictionary)
     node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
     network.add_node(node)
+    check_lengths(network, [(node.sdo.tx_cobid, node.sdo.on_response, SDO_BYTES),
+                            (0x700 + node_id, node.nmt.on_heartbeat, HEARTBEAT_BYTES),
+                            (0x80 + node_id, node.emcy.on_emcy, EMCY_BYTES),
+                            (0, node.nmt.on_command, NMT_BYTES)],
+                  collections.Counter() if rejected is None else rejected)
     return node
