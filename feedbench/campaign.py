@@ -18,6 +18,8 @@ import csv
 import itertools
 import json
 import logging
+import signal
+import threading
 import time
 import uuid
 from contextlib import ExitStack, contextmanager
@@ -225,17 +227,36 @@ def failed_row(task: Task, exc: BaseException) -> dict[str, Any]:
 @contextmanager
 def dask_client(scheduler: str | None, workers: int) -> Iterator[Any]:
     """A Dask client: of the cluster at `scheduler`, else of a local cluster of `workers`
-    processes (one thread each: the simulated bench has its own threads). The local
-    cluster's own log lines are kept off the terminal (a failed task is reported by its row)."""
+    processes (one thread each: the simulated bench has its own threads), no dashboard, its
+    scheduler's HTTP server on a free port (not 8787, which another cluster may hold: a
+    warning). The local cluster's own log lines are kept off the terminal (a failed task is
+    reported by its row)."""
     from dask.distributed import Client, LocalCluster
 
     with ExitStack() as stack:
         if scheduler is None:
-            cluster = stack.enter_context(LocalCluster(
-                n_workers=workers, threads_per_worker=1, processes=True,
-                dashboard_address=None, silence_logs=logging.CRITICAL))
+            with _sigint_ignored():
+                cluster = stack.enter_context(LocalCluster(
+                    n_workers=workers, threads_per_worker=1, processes=True,
+                    dashboard_address=None, silence_logs=logging.CRITICAL,
+                    scheduler_kwargs={"dashboard_address": ":0"}))  # HTTP: a free port
             scheduler = cluster
         yield stack.enter_context(Client(scheduler))
+
+
+@contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """SIGINT ignored while the local workers start: their processes inherit it, so a Ctrl-C
+    at the terminal reaches this process only, which cancels the futures and stops them
+    (else each worker prints its own KeyboardInterrupt traceback)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 Progress = Callable[[int, int, dict], None]
