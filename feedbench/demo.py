@@ -193,7 +193,9 @@ def run_demo(directory: Path, quiet: bool = False, quick: bool = False) -> dict:
                 and raw["bench"].get("axis", "lab") in REPORT_AXES]
     t0 = time.monotonic()
     report = write_report([experiments[name]["run"]["file"] for name in reported],
-                          directory / "report.html", title="feedbench demo campaign")
+                          directory / "report.html", title="feedbench demo campaign",
+                          truths={experiments[name]["run"]["file"]: example_truth(configs[name])
+                                  for name in reported})
     return {
         "friction": {direction: experiments["friction_sweep"]["summary"][direction]
                      for direction in friction_sweep.SIGNS},

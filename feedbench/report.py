@@ -18,7 +18,7 @@ from __future__ import annotations
 import base64
 import html
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from matplotlib.figure import Figure as MplFigure
@@ -44,23 +44,30 @@ TRACE_PANELS = (
 )
 """Per-cycle panels of the key traces: channels by name, a drive's also as ``drive.name``."""
 
-STREAM_PANELS = (("DAQ forces (N)", "N"), ("accelerations (m/s²)", "m/s^2"))
-"""Panels of the high-rate streams' channels, by unit."""
+STREAM_PANELS = (("DAQ forces", "N", "N"), ("accelerations", "m/s^2", "m/s²"))
+"""Panels of the high-rate streams' channels: title, unit as recorded, unit as shown."""
+
+SMALL_MULTIPLES = 3
+"""A stream panel with more channels than this is drawn as one panel per channel."""
 
 
 # figures
 
 def trace_plot(recording: Recording) -> Plot:
     """Positions (mm), velocities (mm/min), forces (N), spindle speed (rpm) and the DAQ's
-    forces and accelerations over the run, measure and excite windows shaded."""
+    forces and accelerations over the run (more than `SMALL_MULTIPLES` channels of a unit:
+    a panel each), measure and excite windows shaded."""
     cycle_s = float(recording.metadata.get("cycle_s", 1e-3))
     t = (recording.cycle - (recording.cycle[0] if recording.n_samples else 0)) * cycle_s
     panels = [(label, [(t, recording.channels[n] * scale, n)
                        for n in drive_channels(recording, names)])
               for label, names, scale in TRACE_PANELS]
-    panels += [(label, stream_traces(recording, unit)) for label, unit in STREAM_PANELS]
+    for title, unit, shown in STREAM_PANELS:
+        traces = stream_traces(recording, unit)
+        panels += ([(shown, [trace]) for trace in traces]  # the channel named in its legend
+                   if len(traces) > SMALL_MULTIPLES else [(f"{title} ({shown})", traces)])
     panels = [(label, traces) for label, traces in panels if traces]
-    figure = new_figure(10.0, 7.0 if len(panels) <= 3 else 9.5)
+    figure = new_figure(10.0, 7.0 if len(panels) <= 3 else max(9.5, 1.4 * len(panels)))
     axes = np.atleast_1d(figure.subplots(len(panels), 1, sharex=True))
     spans = _shaded_spans(recording, t, cycle_s)
     for ax, (label, traces) in zip(axes, panels):
@@ -125,7 +132,7 @@ def _shade_windows(ax, spans: dict[str, list[tuple[float, float]]]) -> None:
 def config_table(recording: Recording) -> Table:
     """The run's recorded configuration, flattened to dotted keys (engineering units)."""
     rows = tuple((key, _text(value)) for key, value in _flatten(recording.config))
-    return Table("configuration", ("key", "value"), rows)
+    return Table("configuration", ("key", "value"), rows, folded=True)
 
 
 def _flatten(table: dict, prefix: str = "") -> list[tuple[str, Any]]:
@@ -193,9 +200,11 @@ def stream_quality(recording: Recording) -> list[Indicator]:
 
 # assembly
 
-def run_section(recording: Recording) -> RunSection:
+def run_section(recording: Recording, truth: Mapping[str, Any] | None = None) -> RunSection:
     """Configuration, traces, results and quality of one recorded run; the results drawn by
-    the recording's experiment family (`Experiment.report`)."""
+    the recording's experiment family (`Experiment.report`); with the simulated world's
+    `truth` (the run's config knows it, the recording does not) also the family's
+    identified-vs-true table (`Experiment.truth_table`)."""
     section = RunSection(recording.metadata.get("run_id", recording.path.stem),
                          recording.experiment, recording.status)
     section.quality += run_quality(recording)
@@ -205,7 +214,10 @@ def run_section(recording: Recording) -> RunSection:
         section.quality.append(Indicator("results", "no analysis for this experiment"))
     else:
         try:
-            experiment.report(recording, experiment.analyze(recording), section)
+            result = experiment.analyze(recording)
+            experiment.report(recording, result, section)
+            if truth is not None:
+                section.tables.insert(0, experiment.truth_table(result, truth))
         except Exception as exc:  # an aborted run may be too short to analyse: say so
             section.quality.append(Indicator("analysis", f"failed: {type(exc).__name__}: {exc}",
                                              False))
@@ -236,17 +248,14 @@ def closure_section(report: Any) -> RunSection:
     if replay is not None:
         section.tables.append(Table("closed-loop replay on the held-out data", (
             "quantity", "before", "after"), tuple(
-            (name, f"{replay['before'][key]:.4g}", f"{replay['after'][key]:.4g}")
-            for name, key in (("force NRMSE", "force"), ("position NRMSE", "position"),
-                              ("tracking error NRMSE", "tracking"),
-                              ("FRF |H| error (dB RMS)", "frf_magnitude_db"),
-                              ("FRF phase error (° RMS)", "frf_phase_deg")))))
+            (name, *(text(replay[when][key]) for when in ("before", "after")))
+            for name, key, text in REPLAY_ROWS)))
     section.quality += [
         Indicator("held-out force NRMSE before → after",
                   f"{100 * data['error_before']:.2f} % → {100 * data['error_after']:.2f} %",
                   data["error_after"] <= data["error_before"]),
         Indicator("fit on / judged on", f"{data['fit_data']} / {data['holdout_data']}"),
-        Indicator("stopped", data["stopped"]),
+        Indicator("why the search stopped", data["stopped"]),
     ]
     if data["tip_error_before"] is not None:
         section.quality.insert(1, Indicator(
@@ -257,6 +266,15 @@ def closure_section(report: Any) -> RunSection:
                         f"{100 * data['error_before']:.2f} % → {100 * data['error_after']:.2f} %")
     return section
 
+
+REPLAY_ROWS = (
+    ("force NRMSE", "force", lambda x: f"{100 * x:.2f} %"),
+    ("position NRMSE", "position", lambda x: f"{100 * x:.2f} %"),
+    ("tracking error NRMSE", "tracking", lambda x: f"{100 * x:.2f} %"),
+    ("FRF |H| error (dB RMS)", "frf_magnitude_db", lambda x: f"{x:.2f} dB"),
+    ("FRF phase error (° RMS)", "frf_phase_deg", lambda x: f"{x:.1f}°"),
+)
+"""Rows of the closed-loop replay table: NRMSEs in % (as everywhere in the report)."""
 
 FINDING_KINDS = {"effect": "effect added", "recalibration": "declared value recalibrated"}
 
@@ -279,8 +297,10 @@ def _residual_figure(report: Any, findings: str) -> MplFigure:
     result = report.result
     figure = new_figure(10.0, 4.5)
     ax = figure.subplots()
-    ax.plot(time_s, before, ".", ms=1.5, label=f"before: NRMSE {result.error_before:.2%}")
-    ax.plot(time_s, after, ".", ms=1.5, label=f"after ({findings}): NRMSE {result.error_after:.2%}")
+    ax.plot(time_s, before, ".", ms=1.5,
+            label=f"before: NRMSE {100 * result.error_before:.2f} %")
+    ax.plot(time_s, after, ".", ms=1.5,
+            label=f"after ({findings}): NRMSE {100 * result.error_after:.2f} %")
     ax.set_xlabel("time in the held-out data (s)")
     ax.set_ylabel("force residual (N)")
     ax.grid(alpha=0.3)
@@ -289,10 +309,14 @@ def _residual_figure(report: Any, findings: str) -> MplFigure:
 
 
 def write_report(runs: Sequence[str | Path], path: str | Path,
-                 title: str = "feedbench campaign report", closures: Sequence[Any] = ()) -> Path:
+                 title: str = "feedbench campaign report", closures: Sequence[Any] = (),
+                 truths: Mapping[str, Mapping[str, Any]] | None = None) -> Path:
     """Write the HTML report of recordings `runs` (and of `closures`, closure results) to
-    `path`; returns the path."""
-    sections = [run_section(open_recording(run)) for run in runs]
+    `path`; returns the path. `truths`: per run (as given in `runs`, a str) the simulated
+    world's truth, for the identified-vs-true tables (`feedbench demo` passes its
+    `demo.example_truth`; the recording holds no truth: the host never reads [bench.world])."""
+    truths = truths or {}
+    sections = [run_section(open_recording(run), truths.get(str(run))) for run in runs]
     sections += [closure_section(report) for report in closures]
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -304,29 +328,59 @@ STYLE = """
 body{font-family:system-ui,sans-serif;margin:2em auto;max-width:1100px;color:#222}
 h1{border-bottom:2px solid #444}h2{margin-top:2em;border-bottom:1px solid #aaa}
 table{border-collapse:collapse;margin:0.8em 0}td,th{border:1px solid #ccc;padding:3px 8px;
-text-align:left;font-size:0.9em}th{background:#eee}.ok{color:#1a7f37}.bad{color:#c0392b;
-font-weight:bold}img{max-width:100%;display:block;margin:0.5em 0}figure{margin:1em 0}
-figcaption{font-size:0.9em;color:#555}
+text-align:left;font-size:0.9em;vertical-align:top}th{background:#eee}.ok{color:#1a7f37}
+.bad{color:#c0392b;font-weight:bold}img{max-width:100%;display:block;margin:0.5em 0}
+figure{margin:1em 0}figcaption{font-size:0.9em;color:#555}details{margin:0.4em 0}
+summary{cursor:pointer;color:#444}a.top{font-size:0.8em;margin-left:1em;font-weight:normal}
 """
+
+MARKS = {True: "<span class='ok'>✔</span>", False: "<span class='bad'>✘</span>", None: ""}
+"""The verdict of a checked row: passed, failed; an informative row has none."""
 
 
 def render_html(sections: Sequence[RunSection], title: str) -> str:
-    """The whole report as one HTML document (no external resources)."""
-    summary = Table("runs", ("run", "experiment", "status", "result"), tuple(
-        (s.run_id, s.experiment, s.status, s.headline) for s in sections))
+    """The whole report as one HTML document (no external resources): the contents (per
+    run what it measured and whether every check passed, linked to its section), then the
+    sections."""
     parts = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
              f"<title>{html.escape(title)}</title><style>{STYLE}</style></head><body>",
-             f"<h1>{html.escape(title)}</h1>", _table_html(summary)]
+             f"<h1 id='contents'>{html.escape(title)}</h1>", _contents_html(sections)]
     parts += [_section_html(s) for s in sections]
     parts.append("</body></html>")
     return "\n".join(parts)
 
 
+def verdict(section: RunSection) -> tuple[bool, str]:
+    """Whether every checked quality row of a section passed, and the failed ones named."""
+    failed = [ind.name for ind in section.quality if ind.ok is False]
+    checked = sum(ind.ok is not None for ind in section.quality)
+    if failed:
+        return False, f"{len(failed)} of {checked} checks failed: {', '.join(failed)}"
+    return True, f"all {checked} checks passed"
+
+
+def _anchor(section: RunSection) -> str:
+    return "-".join(section.run_id.split())  # an HTML id has no white space
+
+
+def _contents_html(sections: Sequence[RunSection]) -> str:
+    """The first screen: a row per run, linked to its section."""
+    rows = []
+    for s in sections:
+        ok, text = verdict(s)
+        rows.append(f"<tr><td><a href='#{html.escape(_anchor(s))}'>{html.escape(s.run_id)}</a>"
+                    f"</td><td>{html.escape(s.experiment)}</td><td>{html.escape(s.status)}</td>"
+                    f"<td>{html.escape(s.headline)}</td><td>{MARKS[ok]} {html.escape(text)}</td>"
+                    "</tr>")
+    head = "".join(f"<th>{h}</th>" for h in ("run", "experiment", "status", "what it measured",
+                                             "is it good"))
+    return (f"<h2>contents</h2><table><tr>{head}</tr>{''.join(rows)}</table>")
+
+
 def _section_html(section: RunSection) -> str:
-    anchor = "-".join(section.run_id.split())  # an HTML id has no white space
-    out = [f"<h2 id='{html.escape(anchor)}'>{html.escape(section.run_id)} — "
-           f"{html.escape(section.experiment)}</h2>", "<h3>quality</h3>",
-           _quality_html(section.quality)]
+    out = [f"<h2 id='{html.escape(_anchor(section))}'>{html.escape(section.run_id)} — "
+           f"{html.escape(section.experiment)}<a class='top' href='#contents'>contents</a></h2>",
+           "<h3>quality</h3>", _quality_html(section.quality)]
     for plot in section.plots:
         data = base64.b64encode(plot.png).decode("ascii")
         out.append(f"<figure><img alt='{html.escape(plot.title)}' "
@@ -336,19 +390,27 @@ def _section_html(section: RunSection) -> str:
     return "\n".join(out)
 
 
+def _lines_html(text: str) -> str:
+    return "<br>".join(html.escape(line) for line in text.split("\n"))
+
+
 def _quality_html(indicators: Sequence[Indicator]) -> str:
     rows = []
     for ind in indicators:
-        mark = {True: "<span class='ok'>✔</span>", False: "<span class='bad'>✘</span>",
-                None: ""}[ind.ok]
-        rows.append(f"<tr><td>{mark}</td><td>{html.escape(ind.name)}</td>"
-                    f"<td>{html.escape(ind.value)}</td></tr>")
+        details = ("" if not ind.details else
+                   f"<details><summary>details ({len(ind.details)})</summary><ul>"
+                   + "".join(f"<li>{html.escape(d)}</li>" for d in ind.details)
+                   + "</ul></details>")
+        rows.append(f"<tr><td>{MARKS[ind.ok]}</td><td>{html.escape(ind.name)}</td>"
+                    f"<td>{_lines_html(ind.value)}{details}</td></tr>")
     return "<table>" + "".join(rows) + "</table>"
 
 
 def _table_html(table: Table) -> str:
     head = "".join(f"<th>{html.escape(h)}</th>" for h in table.header)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in row) + "</tr>"
+    body = "".join("<tr>" + "".join(f"<td>{_lines_html(c)}</td>" for c in row) + "</tr>"
                    for row in table.rows)
+    if table.folded:
+        return (f"<details><summary>{html.escape(table.title)} ({len(table.rows)} rows)"
+                f"</summary><table><tr>{head}</tr>{body}</table></details>")
     return f"<h3>{html.escape(table.title)}</h3><table><tr>{head}</tr>{body}</table>"
-

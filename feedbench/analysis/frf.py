@@ -51,11 +51,34 @@ class Spectra:
 
 
 @dataclass(frozen=True)
+class Leak:
+    """A resonance whose H1 leakage biases low: its frequency (Hz), half-power bandwidth
+    (frequency bins), the lowest coherence within ±1 bin of it, and the segment length
+    (samples) that would resolve it with `LEAKAGE_BANDWIDTH_BINS` bins."""
+
+    f_hz: float
+    bandwidth_bins: float
+    coherence: float
+    nperseg_needed: int
+
+    @property
+    def text(self) -> str:
+        """The finding in one sentence, with what to do about it."""
+        return (
+            f"leakage: the resonance near {self.f_hz:.2f} Hz is {self.bandwidth_bins:.1f} "
+            f"frequency bins wide (half power) and coherence dips to {self.coherence:.2f} there, "
+            f"so H1 is biased low (H1/H2 = coherence): read the peak from H2 "
+            f"(FrfEstimate.preferred), fit modes to H1 with lag_window=FrfEstimate.lag_window, "
+            f"or use nperseg >= {self.nperseg_needed}"
+        )
+
+
+@dataclass(frozen=True)
 class FrfEstimate:
     """FRF estimates y/x at frequencies `f` (Hz), shape (n_f,) or (n_outputs, n_f).
 
     H1 = S_xy / S_xx (Eq. 5.3), H2 = S_yy / S_yx, coherence = |S_xy|² / (S_xx S_yy).
-    `leaky_peaks` lists resonance frequencies (Hz) where leakage biases H1 (see `warnings`);
+    `leaks` are the resonances where leakage biases H1 (each also a line of `warnings`);
     `window` is the Welch segment window (None for transient records such as hammer hits).
     """
 
@@ -66,8 +89,13 @@ class FrfEstimate:
     n_averages: int
     nperseg: int
     warnings: tuple[str, ...] = ()
-    leaky_peaks: tuple[float, ...] = ()
+    leaks: tuple[Leak, ...] = ()
     window: str | None = None
+
+    @property
+    def leaky_peaks(self) -> tuple[float, ...]:
+        """Frequencies (Hz) of the leakage-biased resonances, ascending."""
+        return tuple(sorted({leak.f_hz for leak in self.leaks}))
 
     @property
     def leakage_suspected(self) -> bool:
@@ -396,16 +424,35 @@ def _frf_from_spectra(Sxx, Syy, Sxy) -> tuple[np.ndarray, np.ndarray, np.ndarray
 def _with_leakage_check(estimate: FrfEstimate) -> FrfEstimate:
     """The estimate with a warning for every resonance that leakage biases."""
     f, channels = estimate.f, np.atleast_2d(estimate.H1).shape[0]
-    peaks = [
-        peak
+    leaks = tuple(
+        _leak(f_peak, bw / (f[1] - f[0]), coh, estimate.nperseg)
         for c in range(channels)
-        for peak in _leaky_peaks(f, np.atleast_2d(estimate.H1)[c], np.atleast_2d(estimate.H2)[c],
-                                 np.atleast_2d(estimate.coherence)[c])
-    ]
-    warnings = tuple(_leakage_warning(f_peak, bw / (f[1] - f[0]), coh, estimate.nperseg)
-                     for f_peak, bw, coh in peaks)
-    leaky = tuple(sorted({float(p[0]) for p in peaks}))
-    return replace(estimate, warnings=estimate.warnings + warnings, leaky_peaks=leaky)
+        for f_peak, bw, coh in _leaky_peaks(f, np.atleast_2d(estimate.H1)[c],
+                                            np.atleast_2d(estimate.H2)[c],
+                                            np.atleast_2d(estimate.coherence)[c])
+    )
+    return replace(estimate, warnings=estimate.warnings + tuple(leak.text for leak in leaks),
+                   leaks=leaks)
+
+
+def findings_in_band(estimate: FrfEstimate,
+                     band: tuple[float, float]) -> tuple[list[str], list[str]]:
+    """What a person reads about the estimate inside `band` (Hz, the excited range: outside
+    it the coherence is noise and its 'peaks' are not modes): one line per distinct finding
+    (all leaky resonances in one line, with the lowest coherence and where), and the detail
+    lines behind them (one per resonance). Warnings without a frequency (hammer hits) are
+    their own findings."""
+    leaks = [leak for leak in estimate.leaks if band[0] <= leak.f_hz <= band[1]]
+    lines = [w for w in estimate.warnings if not w.startswith("leakage:")]
+    if leaks:
+        worst = min(leaks, key=lambda leak: leak.coherence)
+        lines.append(
+            f"leakage at {len(leaks)} resonance{'s' if len(leaks) > 1 else ''} in "
+            f"{band[0]:g}–{band[1]:g} Hz ({', '.join(f'{x.f_hz:.1f}' for x in leaks)} Hz): "
+            f"narrower than {LEAKAGE_BANDWIDTH_BINS:g} bins, H1 biased low there (coherence "
+            f"{worst.coherence:.2f} at {worst.f_hz:.1f} Hz); read peaks from H2 or use "
+            f"nperseg ≥ {max(x.nperseg_needed for x in leaks)}")
+    return lines, [leak.text for leak in leaks]
 
 
 def _leaky_peaks(f, H1, H2, coherence) -> list[tuple[float, float, float]]:
@@ -461,11 +508,6 @@ def _coherence_dip(coherence: np.ndarray, k: int) -> float:
     return float(np.nanmedian(around) - np.nanmin(at_peak))
 
 
-def _leakage_warning(f_peak: float, bandwidth_bins: float, coherence: float, nperseg: int) -> str:
+def _leak(f_peak: float, bandwidth_bins: float, coherence: float, nperseg: int) -> Leak:
     needed = int(2 ** np.ceil(np.log2(nperseg * LEAKAGE_BANDWIDTH_BINS / max(bandwidth_bins, 0.1))))
-    return (
-        f"leakage: the resonance near {f_peak:.2f} Hz is {bandwidth_bins:.1f} frequency bins wide "
-        f"(half power) and coherence dips to {coherence:.2f} there, so H1 is biased low "
-        f"(H1/H2 = coherence): read the peak from H2 (FrfEstimate.preferred), fit modes to H1 "
-        f"with lag_window=FrfEstimate.lag_window, or use nperseg >= {needed}"
-    )
+    return Leak(f_peak, bandwidth_bins, coherence, needed)

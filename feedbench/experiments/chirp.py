@@ -12,9 +12,9 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
-from feedbench.analysis.frf import estimate_frf
+from feedbench.analysis.frf import estimate_frf, findings_in_band
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
-from feedbench.experiments.family import Experiment
+from feedbench.experiments.family import TRUTH_TITLE, Experiment, percent_error
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import chirp, integrate_velocity, move_to, ramp_to_feed
 from feedbench.protocols.cia402 import CSP
@@ -22,7 +22,7 @@ from feedbench.units import MM_PER_MIN
 from feedbench.views.frfs import MOTOR_FORCE, MOTOR_VELOCITY, ExchangeFrf, polar
 from feedbench.views.panels import Curve, Panel, ResultView
 from feedbench.views.sections import (
-    MIN_COHERENCE, Indicator, Plot, RunSection, Table, new_figure, png_of,
+    MIN_COHERENCE, FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, frf_warnings, png_of,
 )
 
 NAME = "chirp"
@@ -160,7 +160,8 @@ def analyze_recording(recording) -> dict:
     Each sweep with its ring-down tail is one record (rectangular window, no overlap: the
     response starts and ends inside it, so nothing leaks); spectra are averaged over the
     records, and the coherence tells how well the repetitions agree. f_t and f_r are
-    searched in the configured mobility band.
+    searched in the configured mobility band; warnings are about the swept band
+    (f_start–f_stop) only.
     """
     p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
     band = mobility_band(p)
@@ -171,6 +172,7 @@ def analyze_recording(recording) -> dict:
     est = estimate_frf(force, velocity, fs, nperseg=n, overlap=0.0, window="boxcar")
     f_t, f_r = mobility_extrema(est.f, est.H1, band)
     inside = (est.f >= band[0]) & (est.f <= band[1])
+    warnings, details = findings_in_band(est, (p["f_start_Hz"], p["f_stop_Hz"]))
     return {
         "experiment": NAME,
         "antiresonance_hz": f_t,
@@ -178,7 +180,8 @@ def analyze_recording(recording) -> dict:
         "band_hz": list(band),
         "min_coherence": float(est.coherence[inside].min()),
         "n_sweeps": len(windows),
-        "warnings": list(est.warnings),
+        "warnings": warnings,
+        "warning_details": details,
         "frf": {"f_hz": est.f[inside].tolist(), "H1_abs": np.abs(est.H1[inside]).tolist(),
                 "H1_phase_rad": np.angle(est.H1[inside]).tolist(),
                 "coherence": est.coherence[inside].tolist()},
@@ -219,37 +222,25 @@ class Chirp(Experiment):
 
     @classmethod
     def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
-        """Servo mobility |H1| with coherence, anti-resonance f_t and resonance f_r marked."""
+        """Servo mobility Bode plot (|H1|, phase, coherence), anti-resonance f_t and
+        resonance f_r marked."""
         frf = result["frf"]
-        f = np.array(frf["f_hz"])
-        figure = new_figure(8.0, 5.5)
-        magnitude, coherence = figure.subplots(2, 1, sharex=True, height_ratios=(2, 1))
-        magnitude.semilogy(f, frf["H1_abs"], lw=1.2, label="|H1| motor velocity / motor force")
-        for key, name in (("antiresonance_hz", "f_t"), ("resonance_hz", "f_r")):
-            magnitude.axvline(result[key], color="k", ls="--", lw=0.8)
-            magnitude.annotate(f"{name} {result[key]:.1f} Hz", (result[key], 1.0),
-                               xycoords=("data", "axes fraction"), ha="left", va="top",
-                               fontsize=8)
-        magnitude.set_ylabel("|H| ((m/s)/N)")
-        magnitude.grid(alpha=0.3, which="both")
-        magnitude.legend(fontsize=8, loc="lower left")
-        coherence.plot(f, frf["coherence"], lw=1.0, color="C2")
-        coherence.axhline(MIN_COHERENCE, color="r", ls=":", lw=0.8)
-        coherence.set_ylim(0.0, 1.05)
-        coherence.set_ylabel("coherence γ²")
-        coherence.set_xlabel("frequency (Hz)")
-        coherence.grid(alpha=0.3)
-        section.plots.append(Plot("servo mobility (H1, Welch) with coherence", png_of(figure)))
+        series = [FrfSeries("H1 motor velocity / motor force", np.array(frf["f_hz"]),
+                            np.array(frf["H1_abs"]), np.array(frf["H1_phase_rad"]),
+                            np.array(frf["coherence"]))]
+        marks = [(f"f_t {result['antiresonance_hz']:.1f} Hz", result["antiresonance_hz"]),
+                 (f"f_r {result['resonance_hz']:.1f} Hz", result["resonance_hz"])]
+        section.plots.append(Plot("servo mobility (H1, Welch): magnitude, phase, coherence",
+                                  png_of(frf_figure(series, "|H| ((m/s)/N)", marks=marks))))
         min_coherence = min(frf["coherence"]) if frf["coherence"] else float("nan")
         section.tables.append(Table("servo mobility", ("quantity", "value"), (
             ("anti-resonance f_t (Eq. 4.13)", f"{result['antiresonance_hz']:.2f} Hz"),
             ("resonance f_r (Eq. 4.14)", f"{result['resonance_hz']:.2f} Hz"),
             ("sweeps averaged", str(result["n_sweeps"])),
         )))
-        section.quality.append(Indicator("min coherence in the band", f"{min_coherence:.4f}",
-                                         min_coherence >= MIN_COHERENCE))
-        section.quality.append(Indicator("FRF warnings", "; ".join(result["warnings"]) or "none",
-                                         not result["warnings"]))
+        section.quality.append(Indicator(f"min coherence in {band_text(result)}",
+                                         f"{min_coherence:.4f}", min_coherence >= MIN_COHERENCE))
+        section.quality.append(frf_warnings(result["warnings"], result["warning_details"]))
         section.headline = (f"f_t {result['antiresonance_hz']:.1f} Hz, "
                             f"f_r {result['resonance_hz']:.1f} Hz")
 
@@ -286,6 +277,15 @@ class Chirp(Experiment):
         return {**values, "truth_f_t_hz": truth["f_t_hz"], "truth_f_r_hz": truth["f_r_hz"],
                 "headline": f"{extrema_text(result, truth)}; min coherence "
                             f"{result['min_coherence']:.4f}"}
+
+    @classmethod
+    def truth_table(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> Table:
+        """f_t and f_r of the servo mobility beside the model's (Eqs. 4.13, 4.14)."""
+        return Table(TRUTH_TITLE, ("quantity", "identified", "true", "error"), tuple(
+            (name, f"{result[key]:.2f} Hz", f"{truth[true]:.2f} Hz",
+             f"{percent_error(result[key], truth[true]):+.2f} %")
+            for name, key, true in (("anti-resonance f_t (Eq. 4.13)", "antiresonance_hz", "f_t_hz"),
+                                    ("resonance f_r (Eq. 4.14)", "resonance_hz", "f_r_hz"))))
 
     @classmethod
     def describe(cls, result: Mapping[str, Any]) -> list[str]:

@@ -36,7 +36,7 @@ from feedbench.units import MM_PER_MIN
 from feedbench.views.frfs import MOTOR_FORCE, MOTOR_VELOCITY, Dof, ExchangeFrf, polar
 from feedbench.views.panels import ResultView, point_frf_panels
 from feedbench.views.sections import (
-    FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, new_figure, png_of,
+    FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, png_of,
 )
 
 NAME = "closed_loop_bode"
@@ -181,22 +181,6 @@ def open_loop(f: np.ndarray, H: np.ndarray, gains: Mapping[str, float],
             "phase_rad": np.angle(mobility).tolist()}
 
 
-def _mobility_figure(f: np.ndarray, mobility: Mapping[str, Any]):
-    """|G| (m/s)/N over f (Hz) with f_t and f_r marked."""
-    figure = new_figure(8.0, 4.0)
-    ax = figure.subplots()
-    ax.semilogy(f, mobility["abs"], "o-", ms=3, lw=0.8, label="|G| open-loop mobility")
-    for key, name in (("antiresonance_hz", "f_t"), ("resonance_hz", "f_r")):
-        ax.axvline(mobility[key], color="k", ls="--", lw=0.8)
-        ax.annotate(f"{name} {mobility[key]:.1f} Hz", (mobility[key], 1.0),
-                    xycoords=("data", "axes fraction"), ha="left", va="top", fontsize=8)
-    ax.set_xlabel("frequency (Hz)")
-    ax.set_ylabel("|G| ((m/s)/N)")
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8, loc="lower left")
-    return figure
-
-
 def _points(result: Mapping[str, Any]) -> list[tuple[float, complex, float]]:
     """Every measured point (f Hz, H, R²), the flagged ones included, by frequency."""
     frf = result["frf"]
@@ -284,16 +268,24 @@ class ClosedLoopBode(Experiment):
         frf = result["frf"]
         f = np.array(frf["f_hz"])
         gate = result["r_squared_min"]
-        series = [FrfSeries(f"{result['loop']} loop at {result['feed_mm_min']:g} mm/min", f,
-                            np.array(frf["abs"]), np.array(frf["r_squared"]))]
-        section.plots.append(Plot(f"closed {result['loop']} loop: points with R²", png_of(
-            frf_figure(series, "|H| closed loop (–)", "R² of the sine fits", gate, points=True))))
+        label = f"{result['loop']} loop at {result['feed_mm_min']:g} mm/min"
+        series = [FrfSeries(label, f, np.array(frf["abs"]), np.array(frf["phase_rad"]),
+                            np.array(frf["r_squared"]))]
+        section.plots.append(Plot(f"closed {result['loop']} loop: magnitude, phase, R²", png_of(
+            frf_figure(series, "|H| closed loop (–)", "R² of the sine fits", gate,
+                       points=True))))
         rows = [("−3 dB bandwidth", f"{result['bandwidth_hz']:.1f} Hz"),
                 ("frequencies flagged (R²)", str(len(result["flagged"])))]
         mobility = result.get("mobility")
         if mobility:
-            section.plots.append(Plot("open-loop mobility by Eq. (4.20)",
-                                      png_of(_mobility_figure(f, mobility))))
+            marks = [(f"{name} {mobility[key]:.1f} Hz", mobility[key])
+                     for key, name in (("antiresonance_hz", "f_t"), ("resonance_hz", "f_r"))]
+            open_loop = [FrfSeries(f"open-loop mobility G, {label}", f, np.array(mobility["abs"]),
+                                   np.array(mobility["phase_rad"]), np.array(frf["r_squared"]))]
+            section.plots.append(Plot("open-loop mobility by Eq. (4.20): magnitude, phase, R²",
+                                      png_of(frf_figure(open_loop, "|G| ((m/s)/N)",
+                                                        "R² of the sine fits", gate, points=True,
+                                                        marks=marks))))
             rows += [("anti-resonance f_t (Eq. 4.13)", f"{mobility['antiresonance_hz']:.2f} Hz"),
                      ("resonance f_r (Eq. 4.14)", f"{mobility['resonance_hz']:.2f} Hz")]
             section.headline = (f"f_t {mobility['antiresonance_hz']:.1f} Hz, "

@@ -31,7 +31,7 @@ from feedbench.config import ConfigError, Field, registered, validate_table
 from feedbench.experiments.plan import Plan
 from feedbench.views.frfs import ExchangeFrf
 from feedbench.views.panels import ResultView
-from feedbench.views.sections import RunSection
+from feedbench.views.sections import RunSection, Table
 
 ENTRY_POINT_GROUP = "feedbench.experiments"
 
@@ -105,11 +105,22 @@ class Experiment:
         return {"headline": scalar_text(result)}
 
     @classmethod
+    def truth_table(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> Table:
+        """The report's identified-vs-true table of a simulated run: by default the parts of
+        the demo summary's headline (`summary`), a row each."""
+        parts = cls.summary(result, truth)["headline"].split(HEADLINE_SEPARATOR)
+        return Table(TRUTH_TITLE, ("identified against the simulated world",),
+                     tuple((part,) for part in parts))
+
+    @classmethod
     def describe(cls, result: Mapping[str, Any]) -> list[str]:
         """`feedbench analyze`'s lines for the result (after the run line)."""
         return [f"  {key}: {value}" for key, value in result.items()
                 if key != "experiment" and isinstance(value, (int, float, str))]
 
+
+TRUTH_TITLE = "identified vs true (simulated world)"
+"""Title of every family's `Experiment.truth_table`."""
 
 HEADLINE_SEPARATOR = "; "
 """Between the parts of a summary's headline (`feedbench demo` prints each on its own line)."""

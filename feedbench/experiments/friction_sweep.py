@@ -15,8 +15,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from feedbench.analysis.friction import FrictionFit, fit_andersson
-from feedbench.config import ConfigError, Field, one_of, positive, validate_table
-from feedbench.experiments.family import Experiment, headline, percent_error
+from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
+from feedbench.experiments.family import TRUTH_TITLE, Experiment, headline, percent_error
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import constant_feed_move
 from feedbench.models.friction import AnderssonFriction
@@ -41,6 +41,8 @@ SCHEMA = {
         list, ["positive", "negative"], "directions to measure", one_of("positive", "negative")
     ),
     "settle_s": Field(float, 1.0, "time at feed before measuring (s)", positive),
+    "settle_mm": Field(float, 0.0, "distance at feed before measuring (mm): each feed settles "
+                       "for the longer of settle_s and settle_mm / feed", non_negative),
     "measure_s": Field(float, 0.5, "measure window at each feed (s)", positive),
     "accel_m_s2": Field(float, 1.0, "acceleration of the ramps (m/s²)", positive),
     "k_tanh_min_mm": Field(float, 0.25, "tanh constant of Eq. (5.2), held in the fit (min/mm)",
@@ -57,6 +59,11 @@ UNITS = {"F_c": ("N", 1.0, 2), "F_s": ("N", 1.0, 2), "v_s": ("mm/min", MM_PER_MI
          "sigma": ("N·min/mm", N_MIN_PER_MM, 5)}
 """Eq. (5.2)'s fitted parameters in the units of Fig. 5.11: unit, its size in SI, decimals."""
 
+STEADY_TOLERANCE = 0.02
+"""A measure window is at steady state when its mean velocity is within this fraction of the
+commanded feed and its mean force changes by less than this fraction between its halves;
+a window that is not is flagged and left out of the fit."""
+
 CURVE_POINTS = 300
 """Points of a fitted law drawn over the range of its direction's feeds."""
 
@@ -68,6 +75,27 @@ def friction_points(
     v = np.array([velocity[w.start:w.stop].mean() for w in windows])
     f = np.array([force[w.start:w.stop].mean() for w in windows])
     return v, f
+
+
+def steady_windows(velocity: np.ndarray, force: np.ndarray, windows: list[Window]) -> np.ndarray:
+    """Per measure window whether it is at steady state (`STEADY_TOLERANCE`): mean velocity
+    (m/s) at the commanded feed (the window's ``feed_mm_min``) and no drift of the mean force
+    (N) between its first and second half."""
+    steady = []
+    for w in windows:
+        feed = w.info["feed_mm_min"] * MM_PER_MIN
+        f = force[w.start:w.stop]
+        half = len(f) // 2
+        drift = abs(f[half:].mean() - f[:half].mean()) if half else 0.0
+        steady.append(abs(velocity[w.start:w.stop].mean() - feed) <= STEADY_TOLERANCE * abs(feed)
+                      and drift <= STEADY_TOLERANCE * abs(f.mean()))
+    return np.array(steady, dtype=bool)
+
+
+def settle_cycles(p: Mapping[str, Any], feed_mm_min: float, cycle_s: float) -> int:
+    """Bus cycles at a feed before its measure window: the longer of ``settle_s`` and
+    ``settle_mm`` travelled at the feed."""
+    return int(round(max(p["settle_s"], p["settle_mm"] / feed_mm_min * 60.0) / cycle_s))
 
 
 def axis_signals(channels: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -175,11 +203,15 @@ def parameter_table(result: Mapping[str, Any]) -> Table:
 
 def curve_figure(result: Mapping[str, Any]):
     """The friction points and the fitted law per direction, feed (mm/min) against N."""
-    v = np.array(result["points"]["velocity_m_s"])
+    v = np.array(result["points"]["velocity_m_s"]) / MM_PER_MIN
+    force = np.array(result["points"]["force_N"])
+    steady = np.array(result["points"]["steady"], dtype=bool)
     figure = new_figure(8.0, 4.5)
     ax = figure.subplots()
-    ax.plot(v / MM_PER_MIN, result["points"]["force_N"], "o", ms=4,
-            label="measured (mean of each window)")
+    ax.plot(v[steady], force[steady], "o", ms=4, label="measured (mean of each window), fitted")
+    if not steady.all():
+        ax.plot(v[~steady], force[~steady], "x", ms=7, color="C3",
+                label="not at steady state: left out of the fit")
     for direction in SIGNS:
         ax.plot(*fitted_curve(result, direction), lw=1.5, label=f"Andersson fit, {direction}")
     ax.set_xlabel("feed (mm/min)")
@@ -221,11 +253,12 @@ class FrictionSweep(Experiment):
         segments: list[Segment] = []
         x = 0.0
         for feed_mm_min in p["feeds_mm_min"]:
+            settle = settle_cycles(p, feed_mm_min, cycle_s)
             for direction, sign in SIGNS.items():
                 path, cruise_start, cruise_stop = constant_feed_move(
                     x, sign * feed_mm_min * MM_PER_MIN, p["accel_m_s2"],
-                    p["settle_s"] + p["measure_s"], cycle_s)
-                settle_stop = cruise_start + int(round(p["settle_s"] / cycle_s))
+                    settle * cycle_s + p["measure_s"], cycle_s)
+                settle_stop = cruise_start + settle
                 info = {"feed_mm_min": sign * feed_mm_min}
                 label = f"{direction} {feed_mm_min:g} mm/min"
                 segments += [
@@ -244,34 +277,45 @@ class FrictionSweep(Experiment):
         """Friction points of every measure window and the Eq. (5.2) fit per direction.
 
         SI values: velocities (m/s), forces (N), F_c, F_s (N), v_s (m/s), σ (N·s/m), the
-        tanh constant held in the fits (s/m). `final` False (live): a direction with fewer
-        than `MIN_FEEDS` points is left out instead of refused.
+        tanh constant held in the fits (s/m). Only windows at steady state (`steady_windows`)
+        are fitted; ``points.steady`` tells which; R² is over the points fitted. `final` False
+        (live): a direction with fewer than `MIN_FEEDS` points is left out instead of refused.
         """
         params = validate_table(recording.config["experiment"], SCHEMA, "experiment")
         windows = recorded_windows(recording, "measure")
-        v, f = friction_points(*axis_signals(recording.channels), windows)
+        signals = axis_signals(recording.channels)
+        v, f = friction_points(*signals, windows)
         _check_finite(recording, windows, v, f)
-        sides = {direction: np.sign(v) == sign for direction, sign in SIGNS.items()}
+        steady = steady_windows(*signals, windows)
+        sides = {direction: (np.sign(v) == sign) & steady for direction, sign in SIGNS.items()}
         if final:
             _check_feeds(recording, sides)
         k_tanh = params["k_tanh_min_mm"] * MIN_PER_MM
         fits = {direction: _fit_summary(fit_andersson(v[side], f[side], k_tanh=k_tanh))
                 for direction, side in sides.items() if side.sum() >= MIN_FEEDS}
-        return {"experiment": NAME, "points": {"velocity_m_s": v.tolist(), "force_N": f.tolist()},
+        return {"experiment": NAME, "points": {"velocity_m_s": v.tolist(), "force_N": f.tolist(),
+                                               "steady": steady.tolist()},
                 "k_tanh_s_m": k_tanh, **fits}
 
     @classmethod
     def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
-        """Friction points and the fitted law per direction (Fig. 5.11), the parameters ± σ
-        and the R² of each fit."""
+        """Friction points and the fitted law per direction (Fig. 5.11), the parameters ± σ,
+        the R² of each fit (over the points it used) and the windows left out."""
         section.plots.append(Plot("friction curve and fitted model, Eq. (5.2)",
                                   png_of(curve_figure(result))))
         section.tables.append(parameter_table(result))
         for direction in SIGNS:
-            r2 = result[direction]["r_squared"]
-            section.quality.append(Indicator(f"R² of the {direction} fit",
-                                             f"{r2:.5f} (rms {result[direction]['rms_N']:.2f} N)",
-                                             r2 >= MIN_R_SQUARED))
+            fit = result[direction]
+            section.quality.append(Indicator(
+                f"R² of the {direction} fit",
+                f"{fit['r_squared']:.5f} (rms {fit['rms_N']:.2f} N) over its {fit['n_points']} "
+                "points", fit["r_squared"] >= MIN_R_SQUARED))
+        left_out = [f"{x / MM_PER_MIN:g}" for x, ok in zip(result["points"]["velocity_m_s"],
+                                                           result["points"]["steady"]) if not ok]
+        section.quality.append(Indicator(
+            "windows not at steady state (left out of the fit)",
+            f"{len(left_out)}" + (f": at {', '.join(left_out)} mm/min" if left_out else ""),
+            not left_out))
         p = result["positive"]["identified"]
         section.headline = f"F_c {p['F_c']:.1f} N, F_s {p['F_s']:.1f} N (positive)"
 
@@ -302,6 +346,14 @@ class FrictionSweep(Experiment):
                                      f"{pos['F_s']:.1f} / {neg['F_s']:.1f} N (+/−)",
                                      f"largest error vs truth {worst[0]:.2f} % ({worst[1]}, "
                                      f"{worst[2]})")}
+
+    @classmethod
+    def truth_table(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> Table:
+        """Eq. (5.2)'s parameters per direction beside the world's, in Fig. 5.11's units."""
+        return Table(TRUTH_TITLE, ("direction", "parameter", "identified", "true", "error"),
+                     tuple((direction, key, display(key, c["identified"][key]).strip(),
+                            display(key, c["truth"][key]).strip(), f"{c['error_pct'][key]:+.2f} %")
+                           for direction, c in comparison(result, truth).items() for key in UNITS))
 
     @classmethod
     def describe(cls, result: Mapping[str, Any]) -> list[str]:

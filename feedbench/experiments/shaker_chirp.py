@@ -15,7 +15,7 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
-from feedbench.analysis.frf import FrfEstimate, accelerance_to_receptance, estimate_frf
+from feedbench.analysis.frf import accelerance_to_receptance, estimate_frf, findings_in_band
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
 from feedbench.experiments.family import Experiment, headline
 from feedbench.experiments.plan import Plan, recorded_windows
@@ -29,7 +29,7 @@ from feedbench.experiments.tool_tip import (
 from feedbench.protocols.cia402 import CSP
 from feedbench.views.frfs import ExchangeFrf, polar
 from feedbench.views.panels import ResultView
-from feedbench.views.sections import Indicator, RunSection, Table
+from feedbench.views.sections import RunSection, Table, frf_warnings
 
 NAME = "shaker_chirp"
 
@@ -71,13 +71,6 @@ def sweep_records(recording, force_channel: str) -> tuple[dict[float, np.ndarray
     return records, notes
 
 
-def warnings_in_band(est: FrfEstimate, band: tuple[float, float]) -> list[str]:
-    """The estimate's leakage warnings about resonances inside `band` (Hz); outside the
-    swept range the coherence is noise and its 'peaks' are not modes."""
-    peaks = [f for f in est.leaky_peaks if band[0] <= f <= band[1]]
-    return [w for w in est.warnings if any(f"near {f:.2f} Hz" in w for f in peaks)]
-
-
 def feed_frf(feed: float, sweeps: np.ndarray, fs: float, band: tuple[float, float]) -> dict:
     """One feed's tool-tip FRF from its sweeps (records × (force, acceleration) × n, fs Hz):
     H1, H2 (accelerance, (m/s²)/N), compliance H1 / (jω)² (m/N) and coherence in `band`."""
@@ -87,16 +80,19 @@ def feed_frf(feed: float, sweeps: np.ndarray, fs: float, band: tuple[float, floa
     inside = (est.f >= band[0]) & (est.f <= band[1])
     f = est.f[inside]
     compliance = accelerance_to_receptance(f, est.H1[inside])
+    warnings, details = findings_in_band(est, band)
     return {
         "feed_mm_min": feed,
         "n_averages": est.n_averages,
         "peak_hz": float(f[np.argmax(np.abs(compliance))]),
         "min_coherence": float(est.coherence[inside].min()),
-        "warnings": warnings_in_band(est, band),
+        "warnings": warnings,
+        "warning_details": details,
         "frf": {"f_hz": f.tolist(), "H1_abs": np.abs(est.H1[inside]).tolist(),
                 "H1_phase_rad": np.angle(est.H1[inside]).tolist(),
                 "H2_abs": np.abs(est.H2[inside]).tolist(),
                 "compliance_abs": np.abs(compliance).tolist(),
+                "compliance_phase_rad": np.angle(compliance).tolist(),
                 "coherence": est.coherence[inside].tolist()},
     }
 
@@ -168,9 +164,9 @@ class ShakerChirp(Experiment):
             (f"{x['feed_mm_min']:g}", str(x["n_averages"]), f"{x['peak_hz']:.2f}",
              f"{x['min_coherence']:.4f}", "; ".join(x["warnings"]) or "none") for x in feeds)))
         feed_lobes(feeds, _compliance, section)
-        section.quality += feed_quality(feeds, result["notes"], Indicator(
-            "FRF warnings", "; ".join(w for x in feeds for w in x["warnings"]) or "none",
-            not any(x["warnings"] for x in feeds)))
+        section.quality += feed_quality(feeds, result["notes"], frf_warnings(
+            [w for x in feeds for w in x["warnings"]],
+            [d for x in feeds for d in x["warning_details"]]))
         section.headline = ", ".join(f"{x['feed_mm_min']:g} mm/min: peak {x['peak_hz']:.1f} Hz"
                                      for x in feeds)
 

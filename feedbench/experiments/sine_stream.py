@@ -197,6 +197,15 @@ def amplitude_spread(streams: list[dict]) -> float:
     return float(np.max(table.max(axis=0) - table.min(axis=0)) / table.max())
 
 
+def spread_text(result: Mapping[str, Any]) -> str:
+    """``1000 mm/min: 2.1 %``: the spread between amplitudes (`amplitude_spread`) of each
+    feed measured at two or more force amplitudes; with one there is no spread to give."""
+    feeds = [f"{x['feed_mm_min']:g}" for x in result["streams"]]
+    return ", ".join(f"{feed} mm/min: {100 * value:.1f} %"
+                     for feed, value in result["amplitude_spread"].items()
+                     if feeds.count(feed) > 1) or "not measured: one force amplitude per feed"
+
+
 def stream_label(stream: Mapping[str, Any]) -> str:
     """``1000 mm/min, 20 N``: one stream's feed and force amplitude."""
     return f"{feed_label(stream['feed_mm_min'])}, {stream['amplitude_N']:g} N"
@@ -298,11 +307,14 @@ class SineStream(Experiment):
         gate = result["r_squared_min"]
         streams = result["streams"]
         series = [FrfSeries(stream_label(x), np.array(x["frf"]["f_hz"]),
-                            np.array(x["frf"]["compliance_abs"]), np.array(x["frf"]["r_squared"]))
+                            np.array(x["frf"]["compliance_abs"]),
+                            np.array(x["frf"]["compliance_phase_rad"]),
+                            np.array(x["frf"]["r_squared"]))
                   for x in streams]
-        section.plots.append(Plot("sine-stream compliance points with the R² of each step",
-                                  png_of(frf_figure(series, COMPLIANCE_LABEL,
-                                                    "R² of the sine fits", gate, points=True))))
+        section.plots.append(Plot(
+            "sine-stream compliance points: magnitude, phase, R² of each step",
+            png_of(frf_figure(series, COMPLIANCE_LABEL, "R² of the sine fits", gate,
+                              points=True))))
         section.tables.append(Table("sine-stream per feed and amplitude", (
             "feed (mm/min)", "amplitude (N)", "steps used", "peak (Hz)", "min R²",
             "force limited at (Hz)", "force not held at (Hz)"), tuple(
@@ -311,13 +323,11 @@ class SineStream(Experiment):
              f"{x['min_r_squared']:.4f}", _hz_list(x["limited_hz"]), _hz_list(x["not_held_hz"]))
             for x in streams)))
         low = min((x["min_r_squared"] for x in streams), default=float("nan"))
-        spread = result["amplitude_spread"]
         section.quality += [
             Indicator("steps flagged (quality gate)", str(result["steps_flagged"]),
                       result["steps_flagged"] == 0),
             Indicator("min R² of the steps used", f"{low:.5f}", low >= gate),
-            Indicator("spread between amplitudes (of the peak)", ", ".join(
-                f"{feed} mm/min: {100 * value:.1f} %" for feed, value in spread.items())),
+            Indicator("spread between amplitudes (of the peak)", spread_text(result)),
         ]
         section.headline = "; ".join(f"{s.label}: peak {x['peak_hz']:.2f} Hz"
                                      for s, x in zip(series, streams))
@@ -361,5 +371,4 @@ class SineStream(Experiment):
                 "headline": headline(
                     f"{sum(s['steps_used'] for s in streams)} steps used, "
                     f"{result['steps_flagged']} flagged, min R² {min_r2:.4f}",
-                    "amplitude spread (Fig. 5.22) "
-                    + ", ".join(f"{v:.3f} at {k} mm/min" for k, v in spread.items()))}
+                    f"amplitude spread (Fig. 5.22) {spread_text(result)}")}

@@ -218,9 +218,10 @@ def feed_frf_summary(feeds: Sequence[Mapping[str, Any]], used: str, recorded: st
 def compliance_plot(feeds: Sequence[Mapping[str, Any]], estimate: str) -> Plot:
     """Report plot: |x/F| (m/N) above the coherence per feed; `estimate` names the FRF."""
     series = [FrfSeries(feed_label(x["feed_mm_min"]), np.array(x["frf"]["f_hz"]),
-                        np.array(x["frf"]["compliance_abs"]), np.array(x["frf"]["coherence"]))
+                        np.array(x["frf"]["compliance_abs"]),
+                        np.array(x["frf"]["compliance_phase_rad"]), np.array(x["frf"]["coherence"]))
               for x in feeds]
-    return Plot(f"tool-tip compliance per feed ({estimate}) with coherence",
+    return Plot(f"tool-tip compliance per feed ({estimate}): magnitude, phase, coherence",
                 png_of(frf_figure(series, COMPLIANCE_LABEL)))
 
 
@@ -318,30 +319,51 @@ def tool_tip_lobes(f: np.ndarray, compliance: np.ndarray,
                      cut.K_rc / cut.K_tc, start, stop)
 
 
+LOBE_DEPTH_SPAN = 4.0
+"""The lobes are drawn up to this many times the largest absolute limit (min a_lim) of the
+FRFs: the region a cut is planned in; higher lobe tips are clipped (and said so)."""
+
+
 def lobes_results(compliances: dict[str, tuple[np.ndarray, np.ndarray]],
                   section: RunSection) -> None:
-    """Stability lobes of each named compliance (Table 5.1's cut) as a plot and a table."""
+    """Stability lobes of each named compliance (Table 5.1's cut) as a plot and a table,
+    the depth axis clipped to `LOBE_DEPTH_SPAN` × the largest min a_lim, and the speeds
+    without a lobe (its chatter frequency outside the measured band) shaded and listed."""
     figure = new_figure(8.0, 4.5)
     ax = figure.subplots()
+    lobes = {label: tool_tip_lobes(f, compliance) for label, (f, compliance) in compliances.items()}
+    top = LOBE_DEPTH_SPAN * max(x.min_depth for x in lobes.values()) * 1e3
     rows = []
-    for label, (f, compliance) in compliances.items():
-        lobes = tool_tip_lobes(f, compliance)
-        ax.plot(lobes.spindle_rpm, lobes.depth * 1e3, lw=1.2, label=label)
-        k = int(np.argmin(lobes.depth))
-        rows.append((label, f"{lobes.min_depth * 1e3:.3f}", f"{lobes.spindle_rpm[k]:.0f}",
-                     f"{lobes.chatter_frequency[k]:.1f}"))
+    for label, x in lobes.items():
+        line, = ax.plot(x.spindle_rpm, x.depth * 1e3, lw=1.2, label=label)
+        gaps = _gaps(x.spindle_rpm, ~np.isfinite(x.depth))
+        for low, high in gaps:
+            ax.axvspan(low, high, color=line.get_color(), alpha=0.12, lw=0)
+        k = int(np.argmin(x.depth))
+        rows.append((label, f"{x.min_depth * 1e3:.3f}", f"{x.spindle_rpm[k]:.0f}",
+                     f"{x.chatter_frequency[k]:.1f}",
+                     ", ".join(f"{low:.0f}–{high:.0f}" for low, high in gaps) or "none"))
+    ax.set_ylim(0.0, top)
     ax.set_xlabel("spindle speed (rpm)")
-    ax.set_ylabel("critical depth a_lim (mm)")
+    ax.set_ylabel(f"critical depth a_lim (mm), clipped at {top:.1f}")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     cut = TABLE_5_1
     ax.set_title(f"ZOA, Table 5.1: D {cut.D * 1e3:g} mm, Z {cut.Z}, a_e {cut.a_e * 1e3:g} mm "
-                 f"{cut.mode}-milling, K_tc {cut.K_tc * 1e-6:g}, K_rc {cut.K_rc * 1e-6:g} N/mm²",
-                 fontsize=9)
+                 f"{cut.mode}-milling, K_tc {cut.K_tc * 1e-6:g}, K_rc {cut.K_rc * 1e-6:g} N/mm²\n"
+                 "shaded: no lobe (its chatter frequency outside the measured band)", fontsize=8)
     section.plots.append(Plot("stability lobes from the measured tool-tip FRF", png_of(figure)))
     section.tables.append(Table("stability lobes (Table 5.1 cut, y taken rigid)",
-                                ("FRF", "min a_lim (mm)", "at (rpm)", "chatter (Hz)"),
+                                ("FRF", "min a_lim (mm)", "at (rpm)", "chatter (Hz)",
+                                 "no lobe at (rpm): chatter frequency outside the FRF's band"),
                                 tuple(rows)))
+
+
+def _gaps(x: np.ndarray, mask: np.ndarray) -> list[tuple[float, float]]:
+    """(first, last) x of each run of True in `mask`."""
+    edges = np.diff(np.r_[0, mask.astype(int), 0])
+    return [(float(x[a]), float(x[b - 1])) for a, b in zip(np.flatnonzero(edges == 1),
+                                                           np.flatnonzero(edges == -1))]
 
 
 def extreme_feeds(compliances: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict:

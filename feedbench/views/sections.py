@@ -30,20 +30,24 @@ class Plot:
 
 @dataclass(frozen=True)
 class Table:
-    """A titled table: header and rows of text."""
+    """A titled table: header and rows of text; `folded` ones open on a click (HTML
+    ``<details>``)."""
 
     title: str
     header: tuple[str, ...]
     rows: tuple[tuple[str, ...], ...]
+    folded: bool = False
 
 
 @dataclass(frozen=True)
 class Indicator:
-    """One quality indicator; `ok` None means informative only."""
+    """One quality indicator; `ok` None means informative only; `details` are lines folded
+    under the value (HTML ``<details>``)."""
 
     name: str
     value: str
     ok: bool | None = None
+    details: tuple[str, ...] = ()
 
 
 @dataclass
@@ -58,6 +62,12 @@ class RunSection:
     quality: list[Indicator] = field(default_factory=list)
     headline: str = ""
 
+
+
+def frf_warnings(lines: Sequence[str], details: Sequence[str] = ()) -> Indicator:
+    """The "FRF warnings" indicator: one line per distinct finding in the excited band
+    (`analysis.frf.findings_in_band`), the per-resonance details folded under them."""
+    return Indicator("FRF warnings", "\n".join(lines) or "none", not lines, tuple(details))
 
 
 # figures
@@ -78,30 +88,50 @@ def png_of(figure: MplFigure) -> bytes:
 
 @dataclass(frozen=True)
 class FrfSeries:
-    """One FRF of a figure: label, frequencies (Hz), |H| and its quality (coherence or R²)."""
+    """One FRF of a figure: label, frequencies (Hz), |H|, its phase (rad) and its quality
+    (coherence or R²)."""
 
     label: str
     f: np.ndarray
     magnitude: np.ndarray
+    phase: np.ndarray
     quality: np.ndarray
 
 
 def frf_figure(series: Sequence[FrfSeries], y_label: str, quality_label: str = "coherence γ²",
-               gate: float = MIN_COHERENCE, points: bool = False) -> MplFigure:
-    """|H| (log) above its quality per frequency, one colour per series, the gate dotted."""
-    figure = new_figure(8.0, 5.5)
-    magnitude, quality = figure.subplots(2, 1, sharex=True, height_ratios=(2, 1))
+               gate: float = MIN_COHERENCE, points: bool = False,
+               marks: Sequence[tuple[str, float]] = ()) -> MplFigure:
+    """Bode plot: |H| (log), phase (°, unwrapped) and the quality per frequency, one colour
+    per series, the gate dotted; `marks` (label, Hz) dashed through all three panels."""
+    figure = new_figure(8.0, 7.0)
+    magnitude, phase, quality = figure.subplots(3, 1, sharex=True, height_ratios=(2, 1.2, 1))
     style = dict(marker="o", ms=3, lw=0.6) if points else dict(lw=1.2)
     for s in series:
         magnitude.semilogy(s.f, s.magnitude, label=s.label, **style)
+        phase.plot(s.f, np.degrees(np.unwrap(s.phase)), **style)
         quality.plot(s.f, s.quality, **style)
     quality.axhline(gate, color="r", ls=":", lw=0.8)
     magnitude.set_ylabel(y_label)
     magnitude.grid(alpha=0.3, which="both")
-    magnitude.legend(fontsize=8)
+    magnitude.legend(fontsize=8, loc="lower left")
+    phase.set_ylabel("phase (°)")
+    phase.grid(alpha=0.3)
     quality.set_ylim(min(0.0, float(np.nanmin([s.quality.min(initial=1.0) for s in series]))),
                      1.05)
     quality.set_ylabel(quality_label)
     quality.set_xlabel("frequency (Hz)")
     quality.grid(alpha=0.3)
+    mark_frequencies((magnitude, phase, quality), marks)
     return figure
+
+
+def mark_frequencies(axes: Sequence, marks: Sequence[tuple[str, float]]) -> None:
+    """Dashed lines at `marks` (label, Hz) through `axes`, labelled in the first one in a
+    boxed tag; tags of neighbouring marks step down so none draws over another."""
+    for i, (label, f_hz) in enumerate(sorted(marks, key=lambda m: m[1])):
+        for ax in axes:
+            ax.axvline(f_hz, color="k", ls="--", lw=0.8)
+        axes[0].annotate(label, (f_hz, 0.97 - 0.12 * (i % 3)),
+                         xycoords=("data", "axes fraction"), xytext=(3, 0),
+                         textcoords="offset points", ha="left", va="top", fontsize=8,
+                         bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.6", alpha=0.9))

@@ -60,9 +60,13 @@ def stop_reason(result: ClosureResult) -> str:
     if not valid:
         return "no candidate left to try"
     best = valid[0]
-    return (f"no candidate significant: best {best.name} ΔBIC {best.delta_bic:.0f} "
-            f"(needs < −{options.bic_threshold:g}), explains {best.explained:.1%} "
-            f"(needs ≥ {options.min_explained:.0%})")
+    checks = ((f"ΔBIC {best.delta_bic:.0f}", f"< −{options.bic_threshold:g}",
+               best.delta_bic < -options.bic_threshold),
+              (f"explains {100 * best.explained:.1f} % of the residual",
+               f"≥ {100 * options.min_explained:.0f} %", best.explained >= options.min_explained))
+    failed = " and ".join(f"{value} (needs {need})" for value, need, ok in checks if not ok)
+    passed = "".join(f"; its {value} would pass ({need})" for value, need, ok in checks if ok)
+    return f"no candidate significant: the best, {best.name}, fails on {failed}{passed}"
 
 
 def recalibration_dict(step: Step) -> dict[str, Any]:
