@@ -216,13 +216,16 @@ def feed_frf_summary(feeds: Sequence[Mapping[str, Any]], used: str, recorded: st
 
 
 def compliance_plot(feeds: Sequence[Mapping[str, Any]], estimate: str) -> Plot:
-    """Report plot: |x/F| (m/N) above the coherence per feed; `estimate` names the FRF."""
+    """Report plot: |x/F| (m/N), phase and coherence per feed, each feed's peak marked;
+    `estimate` names the FRF."""
     series = [FrfSeries(feed_label(x["feed_mm_min"]), np.array(x["frf"]["f_hz"]),
                         np.array(x["frf"]["compliance_abs"]),
                         np.array(x["frf"]["compliance_phase_rad"]), np.array(x["frf"]["coherence"]))
               for x in feeds]
+    marks = [(f"{feed_label(x['feed_mm_min'])}: {x['peak_hz']:.1f} Hz", x["peak_hz"])
+             for x in feeds]
     return Plot(f"tool-tip compliance per feed ({estimate}): magnitude, phase, coherence",
-                png_of(frf_figure(series, COMPLIANCE_LABEL)))
+                png_of(frf_figure(series, COMPLIANCE_LABEL, marks=marks)))
 
 
 def feed_lobes(feeds: Sequence[Mapping[str, Any]],

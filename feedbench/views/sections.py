@@ -131,7 +131,7 @@ def mark_frequencies(axes: Sequence, marks: Sequence[tuple[str, float]]) -> None
     for i, (label, f_hz) in enumerate(sorted(marks, key=lambda m: m[1])):
         for ax in axes:
             ax.axvline(f_hz, color="k", ls="--", lw=0.8)
-        axes[0].annotate(label, (f_hz, 0.97 - 0.12 * (i % 3)),
+        axes[0].annotate(label, (f_hz, 0.97 - 0.1 * (i % 6)),
                          xycoords=("data", "axes fraction"), xytext=(3, 0),
                          textcoords="offset points", ha="left", va="top", fontsize=8,
                          bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.6", alpha=0.9))
