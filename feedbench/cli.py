@@ -21,9 +21,10 @@ from typing import Sequence
 
 from feedbench.config import ConfigError
 from feedbench.experiments.limits import LimitError
+from feedbench.gui import DisplayError, require_display
 from feedbench.protocols.address import split_address
 
-USER_ERRORS = (ConfigError, LimitError, FileNotFoundError)
+USER_ERRORS = (ConfigError, LimitError, FileNotFoundError, DisplayError)
 INTERRUPTED = 130
 """Exit status after Ctrl-C outside a run (128 + SIGINT, as a shell reports it)."""
 
@@ -149,10 +150,12 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_live(args: argparse.Namespace) -> int:
-    """Replay a recorded run in the live window."""
+    """Replay a recorded run in the live window (no display: one line, before Qt loads)."""
+    path = resolve_run(args.run, args.dir)
+    require_display()
     from feedbench.gui.live_window import replay_session
 
-    replay_session(resolve_run(args.run, args.dir), speed=args.speed, span_s=args.span).exec()
+    replay_session(path, speed=args.speed, span_s=args.span).exec()
     return 0
 
 

@@ -11,14 +11,18 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
+import subprocess
+import sys
 import time
 import uuid
 
 import numpy as np
+import pyqtgraph as pg
 import pytest
 
-from feedbench.bench import parse_run_config
+from feedbench.bench import analyze_file, parse_run_config, run_config
 from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
 from feedbench.drivers.cia402 import decode_state
@@ -28,7 +32,11 @@ from feedbench.experiments.runner import StopRequest
 from feedbench.gui.live_window import (
     STOP_REASON, LiveWindow, Worker, bench_session, qt_app, replay_session, sticky_range,
 )
+from feedbench.experiments.family import families
+from feedbench.report import run_section
 from feedbench.units import MM_PER_MIN
+from feedbench.views.panels import FLAGGED
+from test_live_offline import RECORDINGS, same
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -129,7 +137,7 @@ def test_the_daq_stream_reaches_its_own_traces_without_a_sample_lost(stream_run)
     groups = {g.title: names for g, names in window.traces.groups}
     assert groups["accelerations"] == ["acc_tool_x"]
     assert groups["DAQ forces"] == ["actuator_force"]
-    assert "excitation" in groups["forces / torques"]
+    assert "excitation" in groups["forces"]
     for name in ("acc_tool_x", "actuator_force"):
         x, y = window.traces.curves[name].getData()
         shown = daq.channels[name][-int(round((x[-1] - x[0]) * daq.rate_hz)) - 1:]
@@ -143,7 +151,7 @@ def test_limit_lines_are_the_configured_limits(stream_run):
     lines = dict(zip([g.title for g, _ in session.window.traces.groups],
                      session.window.traces.lines))
     assert lines["positions"] == (-250.0, 250.0)
-    assert lines["forces / torques"] == (-1500.0, 1500.0)
+    assert lines["forces"] == (-1500.0, 1500.0)
 
 
 def test_progress_advances_to_the_end_and_the_header_says_complete(stream_run):
@@ -304,3 +312,216 @@ def test_sticky_range_holds_still_until_the_data_leave_or_shrink():
     assert sticky_range(shown, 2.0, 12.0) == pytest.approx((1.0, 13.0))
     assert sticky_range(shown, 4.0, 5.0) == pytest.approx((3.9, 5.1))
     assert sticky_range(None, 3.0, 3.0) == pytest.approx((2.7, 3.3))
+    assert sticky_range(None, 0.0, 0.0) == (-1.0, 1.0)
+
+
+# -- every family's recording replayed in the window: what a person reads ------------------
+
+AXIS_RUNS = {
+    "friction_sweep_rack_pinion": dict(feeds_mm_min=[25, 100, 400, 800, 1500], settle_s=0.4,
+                                       measure_s=0.3),
+    "stepped_loading": dict(backlash=[], single_motor=["master"], preload_pct=[20.0],
+                            unload=False, settle_s=0.03, measure_s=0.06, ramp_s=0.01,
+                            depth_um=250.0, step_um=10.0, single_depth_um=350.0,
+                            single_step_um=20.0, strokes=1, setup_s=0.5, dwell_s=0.1),
+    "backlash_reversal": dict(motors=["master"], reversals=2, feed_mm_min=400.0, setup_s=0.3),
+}
+"""Short runs on the simulated rack-and-pinion axis (the load cell read every 10th cycle):
+the quick demo's friction sweep there (the recording issue 16 names; 5 of its 7 feeds, the
+fit's minimum), `test_report`'s short stepped loading without the backlash stroke and a
+short backlash reversal test; the other families'
+recordings are the synthetic ones of `test_live_offline.RECORDINGS`."""
+
+NAN = re.compile(r"\bnan\b", re.IGNORECASE)
+SI_RESCALE = re.compile(r"\(x\s*[\d.e+-]+\)")
+
+
+def axis_run(name: str, directory) -> str:
+    """The example `name` with `AXIS_RUNS[name]` on the simulated axis; its file."""
+    raw = example_config(name)
+    raw["bench"].update(output_dir=str(directory), channel=f"fb-replay-{uuid.uuid4().hex[:8]}",
+                        timeout_s=10.0)
+    raw["experiment"].update(AXIS_RUNS[name])
+    row = run_config(parse_run_config(raw), progress=False)
+    assert row["status"] == "complete", row["reason"]
+    return row["file"]
+
+
+def plot_texts(plot) -> list[str]:
+    """Title, axis labels (as drawn, with any SI-prefix factor) and legend entries."""
+    texts = [plot.titleLabel.text]
+    texts += [plot.getAxis(side).labelString() for side in ("left", "bottom")]
+    texts += [label.text for _, label in (plot.legend.items if plot.legend else ())]
+    return texts
+
+
+def axis_text(plot, side: str) -> str:
+    """An axis label as drawn, without its HTML."""
+    return re.sub("<[^>]+>", "", plot.getAxis(side).labelString()).strip()
+
+
+def window_texts(window) -> list[str]:
+    """Every text the window shows: header, trace and result plots, summary, placeholders."""
+    texts = [window.windowTitle(), window.state_label.text(), window.result_plots.summary.text()]
+    for plot in [*window.traces.plots, *(p for p in window.result_plots.plots if p)]:
+        texts += plot_texts(plot)
+    return texts + window.result_plots.placeholders
+
+
+@pytest.fixture(scope="module")
+def replays(app, tmp_path_factory):
+    """Every family's recording replayed in the window at full speed: name → (file, window
+    texts, screenshot, window), the window's final state kept for the checks."""
+    directory = tmp_path_factory.mktemp("replays")
+    files = {name: str(directory / f"{name}.h5") for name in RECORDINGS}
+    for name, make in RECORDINGS.items():
+        make(directory / f"{name}.h5")
+    files.update({name: axis_run(name, directory) for name in AXIS_RUNS})
+    out = {}
+    for name, path in files.items():
+        session = replay_session(path, speed=0.0, span_s=10.0)
+        session.start()
+        pump(app, session)
+        shot = directory / f"live_{name}.png"
+        assert session.window.grab().save(str(shot))
+        out[name] = (path, window_texts(session.window), shot, session.window)
+        assert finish(app, session) == "complete"
+    return out
+
+
+def test_every_family_is_replayed():
+    assert set(RECORDINGS) | set(AXIS_RUNS) - {"friction_sweep_rack_pinion"} == set(families())
+
+
+def test_no_nan_and_no_rescaled_axis_in_any_text(replays):
+    """No "nan" in any title, label, legend or summary (a channel without a reading says
+    so); axis labels carry their unit and no pyqtgraph SI-prefix factor against it."""
+    for name, (_, texts, _, window) in replays.items():
+        assert not [t for t in texts if NAN.search(t)], name
+        assert not [t for t in texts if SI_RESCALE.search(t)], name
+        for plot, (group, _) in zip(window.traces.plots, window.traces.groups):
+            assert axis_text(plot, "left") == f"{group.title} ({group.display_unit})"
+        assert axis_text(window.traces.plots[-1], "bottom") == "time before now (s)"
+
+
+def test_the_load_cell_read_every_tenth_cycle_is_drawn_over_its_readings(replays):
+    """The rack-and-pinion friction sweep reads the load cell every 10th cycle (NaN
+    between): its trace is the readings, connected; the force title names its peak."""
+    path, texts, _, window = replays["friction_sweep_rack_pinion"]
+    recording = open_recording(path)
+    load = recording.channels["load_cell.force"]
+    assert recording.config["bench"]["load_cell_every"] == 10
+    assert np.isnan(load).mean() == pytest.approx(0.9, abs=0.01)
+    x, y = window.traces.curves["load_cell.force"].getData()
+    assert len(y) > 100 and np.all(np.isfinite(y))
+    tail = load[-int(round(10.0 / recording.metadata["cycle_s"])):]
+    assert (y.min(), y.max()) == (pytest.approx(np.nanmin(tail)), pytest.approx(np.nanmax(tail)))
+    force_title = window.traces.plots[2].titleLabel.text
+    peak = max(np.nanmax(np.abs(recording.channels[c][-len(tail):]))
+               for c in ("master.force", "slave.force", "force_offset", "load_cell.force"))
+    assert force_title.startswith(f"forces — peak {peak:.4g} N (")
+
+
+def test_distinct_colour_blind_safe_hues_and_legends_with_a_background(replays):
+    """Within every plot each trace has its own Okabe–Ito colour (velocity and velocity
+    offset, master and slave differ); legends are drawn on a background: on every trace
+    plot, on a result panel once it has two series (one is named in the summary)."""
+    from feedbench.views.panels import PALETTE
+
+    for name, (_, _, _, window) in replays.items():
+        plots = [*window.traces.plots, *(p for p in window.result_plots.plots if p)]
+        for plot in plots:
+            colours = [item.opts["pen"].color().name().upper() if item.opts["pen"] is not None
+                       else pg.mkBrush(item.opts["symbolBrush"]).color().name().upper()
+                       for item in plot.listDataItems()]
+            assert len(set(colours)) == len(colours), (name, plot.titleLabel.text, colours)
+            assert set(colours) <= {c.upper() for c in PALETTE} | {FLAGGED.upper()}
+            traces = plot in window.traces.plots
+            assert (plot.legend is not None) == (traces or len(colours) > 1), name
+            assert plot.legend is None or plot.legend.opts["brush"].color().alpha() > 0
+    curves = replays["friction_sweep_rack_pinion"][3].traces.curves
+    for a, b in (("master.velocity", "velocity_offset"), ("master.force", "slave.force"),
+                 ("master.position", "slave.position")):
+        assert curves[a].opts["pen"].color() != curves[b].opts["pen"].color()
+
+
+def test_stop_is_disabled_and_grey_once_the_replay_has_ended(replays):
+    for name, (_, _, _, window) in replays.items():
+        button = window.stop_button
+        assert not button.isEnabled(), name
+        colour = button.grab().toImage().pixelColor(6, button.height() // 2)
+        assert abs(colour.red() - colour.blue()) < 30, (name, colour.name())
+
+
+def test_live_numbers_are_the_offline_analysis(replays):
+    """The rack-and-pinion friction sweep (issue 16 saw F_c 549.3 N live against 601.7 N in
+    the report): the window's result after the replay is `feedbench analyze`'s, and the live
+    summary's F_c and F_s per direction are the report's table (every family's live =
+    offline: `test_live_offline.py`)."""
+    path, texts, _, window = replays["friction_sweep_rack_pinion"]
+    offline = analyze_file(path)
+    offline.pop("run")
+    assert same(window.result.result(final=True), offline)
+    table = next(t for t in run_section(open_recording(path)).tables
+                 if t.title == "identified friction parameters")
+    report = {row[0].split()[0]: dict(zip(("positive", "negative"), row[1:]))
+              for row in table.rows}
+    summary = window.result_plots.summary.text()
+    for direction in ("positive", "negative"):
+        live = re.search(direction + r": F_c ([\d.]+) N, F_s ([\d.]+) N", summary)
+        for value, key in zip(live.groups(), ("F_c", "F_s")):
+            assert float(value) == pytest.approx(float(report[key][direction].split()[0]),
+                                                 abs=0.05)
+    assert window.result.result(final=True)["positive"]["identified"]["F_c"] == \
+        pytest.approx(600.0, rel=0.01)
+
+
+def test_panels_without_data_are_placeholders_not_empty_axes(app):
+    """Before the first hammer hit the family's panels have no curve: the window shows a
+    line per panel saying so; before the first completed step, one line for the result."""
+    from feedbench.experiments.tool_tip import feed_frf_panels
+    from feedbench.gui.live_window import ResultPlots
+    from feedbench.views.panels import ResultView
+
+    window = LiveWindow(LiveStream(), {})
+    plots = window.result_plots
+    plots.draw(ResultView("impact hammer", (), "waiting for the first completed step"))
+    assert plots.placeholders == [ResultPlots.NO_RESULT] and plots.plots == []
+    plots.draw(ResultView("impact hammer", feed_frf_panels([]), "waiting for the first record"))
+    assert plots.placeholders == ["tool-tip compliance: no data yet", "coherence: no data yet"]
+    assert plots.plots == [None, None]
+    window.close()
+
+
+def test_live_without_a_display_says_so_in_one_line(replays):
+    """`feedbench live` where Qt would abort (no DISPLAY; an X display that is not there,
+    or a missing system library of Qt's xcb plugin): one line naming what to do, status 2."""
+    from feedbench.gui import display_problem
+
+    path = replays["chirp"][0]
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "QT_QPA_PLATFORM",
+                                                           "WAYLAND_DISPLAY")}
+    for extra, message in (({}, "no display for the live window (DISPLAY is not set)"),
+                           ({"DISPLAY": ":97"}, display_problem({"DISPLAY": ":97"}))):
+        done = subprocess.run([sys.executable, "-m", "feedbench.cli", "live", path],
+                              env={**env, **extra}, capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2 and done.stdout == ""
+        assert done.stderr.count("\n") == 1 and done.stderr.startswith(
+            f"feedbench: error: {message}")
+
+
+def test_missing_xcb_libraries_and_an_absent_x_server_are_named():
+    from feedbench.gui import missing_packages, x_server_error
+
+    assert missing_packages({"libfeedbench-absent.so.0": "libfeedbench-absent0",
+                             "libxcb.so.1": "libxcb1"}) == ["libfeedbench-absent0"]
+    assert x_server_error(":97") == "cannot connect to the X display :97"
+
+
+def test_ci_installs_what_the_xcb_plugin_loads():
+    from pathlib import Path
+
+    from feedbench.gui import XCB_LIBRARIES
+
+    script = (Path(__file__).parents[1] / ".ci" / "run").read_text()
+    assert all(f"{soname}={package}" in script for soname, package in XCB_LIBRARIES.items())

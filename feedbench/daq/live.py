@@ -31,7 +31,7 @@ ROWS = ""
 SLACK = 0.25
 """Extra ring capacity beyond the longest span, so a reader's copy is rarely overwritten."""
 
-UNIT_SUFFIXES = {"_mm_min": "mm/min", "_Hz": "Hz", "_hz": "Hz", "_mm": "mm", "_N": "N",
+UNIT_SUFFIXES = {"_rpm_s": "rpm/s", "_rpm": "rpm", "_mm_min": "mm/min", "_Hz": "Hz", "_hz": "Hz", "_mm": "mm", "_N": "N",
                  "_s": "s"}
 """Info keys carry their engineering unit as a suffix (config convention): feed_mm_min → mm/min."""
 
@@ -121,17 +121,19 @@ def bucket_size(n_samples: int, n_buckets: int) -> int:
 
 
 def minmax_buckets(values: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Minimum and maximum of `values` (channels × n) per bucket of `k` samples.
+    """Minimum and maximum of `values` (channels × n) per bucket of `k` samples, NaN (a
+    channel not read that cycle, e.g. a load cell read every 5th) left out: NaN only for a
+    bucket without a reading. As fast as min/max (`np.fmin`).
 
     Returns (low, high), each channels × ⌈n/k⌉; the last bucket may be shorter.
     """
     n = values.shape[1]
     full = n // k * k
     shaped = values[:, :full].reshape(len(values), -1, k)
-    low, high = shaped.min(axis=2), shaped.max(axis=2)
+    low, high = np.fmin.reduce(shaped, axis=2), np.fmax.reduce(shaped, axis=2)
     if full < n:
-        low = np.hstack([low, values[:, full:].min(axis=1, keepdims=True)])
-        high = np.hstack([high, values[:, full:].max(axis=1, keepdims=True)])
+        low = np.hstack([low, np.fmin.reduce(values[:, full:], axis=1, keepdims=True)])
+        high = np.hstack([high, np.fmax.reduce(values[:, full:], axis=1, keepdims=True)])
     return low, high
 
 

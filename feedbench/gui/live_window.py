@@ -24,13 +24,14 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
+from feedbench.gui import require_display
 from feedbench.daq.live import ROWS, Decimator, LiveFrame, LiveState, LiveStream
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.replay import replay
 from feedbench.experiments.runner import StopRequest
 from feedbench.experiments.family import families
 from feedbench.experiments.incremental import LiveAnalysis
-from feedbench.views.panels import Curve, Image, Panel, ResultView
+from feedbench.views.panels import FLAGGED, Curve, Image, Panel, ResultView, has_data, series_color
 from feedbench.units import MM_PER_MIN, RPM
 
 
@@ -38,6 +39,10 @@ SPANS_S = (1.0, 2.0, 5.0, 10.0, 20.0, 60.0)
 """Window lengths offered (s of bench time); the stream holds the longest."""
 
 STOP_REASON = "stop button in the live window"
+
+STOP_STYLE = ("QPushButton{background:#c0392b;color:white;font-weight:bold;}"
+              "QPushButton:disabled{background:#9a9a9a;color:#e0e0e0;}")
+"""The Stop button: red while it can stop a run, grey once the run (or replay) is over."""
 
 
 @dataclass(frozen=True)
@@ -59,7 +64,7 @@ class ChannelGroup:
 CHANNEL_GROUPS = (
     ChannelGroup("positions", ("m",), "mm", 1e3, "position"),
     ChannelGroup("velocities", ("m/s",), "mm/min", 1.0 / MM_PER_MIN, "velocity"),
-    ChannelGroup("forces / torques", ("N", "N·m", "Nm"), "N, N·m", 1.0, "force", "rows"),
+    ChannelGroup("forces", ("N",), "N", 1.0, "force", "rows"),
     ChannelGroup("spindle speed", ("rad/s",), "rpm", 1.0 / RPM),
     ChannelGroup("DAQ forces", ("N",), "N", 1.0, source="streams"),
     ChannelGroup("accelerations", ("m/s²", "m/s^2"), "m/s²", 1.0),
@@ -91,15 +96,37 @@ def limit_lines(group: ChannelGroup, limits: Limits | None) -> tuple[float, ...]
 
 def headroom_text(channels: Mapping[str, np.ndarray], names: Sequence[str],
                   group: ChannelGroup, lines: tuple[float, ...]) -> str:
-    """Peak |value| of the group in the frame and its share of the limit (min/max keeps it)."""
-    values = [channels[n] for n in names if n in channels and len(channels[n])]
-    if not values:
-        return ""
-    peak = float(np.max(np.abs(np.concatenate(values)))) * group.scale
-    text = f"peak {peak:.4g} {group.display_unit}"
+    """Peak |value| of the group in the frame (display unit; min/max keeps it), the channel
+    holding it and its share of the limit; channels without a reading in the frame (NaN:
+    not read) are named, not averaged in."""
+    peaks = {n: float(np.max(np.abs(y[np.isfinite(y)]))) for n in names
+             if n in channels and np.isfinite(y := channels[n]).any()}
+    if not peaks:
+        return "no data yet"
+    channel = max(peaks, key=peaks.__getitem__)
+    peak = peaks[channel] * group.scale
+    shown = f"{peak:.0f}" if peak >= 1e4 else f"{peak:.4g}"
+    text = f"peak {shown} {group.display_unit}" + (f" ({channel})" if len(names) > 1 else "")
     if lines:
         text += f", {100.0 * peak / max(abs(x) for x in lines):.0f} % of limit"
-    return text
+    silent = [n for n in names if n not in peaks]
+    return text + (f"; no data: {', '.join(silent)}" if silent else "")
+
+
+def add_legend(plot: pg.PlotItem, entries: int = 0) -> None:
+    """A legend on a dark, half-transparent background with a grey frame (readable over
+    the traces); `entries` known in advance are laid out in rows of at most three."""
+    legend = plot.addLegend(offset=(5, 5), brush=pg.mkBrush(0, 0, 0, 200),
+                            pen=pg.mkPen("#808080"))
+    legend.setColumnCount(max(1, -(-entries // 3)))
+
+
+def label_axes(plot: pg.PlotItem, x_label: str, y_label: str) -> None:
+    """Axis labels that carry their unit, e.g. ``frequency (Hz)``; pyqtgraph's SI-prefix
+    rescaling (a ``(x0.001)`` against the unit) is off."""
+    for side, text in (("bottom", x_label), ("left", y_label)):
+        plot.setLabel(side, text)
+        plot.getAxis(side).enableAutoSIPrefix(False)
 
 
 def state_text(state: LiveState) -> str:
@@ -138,6 +165,11 @@ class Worker:
         """True while `target` runs."""
         return self._thread.is_alive()
 
+    @property
+    def done(self) -> bool:
+        """True once `target` has returned or raised."""
+        return self._thread.ident is not None and not self._thread.is_alive()
+
     def join(self, timeout: float | None = None) -> None:
         """Wait for the thread (at most `timeout` s)."""
         self._thread.join(timeout)
@@ -158,7 +190,8 @@ def sticky_range(shown: tuple[float, float] | None, low: float, high: float) -> 
     """A y range that holds still while the data stay inside and fill at least a third of it.
 
     Redrawing an axis costs more than redrawing the curves, so the range changes only when
-    the data leave it or shrink well inside it; then it is reset with 10 % margins.
+    the data leave it or shrink well inside it; then it is reset with 10 % margins (a
+    trace that is exactly zero gets ±1 of its unit, not ±1e-10 ticks).
     """
     if not np.isfinite(low) or not np.isfinite(high):
         return shown or (-1.0, 1.0)
@@ -166,7 +199,7 @@ def sticky_range(shown: tuple[float, float] | None, low: float, high: float) -> 
         lo, hi = shown
         if lo <= low and high <= hi and (high - low) >= (hi - lo) / 3:
             return shown
-    margin = 0.1 * (high - low) or 0.1 * max(abs(high), 1e-9)
+    margin = 0.1 * (high - low) or 0.1 * abs(high) or 1.0  # a flat zero trace: ±1 unit
     return low - margin, high + margin
 
 
@@ -197,9 +230,9 @@ class TracePlots:
         self.plots, self.curves, self.lines = [], {}, []
         for row, (group, names) in enumerate(self.groups):
             plot = self.layout.addPlot(row=row, col=0)
-            plot.setLabel("left", group.title)
+            label_axes(plot, "time before now (s)", f"{group.title} ({group.display_unit})")
             plot.showGrid(x=True, y=True, alpha=0.3)
-            plot.addLegend(offset=(5, 5))
+            add_legend(plot, len(names))
             plot.setMouseEnabled(x=False, y=True)
             if row < len(self.groups) - 1:
                 plot.hideAxis("bottom")
@@ -208,18 +241,17 @@ class TracePlots:
                 plot.getAxis(side).setCacheMode(QtWidgets.QGraphicsItem.DeviceCoordinateCache)
             if self.plots:
                 plot.setXLink(self.plots[0])
-            for name in names:
-                pen = pg.mkPen(pg.intColor(len(self.curves), hues=8), width=1)
+            for i, name in enumerate(names):
+                pen = pg.mkPen(series_color(i), width=1)
                 self.curves[name] = plot.plot([], [], pen=pen, name=name, skipFiniteCheck=True)
             lines = limit_lines(group, limits)
             for y in lines:
                 plot.addItem(pg.InfiniteLine(y, angle=0, pen=pg.mkPen(
-                    "r", width=1, style=QtCore.Qt.DashLine)))
+                    FLAGGED, width=1, style=QtCore.Qt.DashLine)))
             self.plots.append(plot)
             self.lines.append(lines)
         self.ranges = [None] * len(self.plots)
         if self.plots:
-            self.plots[-1].setLabel("bottom", "time before now", units="s")
             self.set_span(span_s)
 
     def set_span(self, span_s: float) -> None:
@@ -228,19 +260,25 @@ class TracePlots:
             self.plots[0].setXRange(-span_s, 0.0, padding=0)
 
     def draw(self, frames: Sequence[LiveFrame], fit_limits: bool, now: float) -> None:
-        """Put frames (the rows', each stream's) on the plots, newest sample at x = 0."""
+        """Put frames (the rows', each stream's) on the plots, newest sample at x = 0; a
+        channel read only every few cycles (NaN between) is drawn connected over its readings."""
         t_end = max((f.t_end for f in frames if f.n_received), default=0.0)
         xs = {name: frame.t - t_end for frame in frames for name in frame.channels}
         channels = {name: y for frame in frames for name, y in frame.channels.items()}
         retitle = now - self._title_time >= self.TITLE_PERIOD_S
         for i, ((group, names), plot, lines) in enumerate(zip(self.groups, self.plots, self.lines)):
-            ys = [channels[name] * group.scale for name in names if name in channels]
-            for name, y in zip((n for n in names if n in channels), ys):
-                self.curves[name].setData(xs[name], y)
+            ys = []
+            for name in (n for n in names if n in channels):
+                x, y = xs[name], channels[name] * group.scale
+                read = np.isfinite(y)
+                if not read.all():
+                    x, y = x[read], y[read]
+                self.curves[name].setData(x, y)
+                ys.append(y)
             self._set_y_range(i, ys, lines if fit_limits else ())
             if retitle:
-                plot.setTitle(f"{group.title} ({group.display_unit}) — "
-                              f"{headroom_text(channels, names, group, lines)}", size="9pt")
+                plot.setTitle(f"{group.title} — {headroom_text(channels, names, group, lines)}",
+                              size="9pt")
         if retitle:
             self._title_time = now
 
@@ -255,22 +293,35 @@ class TracePlots:
 
 
 class ResultPlots:
-    """The experiment's building-up result: one plot per panel and a summary line."""
+    """The experiment's building-up result: one plot per panel and a summary line; a
+    placeholder line instead of a panel without data yet (no empty 0–1 axes); a legend
+    once a panel has two series."""
+
+    NO_RESULT = "the result is drawn here once a step has completed"
 
     def __init__(self, layout: pg.GraphicsLayoutWidget, summary: QtWidgets.QLabel) -> None:
         self.layout = layout
         self.summary = summary
-        self.plots: list[pg.PlotItem] = []
+        self.plots: list[pg.PlotItem | None] = []
+        self.placeholders: list[str] = []
         self.curves: list[dict[str, pg.PlotDataItem]] = []
         self.images: list[pg.ImageItem | None] = []
+        self._shown: tuple[bool, ...] | None = None
 
     def draw(self, view: ResultView) -> None:
-        """Update (or first create) the plots of a result view."""
-        if len(self.plots) != len(view.panels):
-            self._create(view.panels)
+        """Update the plots of a result view (re-laid out when a panel gets its first data)."""
+        shown = tuple(has_data(panel) for panel in view.panels)
+        if shown != self._shown:
+            self._create(view.panels, shown)
         for i, (plot, curves, panel) in enumerate(zip(self.plots, self.curves, view.panels)):
+            if plot is None:
+                continue
             if panel.image is not None:
                 self._draw_image(i, plot, panel.image)
+            if plot.legend is None and len(panel.curves) > 1:
+                add_legend(plot)  # a single series is named in the title and summary
+                for item in curves.values():
+                    plot.legend.addItem(item, item.name())
             for curve in panel.curves:
                 if curve.name not in curves:
                     curves[curve.name] = self._new_curve(plot, curve, len(curves))
@@ -289,26 +340,33 @@ class ResultPlots:
         item.setRect(QtCore.QRectF(image.x0, image.y0, image.dx * z.shape[0],
                                    image.dy * z.shape[1]))
 
-    def _create(self, panels: Sequence[Panel]) -> None:
+    def _create(self, panels: Sequence[Panel], shown: Sequence[bool]) -> None:
+        """Lay out a plot per panel with data and a placeholder line per panel without."""
         self.layout.clear()
+        self._shown = tuple(shown)
         self.plots, self.curves, self.images = [], [], [None] * len(panels)
-        for row, panel in enumerate(panels):
+        self.placeholders = [] if panels else [self.NO_RESULT]
+        if not panels:
+            self.layout.addLabel(self.NO_RESULT, row=0, col=0, color="#A0A0A0")
+        for row, (panel, data) in enumerate(zip(panels, shown)):
+            self.curves.append({})
+            if not data:
+                text = f"{panel.title}: no data yet"
+                self.layout.addLabel(text, row=row, col=0, color="#A0A0A0")
+                self.placeholders.append(text)
+                self.plots.append(None)
+                continue
             plot = self.layout.addPlot(row=row, col=0, title=panel.title)
-            plot.setLabel("bottom", panel.x_label)
-            plot.setLabel("left", panel.y_label)
+            label_axes(plot, panel.x_label, panel.y_label)
             plot.setLogMode(x=panel.log_x, y=panel.log_y)
-            plot.getAxis("left").enableAutoSIPrefix(False)
             if panel.y_range is not None:
                 plot.setYRange(*panel.y_range, padding=0)
             plot.showGrid(x=True, y=True, alpha=0.3)
-            plot.addLegend(offset=(5, 5))
             self.plots.append(plot)
-            self.curves.append({})
 
     @staticmethod
     def _new_curve(plot: pg.PlotItem, curve: Curve, index: int) -> pg.PlotDataItem:
-        # the palette starts after red, which marks points below a quality gate
-        color = pg.mkColor(curve.color) if curve.color else pg.intColor(index + 1, hues=6)
+        color = pg.mkColor(curve.color or series_color(index))
         if curve.points:
             return plot.plot([], [], pen=None, symbol="o", symbolSize=6, symbolBrush=color,
                              name=curve.name)
@@ -375,7 +433,7 @@ class LiveWindow(QtWidgets.QMainWindow):
         self.span_box.currentIndexChanged.connect(self._span_changed)
         self.fit_limits = QtWidgets.QCheckBox("scale to limits")
         self.stop_button = QtWidgets.QPushButton("Stop (safe)")
-        self.stop_button.setStyleSheet("background:#c0392b;color:white;font-weight:bold;")
+        self.stop_button.setStyleSheet(STOP_STYLE)
         self.stop_button.setEnabled(self.stop is not None)
         self.stop_button.clicked.connect(self.request_stop)
         header.addWidget(self.state_label, 3)
@@ -455,7 +513,8 @@ class LiveWindow(QtWidgets.QMainWindow):
             text += f"<br><font color='red'>error: {html.escape(str(self.worker.error))}</font>"
         self.state_label.setText(text)
         self.progress.setValue(int(round(1000 * state.fraction)))
-        if state.status not in ("idle", "running"):
+        over = self.worker is not None and self.worker.done
+        if over or state.status not in ("idle", "running"):
             self.stop_button.setEnabled(False)
 
     def eventFilter(self, watched: QtCore.QObject, event: QtCore.QEvent) -> bool:
@@ -501,8 +560,13 @@ def live_result_for(experiment: str) -> LiveAnalysis | None:
 
 
 def qt_app() -> QtWidgets.QApplication:
-    """The process's QApplication (created on first use)."""
-    return QtWidgets.QApplication.instance() or QtWidgets.QApplication(sys.argv[:1])
+    """The process's QApplication (created on first use); `DisplayError` in one line where
+    Qt would abort the process (no display, a system library of its xcb plugin missing)."""
+    app = QtWidgets.QApplication.instance()
+    if app is None:
+        require_display()
+        app = QtWidgets.QApplication(sys.argv[:1])
+    return app
 
 
 def bench_session(config, span_s: float = 10.0, progress: bool = True) -> LiveSession:

@@ -11,11 +11,28 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+OKABE_ITO = {"sky blue": "#56B4E9", "orange": "#E69F00", "bluish green": "#009E73",
+             "reddish purple": "#CC79A7", "white": "#FFFFFF", "yellow": "#F0E442",
+             "blue": "#0072B2", "vermillion": "#D55E00"}
+"""The colour-blind-safe palette of Okabe and Ito (2008), as hex RGB, white in place of its
+black (the live window's background is black); the most distinct hues first."""
+
+FLAGGED = OKABE_ITO["vermillion"]
+"""Points below a quality gate (and the watched limits)."""
+
+PALETTE = tuple(c for c in OKABE_ITO.values() if c != FLAGGED)
+"""Series colours in order, one hue per trace of a plot; the flagged colour is not among them."""
+
+
+def series_color(index: int) -> str:
+    """The colour of a plot's `index`-th series (0-based; repeats after `PALETTE`)."""
+    return PALETTE[index % len(PALETTE)]
+
 
 @dataclass(frozen=True)
 class Curve:
     """One named x/y series of a panel; `points` draws markers instead of a line; `color`
-    (a Qt colour name) overrides the panel's colour sequence."""
+    (a Qt colour name or hex RGB) overrides the panel's colour sequence (`series_color`)."""
 
     name: str
     x: np.ndarray
@@ -52,6 +69,12 @@ class Panel:
     image: Image | None = None
 
 
+def has_data(panel: Panel) -> bool:
+    """True when the panel has a colour map or a curve with a finite point to draw."""
+    return panel.image is not None or any(
+        np.isfinite(np.asarray(c.y, dtype=float)).any() for c in panel.curves)
+
+
 @dataclass(frozen=True)
 class ResultView:
     """What the window draws for a result: panels plus a one-line summary."""
@@ -64,11 +87,11 @@ class ResultView:
 def point_frf_panels(series: Mapping[str, Sequence[tuple[float, complex, float]]],
                      magnitude_label: str, r_squared_min: float) -> tuple[Panel, ...]:
     """|H|, phase and R² of FRF points (f Hz, H, R²) per named series; points below the
-    R² gate, if any, are drawn again in red as their own series."""
+    R² gate, if any, are drawn again in the `FLAGGED` colour as their own series."""
     magnitude, phase, quality = [], [], []
     below = [point for points in series.values() for point in points if point[2] < r_squared_min]
     named = [(name, points, None) for name, points in series.items()]
-    flagged = [(f"R² below {r_squared_min:g}", below, "r")] if below else []
+    flagged = [(f"R² below {r_squared_min:g}", below, FLAGGED)] if below else []
     for name, points, color in [*named, *flagged]:
         f, H, r2 = (np.array(v) for v in zip(*points)) if points else (np.zeros(0),) * 3
         H = H.astype(complex)
