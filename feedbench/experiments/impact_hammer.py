@@ -286,4 +286,4 @@ class ImpactHammer(Experiment):
                     f"(f_t {truth['f_t_hz']:.1f}), {top['peak_hz']:.1f} Hz at "
                     f"{feed_text(top['feed_mm_min'])}",
                     "distance to the highest feed "
-                    + ", ".join(f"{f['distance_to_highest_feed']:.2f}" for f in feeds))}
+                    + ", ".join(f"{100 * f['distance_to_highest_feed']:.0f} %" for f in feeds))}

@@ -462,15 +462,17 @@ def condition_figure(result: Mapping[str, Any]) -> MplFigure:
 
 def receptance_plot(result: Mapping[str, Any], side: str, name: str) -> Plot:
     """Report plot: one side's direct receptances Φ_ii (m/N): magnitude, phase and the
-    lowest coherence over the cuts (Eq. 6.15), one colour per direction."""
+    lowest coherence over the cuts (Eq. 6.15), one colour per direction, its peaks marked."""
     f = np.array(result["f_hz"])
     data = result[side]
     series = [FrfSeries(f"{name},{axis}{axis}", f, np.array(data["abs_m_N"][axis]),
                         np.array(data["phase_rad"][axis]), np.array(data["coherence_min"][axis]))
               for axis in data["abs_m_N"]]
+    marks = [(f"{axis}{axis} {p['f_hz']:.1f} Hz", p["f_hz"]) for axis, p in data["peaks"].items()]
     return Plot(f"SMFE direct receptances {name} at the {side} (Eq. 6.13): magnitude, phase, "
                 "coherence (Eq. 6.15, lowest over the cuts)",
-                png_of(frf_figure(series, "receptance (m/N)", "coherence, lowest over the cuts")))
+                png_of(frf_figure(series, "receptance (m/N)", "coherence, lowest over the cuts",
+                                  marks=marks)))
 
 
 def peaks_text(result: Mapping[str, Any]) -> str:
