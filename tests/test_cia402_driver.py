@@ -71,7 +71,7 @@ def test_setpoints_go_out_in_bus_units(can_channel):
 
 def test_set_mode_refuses_modes_the_drive_does_not_support(can_channel):
     with loopback(can_channel) as bench:
-        with pytest.raises(ValueError, match="0x6502 = 0x0380"):
+        with pytest.raises(ValueError, match="0x6502 = 0x0384"):
             bench.drive.set_mode(1)  # profile position
         bench.drive.set_mode(CST)
         bench.clock.tick()

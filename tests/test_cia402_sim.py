@@ -21,6 +21,7 @@ from canopen.sdo import SdoAbortedError
 
 from feedbench.daq.clock import LockstepClock
 from feedbench.protocols.canbus import open_network
+from feedbench.protocols.cia301 import HOST_NODE_ID
 from feedbench.drivers.cia402 import Cia402Drive, PdoConfig
 from feedbench.models.axis import CSP, CST, CSV, AxisSimulator, ServoTiming
 from feedbench.sim_backends import eds
@@ -104,7 +105,7 @@ def test_packaged_eds_is_the_exported_dictionary(tmp_path):
     assert od[0x1403][1].default == 0x80000505  # RPDO4 off by default
     tpdo1 = [od[0x1A00][sub].default for sub in range(1, od[0x1A00][0].default + 1)]
     assert tpdo1 == [0x60410010, 0x60640020, 0x20200010]
-    assert od[0x6502].default == 0x0380  # CSP, CSV, CST
+    assert od[0x6502].default == 0x0384  # PV, CSP, CSV, CST
     assert (od[0x2001].data_type, od[0x2001].unit) == (eds.F32, "N*s/m")
 
 
@@ -124,7 +125,9 @@ def test_boot_configure_and_cycle_traffic(can_channel):
         assert configure[-1] == (0x000, bytes([0x01, NODE_ID]))  # NMT start
         enable(bench, CSV, velocity=0.0)
         bench.run(20, velocity=0.005)
-        cycle = [cob for cob, _ in bench.frames() if cob != 0x700 + NODE_ID]
+        frames = bench.frames()
+        assert frames[0] == (0x700 + HOST_NODE_ID, b"\x05")  # the host's heartbeat, tick 0
+        cycle = [cob for cob, _ in frames if cob not in (0x700 + NODE_ID, 0x700 + HOST_NODE_ID)]
         assert cycle.count(0x080) == 23  # 3 enable ticks + 20
         for cob in (0x200, 0x300, 0x400, 0x180, 0x280):
             assert cycle.count(cob + NODE_ID) == 23

@@ -39,14 +39,14 @@ def test_a_listener_refuses_a_port_that_is_no_number():
 
 def test_every_state_the_simulated_drive_reports_decodes_to_itself_on_the_host():
     """The device's statusword table against canopen's p402 masks the host decodes with."""
-    assert len(cia402.STATE_BITS) == 6
+    assert len(cia402.STATE_BITS) == 7
     for state, bits in cia402.STATE_BITS.items():
         assert decode_state(bits | cia402.SW_REMOTE | cia402.SW_FOLLOWS_COMMAND) == state
 
 
 def test_the_supported_modes_are_the_bits_of_the_mode_codes():
     assert cia402.MODES == (8, 9, 10)
-    assert sum(cia402.mode_bit(mode) for mode in cia402.MODES) == cia402.SUPPORTED_MODES == 0x0380
+    assert sum(cia402.mode_bit(mode) for mode in cia402.DRIVE_MODES) == cia402.SUPPORTED_MODES == 0x0384
     assert cia402.mode_bit(1) == 0x01 and cia402.mode_bit(0) == cia402.mode_bit(11) == 0
 
 

@@ -10,6 +10,13 @@ Every tick returns the first drive's cycle counter (0x2020, 16 bit), unwrapped t
 monotonic integer; `gaps` counts ticks where a drive's counter did not advance by exactly
 one (a SYNC the drive processed without the host seeing its TPDOs, or a lost SYNC).
 
+Heartbeats (CiA 301; docs/canopen.md): the host is a heartbeat producer
+(`cia301.HOST_NODE_ID`, every `heartbeat_s`), which the drives consume (their 0x1016 entry,
+written by the driver). In lockstep the clock sends it every `heartbeat_s / cycle` ticks
+(virtual time, as the drives count it); in real time python-can's periodic sender sends it
+on the wall clock (`close()` stops it). The host consumes the drives' heartbeats on the wall
+clock: a drive silent for its consumer time raises `NodeLost` ("node N heartbeat lost").
+
 `one_core()` runs a simulated bench's threads on one CPU, which makes lockstep cycles
 cheaper (see there).
 """
@@ -25,17 +32,30 @@ from typing import Iterator, Protocol, Sequence
 import canopen
 import numpy as np
 
-from feedbench.protocols.cia301 import SYNC_COB_ID
+from feedbench.protocols.cia301 import (
+    HEARTBEAT_COB_BASE, HEARTBEAT_OPERATIONAL, HOST_NODE_ID, SYNC_COB_ID,
+)
 
 COUNTER_MODULO = 0x10000
 SPIN_S = 0.5e-3
 """The real-time loop sleeps until this long before the SYNC slot, then spins."""
 RESPONSE_SHARE = 0.9
 """The real-time loop waits for TPDOs during this share of the cycle period."""
+HEARTBEAT_S = 0.1
+"""The host's heartbeat producer time (s), below the drives' consumer time
+(`drivers.cia402.HOST_CONSUMER_MS`)."""
+HEARTBEAT_CHECK_TICKS = 32
+"""Ticks between two checks of the drives' heartbeats."""
+HOST_HEARTBEAT = (HEARTBEAT_COB_BASE + HOST_NODE_ID, bytes([HEARTBEAT_OPERATIONAL]))
+"""The host's heartbeat frame: COB-ID and payload (NMT state operational)."""
 
 
 class BusTimeout(RuntimeError):
     """A drive's TPDOs of a cycle did not arrive in time."""
+
+
+class NodeLost(RuntimeError):
+    """A drive's heartbeat stopped; the text is the run's abort reason."""
 
 
 class CycleDrive(Protocol):
@@ -52,6 +72,8 @@ class CycleDrive(Protocol):
 
     def wait_cycle(self, timeout_s: float) -> bool: ...
 
+    def heartbeat_lost(self, now: float) -> bool: ...
+
 
 class _BenchClock:
     """Shared part: SYNC, per-drive unwrapped cycle counters, gap count."""
@@ -67,6 +89,20 @@ class _BenchClock:
         self.gap_cycles: list[int] = []
         """First drive's unwrapped cycle at each tick with a gap (any drive)."""
         self._last_raw: list[int | None] = [None] * len(self.drives)
+        self._ticks = 0
+
+    def close(self) -> None:
+        """Stop what the clock sends on its own (nothing here)."""
+
+    def _check_heartbeats(self) -> None:
+        """Every `HEARTBEAT_CHECK_TICKS` ticks: NodeLost if a drive's heartbeat is silent."""
+        self._ticks += 1
+        if self._ticks % HEARTBEAT_CHECK_TICKS:
+            return
+        now = time.monotonic()
+        for drive in self.drives:
+            if drive.heartbeat_lost(now):
+                raise NodeLost(f"node {drive.node.id} heartbeat lost")
 
     @property
     def cycle(self) -> int:
@@ -105,17 +141,24 @@ class LockstepClock(_BenchClock):
     """Simulation clock: each tick sends SYNC and waits for every drive's TPDOs of it."""
 
     def __init__(self, network: canopen.Network, drives: Sequence[CycleDrive],
-                 timeout_s: float = 0.5) -> None:
+                 timeout_s: float = 0.5, cycle_s: float = 1e-3,
+                 heartbeat_s: float = HEARTBEAT_S) -> None:
         super().__init__(network, drives)
         self.timeout_s = timeout_s
+        self._beat_every = max(1, round(heartbeat_s / cycle_s))
 
     def tick(self) -> int:
-        """One bus cycle; returns the unwrapped device cycle counter (BusTimeout if silent)."""
+        """One bus cycle; returns the unwrapped device cycle counter (BusTimeout if silent,
+        NodeLost if a drive's heartbeat is). The host's heartbeat goes out before the SYNC
+        of every `heartbeat_s / cycle_s`-th tick, the first one included."""
+        if self._ticks % self._beat_every == 0:
+            self.network.send_message(*HOST_HEARTBEAT)
         self._start_cycle()
         for drive in self.drives:
             if not drive.wait_cycle(self.timeout_s):
                 raise BusTimeout(f"node {drive.node.id}: no TPDOs {self.timeout_s} s after "
                                  f"SYNC (after device cycle {self.cycle})")
+        self._check_heartbeats()
         return self._count_cycles()
 
 
@@ -126,8 +169,10 @@ class RealtimeClock(_BenchClock):
     """
 
     def __init__(self, network: canopen.Network, drives: Sequence[CycleDrive],
-                 period_s: float, timeout_s: float = 0.5) -> None:
+                 period_s: float, timeout_s: float = 0.5,
+                 heartbeat_s: float = HEARTBEAT_S) -> None:
         super().__init__(network, drives)
+        self._heartbeat = network.send_periodic(*HOST_HEARTBEAT, heartbeat_s)
         self.period_s = period_s
         self.timeout_s = timeout_s
         self.missed = 0
@@ -156,11 +201,16 @@ class RealtimeClock(_BenchClock):
         if all(drive.wait_cycle(max(0.0, answer_by - time.perf_counter()))
                for drive in self.drives):
             self._last_answer = sent
+            self._check_heartbeats()
             return self._count_cycles()
         self.missed += 1
         if sent - self._last_answer > self.timeout_s:
             raise BusTimeout(f"no complete TPDO set for {sent - self._last_answer:.3f} s")
         return self.cycle
+
+    def close(self) -> None:
+        """Stop the host's heartbeat."""
+        self._heartbeat.stop()
 
     def jitter_stats(self) -> dict[str, float]:
         """Lateness of the SYNCs behind their slots (µs): mean, max, std; n SYNCs sent.

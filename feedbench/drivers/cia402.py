@@ -23,6 +23,7 @@ import logging
 import math
 import struct
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, NamedTuple
@@ -52,6 +53,14 @@ CW_ENABLE_OPERATION = COMMANDS["ENABLE OPERATION"]
 CW_QUICK_STOP = COMMANDS["QUICK STOP"]
 CW_DISABLE_VOLTAGE = COMMANDS["DISABLE VOLTAGE"]
 CW_DISABLE_OPERATION = COMMANDS["SWITCH ON"]  # 0x07 from operation enabled: transition 5
+
+HOST_CONSUMER_MS = 3000
+"""The drives' consumer time of the host's heartbeat (0x1016): they stop without it. In
+lockstep it is also how long a live host may stall on the wall clock (a 1 s limit stopped
+tests on a 2-core machine at load 15); in real time SYNC loss (0x2021) stops them first."""
+HEARTBEAT_LOST_FACTOR = 30
+"""The host counts a drive's heartbeat lost after this many of its producer times (3 s at
+100 ms: a stalled host must not take its own stall for the drive's)."""
 SAFE_STATES = (*DISABLED_STATES, QUICK_STOP_ACTIVE)
 """States that command no motion: de-energised, or ramping down by the drive's own quick stop."""
 
@@ -157,16 +166,30 @@ class Cia402Drive:
         self._controlword = 0
         self._newton_per_mille = math.nan
         self._supported_modes = 0
+        self._heartbeat_at: float | None = None
+        self._heartbeat_lost_s = math.inf
+        self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
 
     # -- configuration (SDO) -------------------------------------------------------------
 
     def configure(self, heartbeat_ms: int = 100, timeout_s: float = 2.0,
-                  gains: dict[str, float] | None = None) -> None:
-        """NMT pre-operational, heartbeat on, PDO maps by SDO, gains, NMT operational."""
+                  gains: dict[str, float] | None = None, consumer_ms: int = HOST_CONSUMER_MS,
+                  sync_loss_cycles: int = 0) -> None:
+        """NMT pre-operational, heartbeat on, watchdogs, PDO maps by SDO, gains, NMT
+        operational.
+
+        The drive produces its heartbeat every `heartbeat_ms` (ms; the host counts it lost
+        after `HEARTBEAT_LOST_FACTOR` times that) and is told to consume the host's
+        (`cia301.HOST_NODE_ID`, lost after `consumer_ms`) and, with `sync_loss_cycles`, to
+        stop after that many missed SYNCs (real time; 0: off, for lockstep virtual time),
+        where its EDS has the objects (0x1016, 0x2021).
+        """
         node = self.node
         node.nmt.state = "PRE-OPERATIONAL"
         self._first_contact(heartbeat_ms)
         self._wait_for_heartbeat(timeout_s)
+        self._heartbeat_lost_s = HEARTBEAT_LOST_FACTOR * heartbeat_ms * 1e-3
+        self._configure_watchdogs(consumer_ms, sync_loss_cycles)
         self._newton_per_mille = node.sdo[RATED_TORQUE].raw * 1e-6
         self._supported_modes = node.sdo[SUPPORTED_DRIVE_MODES].raw
         self._map_pdos()
@@ -187,6 +210,26 @@ class Cia402Drive:
                               f"({exc})") from None
         finally:
             log.disabled = False
+
+    def _configure_watchdogs(self, consumer_ms: int, sync_loss_cycles: int) -> None:
+        """Consumer entry 1 (0x1016) on the host's heartbeat, the SYNC loss limit (0x2021)."""
+        od = self.node.object_dictionary
+        if cia301.CONSUMER_HEARTBEAT_TIME in od:
+            self.node.sdo[cia301.CONSUMER_HEARTBEAT_TIME][1].raw = cia301.consumer_entry(
+                cia301.HOST_NODE_ID, consumer_ms)
+        if cia301.SYNC_LOSS_LIMIT in od:
+            self.node.sdo[cia301.SYNC_LOSS_LIMIT].raw = sync_loss_cycles
+
+    def _on_heartbeat(self, state: int) -> None:
+        self._heartbeat_at = time.monotonic()
+
+    def heartbeat_lost(self, now: float) -> bool:
+        """True once when the drive's heartbeat has been silent for its consumer time at
+        `now` (`time.monotonic`, s); again only after a new heartbeat."""
+        if self._heartbeat_at is None or now - self._heartbeat_at <= self._heartbeat_lost_s:
+            return False
+        self._heartbeat_at = None
+        return True
 
     def _wait_for_heartbeat(self, timeout_s: float) -> None:
         nmt = self.node.nmt
@@ -357,7 +400,6 @@ class Cia402Drive:
     def nmt_stop(self) -> None:
         """NMT stop to the node (unconfirmed: NMT has no answer)."""
         self.node.nmt.state = "STOPPED"
-
 
     def enable(self, tick: Callable[[], int], max_cycles: int = 100) -> None:
         """Run `enable_step` and `tick` until operation enabled (DriveError after max_cycles)."""

@@ -29,6 +29,7 @@ from typing import Any, Iterator, Mapping, Protocol, Sequence
 import numpy as np
 
 from feedbench.daq.recorder import RecordingError
+from feedbench.daq.clock import NodeLost
 from feedbench.drivers.cia402 import SAFE_STATES, Actual
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan, Segment
@@ -250,7 +251,7 @@ class Runner:
                                     index=i, velocity=target_velocities[i])
                         last_target = targets[i]
                         i += 1
-            except RunAborted as exc:
+            except (RunAborted, NodeLost) as exc:
                 status, reason = "aborted", str(exc)
             except Exception as exc:  # bus timeout, driver error, full disk: still stop safely
                 status, reason = "aborted", f"{type(exc).__name__}: {exc}"

@@ -8,6 +8,12 @@ NMT_COB_ID = 0x000
 SYNC_COB_ID = 0x080
 NMT_RESET_NODE = 0x81
 """NMT command: reset node (application and communication); 0x82 resets communication."""
+HEARTBEAT_COB_BASE = 0x700
+"""COB-ID of a node's heartbeat (and boot-up) without the node id."""
+HEARTBEAT_OPERATIONAL = 0x05
+"""Heartbeat payload: the producer's NMT state, operational."""
+HOST_NODE_ID = 0x7F
+"""Node id of the host's heartbeat (the bench's NMT master; no drive may take it)."""
 
 DEVICE_TYPE = 0x1000
 """Object: profile number in the low 16 bits, additional information above."""
@@ -16,11 +22,19 @@ ERROR_REGISTER_GENERIC = 0x01
 """Error register bit 0: generic error (set with every EMCY the drive sends)."""
 CYCLE_PERIOD = 0x1006
 """µs: one SYNC advances the simulated axis by this time."""
+CONSUMER_HEARTBEAT_TIME = 0x1016
+"""Array: sub n (1…`CONSUMER_ENTRIES`) = producer node id << 16 | consumer time in ms
+(`consumer_entry`); 0 or a time of 0: the entry is unused."""
+CONSUMER_ENTRIES = 4
+"""Consumer entries each simulated node offers."""
 HEARTBEAT_TIME = 0x1017
 """ms; 0: no heartbeat."""
 IDENTITY = 0x1018
 MANUFACTURER_FIRST = 0x2000
 """First index of the manufacturer-specific objects."""
+SYNC_LOSS_LIMIT = 0x2021
+"""Manufacturer object of every simulated node: SYNCs missed in a row (each `CYCLE_PERIOD`
+long on the wall clock) after which the node reacts as to a lost heartbeat; 0: off."""
 PROFILE_FIRST = 0x6000
 """First index of the device-profile objects."""
 
@@ -43,5 +57,22 @@ SDO_ABORT_NOT_MAPPABLE = 0x06040041
 """SDO abort code: the object cannot be mapped to the PDO."""
 SDO_ABORT_PDO_LENGTH = 0x06040042
 """SDO abort code: the mapped objects exceed the PDO length (64 bits)."""
+SDO_ABORT_NO_SUBINDEX = 0x06090011
+"""SDO abort code: the sub-index does not exist (e.g. any sub-index ≠ 0 of a plain VAR)."""
 SDO_ABORT_VALUE_RANGE = 0x06090030
 """SDO abort code: the value is out of the parameter's range."""
+
+EMCY_COMMUNICATION = 0x8100
+"""EMCY code: communication error, here the loss of SYNC (`SYNC_LOSS_LIMIT`)."""
+EMCY_HEARTBEAT = 0x8130
+"""EMCY code: life guard or heartbeat error (a consumed heartbeat lost)."""
+
+
+def consumer_entry(node_id: int, time_ms: int) -> int:
+    """A 0x1016 entry: watch `node_id`'s heartbeat, lost after `time_ms` ms without one."""
+    return (node_id & 0x7F) << 16 | (time_ms & 0xFFFF)
+
+
+def consumer_of(entry: int) -> tuple[int, int]:
+    """(producer node id, consumer time in ms) of a 0x1016 entry."""
+    return entry >> 16 & 0x7F, entry & 0xFFFF

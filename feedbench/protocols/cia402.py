@@ -16,6 +16,12 @@ from __future__ import annotations
 CSP, CSV, CST = 8, 9, 10
 """Cyclic synchronous position, velocity, torque."""
 MODES = (CSP, CSV, CST)
+"""The modes the physics kernel runs."""
+PV = 3
+"""Profile velocity: the drive ramps its own velocity command to 0x60FF at 0x6083 / 0x6084
+and runs it as CSV (for third-party hosts such as canopen's BaseNode402)."""
+DRIVE_MODES = (PV, *MODES)
+"""The modes the simulated drive accepts in 0x6060."""
 
 
 def mode_bit(mode: int) -> int:
@@ -24,14 +30,17 @@ def mode_bit(mode: int) -> int:
     return 1 << (mode - 1) if 1 <= mode <= 10 else 0
 
 
-SUPPORTED_MODES = 0x0380
-"""0x6502 bits 7, 8, 9: the three cyclic synchronous modes."""
+SUPPORTED_MODES = 0x0384
+"""0x6502 bits 2, 7, 8, 9: profile velocity and the three cyclic synchronous modes."""
 
 DEVICE_TYPE = 0x00020192
 """Value of the device type object (`cia301.DEVICE_TYPE`): profile 402 (0x0192), servo drive."""
 
 # -- profile objects (CiA 402) -------------------------------------------------------------
 
+ABORT_CONNECTION_OPTION_CODE = 0x6007
+"""What a lost heartbeat or SYNC does (`protocols.cia301` watchdogs); the simulated drive
+has 1: fault, reached through the fault reaction (quick-stop ramp, then FAULT)."""
 ERROR_CODE = 0x603F
 CONTROLWORD = 0x6040
 STATUSWORD = 0x6041
@@ -47,6 +56,9 @@ RATED_TORQUE = 0x6076
 """mN: a linear motor's rated force, the 1000 ‰ of the torque objects."""
 TORQUE_ACTUAL = 0x6077
 TARGET_POSITION = 0x607A
+PROFILE_ACCELERATION = 0x6083
+PROFILE_DECELERATION = 0x6084
+"""nm/s²: the profile velocity ramps."""
 QUICK_STOP_DECELERATION = 0x6085
 VELOCITY_OFFSET = 0x60B1
 TORQUE_OFFSET = 0x60B2
@@ -88,6 +100,7 @@ READY = "READY TO SWITCH ON"
 SWITCHED_ON = "SWITCHED ON"
 OPERATION_ENABLED = "OPERATION ENABLED"
 QUICK_STOP_ACTIVE = "QUICK STOP ACTIVE"
+FAULT_REACTION = "FAULT REACTION ACTIVE"
 FAULT = "FAULT"
 """State names (canopen's p402 spelling, which decodes the statusword on the host)."""
 STATE_BITS = {
@@ -96,6 +109,7 @@ STATE_BITS = {
     SWITCHED_ON: 0x0033,
     OPERATION_ENABLED: 0x0037,
     QUICK_STOP_ACTIVE: 0x0017,
+    FAULT_REACTION: 0x000F,
     FAULT: 0x0008,
 }
 """Statusword of each state the drive reports: state bits incl. bit 4 voltage enabled and
@@ -126,7 +140,7 @@ TRANSITIONS = {
 """The device's state machine: (state, `command_of` the controlword) → next state (CiA 402
 transition numbers); absent pairs leave the state unchanged. Quick-stop option code 2: no
 transition 16 back to operation enabled."""
-POWERED = (OPERATION_ENABLED, QUICK_STOP_ACTIVE)
+POWERED = (OPERATION_ENABLED, QUICK_STOP_ACTIVE, FAULT_REACTION)
 """States in which the drive's power stage is on."""
 
 # -- controlword (0x6040) ------------------------------------------------------------------

@@ -11,8 +11,15 @@ is the SYNC consumer. Lockstep virtual time: each SYNC
      commands the host writes, `command_of`, `TRANSITIONS`),
   4. steps the physics one bus cycle (`AxisSimulator.step_cycle`, servo loops inside),
      between the world's `before_physics` and `after_physics` hooks,
-  5. publishes the actual values and sends the synchronous TPDOs (types 0–240; the
-     asynchronous types 254/255 have no event source here and are not sent).
+  5. publishes the actual values and sends the synchronous TPDOs (types 0–240) and the
+     event-driven ones (254/255) whose content changed.
+Without SYNC, as a real drive: NMT, SDO, and the state machine on a controlword (and the
+mode display on 0x6060) written by SDO or by an asynchronous RPDO (254/255), which takes
+effect on reception; event-driven TPDOs report the new state (docs/canopen.md). Watchdogs
+(`sim_backends.watchdog`): the heartbeat consumer 0x1016 and SYNC loss 0x2021 × 0x1006; a
+loss (EMCY 0x8130 / 0x8100) is the fault reaction: quick-stop ramp, then FAULT, the ramp
+run on the drive's own wall clock when SYNC is gone. Modes: profile velocity (0x6083 /
+0x6084 ramps, run as CSV) and CSP, CSV, CST.
 The host sees the simulated world only through these frames and SDO.
 
 Drive behaviour (CiA 402): quick-stop option code 2 (ramp down at 0x6085 in velocity
@@ -34,6 +41,8 @@ import logging
 import math
 import operator
 import struct
+import threading
+import time
 from pathlib import Path
 from typing import Callable, Protocol
 
@@ -47,19 +56,27 @@ from feedbench.protocols import cia301
 from feedbench.protocols.canbus import connect, pdo_codec
 from feedbench.protocols.cia402 import (
     CONTROLWORD, CSP, CSV, CW_FAULT_RESET, CYCLE_COUNTER, EMCY_FOLLOWING_ERROR,
-    EMCY_INTERNAL_SOFTWARE, EMCY_PDO_LENGTH, ERROR_CODE, FAULT, FAULT_INJECTION,
+    DRIVE_MODES, EMCY_INTERNAL_SOFTWARE, EMCY_PDO_LENGTH, ERROR_CODE, FAULT, FAULT_INJECTION,
+    FAULT_REACTION, PROFILE_ACCELERATION, PROFILE_DECELERATION, PV,
     FOLLOWING_ERROR_ACTUAL, FOLLOWING_ERROR_OFF, FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL, FORCE_LIMIT,
-    FORCE_OFFSET_FINE, GAIN_OBJECTS, MODES, MODES_OF_OPERATION, MODES_OF_OPERATION_DISPLAY,
+    FORCE_OFFSET_FINE, GAIN_OBJECTS, MODES_OF_OPERATION, MODES_OF_OPERATION_DISPLAY,
     OPERATION_ENABLED, POSITION_ACTUAL, POWERED, QUICK_STOP_ACTIVE, QUICK_STOP_DECELERATION,
     RATED_TORQUE, STATE_BITS, STATUSWORD, SWITCH_ON_DISABLED, SW_FOLLOWING_ERROR,
     SW_FOLLOWS_COMMAND, SW_REMOTE, TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY, TORQUE_ACTUAL,
     TORQUE_OFFSET, TRANSITIONS, VELOCITY_ACTUAL, VELOCITY_OFFSET, VELOCITY_WINDOW, command_of,
 )
 from feedbench.sim_backends import eds
+from feedbench.sim_backends.watchdog import Watchdog, check_subindex
 
 LOGGER = logging.getLogger(__name__)
 
 GAIN_FIELDS = {index: name for name, index in GAIN_OBJECTS.items()}  # → CascadeGains
+RAMPING = (QUICK_STOP_ACTIVE, FAULT_REACTION)
+"""States that run the quick-stop ramp (0x6085)."""
+SETTLE_CYCLES = 200
+"""Cycles a fault reaction waits at a zero ramp for |v| < 0x606D before it disables."""
+ASYNCHRONOUS = 254
+"""PDO transmission types from here on are event-driven (254 manufacturer, 255 profile)."""
 INT16_MAX = 0x7FFF
 INT32_MAX = 0x7FFFFFFF
 
@@ -129,13 +146,16 @@ class SimulatedCia402Drive:
     With `network`, the drive joins a network several drives share (`drive_bus`): the
     network's owner consumes the SYNC and calls `begin_cycle` and `end_cycle` around the
     step of their common world; `simulator` is then this drive's port of that world.
-    `objects` serves the objects of a drive variant (`DriveObjects`).
+    `objects` serves the objects of a drive variant (`DriveObjects`). The owner's `lock`
+    serialises its cycles with SDO, NMT and the watchdog (`sim_backends.watchdog`), and
+    `free_run` is its cycle without a SYNC (the fault reaction's ramp when SYNC is gone).
     """
 
     def __init__(self, bus: can.BusABC, node_id: int, simulator: AxisSimulator,
                  eds_path: Path | str | None = None, network: canopen.Network | None = None,
                  objects: DriveObjects | None = None,
-                 noise: SensorNoise = SensorNoise()) -> None:
+                 noise: SensorNoise = SensorNoise(), lock: threading.RLock | None = None,
+                 free_run: Callable[[], None] | None = None) -> None:
         self.simulator = simulator
         self.noise = noise
         self._rng = np.random.default_rng(noise.seed)
@@ -146,12 +166,17 @@ class SimulatedCia402Drive:
         self.before_physics: list[Callable[[], None]] = []
         self.after_physics: list[Callable[[], None]] = []
         self._received: dict[int, int] = {}
+        self.lock = lock or threading.RLock()
         self.node = canopen.LocalNode(node_id, eds.load(node_id, eds_path))
         self.network = network if network is not None else canopen.Network(bus)
         self.network.add_node(self.node)
         self.node.add_read_callback(self._on_sdo_read)
         self.node.add_write_callback(self._on_sdo_write)
         self.network.subscribe(cia301.NMT_COB_ID, self._on_nmt)
+        self.watchdog = Watchdog(self.network, self.lock, self._lose_connection,
+                                 guards=lambda: self.state in POWERED,
+                                 needs_cycles=lambda: self.state == FAULT_REACTION,
+                                 free_run=free_run or self._cycle)
         if self._owns_network:
             self.network.subscribe(cia301.SYNC_COB_ID, self._on_sync)
             _compile_physics(simulator)
@@ -167,6 +192,7 @@ class SimulatedCia402Drive:
             del store[index]
         if application:
             self._reset_application()
+        self.watchdog.reset()
         self._load_pdo_maps()
         self.node.nmt.state = "INITIALISING"  # sends the boot-up message
         self.node.nmt.state = "PRE-OPERATIONAL"  # starts the heartbeat producer (0x1017)
@@ -187,10 +213,13 @@ class SimulatedCia402Drive:
                             for name, index in GAIN_OBJECTS.items()})
         if self._objects is not None:
             self.values.update(self._objects.values())
+        self.watchdog.cycle_s = sim.timing.cycle
+        self.watchdog.sync_limit = self.values.get(cia301.SYNC_LOSS_LIMIT, 0)
         self.state = SWITCH_ON_DISABLED
         self._previous_controlword = 0
         self._following_error = False
         self._stop_velocity = 0.0
+        self._profile_velocity = 0.0
         self._count = 0
         self._newton_per_mille = self.values[RATED_TORQUE] * 1e-6  # N per ‰ (0x6076: mN)
         sim.enabled = False
@@ -198,37 +227,49 @@ class SimulatedCia402Drive:
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Runs after canopen's NmtSlave has applied the command."""
-        command, node_id = data[0], data[1]
-        if node_id not in (0, self.node.id):
-            return
-        if self.node.nmt.state == "INITIALISING":  # reset node (0x81) / communication (0x82)
-            self._boot(application=command == cia301.NMT_RESET_NODE)
-        elif self._pdo_dirty:
-            self._load_pdo_maps()
-        self._operational = self.node.nmt.state == "OPERATIONAL"
+        with self.lock:
+            command, node_id = data[0], data[1]
+            if node_id not in (0, self.node.id):
+                return
+            if self.node.nmt.state == "INITIALISING":  # reset node (0x81) / communication
+                self._boot(application=command == cia301.NMT_RESET_NODE)
+            elif self._pdo_dirty:
+                self._load_pdo_maps()
+            self._operational = self.node.nmt.state == "OPERATIONAL"
 
     def close(self) -> None:
-        """Stop the heartbeat, and the receive thread and the bus unless they are shared."""
+        """Stop the watchdog and the heartbeat, and the receive thread and the bus unless
+        they are shared."""
+        self.watchdog.close()
         self.node.nmt.stop_heartbeat()
         if self._owns_network:
             self.network.disconnect()
 
     # -- SDO -----------------------------------------------------------------------------
 
-    def _on_sdo_read(self, index: int, subindex: int, od: object) -> int | float | None:
+    def _on_sdo_read(self, index: int, subindex: int,
+                     od: canopen.objectdictionary.ODVariable) -> int | float | None:
         """Live process values; None lets canopen answer from its store / EDS default."""
+        check_subindex(subindex, od)
         return self.values.get(index) if subindex == 0 else None
 
     def _on_sdo_write(self, index: int, subindex: int, od: canopen.objectdictionary.ODVariable,
                       data: bytes) -> None:
-        """Validate and apply an SDO download (raise SdoAbortedError to refuse it)."""
-        if cia301.RPDO_COMMUNICATION <= index < cia301.PDO_RECORDS_END:
+        """Validate and apply an SDO download (raise SdoAbortedError to refuse it); the
+        controlword and the mode take effect at once, as on a real drive (no SYNC needed)."""
+        check_subindex(subindex, od)
+        if index == cia301.CONSUMER_HEARTBEAT_TIME and subindex:
+            self.watchdog.set_entry(subindex, od.decode_raw(data))
+        elif cia301.RPDO_COMMUNICATION <= index < cia301.PDO_RECORDS_END:
             if (cia301.RPDO_MAPPING <= index < cia301.TPDO_COMMUNICATION
                     or cia301.TPDO_MAPPING <= index):
                 self._check_mapping(index, subindex, od.decode_raw(data))
             self._pdo_dirty = True
         elif subindex == 0 and index in self.values:
-            self._apply_parameter(index, od.decode_raw(data))
+            with self.lock:
+                self._apply_parameter(index, od.decode_raw(data))
+                if index in (CONTROLWORD, MODES_OF_OPERATION):
+                    self._apply_command()
 
     def _apply_parameter(self, index: int, value: int | float) -> None:
         if self._objects is not None:
@@ -246,6 +287,8 @@ class SimulatedCia402Drive:
             raise SdoAbortedError(cia301.SDO_ABORT_VALUE_RANGE)
         if index == FORCE_LIMIT:
             self.simulator.force_limit = value
+        elif index == cia301.SYNC_LOSS_LIMIT:
+            self.watchdog.sync_limit = value
         self.values[index] = value
         self._newton_per_mille = self.values[RATED_TORQUE] * 1e-6
 
@@ -280,21 +323,47 @@ class SimulatedCia402Drive:
             self.network.unsubscribe(pdo_map.cob_id, pdo_map.on_message)
             self.network.subscribe(pdo_map.cob_id, self._on_rpdo)
         self._rpdo_codecs = {m.cob_id: pdo_codec(m) for m in receive}
+        self._rpdo_events = {m.cob_id for m in receive if m.trans_type >= ASYNCHRONOUS}
         self._received.clear()
+        transmit = [(m, pdo_codec(m)) for m in self.node.tpdo.map.values() if m.enabled and m.map]
         self._tpdos = [(m.cob_id, m.trans_type, codec.layout.pack, _fetcher(codec.indices))
-                       for m in self.node.tpdo.map.values() if m.enabled and m.map
-                       and m.trans_type <= 240 for codec in (pdo_codec(m),)]
+                       for m, codec in transmit if m.trans_type <= 240]
+        self._event_tpdos = {m.cob_id: (codec.layout.pack, _fetcher(codec.indices))
+                             for m, codec in transmit if m.trans_type >= ASYNCHRONOUS}
+        self._event_payloads: dict[int, bytes] = {}
         self._pdo_dirty = False
 
     # -- the cycle -----------------------------------------------------------------------
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """One bus cycle: RPDOs in, state machine, physics, actual values, TPDOs out."""
+        with self.lock:
+            self.sync_received()
+            self._cycle()
+
+    def sync_received(self) -> None:
+        """A SYNC came (before its cycle): the heartbeat consumer counts it in virtual time."""
+        loss = self.watchdog.on_sync()
+        if loss is not None:
+            self._lose_connection(*loss)
+
+    def _cycle(self) -> None:
         try:
             self.begin_cycle()
             self.end_cycle()
         except Exception as error:  # answered as a drive fault, never a traceback
             self.world_fault(error)
+
+    def _lose_connection(self, code: int, reason: str) -> None:
+        """A lost heartbeat or SYNC (abort connection option code 1): EMCY `code`, and the
+        fault reaction (quick-stop ramp, then FAULT) if powered, else FAULT."""
+        LOGGER.warning("CiA 402 node %d: %s; EMCY 0x%04X", self.node.id, reason, code)
+        if self.state in (FAULT, FAULT_REACTION):
+            self.node.emcy.send(code, cia301.ERROR_REGISTER_GENERIC)
+        else:
+            self._fault(code, reaction=self.state in POWERED)
+        self.values[STATUSWORD] = self._statusword()
+        self._send_event_tpdos()
 
     def world_fault(self, error: Exception) -> None:
         """The world raised `error` during this SYNC: fault (EMCY 0x6100) and one log line on
@@ -318,7 +387,7 @@ class SimulatedCia402Drive:
             self._load_pdo_maps()
         values.update(self._received)  # the RPDO data received since the last SYNC
         self._received.clear()
-        self._advance_state_machine(values[CONTROLWORD])
+        self._advance_state_machine(values[CONTROLWORD], inject=True)
         for hook in self.before_physics:
             hook()
         self._step_physics()
@@ -331,28 +400,56 @@ class SimulatedCia402Drive:
         self._publish_actual_values()
         if self._operational:
             self._send_tpdos()
+            self._send_event_tpdos()
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        """Keep an RPDO's values until the SYNC (NMT operational only; EMCY 0x8210 on a
-        length that does not match the mapping)."""
+        """Keep a synchronous RPDO's values until the SYNC; an asynchronous one (254/255)
+        takes effect at once (NMT operational only; EMCY 0x8210 on a length that does not
+        match the mapping)."""
         if not self._operational:
             return
         codec = self._rpdo_codecs.get(can_id)  # None: a COB-ID of an earlier mapping
         if codec is None:
             return
         try:
-            self._received.update(zip(codec.indices, codec.layout.unpack(data)))
+            values = dict(zip(codec.indices, codec.layout.unpack(data)))
         except struct.error:
             self.node.emcy.send(EMCY_PDO_LENGTH, cia301.ERROR_REGISTER_GENERIC)
+            return
+        if can_id not in self._rpdo_events:
+            self._received.update(values)
+            return
+        with self.lock:
+            self.values.update(values)
+            self._apply_command()
 
-    def _advance_state_machine(self, controlword: int) -> None:
+    def _apply_command(self) -> None:
+        """The controlword and mode as they stand, between SYNCs (SDO, asynchronous RPDO):
+        state machine, statusword, event-driven TPDOs."""
+        self._advance_state_machine(self.values[CONTROLWORD], inject=False)
+        self.values[STATUSWORD] = self._statusword()
+        self._send_event_tpdos()
+
+    def _send_event_tpdos(self) -> None:
+        """Send each event-driven TPDO (254/255) whose content changed (NMT operational)."""
+        if not (self._operational and self._event_tpdos):
+            return
+        for cob_id, (pack, fetch) in self._event_tpdos.items():
+            payload = pack(*fetch(self.values))
+            if self._event_payloads.get(cob_id) != payload:
+                self._event_payloads[cob_id] = payload
+                self.network.send_message(cob_id, payload)
+
+    def _advance_state_machine(self, controlword: int, inject: bool) -> None:
+        """Transitions on `controlword`, the mode display; with `inject` (at a SYNC) a fault
+        written to 0x2030 too."""
         values = self.values
         fault_reset = controlword & ~self._previous_controlword & CW_FAULT_RESET
         self._previous_controlword = controlword
         if self.state == FAULT:
             if fault_reset:
                 self._reset_fault()
-        elif values[FAULT_INJECTION]:
+        elif inject and values[FAULT_INJECTION]:
             self._fault(values[FAULT_INJECTION])
             values[FAULT_INJECTION] = 0
         else:
@@ -360,19 +457,24 @@ class SimulatedCia402Drive:
             if state != self.state:
                 self._enter(state)
         mode = values[MODES_OF_OPERATION]
-        if mode in MODES:
+        if mode in DRIVE_MODES:
             values[MODES_OF_OPERATION_DISPLAY] = mode
 
     def _enter(self, state: str) -> None:
-        if state == QUICK_STOP_ACTIVE and self.state != QUICK_STOP_ACTIVE:
+        if state in RAMPING and self.state not in RAMPING:
             self._stop_velocity = self.simulator.velocity
+            self._settling = 0
+        if state == OPERATION_ENABLED:
+            self._profile_velocity = self.simulator.velocity
         self.state = state
         powered = state in POWERED
         if self.simulator.enabled != powered:
             self.simulator.enabled = powered
 
-    def _fault(self, code: int) -> None:
-        self._enter(FAULT)
+    def _fault(self, code: int, reaction: bool = False) -> None:
+        """Fault with EMCY `code`: straight to FAULT, or with `reaction` through the fault
+        reaction (the quick-stop ramp, FAULT once stopped)."""
+        self._enter(FAULT_REACTION if reaction else FAULT)
         self.values[ERROR_CODE] = code
         self.values[cia301.ERROR_REGISTER] = cia301.ERROR_REGISTER_GENERIC
         self.node.emcy.send(code, cia301.ERROR_REGISTER_GENERIC)
@@ -388,11 +490,14 @@ class SimulatedCia402Drive:
         """One bus cycle of the axis with the setpoints of the current state (SI units)."""
         v = self.values
         per_mille = self._newton_per_mille
-        if self.state == QUICK_STOP_ACTIVE:
+        if self.state in RAMPING:
             self._step_quick_stop()
             return
+        mode, velocity = v[MODES_OF_OPERATION_DISPLAY], v[TARGET_VELOCITY] * 1e-9
+        if mode == PV:
+            mode, velocity = CSV, self._step_profile_velocity(velocity)
         self.simulator.step_cycle(
-            v[MODES_OF_OPERATION_DISPLAY], v[TARGET_POSITION] * 1e-9, v[TARGET_VELOCITY] * 1e-9,
+            mode, v[TARGET_POSITION] * 1e-9, velocity,
             v[TARGET_TORQUE] * per_mille, v[VELOCITY_OFFSET] * 1e-9,
             v[TORQUE_OFFSET] * per_mille + v[FORCE_OFFSET_FINE] * 1e-3, self.tip_force)
 
@@ -405,11 +510,27 @@ class SimulatedCia402Drive:
                                             self._stop_velocity)
         sim.step_cycle(CSV, 0.0, self._stop_velocity, 0.0, 0.0, 0.0, self.tip_force)
 
+    def _step_profile_velocity(self, target: float) -> float:
+        """Profile velocity: this cycle's velocity command (m/s), ramped towards `target` at
+        0x6083 when speeding up, 0x6084 when slowing down (nm/s²)."""
+        current = self._profile_velocity
+        slowing = abs(target) < abs(current) or target * current < 0
+        ramp = self.values[PROFILE_DECELERATION if slowing else PROFILE_ACCELERATION]
+        step = ramp * 1e-9 * self.simulator.timing.cycle
+        self._profile_velocity = current + max(-step, min(step, target - current))
+        return self._profile_velocity
+
     def _finish_quick_stop(self) -> None:
-        """Quick stop complete (ramp at zero, |v| below 0x606D): switch on disabled."""
-        if (self.state == QUICK_STOP_ACTIVE and self._stop_velocity == 0.0
-                and abs(self.simulator.velocity) * 1e9 < self.values[VELOCITY_WINDOW]):
-            self._enter(SWITCH_ON_DISABLED)
+        """Quick stop complete (ramp at zero, |v| below 0x606D): switch on disabled, or at
+        the end of a fault reaction FAULT; a fault reaction also ends `SETTLE_CYCLES` after
+        its ramp reached zero (a coupled axis may never settle inside the window)."""
+        if self.state not in RAMPING or self._stop_velocity != 0.0:
+            return
+        self._settling += 1
+        reaction = self.state == FAULT_REACTION
+        if (abs(self.simulator.velocity) * 1e9 < self.values[VELOCITY_WINDOW]
+                or reaction and self._settling >= SETTLE_CYCLES):
+            self._enter(FAULT if reaction else SWITCH_ON_DISABLED)
 
     def _next_noise(self) -> tuple[float, float]:
         """This cycle's measurement noise (force N, velocity m/s) from the pre-drawn block."""

@@ -6,11 +6,15 @@ on each SYNC every drive first latches its RPDOs and advances its state machine
 (`SimulatedCia402Drive.begin_cycle`, which hands its setpoints to its port of the world),
 then the world steps once, then every drive publishes its actual values and sends its
 TPDOs (`end_cycle`). So the world advances exactly one cycle per SYNC, with the setpoints
-of the same cycle from all nodes, whatever order the frames came in.
+of the same cycle from all nodes, whatever order the frames came in. The drives share one
+lock, so each drive's watchdog (`sim_backends.watchdog`) runs the whole bus's cycle when it
+must ramp down without SYNC (once per cycle period, whichever drive asks).
 """
 
 from __future__ import annotations
 
+import threading
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -33,6 +37,8 @@ class SimulatedDriveBus:
         self.network = canopen.Network(bus)
         self.drives: list[SimulatedCia402Drive] = []
         self._step_world = step_world
+        self.lock = threading.RLock()
+        self._last_cycle = 0.0
         self.network.subscribe(SYNC_COB_ID, self._on_sync)
         connect(self.network)
 
@@ -40,11 +46,25 @@ class SimulatedDriveBus:
                   objects: DriveObjects | None = None) -> SimulatedCia402Drive:
         """A drive node on this bus; `simulator` is its port of the shared world."""
         drive = SimulatedCia402Drive(self.network.bus, node_id, simulator, eds_path,
-                                     network=self.network, objects=objects)
+                                     network=self.network, objects=objects, lock=self.lock,
+                                     free_run=self._free_run)
         self.drives.append(drive)
         return drive
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        with self.lock:
+            for drive in self.drives:
+                drive.sync_received()
+            self._cycle()
+
+    def _free_run(self) -> None:
+        """A cycle without SYNC, at most one per cycle period of the wall clock."""
+        now = time.monotonic()
+        if now - self._last_cycle >= self.drives[0].watchdog.cycle_s:
+            self._cycle()
+
+    def _cycle(self) -> None:
+        self._last_cycle = time.monotonic()
         try:
             for drive in self.drives:
                 drive.begin_cycle()

@@ -17,15 +17,16 @@ from pathlib import Path
 from typing import Sequence
 
 import canopen
-from canopen.objectdictionary import ODRecord, ODVariable, ObjectDictionary, datatypes
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable, ObjectDictionary, datatypes
 from canopen.objectdictionary.eds import export_eds
 
 from feedbench.protocols import cia301
 from feedbench.protocols.cia402 import (
-    CONTROLWORD, CSV, CYCLE_COUNTER, DEFAULT_RPDO_MAPS, DEFAULT_TPDO_MAPS, DEVICE_TYPE, ERROR_CODE,
-    FAULT_INJECTION, FOLLOWING_ERROR_ACTUAL, FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL, FORCE_LIMIT,
-    FORCE_OFFSET_FINE, GAIN_OBJECTS, MODES_OF_OPERATION, MODES_OF_OPERATION_DISPLAY,
-    POSITION_ACTUAL, QUICK_STOP_DECELERATION, QUICK_STOP_OPTION_CODE, RATED_TORQUE, STATUSWORD,
+    ABORT_CONNECTION_OPTION_CODE, CONTROLWORD, CSV, CYCLE_COUNTER, DEFAULT_RPDO_MAPS,
+    DEFAULT_TPDO_MAPS, DEVICE_TYPE, ERROR_CODE, FAULT_INJECTION, FOLLOWING_ERROR_ACTUAL,
+    FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL, FORCE_LIMIT, FORCE_OFFSET_FINE, GAIN_OBJECTS,
+    MODES_OF_OPERATION, MODES_OF_OPERATION_DISPLAY, POSITION_ACTUAL, PROFILE_ACCELERATION,
+    PROFILE_DECELERATION, QUICK_STOP_DECELERATION, QUICK_STOP_OPTION_CODE, RATED_TORQUE, STATUSWORD,
     SUPPORTED_DRIVE_MODES, SUPPORTED_MODES, TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY,
     TORQUE_ACTUAL, TORQUE_OFFSET, VELOCITY_ACTUAL, VELOCITY_OFFSET, VELOCITY_WINDOW,
 )
@@ -38,6 +39,8 @@ PDO_NOT_VALID = 0x80000000
 
 QUICK_STOP_OPTION = 2
 """0x605A: slow down on the quick-stop ramp, then switch on disabled."""
+ABORT_CONNECTION_FAULT = 1
+"""0x6007: a lost heartbeat or SYNC is a fault (through the fault reaction: quick-stop ramp)."""
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,9 @@ COMMUNICATION = (
 )
 
 PROFILE = (
+    Entry(ABORT_CONNECTION_OPTION_CODE, "Abort connection option code", I16, "const",
+          default=ABORT_CONNECTION_FAULT,
+          description="heartbeat (0x1016) or SYNC (0x2021) lost: fault reaction, then fault"),
     Entry(ERROR_CODE, "Error code", U16, "ro", True, 0),
     Entry(CONTROLWORD, "Controlword", U16, "rw", True, 0),
     Entry(STATUSWORD, "Statusword", U16, "ro", True, 0),
@@ -85,6 +91,10 @@ PROFILE = (
           "linear motor: rated force, the 1000 permille of the torque objects"),
     Entry(TORQUE_ACTUAL, "Torque actual value", I16, "ro", True, 0, "permille of 0x6076"),
     Entry(TARGET_POSITION, "Target position", I32, "rw", True, 0, "nm"),
+    Entry(PROFILE_ACCELERATION, "Profile acceleration", U32, "rw", False, 1_000_000_000,
+          "nm/s2", "profile velocity mode: ramp up towards 0x60FF"),
+    Entry(PROFILE_DECELERATION, "Profile deceleration", U32, "rw", False, 1_000_000_000,
+          "nm/s2", "profile velocity mode: ramp down towards 0x60FF"),
     Entry(QUICK_STOP_DECELERATION, "Quick stop deceleration", U32, "rw", False, 2_000_000_000,
           "nm/s2"),
     Entry(VELOCITY_OFFSET, "Velocity offset", I32, "rw", True, 0, "nm/s"),
@@ -107,6 +117,8 @@ MANUFACTURER = (
           "number of SYNCs processed (wraps at 65536)"),
     Entry(FAULT_INJECTION, "Fault injection", U16, "rw", False, 0, "",
           "write an EMCY error code: the drive faults with it at the next SYNC"),
+    Entry(cia301.SYNC_LOSS_LIMIT, "SYNC loss limit", U8, "rw", False, 0, "SYNCs",
+          "fault (EMCY 0x8100) after this many cycle periods 0x1006 without SYNC; 0: off"),
 )
 
 
@@ -121,7 +133,7 @@ def _variable(entry: Entry) -> ODVariable:
     return var
 
 
-def _member(record: ODRecord, subindex: int, name: str, data_type: int, access: str,
+def _member(record: ODRecord | ODArray, subindex: int, name: str, data_type: int, access: str,
             default: int | None = None, default_raw: str | None = None) -> None:
     var = ODVariable(name, record.index, subindex)
     var.data_type = data_type
@@ -177,6 +189,15 @@ def _identity(od: ObjectDictionary) -> None:
     od.add_object(identity)
 
 
+def consumer_heartbeat(od: ObjectDictionary) -> None:
+    """0x1016: `cia301.CONSUMER_ENTRIES` consumer heartbeat entries, all unused (0)."""
+    array = ODArray("Consumer heartbeat time", cia301.CONSUMER_HEARTBEAT_TIME)
+    _member(array, 0, "Highest sub-index supported", U8, "const", cia301.CONSUMER_ENTRIES)
+    for sub in range(1, cia301.CONSUMER_ENTRIES + 1):
+        _member(array, sub, f"Consumer heartbeat time {sub}", U32, "rw", 0)
+    od.add_object(array)
+
+
 def build_object_dictionary(extra: Sequence[Entry] = (),
                             product_name: str = PRODUCT_NAME) -> ObjectDictionary:
     """The simulated drive's object dictionary (CiA 301 communication + CiA 402 + ours),
@@ -190,6 +211,7 @@ def build_object_dictionary(extra: Sequence[Entry] = (),
     for entry in (*COMMUNICATION, *PROFILE, *MANUFACTURER, *extra):
         od.add_object(_variable(entry))
     _identity(od)
+    consumer_heartbeat(od)
     for number in range(1, RPDO_COUNT + 1):
         _pdo_records(od, number, True, DEFAULT_RPDO_MAPS.get(number, ()))
     for number in range(1, TPDO_COUNT + 1):

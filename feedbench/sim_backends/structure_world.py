@@ -246,5 +246,5 @@ def start_structure_world(drive, daq, io_node_id: int, table: Mapping[str, Any],
                           cycle_s: float) -> StructureWorld:
     """The I/O module as node `io_node_id` on the drive's network and the world at its tool
     tip, attached to the drive's SYNC handler (`table`: ``[bench.world.structure]``)."""
-    io = SimulatedIoModule(drive.network, io_node_id)
+    io = SimulatedIoModule(drive.network, io_node_id, cycle_s)
     return StructureWorld(drive, io, daq, parse_structure(table), cycle_s).attach()
