@@ -28,8 +28,8 @@ from typing import Any, Iterator, Mapping, Protocol, Sequence
 
 import numpy as np
 
-from feedbench.daq.recorder import RecordingError
 from feedbench.daq.clock import NodeLost
+from feedbench.daq.recorder import RecordingError
 from feedbench.drivers.cia402 import SAFE_STATES, Actual
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan, Segment
