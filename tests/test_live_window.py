@@ -420,6 +420,10 @@ def test_the_load_cell_read_every_tenth_cycle_is_drawn_over_its_readings(replays
     peak = max(np.nanmax(np.abs(recording.channels[c][-len(tail):]))
                for c in ("master.force", "slave.force", "force_offset", "load_cell.force"))
     assert force_title.startswith(f"forces — peak {peak:.4g} N (")
+    drives = max(np.nanmax(np.abs(recording.channels[c][-len(tail):]))
+                 for c in ("master.force", "slave.force"))
+    share = 100 * drives / recording.config["limits"]["force_N"]
+    assert force_title.endswith(f"{share:.0f} % of limit")
 
 
 def test_distinct_colour_blind_safe_hues_and_legends_with_a_background(replays):

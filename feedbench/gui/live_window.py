@@ -97,8 +97,9 @@ def limit_lines(group: ChannelGroup, limits: Limits | None) -> tuple[float, ...]
 def headroom_text(channels: Mapping[str, np.ndarray], names: Sequence[str],
                   group: ChannelGroup, lines: tuple[float, ...]) -> str:
     """Peak |value| of the group in the frame (display unit; min/max keeps it), the channel
-    holding it and its share of the limit; channels without a reading in the frame (NaN:
-    not read) are named, not averaged in."""
+    holding it and the share of the limit of the channels the limit watches (the drives'
+    own ``force``, ``master.force``, …; not a load cell or a command); channels without a
+    reading in the frame (NaN: not read) are named, not averaged in."""
     peaks = {n: float(np.max(np.abs(y[np.isfinite(y)]))) for n in names
              if n in channels and np.isfinite(y := channels[n]).any()}
     if not peaks:
@@ -107,8 +108,10 @@ def headroom_text(channels: Mapping[str, np.ndarray], names: Sequence[str],
     peak = peaks[channel] * group.scale
     shown = f"{peak:.0f}" if peak >= 1e4 else f"{peak:.4g}"
     text = f"peak {shown} {group.display_unit}" + (f" ({channel})" if len(names) > 1 else "")
-    if lines:
-        text += f", {100.0 * peak / max(abs(x) for x in lines):.0f} % of limit"
+    watched = [n for n in peaks if n == group.limit or n.endswith("." + group.limit)]
+    if lines and watched:
+        share = 100.0 * max(peaks[n] for n in watched) * group.scale / max(map(abs, lines))
+        text += (", " if channel in watched else "; drives at ") + f"{share:.0f} % of limit"
     silent = [n for n in names if n not in peaks]
     return text + (f"; no data: {', '.join(silent)}" if silent else "")
 
