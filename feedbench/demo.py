@@ -195,7 +195,8 @@ def run_demo(directory: Path, quiet: bool = False, quick: bool = False) -> dict:
     report = write_report([experiments[name]["run"]["file"] for name in reported],
                           directory / "report.html", title="feedbench demo campaign",
                           truths={experiments[name]["run"]["file"]: example_truth(configs[name])
-                                  for name in reported})
+                                  for name in reported
+                                  if experiments[name]["run"]["status"] == "complete"})
     return {
         "friction": {direction: experiments["friction_sweep"]["summary"][direction]
                      for direction in friction_sweep.SIGNS},
