@@ -19,6 +19,7 @@ velocity 1 nm/s, 0x6071 / 0x6077 / 0x60B2 in per mille of the rated force 0x6076
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import struct
@@ -150,7 +151,10 @@ class Cia402Drive:
 
     def __init__(self, network: canopen.Network, node_id: int, eds_path: Path | str,
                  pdo_config: PdoConfig | None = None) -> None:
-        self.node = remote_node(network, node_id, str(eds_path))
+        self.rejected_frames: collections.Counter[str] = collections.Counter()
+        """Frames dropped as malformed (too short for their service, a TPDO whose length is
+        not its mapping's), by reason: a dropped TPDO leaves its cycle incomplete."""
+        self.node = remote_node(network, node_id, str(eds_path), self.rejected_frames)
         self.network = network
         self.pdo_config = pdo_config or PdoConfig()
         self.emcy_code: int | None = None
@@ -283,8 +287,13 @@ class Cia402Drive:
         unpack = codec.layout.unpack
         indices = codec.indices
         complete = self._cycle_complete
+        size = codec.layout.size
+        rejected = self.rejected_frames
 
         def on_tpdo(can_id: int, data: bytearray, timestamp: float) -> None:
+            if len(data) != size:
+                rejected[f"TPDO 0x{can_id:03X}: {len(data)} data bytes, mapped {size}"] += 1
+                return
             update(zip(indices, unpack(data)))
             self._frames_seen += 1
             if self._frames_seen == self._tpdo_count:

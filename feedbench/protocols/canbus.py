@@ -15,6 +15,7 @@ from typing import Any, Callable, Iterable, NamedTuple
 
 import can
 import canopen
+from canopen.nmt import NMT_STATES
 from canopen.objectdictionary import ODVariable
 from canopen.pdo import PdoMap
 
@@ -33,6 +34,13 @@ retries for 10 s, then raises `TimeoutError`."""
 
 SDO_BYTES, EMCY_BYTES, NMT_BYTES, HEARTBEAT_BYTES = 8, 8, 2, 1
 """Data bytes of an SDO, EMCY, NMT command and heartbeat frame (CiA 301)."""
+
+HEARTBEAT_STATE_MASK = 0x7F  # bit 7: the toggle bit
+SDO_COMMAND_MASK, SDO_ABORT = 0xE0, 0x80
+SDO_SEGMENT_REQUESTS = (0x00, 0x60)
+"""Command specifiers of a download and an upload segment request (CiA 301)."""
+SDO_ABORT_FRAME = struct.Struct("<BHBL")
+SDO_ABORT_COMMAND_SPECIFIER = 0x05040001
 
 Handler = Callable[[int, bytearray, float], None]
 """A frame handler of a canopen Network: (COB-ID, data, timestamp)."""
@@ -160,26 +168,57 @@ def length_checked(handler: Handler, length: int,
     return checked
 
 
-def check_lengths(network: canopen.Network, subscriptions: Iterable[tuple[int, Handler, int]],
+def check_lengths(handlers: Iterable[tuple[object, str, int]],
                   rejected: collections.Counter[str]) -> None:
-    """Replace each subscribed (COB-ID, canopen handler, data bytes) by its `length_checked`."""
-    for can_id, handler, length in subscriptions:
-        network.unsubscribe(can_id, handler)
-        network.subscribe(can_id, length_checked(handler, length, rejected))
+    """Each (canopen object, handler name, data bytes): the handler becomes its
+    `length_checked`. Call before the node joins its network, which then subscribes (and on
+    leaving unsubscribes) the checked handlers."""
+    for owner, name, length in handlers:
+        setattr(owner, name, length_checked(getattr(owner, name), length, rejected))
+
+
+def state_checked(on_heartbeat: Handler, rejected: collections.Counter[str]) -> Handler:
+    """canopen's heartbeat consumer for states CiA 301 defines; a heartbeat with another
+    state is dropped and counted in `rejected` (canopen would keep it as the node's state and
+    raise KeyError naming it at the next NMT command)."""
+    def checked(can_id: int, data: bytearray, timestamp: float) -> None:
+        if data[0] & HEARTBEAT_STATE_MASK in NMT_STATES:
+            on_heartbeat(can_id, data, timestamp)
+        else:
+            rejected[f"COB-ID 0x{can_id:03X}: heartbeat state "
+                     f"{data[0] & HEARTBEAT_STATE_MASK} unknown"] += 1
+    return checked
+
+
+def check_sdo_server(server: canopen.sdo.SdoServer, rejected: collections.Counter[str]) -> None:
+    """Guard canopen's SDO server (before its node joins the network): a request shorter
+    than 8 bytes is dropped and counted in `rejected`; a segment request outside a segmented
+    transfer is aborted with 0x05040001 (canopen's server would raise TypeError on its empty
+    buffer and log the traceback)."""
+    serve = server.on_request
+
+    def on_request(can_id: int, data: bytearray, timestamp: float) -> None:
+        if data[0] & SDO_COMMAND_MASK in SDO_SEGMENT_REQUESTS and server._buffer is None:
+            rejected[f"COB-ID 0x{can_id:03X}: SDO segment without a transfer"] += 1
+            server.send_response(SDO_ABORT_FRAME.pack(SDO_ABORT, 0, 0,
+                                                      SDO_ABORT_COMMAND_SPECIFIER))
+        else:
+            serve(can_id, data, timestamp)
+    server.on_request = length_checked(on_request, SDO_BYTES, rejected)
 
 
 def remote_node(network: canopen.Network, node_id: int,
                 object_dictionary: str | canopen.ObjectDictionary,
                 rejected: collections.Counter[str] | None = None) -> canopen.RemoteNode:
     """A RemoteNode added to `network`, its SDO client waiting `SDO_TIMEOUT_S` per answer;
-    its SDO, heartbeat, EMCY and NMT frames shorter than CiA 301's are dropped and counted
-    in `rejected`."""
+    its SDO, heartbeat, EMCY and NMT frames shorter than CiA 301's and heartbeats of an
+    unknown state are dropped and counted in `rejected`."""
     node = canopen.RemoteNode(node_id, object_dictionary)
     node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
+    rejected = collections.Counter() if rejected is None else rejected
+    node.nmt.on_heartbeat = state_checked(node.nmt.on_heartbeat, rejected)
+    check_lengths([(node.sdo, "on_response", SDO_BYTES),
+                   (node.nmt, "on_heartbeat", HEARTBEAT_BYTES), (node.emcy, "on_emcy", EMCY_BYTES),
+                   (node.nmt, "on_command", NMT_BYTES)], rejected)
     network.add_node(node)
-    check_lengths(network, [(node.sdo.tx_cobid, node.sdo.on_response, SDO_BYTES),
-                            (0x700 + node_id, node.nmt.on_heartbeat, HEARTBEAT_BYTES),
-                            (0x80 + node_id, node.emcy.on_emcy, EMCY_BYTES),
-                            (0, node.nmt.on_command, NMT_BYTES)],
-                  collections.Counter() if rejected is None else rejected)
     return node

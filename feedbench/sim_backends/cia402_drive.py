@@ -34,6 +34,7 @@ fault as from a real drive, never a missing cycle.
 
 from __future__ import annotations
 
+import collections
 import copy
 import dataclasses
 from dataclasses import dataclass
@@ -53,7 +54,8 @@ from canopen.sdo import SdoAbortedError
 
 from feedbench.models.axis import AxisSimulator
 from feedbench.protocols import cia301
-from feedbench.protocols.canbus import connect, pdo_codec
+from feedbench.protocols.canbus import (
+    NMT_BYTES, check_sdo_server, connect, length_checked, pdo_codec)
 from feedbench.protocols.cia402 import (
     CONTROLWORD, CSP, CSV, CW_FAULT_RESET, CYCLE_COUNTER, EMCY_FOLLOWING_ERROR,
     DRIVE_MODES, EMCY_INTERNAL_SOFTWARE, EMCY_PDO_LENGTH, ERROR_CODE, FAULT, FAULT_INJECTION,
@@ -167,12 +169,18 @@ class SimulatedCia402Drive:
         self.after_physics: list[Callable[[], None]] = []
         self._received: dict[int, int] = {}
         self.lock = lock or threading.RLock()
+        self.rejected_frames: collections.Counter[str] = collections.Counter()
+        """SDO requests and NMT commands refused as malformed (shorter than CiA 301's; an SDO
+        segment outside a transfer, answered with an abort), by reason."""
         self.node = canopen.LocalNode(node_id, eds.load(node_id, eds_path))
         self.network = network if network is not None else canopen.Network(bus)
+        check_sdo_server(self.node.sdo, self.rejected_frames)
         self.network.add_node(self.node)
         self.node.add_read_callback(self._on_sdo_read)
         self.node.add_write_callback(self._on_sdo_write)
-        self.network.subscribe(cia301.NMT_COB_ID, self._on_nmt)
+        self.network.unsubscribe(cia301.NMT_COB_ID, self.node.nmt.on_command)
+        self.network.subscribe(cia301.NMT_COB_ID,
+                               length_checked(self._on_nmt, NMT_BYTES, self.rejected_frames))
         self.watchdog = Watchdog(self.network, self.lock, self._lose_connection,
                                  guards=lambda: self.state in POWERED,
                                  needs_cycles=lambda: self.state == FAULT_REACTION,
@@ -226,8 +234,9 @@ class SimulatedCia402Drive:
         self.values[STATUSWORD] = self._statusword()
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        """Runs after canopen's NmtSlave has applied the command."""
+        """canopen's NmtSlave applies the command, then the drive follows its state."""
         with self.lock:
+            self.node.nmt.on_command(can_id, data, timestamp)
             command, node_id = data[0], data[1]
             if node_id not in (0, self.node.id):
                 return
