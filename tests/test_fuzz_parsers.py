@@ -18,6 +18,7 @@ import collections
 import logging
 import random
 import re
+import socket
 import struct
 import uuid
 from contextlib import ExitStack, contextmanager
@@ -47,6 +48,7 @@ from feedbench.sim_backends.modbus_devices import (
 from feedbench.sim_backends.serial_daq import encode_data_frames, encode_frame
 from feedbench.views.frfs import Dof, ExchangeFrf
 from test_cia402_sim import NODE_ID, loopback
+from test_modbus_devices import ask
 
 OK = "ok"
 SDO_RX, SDO_TX, EMCY = 0x600 + NODE_ID, 0x580 + NODE_ID, 0x80 + NODE_ID
@@ -439,3 +441,26 @@ def check_found_crashes(fuzz_targets: dict[str, Target]) -> None:
     ]
     for target, data, reason in cases:
         assert target.outcome(data).startswith(rejected(reason)), (target.name, reason)
+
+
+def test_the_modbus_tcp_server_answers_after_malformed_frames_on_the_socket(fuzz_targets):
+    """The served path itself: each malformed MBAP frame on its own connection to a running
+    server, which still answers a valid read with the inverter's 10 registers."""
+    devices = [SimulatedSpindleInverter(), SimulatedLoadCell(lambda: 0.0)]
+    tracebacks = fuzz_targets["modbus_tcp"].tracebacks.records
+    logged = len(tracebacks)
+    with SimulatedModbusTcpServer(devices) as server:
+        address = ("127.0.0.1", server.port)
+
+        @settings(max_examples=40, derandomize=True, deadline=None, database=None,
+                  suppress_health_check=list(HealthCheck))
+        @given(malformed(fuzz_targets["modbus_tcp"].seeds))
+        def send(data: bytes) -> None:
+            with socket.create_connection(address, timeout=1.0) as raw:
+                raw.sendall(data)
+
+        send()
+        with socket.create_connection(address, timeout=5.0) as raw:
+            answer = ask(raw, 1, 1, bytes.fromhex("03 0000 000a"))
+    assert answer[:2] == bytes.fromhex("03 14") and len(answer) == 22
+    assert tracebacks[logged:] == []
