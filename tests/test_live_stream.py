@@ -469,11 +469,12 @@ def test_chirp_mobility_builds_up_sweep_by_sweep_and_matches_the_true_frf():
     feed_like_runner([mobility, Watch()], plan, np.concatenate([np.zeros((13, 4)), *parts]))
     assert mobility.version == 3 and sorted(set(versions)) == [0, 1, 2, 3]
     view = mobility.view()
-    magnitude, coherence = view.panels
+    magnitude, phase, coherence = view.panels
     f, H = magnitude.curves[0].x, magnitude.curves[0].y
     _, truth = scipy.signal.freqz(b, a, worN=f, fs=fs)
     assert f[0] >= 20.0 and f[-1] <= 150.0
     assert np.max(np.abs(H / np.abs(truth) - 1)) < 0.05
+    assert np.max(np.abs(np.angle(np.exp(1j * np.radians(phase.curves[0].y)) / truth))) < 0.05
     assert coherence.curves[0].y.min() > 0.95
     assert view.summary.startswith("3 sweeps; f_t")
 
@@ -612,15 +613,17 @@ def test_hammer_quasi_frf_of_the_hits_so_far_equals_the_analysis_on_the_same_hit
                      daq_channels=("hammer_force", "acc_tool_x"))
     assert result.version == 5 and len(views) == 5
     assert views[0].summary.startswith("0 mm/min: 1 of 1 hits, peak")
-    magnitude, coherence = result.view().panels
+    magnitude, phase, coherence = result.view().panels
     assert [c.name for c in magnitude.curves] == ["0 mm/min", "500 mm/min"]
-    for curve, (feed, records), f_n in zip(magnitude.curves, hits.items(), (60.0, 48.0)):
+    for curve, angle, (feed, records), f_n in zip(magnitude.curves, phase.curves, hits.items(),
+                                                  (60.0, 48.0)):
         offline = quasi_frf(records[:, 0], records[:, 1], DAQ_RATE, 0.01, 0.5,
                             force_range=5000.0).estimate
         inside = (offline.f >= 20.0) & (offline.f <= 150.0)
         truth = accelerance_to_receptance(offline.f[inside], offline.H1[inside])
         np.testing.assert_allclose(curve.x, offline.f[inside])
         np.testing.assert_allclose(curve.y, np.abs(truth), rtol=1e-12)
+        np.testing.assert_allclose(angle.y, np.degrees(np.angle(truth)), atol=1e-9)
         assert abs(curve.x[np.argmax(curve.y)] - f_n) <= 1.0
     assert min(c.y.min() for c in coherence.curves) > 0.99
 
@@ -645,11 +648,13 @@ def test_shaker_chirp_frf_of_the_sweeps_so_far_matches_the_structure():
     feed_like_runner([result], plan, np.zeros((13 + 2 * n + 30, 4)),
                      daq=np.concatenate([np.zeros((13 * PER_CYCLE, 2)), *daq]),
                      daq_channels=("shaker_force", "acc_tool_x"))
-    magnitude, coherence = result.view().panels
+    magnitude, phase, coherence = result.view().panels
     f, compliance = magnitude.curves[0].x, magnitude.curves[0].y
     assert f[0] >= 20.0 and f[-1] <= 100.0
     _, truth = scipy.signal.freqz(b, a, worN=f, fs=DAQ_RATE)
     np.testing.assert_allclose(compliance, np.abs(truth) / (2 * np.pi * f) ** 2, rtol=0.01)
+    receptance = -truth / (2 * np.pi * f) ** 2  # x = −a/ω²
+    assert np.max(np.abs(np.angle(np.exp(1j * np.radians(phase.curves[0].y)) / receptance))) < 0.03
     assert 0.9 < coherence.curves[0].y.min() < 1.0
     assert "1000 mm/min: 2 of 2 sweeps" in result.view().summary
 

@@ -404,6 +404,19 @@ def test_no_nan_and_no_rescaled_axis_in_any_text(replays):
         assert axis_text(window.traces.plots[-1], "bottom") == "time before now (s)"
 
 
+def test_every_live_frf_is_a_bode_plot(replays):
+    """A live magnitude over frequency (log |H|) has its phase panel below it."""
+    for name, (_, _, _, window) in replays.items():
+        plots = [p for p in window.result_plots.plots if p]
+        magnitudes = [p for p in plots if p.ctrl.logYCheck.isChecked()
+                      and axis_text(p, "bottom") == "frequency (Hz)"]
+        phases = [p for p in plots if axis_text(p, "left") == "phase (°)"]
+        assert len(phases) == (1 if magnitudes else 0), name
+    assert {n for n, r in replays.items() if any(axis_text(p, "left") == "phase (°)"
+                                                 for p in r[3].result_plots.plots if p)} == {
+        "chirp", "closed_loop_bode", "impact_hammer", "shaker_chirp", "sine_stream", "smfe"}
+
+
 def test_the_load_cell_read_every_tenth_cycle_is_drawn_over_its_readings(replays):
     """The rack-and-pinion friction sweep reads the load cell every 10th cycle (NaN
     between): its trace is the readings, connected; the force title names its peak."""
@@ -492,8 +505,9 @@ def test_panels_without_data_are_placeholders_not_empty_axes(app):
     plots.draw(ResultView("impact hammer", (), "waiting for the first completed step"))
     assert plots.placeholders == [ResultPlots.NO_RESULT] and plots.plots == []
     plots.draw(ResultView("impact hammer", feed_frf_panels([]), "waiting for the first record"))
-    assert plots.placeholders == ["tool-tip compliance: no data yet", "coherence: no data yet"]
-    assert plots.plots == [None, None]
+    assert plots.placeholders == ["tool-tip compliance: no data yet", "phase: no data yet",
+                                  "coherence: no data yet"]
+    assert plots.plots == [None, None, None]
     window.close()
 
 

@@ -20,7 +20,7 @@ from feedbench.experiments.signals import chirp, integrate_velocity, move_to, ra
 from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN
 from feedbench.views.frfs import MOTOR_FORCE, MOTOR_VELOCITY, ExchangeFrf, polar
-from feedbench.views.panels import Curve, Panel, ResultView
+from feedbench.views.panels import Curve, Panel, ResultView, phase_panel
 from feedbench.views.sections import (
     MIN_COHERENCE, FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, frf_warnings, png_of,
 )
@@ -246,12 +246,14 @@ class Chirp(Experiment):
 
     @classmethod
     def live_view(cls, result: Mapping[str, Any]) -> ResultView:
-        """|H1| (m/s)/N and coherence of the sweeps so far, f_t and f_r in the summary."""
+        """|H1| (m/s)/N, its phase and coherence of the sweeps so far, f_t and f_r in the
+        summary."""
         frf = result["frf"]
         f = np.asarray(frf["f_hz"])
         panels = (
             Panel("|H1| motor velocity / motor force", "frequency (Hz)", "|H| ((m/s)/N)",
                   (Curve("H1", f, np.asarray(frf["H1_abs"])),), log_y=True),
+            phase_panel({"H1": (f, frf["H1_phase_rad"])}),
             Panel("coherence", "frequency (Hz)", "γ²",
                   (Curve("coherence", f, np.asarray(frf["coherence"])),), y_range=(0.0, 1.05)),
         )

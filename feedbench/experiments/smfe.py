@@ -54,7 +54,7 @@ from feedbench.models.milling import (
 from feedbench.models.structure import POINT_DOF, ModalStructure
 from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN, RPM
-from feedbench.views.panels import Curve, Image, Panel, ResultView
+from feedbench.views.panels import Curve, Image, Panel, ResultView, phase_panel
 from feedbench.views.sections import (
     MIN_COHERENCE, FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, new_figure, png_of,
 )
@@ -410,13 +410,16 @@ def speed_text(result: Mapping[str, Any]) -> str:
     return f"spindle {rpm[-1]:.0f} rpm, tooth passing {result['teeth'] * rpm[-1] / 60.0:.1f} Hz"
 
 
-def receptance_panel(result: Mapping[str, Any]) -> Panel:
-    """Live panel: |Φ_tt,ii| and |Φ_ww,ii| (m/N, log) over the band."""
+def receptance_panels(result: Mapping[str, Any]) -> tuple[Panel, Panel]:
+    """Live panels: |Φ_tt,ii| and |Φ_ww,ii| (m/N, log) over the band, and their phase (°)."""
     f = np.asarray(result["f_hz"])
-    return Panel("direct receptances", "frequency (Hz)", "receptance (m/N)", tuple(
-        Curve(f"|{name},{axis}{axis}|", f, np.asarray(magnitude))
-        for side, name in zip(SIDES, SIDE_NAMES)
-        for axis, magnitude in result[side]["abs_m_N"].items()), log_y=True)
+    names = [(side, name, axis) for side, name in zip(SIDES, SIDE_NAMES)
+             for axis in result[side]["abs_m_N"]]
+    return (Panel("direct receptances", "frequency (Hz)", "receptance (m/N)", tuple(
+                Curve(f"|{name},{axis}{axis}|", f, np.asarray(result[side]["abs_m_N"][axis]))
+                for side, name, axis in names), log_y=True),
+            phase_panel({f"{name},{axis}{axis}": (f, result[side]["phase_rad"][axis])
+                         for side, name, axis in names}))
 
 
 def sweep_figure(result: Mapping[str, Any]) -> MplFigure:
@@ -615,7 +618,7 @@ class Smfe(Experiment):
                  f"{result['cuts_recorded']} of {len(result['cuts'])} cuts"]
         panels = sweep_panels(result)
         if "f_hz" in result:
-            panels += (receptance_panel(result),)
+            panels += receptance_panels(result)
             parts.append(peaks_text(result))
         return ResultView(cls.title, panels, "; ".join(parts))
 

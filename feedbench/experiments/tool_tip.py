@@ -28,7 +28,7 @@ from feedbench.protocols import cia401
 from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
 from feedbench.units import MM_PER_MIN
 from feedbench.views.frfs import Dof
-from feedbench.views.panels import Curve, Panel
+from feedbench.views.panels import Curve, Panel, phase_panel
 from feedbench.views.sections import (
     MIN_COHERENCE, FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, new_figure, png_of,
 )
@@ -192,14 +192,18 @@ def feed_text(feed_mm_min: float | None) -> str:
     return "only the highest feed" if feed_mm_min is None else feed_label(feed_mm_min)
 
 
-def feed_frf_panels(feeds: Sequence[Mapping[str, Any]]) -> tuple[Panel, Panel]:
-    """Live panels: compliance |x/F| (m/N, log) and coherence γ², one curve per feed."""
+def feed_frf_panels(feeds: Sequence[Mapping[str, Any]]) -> tuple[Panel, Panel, Panel]:
+    """Live panels: compliance |x/F| (m/N, log), its phase (°) and coherence γ², one curve
+    per feed."""
     def curves(key: str) -> tuple[Curve, ...]:
         return tuple(Curve(feed_label(x["feed_mm_min"]), np.asarray(x["frf"]["f_hz"]),
                            np.asarray(x["frf"][key])) for x in feeds)
 
     return (Panel("tool-tip compliance", "frequency (Hz)", COMPLIANCE_LABEL,
                   curves("compliance_abs"), log_y=True),
+            phase_panel({feed_label(x["feed_mm_min"]): (x["frf"]["f_hz"],
+                                                        x["frf"]["compliance_phase_rad"])
+                         for x in feeds}),
             Panel("coherence", "frequency (Hz)", "γ²", curves("coherence"),
                   y_range=(0.0, 1.05)))
 

@@ -322,7 +322,7 @@ class ResultPlots:
             if panel.image is not None:
                 self._draw_image(i, plot, panel.image)
             if plot.legend is None and len(panel.curves) > 1:
-                add_legend(plot)  # a single series is named in the title and summary
+                add_legend(plot, len(panel.curves))  # one series: named in the summary
                 for item in curves.values():
                     plot.legend.addItem(item, item.name())
             for curve in panel.curves:

@@ -84,6 +84,14 @@ class ResultView:
     summary: str
 
 
+def phase_panel(series: Mapping[str, tuple[Sequence[float], Sequence[float]]]) -> Panel:
+    """The phase (°, as estimated: within ±180°) of named FRFs, name → (f Hz, phase rad):
+    the panel under a magnitude panel, so every live FRF is a Bode plot."""
+    return Panel("phase", "frequency (Hz)", "phase (°)", tuple(
+        Curve(name, np.asarray(f, dtype=float), np.degrees(np.asarray(phase, dtype=float)))
+        for name, (f, phase) in series.items()))
+
+
 def point_frf_panels(series: Mapping[str, Sequence[tuple[float, complex, float]]],
                      magnitude_label: str, r_squared_min: float) -> tuple[Panel, ...]:
     """|H|, phase and R² of FRF points (f Hz, H, R²) per named series; points below the
