@@ -28,6 +28,7 @@ from canopen.sdo import SdoAbortedError
 from feedbench.daq.clock import LockstepClock, NodeLost
 from feedbench.daq.recording import open_recording, read_summary
 from feedbench.drivers.cia402 import Cia402Drive, decode_state
+from feedbench.drivers.io_module import IoModule
 from feedbench.protocols import cia301
 from feedbench.protocols.canbus import open_bus, open_network
 from feedbench.protocols.cia402 import (
@@ -160,22 +161,25 @@ def test_the_host_stops_on_a_drive_heartbeat_lost(can_channel):
 
 
 def test_the_io_module_zeroes_its_outputs_when_the_host_heartbeat_stops(can_channel):
-    """The I/O module's consumer entry and SYNC limit are written by SDO like the drive's;
+    """The host's I/O module driver writes the module's consumer entry (3 s) at configure;
     outputs set and the host silent: after the consumer time every output is 0, EMCY."""
     device = start_simulated_axis("virtual", can_channel, NODE)
     network = open_network("virtual", can_channel)
     try:
         module = SimulatedIoModule(device.network, IO_NODE)
-        node = network.add_node(IO_NODE, canopen.ObjectDictionary())
-        node.sdo.download(cia301.CONSUMER_HEARTBEAT_TIME, 1,
-                          cia301.consumer_entry(cia301.HOST_NODE_ID, 100).to_bytes(4, "little"))
-        node.nmt.state = "OPERATIONAL"
+        host = IoModule(network, IO_NODE)
+        host.configure()
+        assert host.node.sdo.upload(cia301.CONSUMER_HEARTBEAT_TIME, 1) == (
+            cia301.consumer_entry(cia301.HOST_NODE_ID, 3000).to_bytes(4, "little"))
         network.send_message(0x700 + cia301.HOST_NODE_ID, b"\x05")
-        network.send_message(0x300 + IO_NODE, b"\x10\x27\x00\x00\x00\x00\x00\x00")
+        host.set_force(0, 100.0)
+        host.transmit()
+        silent = time.monotonic()
         time.sleep(0.05)
-        assert module.analog[0] == 10_000
-        time.sleep(0.25)
-        assert module.analog == [0, 0, 0, 0]
+        assert module.analog[0] == 6553  # 100 N of 500 N full scale
+        while module.analog[0] and time.monotonic() - silent < 3.0 + LATE_S:
+            time.sleep(0.02)
+        assert module.analog == [0, 0, 0, 0] and time.monotonic() - silent >= 2.9
     finally:
         network.disconnect()
         device.close()

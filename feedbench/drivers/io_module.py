@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import canopen
 
+from feedbench.drivers.cia402 import HOST_CONSUMER_MS
 from feedbench.protocols import cia301, cia401
 from feedbench.protocols.canbus import remote_node
 
@@ -28,7 +29,9 @@ class IoModule:
         self._sent: dict[int, bytes] = {}
 
     def configure(self) -> None:
-        """Read the device type by SDO (profile 401 expected), then NMT operational."""
+        """Read the device type by SDO (profile 401 expected), tell the module to watch the
+        host's heartbeat (0x1016 entry 1, `HOST_CONSUMER_MS`; a module without the object
+        is left as it is), then NMT operational."""
         try:
             raw = self.node.sdo.upload(cia301.DEVICE_TYPE, 0)
         except (canopen.SdoCommunicationError, canopen.SdoAbortedError) as error:
@@ -37,6 +40,11 @@ class IoModule:
         if device_type & 0xFFFF != cia401.PROFILE:
             raise IoModuleError(f"node {self.node.id} is not a CiA 401 device "
                                 f"(device type 0x{device_type:08X})")
+        entry = cia301.consumer_entry(cia301.HOST_NODE_ID, HOST_CONSUMER_MS)
+        try:
+            self.node.sdo.download(cia301.CONSUMER_HEARTBEAT_TIME, 1, entry.to_bytes(4, "little"))
+        except canopen.SdoAbortedError:
+            pass  # no consumer heartbeat on this module
         self.node.nmt.state = "OPERATIONAL"
 
     def set_force(self, channel: int, force: float) -> None:
