@@ -232,6 +232,10 @@ AXES = {"lab": LabAxis, "rack_pinion": RackPinionAxis}
 it `needs` and the `addresses` of their simulated peers."""
 
 
+SYNC_LOSS_CYCLES = 10
+"""Real time: the drives stop after this many missed SYNCs (lockstep: off, virtual time)."""
+
+
 class Bench:
     """An open bench: the CAN network, the drive driver, the clock (and the simulated peer).
 
@@ -273,9 +277,10 @@ class Bench:
             self.drive = drives[""] if "" in drives else drives
             if cfg["clock"] == "lockstep":
                 self.clock = LockstepClock(self.network, list(drives.values()),
-                                           timeout_s=cfg["timeout_s"])
+                                           timeout_s=cfg["timeout_s"], cycle_s=cycle_s)
             else:
                 self.clock = RealtimeClock(self.network, list(drives.values()), period_s=cycle_s)
+            self._stack.callback(self.clock.close)
             addresses = axis.addresses(self.simulated) if self.simulated is not None else {}
             links = DeviceLinks({**cfg, **addresses}, self.network, drives, self._stack)
             self.devices = open_cycle_devices(axis.needs, links)
@@ -291,7 +296,8 @@ class Bench:
         drives = {name: Cia402Drive(self.network, node_id, eds, axis.pdo_config)
                   for name, node_id in axis.nodes().items()}
         for drive in drives.values():
-            drive.configure(gains=gains)
+            drive.configure(gains=gains, sync_loss_cycles=SYNC_LOSS_CYCLES
+                            if self.config["clock"] == "realtime" else 0)
         return drives
 
     def __exit__(self, *exc) -> None:
