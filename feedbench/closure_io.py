@@ -65,6 +65,7 @@ MAT_MATRIX, MAT_COMPRESSED = 14, 15
 MAT_V5_TYPES = frozenset({1, 2, 3, 4, 5, 6, 7, 9, 12, 13, MAT_MATRIX, MAT_COMPRESSED, 16, 17, 18})
 """The data-element types of a MATLAB v5 file (miINT8 … miUTF32)."""
 MAT_NUMERIC_CLASSES = frozenset(range(6, 16))  # mxDOUBLE … mxUINT64
+MAT_CELL, MAT_STRUCT, MAT_CHAR = 1, 2, 4
 MAT_COMPLEX = 0x800
 
 EMPS_GAIN_KEY = "gtau"
@@ -292,8 +293,9 @@ def _load_mat(path: Path, **options: Any) -> dict[str, Any]:
         data = path.read_bytes()
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such file") from None
-    if data[124:128] in (b"\x00\x01IM", b"\x01\x00MI"):  # v5: version 0x0100, byte order
-        problem = _mat_v5_problem(data[128:], "<" if data[126:128] == b"IM" else ">")
+    header = data[124:128].ljust(4, b"\x00")  # version, byte order (as scipy reads them)
+    if header[1 if header[2:3] == b"I" else 0] == 1:  # major version 1: a v5 file
+        problem = _mat_v5_problem(data[128:], "<" if header[2:] == b"IM" else ">")
         if problem:
             raise ConfigError(f"{path}: not a readable MATLAB file ({problem})")
     try:
@@ -338,25 +340,45 @@ def _mat_v5_problem(elements: bytes, order: str) -> str | None:
 
 
 def _matrix_problem(mdtype: int, body: bytes, order: str) -> str | None:
-    """A numeric matrix flagged complex needs its imaginary part (scipy reads it blindly)."""
-    if mdtype != MAT_MATRIX or len(body) < 16:
+    """A matrix whose elements are fewer than its class needs: flags, dimensions, name, then
+    a numeric or char array's real (and if complex imaginary) part, a cell's n cells, a
+    struct's field-name length, names and n × fields values (scipy reads them blindly)."""
+    if mdtype != MAT_MATRIX:
         return None
-    flags = struct.unpack_from(order + "I", body, 8)[0]
-    if (flags & 0xFF in MAT_NUMERIC_CLASSES and flags & MAT_COMPLEX
-            and _count_elements(body, order) < 5):
-        return "a complex matrix without its imaginary part"
+    elements = _elements(body, order)
+    if len(elements) < 3 or len(elements[0]) < 4:
+        return "a matrix without its flags, dimensions and name"
+    flags = struct.unpack_from(order + "I", elements[0])[0]
+    cells = math.prod(struct.unpack(order + f"{len(elements[1]) // 4}i",
+                                    elements[1][:len(elements[1]) // 4 * 4]))
+    kind = flags & 0xFF
+    if kind in MAT_NUMERIC_CLASSES or kind == MAT_CHAR:
+        needed = 4 + bool(flags & MAT_COMPLEX)
+    elif kind == MAT_CELL:
+        needed = 3 + cells
+    elif kind == MAT_STRUCT and len(elements) >= 5 and len(elements[3]) >= 4:
+        name_length = struct.unpack_from(order + "i", elements[3])[0]
+        needed = 5 + cells * (len(elements[4]) // name_length if name_length > 0 else 0)
+    else:
+        return None
+    if len(elements) < needed:
+        return f"a matrix of class {kind} with {len(elements)} of its {needed} elements"
     return None
 
 
-def _count_elements(elements: bytes, order: str) -> int:
-    """How many data elements follow each other in `elements` (tags checked before):
-    flags, dimensions, name, real part, imaginary part."""
-    count, pos = 0, 0
+def _elements(elements: bytes, order: str) -> list[bytes]:
+    """The data of the data elements that follow each other in `elements` (tags checked
+    before by `_mat_v5_problem`)."""
+    found, pos = [], 0
     while pos + 8 <= len(elements):
         mdtype, nbytes = struct.unpack_from(order + "II", elements, pos)
-        pos += 8 if mdtype >> 16 else 8 + nbytes + -nbytes % 8
-        count += 1
-    return count
+        if mdtype >> 16:
+            found.append(elements[pos + 4:pos + 4 + (mdtype >> 16)])
+            pos += 8
+        else:
+            found.append(elements[pos + 8:pos + 8 + nbytes])
+            pos += 8 + nbytes + -nbytes % 8
+    return found
 
 
 def read_mat(path: str | Path, axis: int | None = None) -> Trace:
