@@ -8,18 +8,22 @@ one in ten raw random bytes; seeded, so every run feeds the same inputs. Prints 
 inputs, crashes (an exception other than the documented rejection, or a traceback logged by a
 library: must be 0), accepted, the most frequent rejection reasons (numbers blanked), and
 inputs/s against the valid seeds' parse rate measured in the same run (the baseline).
-A crash that kills the process (a segfault in a C reader) or a hang stops the benchmark.
+Each parser runs in its own process: a crash that kills it (a segfault in a C reader) or
+a hang (no result within `PARSER_TIMEOUT_S`) is printed with the input it was at, and counted.
 
 Figures per parser: fuzz_<parser>_inputs, fuzz_<parser>_crashes, fuzz_<parser>_per_s,
 fuzz_<parser>_vs_valid (fuzz rate / valid rate). `FEEDBENCH_FUZZ_INPUTS` overrides the
-count (default 100 000). Run alone: `python benchmarks/bench_fuzz.py [PARSER ...]`.
+count (default 100 000), `FEEDBENCH_FUZZ_TIMEOUT_S` the time limit per parser (900 s).
+Run alone: `python benchmarks/bench_fuzz.py [PARSER ...]`.
 """
 
 from __future__ import annotations
 
 import collections
+import json
 import os
 import random
+import subprocess
 import sys
 import tempfile
 import time
@@ -27,13 +31,15 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_fuzz_parsers import (  # noqa: E402  (tests/test_fuzz_parsers.py)
-    OK, Target, mutate, random_operations, reason_key, targets)
+    EXAMPLES, OK, Target, mutate, random_operations, reason_key, targets)
 
 INPUTS = int(os.environ.get("FEEDBENCH_FUZZ_INPUTS", 100_000))
 VALID_INPUTS = 500
 RAW_SHARE = 10
 """One input in RAW_SHARE is raw random bytes (up to 80)."""
 SHOWN_REASONS = 4
+PARSER_TIMEOUT_S = float(os.environ.get("FEEDBENCH_FUZZ_TIMEOUT_S", 900))
+LAST_INPUT = "input"
 
 
 def fuzz_input(rng: random.Random, target: Target, number: int) -> bytes:
@@ -51,6 +57,8 @@ def fuzz(target: Target, count: int) -> tuple[collections.Counter[str], int, flo
     crashes = 0
     start = time.perf_counter()
     for number in range(count):
+        if number % 1000 == 0:
+            print(f"   {LAST_INPUT}: {number}", file=sys.stderr, flush=True)
         try:
             outcomes[reason_key(target.outcome(fuzz_input(rng, target, number)))] += 1
         except AssertionError as crash:
@@ -69,12 +77,42 @@ def valid_rate(target: Target) -> float:
 
 
 def run(names: list[str] | None = None) -> dict[str, float]:
+    """Every parser (or those in `names`), each in a child process; their figures."""
+    figures: dict[str, float] = {}
+    for name in [n for n in EXAMPLES if not names or n in names]:
+        try:
+            child = subprocess.run([sys.executable, __file__, "--child", name], text=True,
+                                   capture_output=True, timeout=PARSER_TIMEOUT_S)
+            output, progress, died = child.stdout, child.stderr, child.returncode
+        except subprocess.TimeoutExpired as hung:
+            output, progress, died = _text(hung.stdout), _text(hung.stderr), "hang"
+        lines = output.splitlines()
+        print("\n".join(lines[:-1] if not died else lines), flush=True)
+        if died:
+            at = [line for line in progress.splitlines() if LAST_INPUT in line][-1:]
+            how = (f"no result within {PARSER_TIMEOUT_S:g} s" if died == "hang"
+                   else f"exit status {died}")
+            print(f"{name:<15s} CRASHED ({how}) at or after "
+                  f"{at[0].strip() if at else 'the start'}",
+                  flush=True)
+            figures[f"fuzz_{name}_crashes"] = 1
+        else:
+            figures.update(json.loads(lines[-1]))
+    return figures
+
+
+def _text(output: bytes | str | None) -> str:
+    return output.decode(errors="replace") if isinstance(output, bytes) else output or ""
+
+
+def run_here(names: list[str]) -> dict[str, float]:
+    """The parsers in `names` in this process (a child of `run`)."""
     figures: dict[str, float] = {}
     scratch = "/dev/shm" if os.path.isdir("/dev/shm") else None
     with tempfile.TemporaryDirectory(dir=scratch) as directory, \
             targets(Path(directory)) as found:
         for name, target in found.items():
-            if names and name not in names:
+            if name not in names:
                 continue
             baseline = valid_rate(target)
             outcomes, crashes, seconds = fuzz(target, INPUTS)
@@ -94,4 +132,7 @@ def run(names: list[str] | None = None) -> dict[str, float]:
 
 
 if __name__ == "__main__":
-    run(sys.argv[1:])
+    if sys.argv[1:2] == ["--child"]:
+        print(json.dumps(run_here(sys.argv[2:])))
+    else:
+        run(sys.argv[1:])
