@@ -36,6 +36,7 @@ from typing import Any, Callable, Mapping, TypeVar
 
 import numpy as np
 import scipy.io
+import scipy.signal
 
 from feedbench.analysis.closure.trace import SIGNALS, Trace, lowpass
 from feedbench.config import ConfigError, Field, read_toml, validate_table
@@ -456,6 +457,23 @@ def _residual_plot(plt: Any, report: Any, path: Path) -> Path:
     return path
 
 
+FRF_STYLES = {"measured": {"color": "k", "lw": 2.2, "alpha": 0.6},
+              "model before": {"color": "C1", "lw": 1.2, "ls": "--"},
+              "model after": {"color": "C2", "lw": 1.2, "ls": ":"}}
+"""Measured under the models: the models' lines stay visible where they match it."""
+
+EXCITED_DB = 20.0
+"""A frequency is excited where the excitation's PSD is within this of its peak (dB)."""
+
+
+def excited_band(excitation: np.ndarray, fs: float, nperseg: int,
+                 bandwidth: float) -> np.ndarray:
+    """Mask of the Welch frequencies (Hz) the excitation drives, within `EXCITED_DB` of its
+    peak PSD, up to the closure's scoring `bandwidth` (Hz): where the FRF means something."""
+    f, psd = scipy.signal.welch(excitation, fs, nperseg=nperseg)
+    return (f > 0) & (f <= bandwidth) & (psd >= psd.max() * 10 ** (-EXCITED_DB / 10))
+
+
 def _frf_plot(plt: Any, report: Any, path: Path) -> Path | None:
     from feedbench.analysis.frf import estimate_frf
 
@@ -468,11 +486,11 @@ def _frf_plot(plt: Any, report: Any, path: Path) -> Path | None:
                             for p in (trace.position, replays[0].position, replays[1].position)])
     nperseg = int(min(velocities.shape[1] // 4, 2 ** round(math.log2(2.0 / dt))))
     frf = estimate_frf(trace.excitation[window], velocities, 1.0 / dt, nperseg)
-    band = (frf.f > 0) & (frf.f <= report.bandwidth)
+    band = excited_band(trace.excitation[window], 1.0 / dt, nperseg, report.bandwidth)
     fig, (mag, phase) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
-    for row, label in enumerate(("measured", "model before", "model after")):
-        mag.semilogy(frf.f[band], np.abs(frf.H1[row, band]), label=label)
-        phase.plot(frf.f[band], np.degrees(np.angle(frf.H1[row, band])), label=label)
+    for row, (label, style) in enumerate(FRF_STYLES.items()):
+        mag.semilogy(frf.f[band], np.abs(frf.H1[row, band]), label=label, **style)
+        phase.plot(frf.f[band], np.degrees(np.angle(frf.H1[row, band])), label=label, **style)
     mag.set_ylabel("|v / excitation| (m/(N·s))")
     phase.set_ylabel("phase (deg)")
     phase.set_xlabel("frequency (Hz)")

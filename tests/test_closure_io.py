@@ -102,6 +102,22 @@ def test_command_finds_the_effect_hidden_in_the_sample_csv(tmp_path, capsys):
     assert all(Path(p).stat().st_size > 10_000 for p in data["plots"])
 
 
+def test_the_frf_plot_shows_the_band_the_excitation_drives():
+    """A 10–100 Hz chirp: the plotted band is the swept one (±2 bins of 1 Hz), capped at the
+    closure's bandwidth; the DC bin and the unexcited 1–8 Hz are left out (issue 16)."""
+    import scipy.signal
+
+    from feedbench.closure_io import excited_band
+
+    fs, n = 1000.0, 20_000
+    t = np.arange(n) / fs
+    excitation = scipy.signal.chirp(t, 10.0, t[-1], 100.0)
+    f = np.fft.rfftfreq(1000, 1 / fs)
+    shown = f[excited_band(excitation, fs, 1000, bandwidth=400.0)]
+    assert 8.0 <= shown.min() <= 12.0 and 98.0 <= shown.max() <= 102.0
+    assert f[excited_band(excitation, fs, 1000, bandwidth=50.0)].max() == 50.0
+
+
 def test_command_reports_user_errors_in_one_line(tmp_path, capsys):
     (tmp_path / "m.toml").write_text('[terms.inertia]\nM_kg = "heavy"\n')
     status = main(["closure", str(EXAMPLES / "sample_axis.csv"), "--model",
