@@ -26,14 +26,15 @@ if _WORKER:
     os.environ["NUMBA_CACHE_DIR"] = str(Path(_base) / "numba" / _WORKER)
 
 SLOW_FIRST = (
-    "test_demo.py", "test_report.py", "test_scripts.py", "test_structure_experiments.py",
-    "test_smfe_bench.py", "test_notebook.py", "test_stepped_loading.py", "test_live_window.py",
+    "test_demo.py", "test_report.py", "test_structure_experiments.py", "test_smfe_bench.py",
+    "test_notebook.py", "test_stepped_loading.py", "test_scripts.py", "test_live_window.py",
     "test_config_cli.py", "test_closure_cases.py", "test_api.py", "test_fault_paths.py",
     "test_campaign.py", "test_rack_pinion_bench.py", "test_sim_process.py",
 )
 """Test files, longest first (measured under `make test`: the demo ≈ 170 s, the scripts
 ≈ 85 s, the others 15–60 s each); they start first so the other worker spreads the short
-ones around them."""
+ones around them. The scripts (four simulated benches at once) start once the demo is
+done: together the two overload the 2 cores and a 1 s bus timeout trips."""
 
 _counter = itertools.count()
 

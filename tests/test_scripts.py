@@ -36,37 +36,43 @@ SHORT = {
                                     "--load-cell-every", "10"],
     "closure_fresh_chirp.py": ["--duration-s", "2", "--repetitions", "2"],
 }
-"""Per script, the command line that keeps it short (all four together ≈ 40 s wall)."""
+"""Per script, the command line that keeps it short."""
 TIMEOUT_S = 240
 LAB = world_truth({})
 RACK = rack_pinion.world_truth(read_toml(ROOT / "feedbench" / "examples" /
                                          "stepped_loading.toml")["bench"]["world"])
 
 
+class Scripts:
+    """The scripts, each run once on first use in its own working directory, one at a time
+    (four simulated benches at once, beside the other test worker, overload 2 cores)."""
+
+    def __init__(self, directory: Path) -> None:
+        self.directory = directory
+        self.done: dict[str, subprocess.CompletedProcess] = {}
+
+    def cwd(self, name: str) -> Path:
+        return self.directory / name.removesuffix(".py")
+
+    def run(self, name: str) -> subprocess.CompletedProcess:
+        if name not in self.done:
+            self.cwd(name).mkdir()
+            self.done[name] = subprocess.run(
+                [sys.executable, str(SCRIPTS / name), *SHORT[name]], cwd=self.cwd(name),
+                capture_output=True, text=True, timeout=TIMEOUT_S)
+        return self.done[name]
+
+
 @pytest.fixture(scope="module")
-def scripts(tmp_path_factory) -> dict[str, tuple[subprocess.Popen, Path]]:
-    """Every script started at once, each in its own working directory: name → (process,
-    directory)."""
-    tmp = tmp_path_factory.mktemp("scripts")
-    started = {}
-    for name, args in SHORT.items():
-        cwd = tmp / name.removesuffix(".py")
-        cwd.mkdir()
-        started[name] = (subprocess.Popen([sys.executable, str(SCRIPTS / name), *args], cwd=cwd,
-                                          stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                          text=True), cwd)
-    yield started
-    for process, _ in started.values():
-        if process.poll() is None:
-            process.kill()
+def scripts(tmp_path_factory) -> Scripts:
+    return Scripts(tmp_path_factory.mktemp("scripts"))
 
 
-def printed(scripts: dict[str, tuple[subprocess.Popen, Path]], name: str) -> dict[str, str]:
+def printed(scripts: Scripts, name: str) -> dict[str, str]:
     """The ``key = value`` lines script `name` printed (it must exit 0)."""
-    process = scripts[name][0]
-    out, err = process.communicate(timeout=TIMEOUT_S)
-    assert process.returncode == 0, err[-3000:]
-    return dict(re.findall(r"^(.+?) = (\S+)", out, flags=re.M))
+    done = scripts.run(name)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return dict(re.findall(r"^(.+?) = (\S+)", done.stdout, flags=re.M))
 
 
 def close(value: str, truth: float, rel: float) -> bool:
@@ -95,7 +101,7 @@ def test_chirp_at_three_gains(scripts):
         assert close(out[f"K_p {gain}: f_t_Hz"], LAB["f_t_hz"], 0.02)  # 61.37 Hz within 2 %
         assert close(out[f"K_p {gain}: f_r_Hz"], LAB["f_r_hz"], 0.03)  # 74.89 Hz within 3 %
         assert float(out[f"K_p {gain}: min_coherence"]) > 0.95
-    plot = scripts["chirp_three_gains.py"][1] / out["plot"]
+    plot = scripts.cwd("chirp_three_gains.py") / out["plot"]
     assert plot.read_bytes()[:4] == b"\x89PNG" and plot.stat().st_size > 20_000
 
 
