@@ -97,6 +97,9 @@ def stream_run(app, tmp_path_factory):
                             progress=False)
     session.start()
     progress = pump(app, session, until=lambda s: s.fraction > 0.55)
+    while not session.window.result_plots.curves and session.worker.alive:
+        session.window.refresh()  # a loaded machine: the result pane may lag the traces
+        app.processEvents()
     shot = directory / "live_window.png"
     assert session.window.grab().save(str(shot))
     points_at_shot = len(session.window.result_plots.curves[0]["1000 mm/min, 20 N"].getData()[0])
