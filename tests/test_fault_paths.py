@@ -9,7 +9,6 @@ hangs for 3 s (SIGSTOP, SIGCONT), a peer that dies (SIGKILL), an address nobody 
 
 from __future__ import annotations
 
-import json
 import os
 import resource
 import signal
@@ -19,7 +18,6 @@ import sys
 import tempfile
 import threading
 import time
-import uuid
 from pathlib import Path
 from typing import Callable
 
@@ -32,8 +30,8 @@ from feedbench.config import validate_table
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording
 from feedbench.drivers.cia402 import SAFE_STATES
-from feedbench.sim_backends.process import READY
 from prerequisites import requires
+from sim_peer import start_sim
 from test_sim_process import _host_bench
 
 OPERATION_ENABLED_MASK, OPERATION_ENABLED = 0x6F, 0x27
@@ -61,19 +59,6 @@ def _can_mount_tmpfs() -> bool:
         return True
 
 
-def _start_sim(directory: Path) -> tuple[subprocess.Popen, dict]:
-    """`feedbench sim` on free loopback ports; its process and ready info."""
-    config = directory / "bench.toml"
-    config.write_text('[bench]\nsimulated = true\ninterface = "socketcand"\n'
-                      'socketcand = "127.0.0.1:0"\nmodbus = "127.0.0.1:0"\n'
-                      f'channel = "fault-{uuid.uuid4().hex[:8]}"\n')
-    process = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "sim", str(config)],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    line = process.stdout.readline()
-    assert line.startswith(READY), process.stderr.read()
-    return process, {**json.loads(line[len(READY):]), "directory": directory}
-
-
 def _end(process: subprocess.Popen) -> None:
     if process.poll() is None:
         process.send_signal(signal.SIGCONT)
@@ -84,7 +69,7 @@ def _end(process: subprocess.Popen) -> None:
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
     """One simulated bench process for the tests that leave it running."""
-    process, info = _start_sim(tmp_path_factory.mktemp("fault-sim"))
+    process, info = start_sim(tmp_path_factory.mktemp("fault-sim"))
     yield process, info
     _end(process)
 

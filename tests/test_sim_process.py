@@ -11,7 +11,6 @@ import json
 import subprocess
 import sys
 import time
-import uuid
 
 import can
 import numpy as np
@@ -28,8 +27,8 @@ from feedbench.experiments.plan import recorded_windows
 from feedbench.models.milling import SMFE_SENSOR_NOISE
 from feedbench.models.friction import LAB_BENCH_FRICTION
 from feedbench.protocols.canbus import open_bus
-from feedbench.sim_backends.process import READY
 from feedbench.sim_backends.socketcand_hub import SocketcandHub
+from sim_peer import start_sim
 
 ACCELEROMETERS = ("acc_tool_x", "acc_tool_y", "acc_tool_z")
 
@@ -37,17 +36,9 @@ ACCELEROMETERS = ("acc_tool_x", "acc_tool_y", "acc_tool_z")
 @pytest.fixture(scope="module")
 def bench_process(tmp_path_factory):
     """`feedbench sim` on free ports; yields its ready info; must exit 0 on SIGTERM."""
-    directory = tmp_path_factory.mktemp("sim")
-    config = directory / "bench.toml"
-    config.write_text('[bench]\nsimulated = true\ninterface = "socketcand"\n'
-                      'socketcand = "127.0.0.1:0"\nmodbus = "127.0.0.1:0"\n'
-                      f'channel = "sim-{uuid.uuid4().hex[:8]}"\n')
-    process = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "sim", str(config)],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process, info = start_sim(tmp_path_factory.mktemp("sim"))
     try:
-        line = process.stdout.readline()
-        assert line.startswith(READY), process.stderr.read()
-        yield {**json.loads(line[len(READY):]), "directory": directory}
+        yield info
     finally:
         process.terminate()
         _, err = process.communicate(timeout=20)

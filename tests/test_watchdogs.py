@@ -15,7 +15,6 @@ import signal
 import subprocess
 import sys
 import time
-import uuid
 from contextlib import contextmanager
 from typing import Iterator
 
@@ -39,7 +38,7 @@ from feedbench.protocols.cia402 import (
 from feedbench.sim_backends import eds
 from feedbench.sim_backends.bench import start_simulated_axis
 from feedbench.sim_backends.io_module import SimulatedIoModule
-from feedbench.sim_backends.process import READY as SIM_READY
+from sim_peer import start_sim
 
 NODE = 1
 IO_NODE = 10
@@ -323,16 +322,9 @@ def test_canopens_basenode402_drives_the_simulated_drive(can_channel):
 
 @pytest.fixture
 def sim_process(tmp_path):
-    config = tmp_path / "bench.toml"
-    config.write_text('[bench]\nsimulated = true\ninterface = "socketcand"\n'
-                      'socketcand = "127.0.0.1:0"\nmodbus = "127.0.0.1:0"\n'
-                      f'channel = "sim-{uuid.uuid4().hex[:8]}"\n')
-    process = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "sim", str(config)],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process, info = start_sim(tmp_path)
     try:
-        line = process.stdout.readline()
-        assert line.startswith(SIM_READY), process.stderr.read()
-        yield json.loads(line[len(SIM_READY):])
+        yield info
     finally:
         process.terminate()
         process.communicate(timeout=20)
