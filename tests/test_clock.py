@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from feedbench.bench import parse_run_config, run_config
+from feedbench.daq import clock
 from feedbench.daq.clock import BusTimeout, LockstepClock, RealtimeClock, one_core
 from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
@@ -135,6 +136,33 @@ def test_one_core_pins_the_thread_and_the_threads_it_starts_then_restores():
     assert cpu in before and inside == started["cpus"] == {cpu}
     assert os.sched_getaffinity(0) == before
 
+
+
+@needs_two_cpus
+def test_two_benches_at_once_get_a_cpu_each(tmp_path, monkeypatch):
+    """Two pinned threads (two simulated benches of a campaign or of two test workers) never
+    share a CPU while the other one idles: the second takes the CPU the first does not hold,
+    whichever CPU it ran on. (Lock files of its own: the other test worker's benches hold
+    the machine's.)"""
+    monkeypatch.setattr(clock, "CPU_LOCKS", tmp_path)
+    results: dict[str, int | None] = {}
+    first_in, release = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        with one_core() as cpu:
+            results["first"] = cpu
+            first_in.set()
+            release.wait(10)
+
+    holder = threading.Thread(target=hold)
+    holder.start()
+    first_in.wait(10)
+    with one_core() as second:
+        results["second"] = second
+    release.set()
+    holder.join()
+    assert results["first"] != results["second"]
+    assert {results["first"], results["second"]} <= os.sched_getaffinity(0)
 
 class _ThreadCpus:
     """Observer: the CPUs allowed to each thread started since `before`, seen mid-run."""

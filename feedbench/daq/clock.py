@@ -23,10 +23,13 @@ cheaper (see there).
 
 from __future__ import annotations
 
+import fcntl
 import os
+import tempfile
 import time
 from array import array
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Iterator, Protocol, Sequence
 
 import canopen
@@ -238,24 +241,60 @@ def _sleep_until(deadline: float) -> None:
 @contextmanager
 def one_core() -> Iterator[int | None]:
     """Run the calling thread, and every thread it starts meanwhile, on one CPU: the one it
-    runs on now (the scheduler's choice). Restores the thread's CPUs on exit; yields the CPU,
-    or None where nothing changes (not Linux, one CPU allowed).
+    runs on now, unless another simulated bench on this machine holds it (`_claimed_cpu`).
+    Restores the thread's CPUs on exit; yields the CPU, or None where nothing changes (not
+    Linux, one CPU allowed).
 
     A lockstep cycle hands the GIL from the host to the device's receive thread to the
     host's receive thread and back, so the threads never run at once; across two cores each
     hand-over is a cross-core wake-up. On one core the quick demo campaign took 98 s instead
-    of 161 s (40 % less CPU) with identical results, on this 2-core VM.
+    of 161 s (40 % less CPU) with identical results, on this 2-core VM. Two benches at once
+    (a campaign's workers, two test workers) each get a CPU of their own: pinned to the same
+    one they would share it for the whole run while the other CPU idles.
     """
     cpu = _current_cpu()
     allowed = os.sched_getaffinity(0) if cpu is not None else set()
     if len(allowed) < 2 or cpu not in allowed:
         yield None
         return
-    os.sched_setaffinity(0, {cpu})
-    try:
-        yield cpu
-    finally:
-        os.sched_setaffinity(0, allowed)
+    with _claimed_cpu(sorted(allowed, key=lambda candidate: candidate != cpu)) as claimed:
+        os.sched_setaffinity(0, {claimed})
+        try:
+            yield claimed
+        finally:
+            os.sched_setaffinity(0, allowed)
+
+
+CPU_LOCKS = Path(tempfile.gettempdir())
+"""Where the lock files that mark a CPU as held by a simulated bench live (any process)."""
+
+
+def _cpu_lock(cpu: int) -> Path:
+    """The lock file of `cpu` in `CPU_LOCKS`."""
+    return CPU_LOCKS / f"feedbench-cpu-{cpu}.lock"
+
+
+@contextmanager
+def _claimed_cpu(candidates: Sequence[int]) -> Iterator[int]:
+    """The first of `candidates` that no other bench holds, held until exit: an exclusive
+    `flock` on its lock file, which the kernel releases when the holder exits or dies. The
+    first candidate, unclaimed, when every one is held."""
+    for cpu in candidates:
+        try:
+            handle = os.open(_cpu_lock(cpu), os.O_RDONLY | os.O_CREAT, 0o666)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(handle)
+            continue
+        try:
+            yield cpu
+        finally:
+            os.close(handle)
+        return
+    yield candidates[0]
 
 
 def _current_cpu() -> int | None:
