@@ -147,6 +147,12 @@ def damping_ratios(roots: ArrayLike) -> NDArray[np.float64]:
     return np.divide(-r.real, magnitude, out=np.zeros(r.shape), where=magnitude > 0)
 
 
+def _in_band_damping(roots: ComplexArray, band: tuple[float, float]) -> NDArray[np.float64]:
+    """ζ of each root whose natural frequency |s|/2π lies in `band` (Hz), +inf elsewhere."""
+    natural = np.abs(roots) / (2 * np.pi)
+    return np.where((natural >= band[0]) & (natural <= band[1]), damping_ratios(roots), np.inf)
+
+
 def critical_damping(roots: ArrayLike, band: tuple[float, float]) -> NDArray[np.float64]:
     """Damping of the critical structural mode per row of roots.
 
@@ -154,12 +160,17 @@ def critical_damping(roots: ArrayLike, band: tuple[float, float]) -> NDArray[np.
     root in the right half-plane gets its most negative damping instead (unstable).
     """
     r = np.asarray(roots, dtype=complex)
-    zeta = damping_ratios(r)
-    natural = np.abs(r) / (2 * np.pi)
-    in_band = (natural >= band[0]) & (natural <= band[1])
-    band_minimum = np.where(in_band, zeta, np.inf).min(axis=-1)
-    overall_minimum = zeta.min(axis=-1)
-    return np.where(overall_minimum < 0, overall_minimum, band_minimum)
+    overall_minimum = damping_ratios(r).min(axis=-1)
+    return np.where(overall_minimum < 0, overall_minimum, _in_band_damping(r, band).min(axis=-1))
+
+
+def critical_root(roots: ArrayLike, band: tuple[float, float]) -> ComplexArray:
+    """The least-damped root in `band` (Hz) per row (rad/s), NaN where no root lies in it."""
+    r = np.asarray(roots, dtype=complex)
+    zeta = _in_band_damping(r, band)
+    index = np.argmin(zeta, axis=-1)[..., None]
+    root = np.take_along_axis(r, index, axis=-1)[..., 0]
+    return np.where(np.isfinite(np.take_along_axis(zeta, index, axis=-1)[..., 0]), root, np.nan)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,134 @@
+"""Contour and tracking error of the P-PI cascade of Fig. 4.15 (feedbench.analysis.contour),
+checked against formulations it does not use: the classic steady-state circle of a
+first-order position loop, the straight line's following error v/K_v, the frequency-domain
+closed loops of Eqs. (4.21, 4.22), and a circle's steady radius from that response."""
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from feedbench.analysis import contour, servo
+from feedbench.models.axis import CascadeGains, TwoMassAxis
+
+RIGID = signal.TransferFunction([1.0], [1.0, 0.0])
+"""1 kg without friction: mobility 1/s (m/(N·s))."""
+
+STIFF_VELOCITY_LOOP = dict(K_p=1e7, T_i=1.0)
+"""Velocity loop of 1e7 rad/s on RIGID: ideal against a position loop of tens of 1/s."""
+
+AXIS = TwoMassAxis()
+LAB_MOBILITY = servo.with_delay(
+    servo.chain_mobility([AXIS.m_mot, AXIS.m_tip], [AXIS.k], [AXIS.c], 168.0), 0.75e-3, 4)
+"""The simulated lab bench (Ch. 5.3.2 axis, σ of its friction's viscous term, τ_ol 0.75 ms)."""
+
+LAB_GAINS = CascadeGains.standard(AXIS.m_mot + AXIS.m_tip, 60.0)
+"""The simulated drive's factory tuning (bench.world bandwidth_Hz = 60)."""
+
+NO_FEEDFORWARD = contour.Feedforward(K_ffv=0.0, tau_BF=0.0)
+
+
+def _steady_radius(run: contour.ContourRun, after_s: float) -> float:
+    """Mean radius (m) of the actual path over the cruise, `after_s` after it began."""
+    path = run.path
+    late = path.cruise & (path.time > path.time[path.cruise][0] + after_s)
+    return float(np.hypot(*run.actual[late].T).mean())
+
+
+def test_ramp_profile_reaches_the_distance_with_the_acceleration_limit():
+    """sin² ramps: the arc ends at the distance, the speed at the feed, |a| peaks at the limit."""
+    arc, speed, cruise = contour.ramp_profile(0.05, 0.1, 2.0, 1e-4)
+    assert arc[-1] == pytest.approx(0.05, abs=1e-9)
+    assert speed[cruise] == pytest.approx(0.1)
+    assert np.abs(np.diff(speed) / 1e-4).max() == pytest.approx(2.0, rel=1e-3)
+    np.testing.assert_allclose(np.diff(arc) / 1e-4, 0.5 * (speed[1:] + speed[:-1]), atol=1e-6)
+
+
+def test_circle_radius_error_of_a_first_order_position_loop():
+    """No feed-forward, ideal velocity loop: ΔR = R (1 − 1/√(1 + (ω/K_v)²)) with ω = v/R.
+
+    R 10 mm, 6000 mm/min (ω = 10 rad/s), K_v 20 1/s: ΔR = 1.0557 mm; within 0.1 %."""
+    spec = contour.ContourSpec(radius_mm=10.0, feed_mm_min=6000.0, acceleration_m_s2=5.0)
+    gains = CascadeGains(K_v=20.0, **STIFF_VELOCITY_LOOP)
+    run = contour.follow(RIGID, gains, contour.circle_path(spec), NO_FEEDFORWARD)
+    expected = 10e-3 * (1 - 1 / np.sqrt(1 + (10.0 / 20.0) ** 2))
+    assert 10e-3 - _steady_radius(run, 0.3) == pytest.approx(expected, rel=1e-3)
+    late = run.path.cruise & (run.path.time > run.path.time[run.path.cruise][0] + 0.3)
+    assert run.contour_error[late] == pytest.approx(expected, rel=2e-3)
+
+
+def test_ideal_feedforward_leaves_no_contour_error():
+    """K_ffv = 1 without balancing filter on an ideal velocity loop: the axis is on the path
+    (contour and tracking error < 0.2 µm where the first-order loop misses by 1 mm; the
+    piecewise-linear reference and feed-forward of the 0.5 ms step differ by ≈ 0.1 µm)."""
+    spec = contour.ContourSpec(radius_mm=10.0, feed_mm_min=6000.0, acceleration_m_s2=5.0)
+    gains = CascadeGains(K_v=20.0, **STIFF_VELOCITY_LOOP)
+    run = contour.follow(RIGID, gains, contour.circle_path(spec),
+                         contour.Feedforward(K_ffv=1.0, tau_BF=0.0))
+    assert run.errors.contour_max_um < 0.2
+    assert run.errors.tracking_max_um < 0.2
+
+
+def test_straight_line_following_error_is_feed_over_k_v():
+    """Constant feed, no feed-forward: tracking error v/K_v = 0.05/25 = 2 mm in the cruise,
+    contour error nil (the axis lags along the line)."""
+    path = contour.straight_path((0.0, 0.0), (60.0, 80.0), 3000.0, 1.0, 0.5e-3)
+    run = contour.follow(RIGID, CascadeGains(K_v=25.0, **STIFF_VELOCITY_LOOP), path,
+                         NO_FEEDFORWARD)
+    settled = path.cruise & (path.time > path.time[path.cruise][0] + 0.4)
+    assert run.tracking_error[settled] == pytest.approx(0.05 / 25.0, rel=1e-4)
+    assert run.errors.contour_max_um < 1e-3
+
+
+def test_state_space_matches_the_closed_loops_of_eqs_4_21_4_22():
+    """Lab bench, no feed-forward: x_mot/x_ref of the state space equals Eq. (4.22) over
+    Eq. (4.21)'s closed velocity loop (no delay), 1–500 Hz, to 1e-5."""
+    a, b, c, d = contour.cascade_state_space(LAB_MOBILITY, LAB_GAINS, NO_FEEDFORWARD)
+    f = np.geomspace(1.0, 500.0, 200)
+    _, response = signal.freqresp((a, b[:, :1], c, d[:, :1]), 2 * np.pi * f)
+    mobility = signal.freqresp(LAB_MOBILITY, 2 * np.pi * f)[1]
+    velocity = servo.closed_velocity_loop(f, mobility, LAB_GAINS.K_p, LAB_GAINS.T_i)
+    expected = servo.closed_position_loop(f, velocity, LAB_GAINS.K_v, delay=0.0)
+    np.testing.assert_allclose(response, expected, rtol=1e-5)
+
+
+def test_lab_bench_circle_radius_follows_the_frequency_response():
+    """Fig. 4.15 with K_ffv = 1, τ_BF = 1 ms on the lab bench: the steady radius from the time
+    simulation equals R |G(jω)|, G = T_v (K_v/(τ_BF s + 1) + K_ffv s)/(s + K_v T_v) from
+    Eq. (4.21) (R 20 mm at 12 m/min: ω = 10 rad/s, ΔR = 20 µm), within the sagitta
+    (v dt)²/(8R) = 16 nm by which lsim's piecewise-linear reference cuts inside the circle."""
+    spec = contour.ContourSpec(radius_mm=20.0, feed_mm_min=12000.0, acceleration_m_s2=10.0,
+                               step_s=0.25e-3)
+    run = contour.follow(LAB_MOBILITY, LAB_GAINS, contour.circle_path(spec))
+    omega = 0.2 / 0.02
+    mobility = signal.freqresp(LAB_MOBILITY, [omega])[1]
+    f = omega / (2 * np.pi)
+    t_v = servo.closed_velocity_loop(f, mobility, LAB_GAINS.K_p, LAB_GAINS.T_i)
+    s = 1j * omega
+    g = t_v * (LAB_GAINS.K_v / (1e-3 * s + 1) + s) / (s + LAB_GAINS.K_v * t_v)
+    sagitta = (0.2 * spec.step_s) ** 2 / (8 * 20e-3)
+    assert _steady_radius(run, 0.3) == pytest.approx(20e-3 * abs(g[0]), abs=sagitta)
+
+
+def test_distance_to_path_is_to_the_segments_not_the_vertices():
+    """Coarse polyline (1 mm vertices): a point 1 µm beside mid-segment is 1 µm away."""
+    vertices = np.column_stack([np.arange(0.0, 0.01, 1e-3), np.zeros(10)])
+    points = np.array([[0.0045, 1e-6], [0.0105, 0.0], [-1e-3, -1e-3]])
+    np.testing.assert_allclose(contour.distance_to_path(vertices, points),
+                               [1e-6, 1.5e-3, np.sqrt(2) * 1e-3], rtol=1e-9)
+
+
+def test_corner_is_two_rest_to_rest_legs():
+    """Exact stop at the corner (speed 0 there), the acceleration limit on each axis."""
+    spec = contour.ContourSpec(feed_mm_min=3000.0, acceleration_m_s2=2.0, corner_leg_mm=15.0)
+    path = contour.corner_path(spec)
+    at_corner = np.argmin(np.hypot(*(path.position - [0.015, 0.0]).T))
+    assert np.hypot(*path.velocity[at_corner]) < 1e-3 * 0.05
+    np.testing.assert_allclose(path.position[-1], [0.015, 0.015], atol=1e-12)
+    acceleration = np.abs(np.diff(path.velocity, axis=0)) / spec.step_s
+    assert acceleration.max() <= 2.0 * (1 + 1e-6)
+
+
+def test_circle_refuses_a_feed_above_the_centripetal_limit():
+    with pytest.raises(ValueError, match="centripetal"):
+        contour.circle_path(contour.ContourSpec(radius_mm=1.0, feed_mm_min=6000.0,
+                                                acceleration_m_s2=1.0))
