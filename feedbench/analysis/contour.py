@@ -4,10 +4,11 @@ Fig. 4.15 (thesis Ch. 4.6, Table 4.3).
 Each axis: the open-loop mobility ẋ_mot/F_mot (m/(N·s), a rational model such as
 `polezero.PoleZeroModel.transfer_function` or `servo.with_delay(servo.chain_mobility(...))`)
 closed by the PI velocity loop F = K_p (1 + 1/(T_i s)) (v_cmd − ẋ_mot) and the P position
-loop v_cmd = K_v P(s) (x_f − x_mot) + K_ffv v_ref. The position reference passes the
+loop v_cmd = P(s) (K_v (x_f − x_mot) + K_ffv v_ref). The position reference passes the
 first-order balancing filter x_f = x_ref/(τ_BF s + 1); the velocity feed-forward takes the
 unfiltered reference velocity; P(s) is the Padé approximation (Eq. 4.16) of an optional
-position-loop delay (1 without). The closed loop is one state-space model, simulated by
+position-loop delay (1 without): the whole velocity command of a sampled position loop is
+late (≈ half its period for the hold), feed-forward included. The closed loop is one state-space model, simulated by
 `scipy.signal.lsim` (exact for the piecewise-linear reference); its denominator is
 `rootlocus.cascade_characteristic`. Errors are those of the motor-side (encoder) position,
 as in the thesis's simulation.
@@ -218,13 +219,13 @@ def cascade_state_space(mobility: signal.TransferFunction, gains: CascadeGains,
     plant, x_mot, integral, delay, bf, x_ref, v_ref = (
         np.eye(width)[edges[i]:edges[i + 1]] for i in range(len(sizes)))
     x_f = bf if filtered else x_ref
-    position_error = x_f - x_mot
-    v_cmd = gains.K_v * (c_p @ delay + d_p @ position_error) + feedforward.K_ffv * v_ref
+    position_loop = gains.K_v * (x_f - x_mot) + feedforward.K_ffv * v_ref
+    v_cmd = c_p @ delay + d_p @ position_loop
     v_mot = c_g @ plant
     velocity_error = v_cmd - v_mot
     force = gains.K_p * (velocity_error + integral / gains.T_i)
     derivatives = [a_g @ plant + b_g @ force, v_mot, velocity_error,
-                   a_p @ delay + b_p @ position_error]
+                   a_p @ delay + b_p @ position_loop]
     if filtered:
         derivatives.append((x_ref - bf) / feedforward.tau_BF)
     ab = np.vstack(derivatives)
