@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from feedbench.analysis import lft, servo, tuning
+from feedbench.analysis import contour, lft, servo, tuning
 from feedbench.analysis.tuning import (
     bandwidth_tunings,
     engineering_gains,
@@ -197,3 +197,31 @@ def test_candidate_names_do_not_clash():
         tuning.candidate_gains(SIM_MOBILITY, SETUP, SIM_M_TOTAL, 60.0,
                                tuning.bandwidth_bounds(SIM_M_TOTAL, 15.0, 87.0),
                                {"standard": standard_gains(SIM_M_TOTAL, 30.0)})
+
+
+@pytest.mark.parametrize("position_delay", [0.0, 1e-3])
+def test_critical_mode_is_an_eigenvalue_of_the_contour_loop(position_delay):
+    """The root-locus polynomial (rootlocus.cascade_characteristic) and the contour's closed
+    loop (state space assembled block by block) are two formulations of one cascade: the
+    critical root's f_n and ζ are an eigenvalue of the latter's A (to 1e-6), whose other
+    eigenvalues are the characteristic's roots plus the balancing filter's −1/τ_BF."""
+    gains = standard_gains(SIM_M_TOTAL, 60.0)
+    setup = tuning.TuningSetup(band=SETUP.band, position_delay=position_delay)
+    mode = tuning.critical_mode(SIM_MOBILITY, gains, setup)
+    a = contour.cascade_state_space(SIM_MOBILITY, gains, setup.feedforward, position_delay)[0]
+    eigenvalues = np.linalg.eigvals(a)
+    natural, zeta = np.abs(eigenvalues) / (2 * np.pi), -eigenvalues.real / np.abs(eigenvalues)
+    nearest = np.argmin(np.abs(natural - mode.frequency_hz) + np.abs(zeta - mode.damping))
+    assert natural[nearest] == pytest.approx(mode.frequency_hz, rel=1e-6)
+    assert zeta[nearest] == pytest.approx(mode.damping, rel=1e-6)
+    assert np.min(np.abs(eigenvalues + 1e3)) < 1e-6 * 1e3
+    assert mode.stable and np.all(eigenvalues.real < 0)
+
+
+def test_tip_measurements_refuse_half_an_approach():
+    f, h = FREQUENCY, np.ones(FREQUENCY.size, dtype=complex)
+    with pytest.raises(ValueError, match="approach #1"):
+        tuning.TipMeasurements(frequency=f, mot_mot=h, tip_closed_k0=h)
+    with pytest.raises(ValueError, match="approach #2"):
+        tuning.TipMeasurements(frequency=f, mot_mot=h, tip_closed=(h,),
+                               measured_gains=(standard_gains(SIM_M_TOTAL, 30.0),))

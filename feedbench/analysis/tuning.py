@@ -22,7 +22,9 @@ from numpy.typing import NDArray
 from scipy import signal
 
 from feedbench.analysis import lft, rootlocus, stability
-from feedbench.analysis.contour import ContourSpec, Feedforward, MotionErrors, contour_paths, follow
+from feedbench.analysis.contour import (
+    ContourRun, ContourSpec, Feedforward, MotionErrors, contour_paths, follow,
+)
 from feedbench.analysis.servo import ComplexArray
 from feedbench.models.axis import CascadeGains, TwoMassAxis
 from feedbench.units import kv_to_m_min_per_mm
@@ -97,6 +99,13 @@ class TipMeasurements:
     transmissibility: ComplexArray | None = None
     tip_closed: tuple[ComplexArray, ...] = ()
     measured_gains: tuple[CascadeGains, ...] = ()
+
+    def __post_init__(self) -> None:
+        approach_1 = (self.tip_closed_k0, self.mot_tip_k0, self.transmissibility)
+        if any(x is None for x in approach_1) and not all(x is None for x in approach_1):
+            raise ValueError("approach #1 needs tip_closed_k0, mot_tip_k0 and transmissibility")
+        if len(self.tip_closed) != len(self.measured_gains) or len(self.tip_closed) == 1:
+            raise ValueError("approach #2 needs one gain set per tip compliance, at least two")
 
 
 @dataclass(frozen=True)
@@ -242,6 +251,15 @@ class CandidatePrediction:
     motion: dict[str, MotionErrors]
 
 
+def contour_runs(mobility: signal.TransferFunction, gains: CascadeGains,
+                 setup: TuningSetup) -> dict[str, ContourRun]:
+    """The test contours of `setup` under `gains` by name ("circle", "corner"): reference,
+    actual path and errors per sample (`contour.follow`), e.g. for plots."""
+    return {contour: follow(mobility, gains, path, setup.feedforward, setup.position_delay,
+                            setup.pade_order)
+            for contour, path in contour_paths(setup.contour).items()}
+
+
 def predict_candidate(name: str, gains: CascadeGains, mobility: signal.TransferFunction,
                       setup: TuningSetup) -> CandidatePrediction:
     """Everything `setup` asks about one gain set (mobility: rational ẋ_mot/F_mot, m/(N·s))."""
@@ -250,9 +268,7 @@ def predict_candidate(name: str, gains: CascadeGains, mobility: signal.TransferF
         tip = {approach: tip_prediction(setup.tip.frequency, compliance, setup.cutting)
                for approach, compliance in predict_tip(setup.tip, gains,
                                                        setup.position_delay).items()}
-    motion = {contour: follow(mobility, gains, path, setup.feedforward, setup.position_delay,
-                              setup.pade_order).errors
-              for contour, path in contour_paths(setup.contour).items()}
+    motion = {contour: run.errors for contour, run in contour_runs(mobility, gains, setup).items()}
     return CandidatePrediction(name=name, gains=gains,
                                critical=critical_mode(mobility, gains, setup),
                                tip=tip, motion=motion)
@@ -281,6 +297,7 @@ class Recommendation:
 
 
 def _depth(row: CandidatePrediction, approach: str) -> float:
+    """A row's minimum stable depth (mm) by `approach`; −inf where it has none."""
     prediction = row.tip.get(approach)
     return -np.inf if prediction is None or prediction.min_stable_depth_mm is None else (
         prediction.min_stable_depth_mm)
