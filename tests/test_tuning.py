@@ -225,3 +225,15 @@ def test_tip_measurements_refuse_half_an_approach():
     with pytest.raises(ValueError, match="approach #2"):
         tuning.TipMeasurements(frequency=f, mot_mot=h, tip_closed=(h,),
                                measured_gains=(standard_gains(SIM_M_TOTAL, 30.0),))
+
+
+def test_a_band_the_search_can_empty_is_refused():
+    """Band f_t…f_r (61–75 Hz) on the sim axis: the controller pulls the structural root out
+    of it (std 60 Hz: 49 Hz), so "no root in band" would win the search; refused, and the
+    critical mode of such gains is NaN, not ζ = 0."""
+    setup = tuning.TuningSetup(band=(SIM_AXIS.f_t, SIM_AXIS.f_r))
+    with pytest.raises(ValueError, match="widen"):
+        tuning.max_damping_gains(SIM_MOBILITY, setup,
+                                 tuning.bandwidth_bounds(SIM_M_TOTAL, 15.0, 87.0))
+    mode = tuning.critical_mode(SIM_MOBILITY, standard_gains(SIM_M_TOTAL, 60.0), setup)
+    assert np.isnan(mode.frequency_hz) and np.isnan(mode.damping)

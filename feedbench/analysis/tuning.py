@@ -129,8 +129,9 @@ class CuttingParameters:
 
 @dataclass(frozen=True)
 class TuningSetup:
-    """What every candidate is judged by: the band (Hz) of the critical structural mode, the
-    test contour and its feed-forward settings, the position-loop delay (s) with its Padé
+    """What every candidate is judged by: the band (Hz) of the critical structural mode (wide
+    enough to hold its closed-loop root at every gain: it wanders below f_t as the
+    controller's poles meet it; 0.5 f_t to 2 f_r on the lab bench), the test contour and its feed-forward settings, the position-loop delay (s) with its Padé
     order (root locus, contour, LFT controller), the tool-tip measurements and the cutting
     parameters (None: no compliance prediction / no lobes)."""
 
@@ -146,9 +147,21 @@ class TuningSetup:
 def max_damping_gains(mobility: signal.TransferFunction, setup: TuningSetup,
                       bounds: rootlocus.GainBounds, seed: int = 0) -> CascadeGains:
     """Gains within `bounds` maximising the critical mode's damping in `setup.band`
-    (`rootlocus.maximise_critical_damping`, Ch. 4.3.3; deterministic for a seed)."""
-    return rootlocus.maximise_critical_damping(mobility, setup.band, bounds, setup.position_delay,
-                                               setup.pade_order, seed).gains
+    (`rootlocus.maximise_critical_damping`, Ch. 4.3.3; deterministic for a seed).
+
+    A band some gains empty of roots would make "no root in band" the optimum: refused,
+    first on a 6 × 6 × 6 log grid of the box (one batched call), then at the optimum."""
+    grid = np.meshgrid(*(np.geomspace(*bound, 6) for bound in (bounds.K_p, bounds.T_i,
+                                                               bounds.K_v)))
+    if np.all(np.isfinite(rootlocus.critical_damping_of_gains(
+            mobility, *(g.ravel() for g in grid), setup.band, setup.position_delay,
+            setup.pade_order))):
+        optimum = rootlocus.maximise_critical_damping(mobility, setup.band, bounds,
+                                                      setup.position_delay, setup.pade_order, seed)
+        if np.isfinite(optimum.damping):
+            return optimum.gains
+    raise ValueError(f"band {setup.band} Hz: some gains leave no closed-loop root in it; widen "
+                     "it to hold the structural mode at every gain (e.g. 0.5 f_t to 2 f_r)")
 
 
 def candidate_gains(mobility: signal.TransferFunction, setup: TuningSetup, M_total: float,
@@ -157,18 +170,18 @@ def candidate_gains(mobility: signal.TransferFunction, setup: TuningSetup, M_tot
                     seed: int = 0) -> dict[str, CascadeGains]:
     """The candidates by name: "standard" (Eqs. 4.2, 4.8, 4.12 at f_bw Hz on M_total kg),
     "max_damping" (`max_damping_gains`) and the user's `listed` gain sets."""
-    found = {"standard": standard_gains(M_total, f_bw),
-             "max_damping": max_damping_gains(mobility, setup, bounds, seed)}
-    clash = sorted(set(found) & set(listed or {}))
+    clash = sorted({"standard", "max_damping"} & set(listed or {}))
     if clash:
         raise ValueError(f"listed gain set {clash[0]!r}: the name of a computed candidate")
-    return {**found, **(listed or {})}
+    return {"standard": standard_gains(M_total, f_bw),
+            "max_damping": max_damping_gains(mobility, setup, bounds, seed), **(listed or {})}
 
 
 @dataclass(frozen=True)
 class CriticalMode:
     """The least-damped closed-loop root in the band: natural frequency f_n (Hz), damping
-    ratio ζ (–), and whether every root of the cascade is in the left half-plane."""
+    ratio ζ (–; both NaN when no root lies in the band), and whether every root of the
+    cascade is in the left half-plane."""
 
     frequency_hz: float
     damping: float
@@ -181,8 +194,8 @@ def critical_mode(mobility: signal.TransferFunction, gains: CascadeGains,
     roots = rootlocus.polynomial_roots(rootlocus.cascade_characteristic(
         mobility, gains.K_p, gains.T_i, gains.K_v, setup.position_delay, setup.pade_order))
     root = complex(rootlocus.critical_root(roots, setup.band))
-    return CriticalMode(frequency_hz=abs(root) / (2 * np.pi),
-                        damping=float(rootlocus.damping_ratios(root)),
+    damping = float(rootlocus.damping_ratios(root)) if np.isfinite(root) else float("nan")
+    return CriticalMode(frequency_hz=abs(root) / (2 * np.pi), damping=damping,
                         stable=bool(np.all(roots.real < 0)))
 
 
