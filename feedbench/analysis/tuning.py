@@ -131,9 +131,10 @@ class CuttingParameters:
 class TuningSetup:
     """What every candidate is judged by: the band (Hz) of the critical structural mode (wide
     enough to hold its closed-loop root at every gain: it wanders below f_t as the
-    controller's poles meet it; 0.5 f_t to 2 f_r on the lab bench), the test contour and its feed-forward settings, the position-loop delay (s) with its Padé
-    order (root locus, contour, LFT controller), the tool-tip measurements and the cutting
-    parameters (None: no compliance prediction / no lobes)."""
+    controller's poles meet it; 0.5 f_t to 2 f_r on the lab bench), the test contour and
+    its feed-forward settings, the position-loop delay (s) with its Padé order (root locus,
+    contour, LFT controller), the tool-tip measurements and the cutting parameters (None:
+    no compliance prediction / no lobes)."""
 
     band: tuple[float, float]
     contour: ContourSpec = field(default_factory=ContourSpec)
