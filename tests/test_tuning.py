@@ -119,10 +119,10 @@ def sim_rows() -> dict[str, tuning.CandidatePrediction]:
     return {row.name: row for row in tuning.predict_candidates(candidates, SIM_MOBILITY, SETUP)}
 
 
-def _print_beside_table_4_3(rows: dict[str, tuning.CandidatePrediction], contour: str) -> None:
+def _print_beside_table_4_3(rows: dict[str, tuning.CandidatePrediction], path: str) -> None:
     for name, thesis in TABLE_4_3.items():
-        e = rows[name].motion[contour]
-        print(f"{contour} {name:12s} ζ {rows[name].critical.damping:.3f}  contour max/RMS "
+        e = rows[name].motion[path]
+        print(f"{path} {name:12s} ζ {rows[name].critical.damping:.3f}  contour max/RMS "
               f"{e.contour_max_um:7.2f} {e.contour_rms_um:6.2f}  tracking max/RMS "
               f"{e.tracking_max_um:7.1f} {e.tracking_rms_um:6.1f} µm   Table 4.3: {thesis}")
 
@@ -140,8 +140,8 @@ def test_max_damping_on_the_sim_bench_raises_damping_without_costing_bandwidth(s
     assert best.critical.damping >= 1.4 * standard.critical.damping
     assert best.critical.stable and standard.critical.stable
     assert best.gains.K_p == pytest.approx(standard.gains.K_p, rel=0.1)
-    for contour in ("circle", "corner"):
-        ratio = best.motion[contour].contour_max_um / standard.motion[contour].contour_max_um
+    for path in ("circle", "corner"):
+        ratio = best.motion[path].contour_max_um / standard.motion[path].contour_max_um
         assert ratio < 5.0
     with capsys.disabled():
         _print_beside_table_4_3(sim_rows, "circle")
@@ -185,11 +185,11 @@ def test_rows_are_json_and_the_recommendation_is_plain(sim_rows):
     assert set(decoded[1]["tip"]) == {"settings", "transmissibility"}
     advice = tuning.recommend(rows)
     depth = {row.name: row.tip["settings"].min_stable_depth_mm for row in rows}
-    contour = {row.name: max(e.contour_max_um for e in row.motion.values()) for row in rows}
+    error = {row.name: max(e.contour_max_um for e in row.motion.values()) for row in rows}
     assert advice.roughing == max(depth, key=depth.get)
-    assert advice.finishing == min(contour, key=contour.get)
+    assert advice.finishing == min(error, key=error.get)
     assert advice.roughing_by == "min stable depth (settings)"
-    print("min stable depth (mm)", depth, "contour max (µm)", contour, advice)
+    print("min stable depth (mm)", depth, "contour max (µm)", error, advice)
 
 
 def test_candidate_names_do_not_clash():
