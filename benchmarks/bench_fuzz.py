@@ -1,7 +1,8 @@
 """Parsers that never fall over (issue 18.5): every parser that reads bytes from outside, fed
 ≥ 10⁵ malformed inputs each (the targets of `tests/test_fuzz_parsers.py`: CANopen frames to
 the host driver and to the simulated drive, serial DAQ frames, raw Modbus TCP frames to the
-simulated devices, CSV + sidecar, EMPS and KUKA .mat, HDF5 recordings, UFF58).
+simulated devices, CSV + sidecar, EMPS and KUKA .mat, HDF5 recordings, UFF58 FRFs read,
+analysed and described as `feedbench analyze FILE.uff` does).
 
 An input is a valid seed after 1–8 random mutations (xor, truncate, insert, delete a byte),
 one in ten raw random bytes; seeded, so every run feeds the same inputs. Prints per parser:

@@ -207,7 +207,7 @@ def read_uff58(path: str | Path) -> list[ExchangeFrf]:
     try:
         sets = pyuff.UFF(str(path)).read_sets()
     except Exception as exc:  # pyuff raises bare Exceptions for every malformed file
-        raise ConfigError(f"{path}: not a readable universal file ({exc})") from None
+        raise ConfigError(f"{path}: not a readable universal file ({_hidden(exc)})") from None
     frfs: list[ExchangeFrf] = []
     for number, dataset in enumerate(sets if isinstance(sets, list) else [sets], 1):
         if dataset.get("type") != 58 or dataset.get("func_type") not in (FRF, COHERENCE):
@@ -222,6 +222,17 @@ def read_uff58(path: str | Path) -> list[ExchangeFrf]:
     return frfs
 
 
+def _hidden(exc: BaseException) -> str:
+    """pyuff's message and the error behind it: pyuff replaces a failed dataset's error by
+    its own ("Error when reading data-set(s)."), keeping it only as the context."""
+    cause = exc
+    while cause.__context__ is not None:
+        cause = cause.__context__
+    if cause is exc:
+        return str(exc)
+    return f"{str(exc).rstrip('.')}: {type(cause).__name__}: {str(cause).strip()[:120]}"
+
+
 def _frf_of(dataset: dict, where: str) -> ExchangeFrf:
     """An ExchangeFrf of one dataset 58, its ordinate scaled to SI."""
     response = _dof(dataset, "rsp", "ordinate")
@@ -229,9 +240,29 @@ def _frf_of(dataset: dict, where: str) -> ExchangeFrf:
     scale = 1.0
     if dataset["func_type"] == FRF:
         scale = _si_factor(dataset, "ordinate", where) / _si_factor(dataset, "orddenom", where)
-    return ExchangeFrf(_text(dataset, "id1") or where, _text(dataset, "id5"),
-                       np.asarray(dataset["x"], dtype=float),
-                       np.asarray(dataset["data"]) * scale, response, reference)
+    f, values = _lines(dataset, where)
+    return ExchangeFrf(_text(dataset, "id1") or where, _text(dataset, "id5"), f,
+                       values * scale, response, reference)
+
+
+def _lines(dataset: dict, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """A dataset's frequencies (Hz) and values, checked: one value per frequency, as many as
+    record 7 says, at least 2 lines, every number finite, frequencies increasing."""
+    f, values = np.asarray(dataset["x"], dtype=float), np.asarray(dataset["data"])
+    if f.ndim != 1 or values.shape != f.shape or f.size < 2:
+        raise ConfigError(f"{where}: {values.size} values on {f.size} frequency lines (an "
+                          f"FRF needs 2 or more lines, one value each)")
+    if dataset.get("num_pts", f.size) != f.size:
+        raise ConfigError(f"{where}: record 7 says {dataset['num_pts']} lines, the data "
+                          f"holds {f.size}")
+    if not (np.all(np.isfinite(f)) and np.all(np.isfinite(values))):
+        raise ConfigError(f"{where}: a frequency or value is not a finite number")
+    steps = np.flatnonzero(np.diff(f) <= 0)
+    if steps.size:
+        line = int(steps[0]) + 1
+        raise ConfigError(f"{where}: frequency line {line} ({f[line]:g} Hz) does not "
+                          f"follow line {line - 1} ({f[line - 1]:g} Hz)")
+    return f, values
 
 
 def _dof(dataset: dict, end: str, record: str) -> Dof:

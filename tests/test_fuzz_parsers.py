@@ -5,8 +5,9 @@ Each parser's contract, checked per input by `Target.outcome`:
 - CANopen frames to the host driver and to the simulated drive, serial DAQ frames, raw Modbus
   TCP (MBAP) frames to the simulated devices: never raise; a bad frame is dropped, counted or
   answered (SDO abort, EMCY, Modbus exception), and that answer is its rejection reason.
-- CSV + sidecar, EMPS and KUKA .mat, feedbench HDF5, UFF58 files: a `ConfigError`
-  "<file or field>: <reason>" and nothing else.
+- CSV + sidecar, EMPS and KUKA .mat, feedbench HDF5, UFF58 files (read, analysed and
+  described as `feedbench analyze FILE.uff` does): a `ConfigError` "<file or field>: <reason>"
+  and nothing else; an HDF5 file libhdf5 would read forever is rejected before it reads it.
 Any other exception, or a traceback logged by a library on the way, is a crash.
 `benchmarks/bench_fuzz.py` runs the same targets with ≥ 10⁵ inputs each.
 """
@@ -20,6 +21,8 @@ import random
 import re
 import socket
 import struct
+import subprocess
+import sys
 import uuid
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
@@ -39,7 +42,7 @@ from feedbench.closure_io import read_csv_trace, read_mat
 from feedbench.daq.recorder import Recorder
 from feedbench.daq.recording import open_recording
 from feedbench.drivers.serial_daq import FrameParser
-from feedbench.exchange import read_uff58, write_uff58
+from feedbench.exchange import analyze_uff58, describe_uff58, write_uff58
 from feedbench.protocols import cia301
 from feedbench.protocols.serial_frames import TYPE_REPLY, data_frame_bytes
 from feedbench.sim_backends.modbus_devices import (
@@ -322,7 +325,7 @@ def uff_seed(path: Path) -> bytes:
 
 
 def file_targets(directory: Path, tracebacks: LoggedTraceback) -> list[Target]:
-    """CSV + sidecar, EMPS .mat, KUKA .mat (axis 1), HDF5 recording, UFF58."""
+    """CSV + sidecar, EMPS .mat, KUKA .mat (axis 1), HDF5 recording, UFF58 (analysed)."""
     seeds = directory / "seeds"
     seeds.mkdir()
     return [csv_target(directory, tracebacks),
@@ -333,7 +336,7 @@ def file_targets(directory: Path, tracebacks: LoggedTraceback) -> list[Target]:
             file_target("hdf5_recording", directory / "run.h5", hdf5_seed(seeds / "run.h5"),
                         open_recording, tracebacks),
             file_target("uff58", directory / "frf.uff", uff_seed(seeds / "frf.uff"),
-                        read_uff58, tracebacks)]
+                        lambda path: describe_uff58(analyze_uff58(path)), tracebacks)]
 
 
 @contextmanager
@@ -414,6 +417,9 @@ def test_the_crashes_fuzzing_found_are_rejections_with_their_reason(tmp_path):
 def check_found_crashes(fuzz_targets: dict[str, Target]) -> None:
     host, sim = fuzz_targets["can_host"], fuzz_targets["can_sim"]
     emps, csv_text = fuzz_targets["emps_mat"].seeds[0], fuzz_targets["csv_sidecar"].seeds[0]
+    uff = fuzz_targets["uff58"]
+    record7 = b"         6         4         1"  # the FRF's record 7: type, lines, even
+    data_end = uff.seeds[0].index(b"    -1\n", uff.seeds[0].index(b"58b"))
     tpdo = cia301.TPDO_COB_BASE + NODE_ID
     cases = [  # target, input, reason (before: the crash)
         (sim, frame(sim, SDO_RX, bytes([0x60]) + bytes(7)),  # TypeError logged by canopen
@@ -437,6 +443,13 @@ def check_found_crashes(fuzz_targets: dict[str, Target]) -> None:
          "trace.csv: not a text file ('utf-8' codec can't decode byte 0xff"),
         (fuzz_targets["csv_sidecar"], csv_text[:11] + csv_text[csv_text.index(b"0.009"):],
          "trace.csv: time: need at least 16 samples, got 11"),  # Trace's ValueError
+        (uff, uff.seeds[0][:data_end - 1] + uff.seeds[0][data_end:],  # IndexError in analyze
+         "frf.uff dataset 1: 3 values on 4 frequency lines"),
+        (uff, uff.seeds[0].replace(record7, record7.replace(b"4", b"3")),  # was read as 4
+         "frf.uff dataset 1: record 7 says 3 lines, the data holds 4"),
+        (uff, uff.seeds[0].replace(record7, record7.replace(b"4", b"x")),  # pyuff's own words
+         "frf.uff: not a readable universal file (Error when reading data-set(s): ValueError: "
+         "invalid literal for int() with base 10: 'x')"),
     ]
     for target, data, reason in cases:
         assert target.outcome(data).startswith(rejected(reason)), (target.name, reason)
@@ -463,3 +476,84 @@ def test_the_modbus_tcp_server_answers_after_malformed_frames_on_the_socket(fuzz
             answer = ask(raw, 1, 1, bytes.fromhex("03 0000 000a"))
     assert answer[:2] == bytes.fromhex("03 14") and len(answer) == 22
     assert tracebacks[logged:] == []
+
+
+READ_EACH = """
+import sys
+from feedbench.config import ConfigError
+from feedbench.daq.recording import open_recording
+for path in sys.argv[1:]:
+    try:
+        print(open_recording(path).status)
+    except ConfigError as exc:
+        print(exc)
+"""
+"""Prints each recording's status or the reason it is rejected (run in a child process)."""
+
+
+def heap_object(data: bytes, index: int) -> int:
+    """Where object `index` of the first global heap collection in `data` starts (objects:
+    index u16, references u16, reserved 4 bytes, size u64, data padded to 8 bytes)."""
+    at = data.index(b"GCOL") + 16
+    while struct.unpack_from("<H", data, at)[0] != index:
+        at += 16 + -(-struct.unpack_from("<Q", data, at + 8)[0] // 8) * 8
+    return at
+
+
+def with_heap_object_size(data: bytes, index: int, size: int) -> bytes:
+    """`data` with the size of object `index` of its first global heap collection set."""
+    changed = bytearray(data)
+    struct.pack_into("<Q", changed, heap_object(data, index) + 8, size)
+    return bytes(changed)
+
+
+def with_heap_byte_moved(data: bytes, index: int) -> bytes:
+    """`data` with a byte inserted into object `index`'s data and a zero byte of the free
+    space (object 0) deleted, so all behind the collection stays in place: the damage
+    bench_fuzz found (object 8, the versions; libhdf5 reads object 9 one byte late, with a
+    size of 1280, which steps into the zeros of the free space)."""
+    at, free = heap_object(data, index) + 16, heap_object(data, 0) + 16
+    return data[:at] + b"\x8d" + data[at:free] + data[free + 1:]
+
+
+def test_an_hdf5_file_libhdf5_would_read_forever_is_rejected_in_bounded_time(tmp_path):
+    """Each file read in a child process with a time limit (libhdf5's loop holds the GIL:
+    in this process it would hang the suite). Without the pre-check h5py hangs on the first
+    three, and on the fourth when it opens it by SWMR (a writer died with it open)."""
+    seed = hdf5_seed(tmp_path / "seed.h5")
+    heap = seed.index(b"GCOL")
+    cases = {
+        with_heap_byte_moved(seed, 8): f"global heap at byte {heap}: object 0 at byte 1720 "
+                                       f"has size 0: a step of 0, HDF5 would read it forever",
+        with_heap_object_size(seed, 0, 0): "object 0 at byte 496 has size 0: a step of 0",
+        with_heap_object_size(seed, 1, 2**64 - 16):  # 16 + 2^64 - 16 wraps to 0
+            "object 1 at byte 16 has size 18446744073709551600: a step of 0",
+        seed[:heap + 100]:  # what SWMR reads past the end of a file a dead writer left
+            "object 0 at byte 104 (past the file's end: zeros) has size 0: a step of 0",
+        with_heap_object_size(seed, 1, 5000): "object 1 at byte 16 has size 5000, past the "
+                                              "collection's 4096 bytes",
+        seed: "complete",
+    }
+    paths = [tmp_path / f"case{number}.h5" for number in range(len(cases))]
+    for path, data in zip(paths, cases):
+        path.write_bytes(data)
+    child = subprocess.run([sys.executable, "-c", READ_EACH, *map(str, paths)],
+                           capture_output=True, text=True, timeout=60)
+    lines = child.stdout.splitlines()
+    assert len(lines) == len(cases), child.stderr
+    for line, reason in zip(lines, cases.values()):
+        assert reason in line, (line, reason)
+    assert all(": not a readable HDF5 file (global heap at byte " in line for line in lines[:-1])
+
+
+def test_heap_signatures_in_recorded_samples_are_not_heaps(tmp_path):
+    """A channel whose samples spell a global heap's signature and a size no file holds
+    reads back (the pre-check walks only collections inside the file's address space)."""
+    words = np.frombuffer(b"GCOL\x01\x00\x00\x00" + struct.pack("<Q", 2**62), dtype=float)
+    path = tmp_path / "signature.h5"
+    with Recorder(path, ["position"], {"position": "m"},
+                  {"experiment": "fuzz", "config": {}, "cycle_s": 1e-3}, chunk_rows=4) as rec:
+        for cycle, value in enumerate([*words, 0.0, 0.0]):
+            rec.append(cycle, [value])
+    assert words.tobytes() in path.read_bytes()  # as written: the file holds the signature
+    assert np.array_equal(open_recording(path).channels["position"][:2], words)

@@ -31,6 +31,7 @@ import h5py
 import numpy as np
 
 from feedbench.config import ConfigError
+from feedbench.daq.hdf5_check import check_global_heaps
 
 CYCLE = "cycle"
 DATA = "data"
@@ -219,7 +220,9 @@ def _first_line(exc: BaseException) -> str:
 def _open(path: Path) -> h5py.File:
     """The file read-only, by SWMR only while a writer has it open (or died with it open):
     HDF5 retries a SWMR reader's failed metadata reads with growing sleeps, so a damaged
-    file opened by SWMR can block for minutes instead of failing."""
+    file opened by SWMR can block for minutes instead of failing. A file whose global heap
+    would make libhdf5 loop is rejected before it reads it (`hdf5_check`)."""
+    check_global_heaps(path)
     try:
         return h5py.File(path, "r", libver="latest")
     except OSError as exc:
