@@ -64,7 +64,8 @@ def check_global_heaps(path: Path) -> None:
 
 
 def _superblock(data: mmap.mmap) -> tuple[int, int] | None:
-    """(bytes per length, file offset where the address space ends) of the first
+    """(bytes per length, file offset up to which libhdf5 may read: the end-of-file address
+    counted from the signature, so at least that before a userblock too) of the first
     superblock, or None (no signature, an unknown version or field size)."""
     start = 0
     while start + 16 <= len(data) and data[start:start + 8] != SIGNATURE:
@@ -78,10 +79,8 @@ def _superblock(data: mmap.mmap) -> tuple[int, int] | None:
         (data[start + 13], data[start + 14])
     if offsets not in (2, 4, 8, 16, 32) or lengths not in (2, 4, 8, 16, 32):
         return None
-    base_at = {0: 24, 1: 28}.get(version, 12)
-    base = _number(data, start + base_at, offsets)
-    eoa = _number(data, start + base_at + 2 * offsets, offsets)
-    return lengths, start + (eoa - (base - start)) % WORD  # libhdf5 rebases to the signature
+    eoa_at = {0: 24, 1: 28}.get(version, 12) + 2 * offsets  # after base and one address
+    return lengths, start + _number(data, start + eoa_at, offsets)
 
 
 def _walk(data: mmap.mmap, start: int, lengths: int, end: int) -> None:
