@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
+import h5py
 import numpy as np
 import pytest
 import scipy.io
@@ -39,6 +40,7 @@ from pymodbus.server import ModbusTcpServer
 
 from feedbench.config import ConfigError
 from feedbench.closure_io import read_csv_trace, read_mat
+from feedbench.daq.hdf5_check import DamagedHdf5, check_global_heaps
 from feedbench.daq.recorder import Recorder
 from feedbench.daq.recording import open_recording
 from feedbench.drivers.serial_daq import FrameParser
@@ -557,3 +559,17 @@ def test_heap_signatures_in_recorded_samples_are_not_heaps(tmp_path):
             rec.append(cycle, [value])
     assert words.tobytes() in path.read_bytes()  # as written: the file holds the signature
     assert np.array_equal(open_recording(path).channels["position"][:2], words)
+
+
+@pytest.mark.parametrize("libver, userblock", [("earliest", 0), ("latest", 0), ("latest", 1024)])
+def test_the_heap_check_reads_each_superblock(tmp_path, libver, userblock):
+    """Superblock version 0 and 3, with and without a userblock: an intact file passes, a
+    free-space object of size 0 is found where it is."""
+    path = tmp_path / "any.h5"
+    with h5py.File(path, "w", libver=libver, userblock_size=userblock) as file:
+        file.attrs["text"] = "hello"
+    check_global_heaps(path)
+    path.write_bytes(with_heap_object_size(path.read_bytes(), 0, 0))
+    with pytest.raises(DamagedHdf5, match=f"global heap at byte {2048 + userblock}: object 0 "
+                                          f"at byte 40 has size 0: a step of 0"):
+        check_global_heaps(path)
