@@ -255,17 +255,25 @@ class Drive:
         given = {key: value for key, value in (("K_p_Ns_m", K_p_Ns_m), ("T_i_ms", T_i_ms),
                                                ("K_v_m_min_mm", K_v_m_min_mm))
                  if value is not None}
-        validate_table(given, GAINS_SCHEMA, "set_gains")
-        for key, value in given.items():
-            allowed = self._session.gain_limits[key]
-            if allowed is None:
-                raise ConfigError(f"limits.gains.{key}: no range declared, set_gains refuses "
-                                  f"{key} = {value:g}")
-            low, high = allowed
-            if not low <= value <= high:
-                raise ConfigError(f"set_gains.{key}: {value:g} outside limits.gains.{key} "
-                                  f"[{low:g}, {high:g}]")
+        check_gains(given, self._session.gain_limits)
         self._session._set_gains(given)
+
+
+def check_gains(given: Mapping[str, float], gain_limits: Mapping[str, Any],
+                source: str = "set_gains") -> None:
+    """Gains in CNC units (``K_p_Ns_m``, ``T_i_ms``, ``K_v_m_min_mm``) against their
+    ``[limits.gains]`` ranges; one outside, or without a declared range, is a `ConfigError`
+    naming it (`source`: what asked for them)."""
+    validate_table(given, GAINS_SCHEMA, source)
+    for key, value in given.items():
+        allowed = gain_limits[key]
+        if allowed is None:
+            raise ConfigError(f"limits.gains.{key}: no range declared, {source} refuses "
+                              f"{key} = {value:g}")
+        low, high = allowed
+        if not low <= value <= high:
+            raise ConfigError(f"{source}.{key}: {value:g} outside limits.gains.{key} "
+                              f"[{low:g}, {high:g}]")
 
 
 class BenchSession:

@@ -1,4 +1,5 @@
-"""The `feedbench` command: run, runs, analyze, live, report, demo, campaign, sim, export, closure.
+"""The `feedbench` command: run, runs, analyze, live, report, demo, campaign, sim, export, closure,
+tune.
 
 Errors the user can fix (a config key, a limit, an unknown run, a file that is not what it
 should be) print one line ``feedbench: error: <file or field>: <reason>`` and exit with
@@ -204,17 +205,50 @@ def cmd_campaign(args: argparse.Namespace) -> int:
     return 0 if summary["complete"] == len(summary["runs"]) else 1
 
 
+def cmd_tune(args: argparse.Namespace) -> int:
+    """`feedbench tune CONFIG [--apply NAME | --rollback]` (`feedbench.tune`): progress and
+    results on stdout (on stderr with --json, which prints the outcome)."""
+    from feedbench.daq.recording import printable_json
+    from feedbench.tune import (apply_candidate, load_tune_config, recommendation_text,
+                                rollback, run_tune)
+
+    def say(text: str) -> None:
+        print(text, file=sys.stderr if args.json else sys.stdout, flush=True)
+
+    config = load_tune_config(args.config)
+    if args.apply and args.rollback:
+        raise ConfigError("--apply, --rollback: give one of them")
+    if args.rollback:
+        out: dict = {"gains": rollback(config, say)}
+    elif args.apply:
+        out = apply_candidate(config, args.apply, say)
+    else:
+        result = run_tune(config, say)
+        say(recommendation_text(result))
+        say(f"report: {config.report_path}\nresult: {config.result_path}")
+        out = {"result": str(config.result_path), "report": str(config.report_path),
+               "recommendation": result["recommendation"]}
+    if args.json:
+        print(printable_json(out))
+    return 0
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     """Serve the simulated bench of a config as its own process until Ctrl-C / SIGTERM."""
     from feedbench.bench import sim_config
+    from feedbench.daq.clock import one_core
+    from feedbench.sim_backends.faults import with_fault_options
     from feedbench.sim_backends.process import serve
     from feedbench.sim_backends.socketcand_hub import HubError
 
     bench, workpiece = sim_config(args.config)
+    if args.fault:
+        bench = with_fault_options(bench, args.fault)
     for key in SIM_LISTENS:
         check_can_listen(f"bench.{key}", bench[key])
     try:
-        serve(bench, workpiece)
+        with one_core():  # hub and drive threads hand the GIL over on one CPU, not across two
+            serve(bench, workpiece)
     except HubError as exc:
         raise ConfigError(f"bench.socketcand: {exc}") from exc
     return 0
@@ -318,10 +352,23 @@ def build_parser() -> argparse.ArgumentParser:
     campaign.add_argument("--json", action="store_true", help="print the summary as JSON")
     campaign.set_defaults(func=cmd_campaign)
 
+    tune = sub.add_parser("tune", help="measure the servo loop and the tool tip, predict "
+                          "candidate gain sets, report; --apply NAME, --rollback")
+    tune.add_argument("config", help="TOML with [bench], [limits] (+ [limits.gains]), [tune]")
+    tune.add_argument("--apply", metavar="NAME", help="write candidate NAME's gains (within "
+                      "[limits.gains]), measure again, print predicted beside measured")
+    tune.add_argument("--rollback", action="store_true",
+                      help="write the gains the tune measured at back")
+    tune.add_argument("--json", action="store_true", help="print the outcome as JSON")
+    tune.set_defaults(func=cmd_tune)
+
     sim = sub.add_parser("sim", help="serve the simulated bench as its own process (CAN via "
                          "socketcand, Modbus TCP, DAQ pty on loopback)")
     sim.add_argument("config", help="TOML with [bench] (and [experiment] to prepare the "
                      "workpiece of an SMFE plan)")
+    sim.add_argument("--fault", action="append", default=[], metavar="KEY=VALUE",
+                     help="inject a fault (docs/faults.md), e.g. --fault at_cycle=300 "
+                     "--fault emcy_code=0x2310; at_cycle counts the SYNCs since the start")
     sim.set_defaults(func=cmd_sim)
 
     export = sub.add_parser("export", help="export a run (id, id prefix or .h5): FRFs as "

@@ -35,7 +35,7 @@ LAYERS = (
     ("bench", "exchange"),  # the composition root; UFF58 / CSV export of a run
     ("report", "gui"),
     ("closure_command", "demo", "api"),  # api: the scripting face (issue 17), reports too
-    ("campaign",),  # runs on Dask, summarised against the demo's world truth (issue 15)
+    ("campaign", "tune"),  # Dask runs against the demo's truth; the tuning workflow (issue 15)
     ("cli",),
 )
 LAYER = {room: level for level, rooms in enumerate(LAYERS) for room in rooms}

@@ -1,0 +1,787 @@
+"""`feedbench tune CONFIG`: the thesis's tuning procedure as one guided workflow (Ch. 4, issue 15).
+
+    feedbench tune CONFIG                 measure, predict, report, write the tune result
+    feedbench tune CONFIG --apply NAME    write candidate NAME's gains, measure again,
+                                          print predicted beside measured
+    feedbench tune CONFIG --rollback      write the gains the tune measured at back
+
+Steps (a progress line each): the closed velocity-loop Bode at the present gains (family
+``closed_loop_bode``, run through `api.open_bench` so it is recorded and catalogued) → the
+open-loop mobility (Eq. 4.20); the tool-tip FRF with the shaker (family ``shaker_chirp``) at
+the present gains and at each ``measure_gains`` setting; a pole–zero fit (Eq. 4.27); root loci
+over K_p and T_i; the candidates (standard tuning, Eqs. 4.2, 4.8, 4.12; maximum damping of the
+critical mode; the user's) and their predictions (`analysis.tuning`: critical mode, tool-tip
+compliance by LFT approach #2, Eqs. 4.26 and 4.23, ZOA lobes, contour and tracking errors of
+a circle and a corner, Table 4.3); an HTML report and a JSON tune result.
+
+The config is a run config's ``[bench]`` and ``[limits]`` (with ``[limits.gains]``: the ranges
+``--apply`` may write) and a ``[tune]`` table (`TUNE_SCHEMA`); everything is checked before
+anything moves.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import signal
+import sys
+import threading
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping, Sequence
+
+import numpy as np
+
+from feedbench.analysis import rootlocus, tuning
+from feedbench.analysis.contour import ContourSpec, Feedforward, contour_paths, follow
+from feedbench.analysis.modal import fit_modes
+from feedbench.analysis.polezero import PoleZeroFit, fit_pole_zero
+from feedbench.analysis.servo import closed_velocity_loop, laplace
+from feedbench.api import BenchSession, check_gains
+from feedbench.bench import GAINS_SCHEMA, parse_run_config
+from feedbench.config import ConfigError, Field, interval, non_negative, positive, read_toml
+from feedbench.config import validate_table
+from feedbench.daq.recording import printable_json
+from feedbench.experiments.closed_loop_bode import bandwidth
+from feedbench.experiments.tool_tip import (
+    COMPLIANCE_LABEL, LOBE_SPEEDS_RPM, TABLE_5_1, lobes_results,
+)
+from feedbench.models.axis import CascadeGains
+from feedbench.models.milling import engagement_angles
+from feedbench.report import render_html
+from feedbench.units import MM_PER_MIN, kv_to_m_min_per_mm, kv_to_per_second
+from feedbench.views.sections import (
+    FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, new_figure, png_of,
+)
+
+CONTOUR_SCHEMA = {
+    "radius_mm": Field(float, 20.0, "circle radius (mm)", positive),
+    "feed_mm_min": Field(float, 2000.0, "contour feed (mm/min)", positive),
+    "acceleration_m_s2": Field(float, 1.0, "peak path acceleration (m/s²)", positive),
+    "corner_leg_mm": Field(float, 20.0, "corner leg length (mm)", positive),
+}
+FEEDFORWARD_SCHEMA = {
+    "K_ffv": Field(float, 1.0, "velocity feed-forward gain (–)", non_negative),
+    "tau_BF_ms": Field(float, 1.0, "balancing filter time constant (ms), 0: none",
+                       non_negative),
+}
+TUNE_SCHEMA = {
+    "feed_mm_min": Field(float, 1500.0, "axis feed of every measurement (mm/min): friction "
+                         "sliding, in its viscous regime", positive),
+    "move_feed_mm_min": Field(float, 2500.0, "feed of the moves back to the start between "
+                              "the measurements (mm/min)", positive),
+    "bandwidth_Hz": Field(float, 60.0, "velocity bandwidth of the standard tuning (Hz), "
+                          "Eqs. 4.2, 4.8, 4.12", positive),
+    "search_Hz": Field(list, [15.0, 87.0], "bandwidths whose standard tunings bound the "
+                       "maximum-damping search (Hz)", interval),
+    "band_Hz": Field(list, [20.0, 120.0], "band of the critical structural mode (Hz)",
+                     interval),
+    "modes": Field(int, 1, "pole/zero pairs of the mobility fit, Eq. 4.27", positive),
+    "position_delay_ms": Field(float, 0.5, "position-loop delay (ms): the zero-order hold of "
+                               "its sampling, half its period", non_negative),
+    "pade_order": Field(int, 2, "Padé order of the delays, Eq. 4.16", positive),
+    "seed": Field(int, 0, "seed of the maximum-damping search", non_negative),
+    "result": Field(str, "", "tune result file (JSON); empty: <bench.output_dir>/tune.json"),
+    "report": Field(str, "", "HTML report; empty: <bench.output_dir>/tune.html"),
+    "bode": Field(dict, {}, "closed_loop_bode keys (velocity loop at feed_mm_min)"),
+    "tool_tip": Field(dict, None, "shaker_chirp keys (at feed_mm_min); absent: no tool-tip "
+                      "FRF"),
+    "measure_gains": Field(dict, {}, "further gain sets by name ([bench.gains] keys) the "
+                           "tool-tip FRF is measured at: approach #2 (Eq. 4.26) needs one"),
+    "candidates": Field(dict, {}, "the user's gain sets by name ([bench.gains] keys, all "
+                        "three)"),
+    "contour": Field(dict, {}, "test contour (CONTOUR_SCHEMA)"),
+    "feedforward": Field(dict, {}, "feed-forward of the contour simulation "
+                         "(FEEDFORWARD_SCHEMA)"),
+}
+COMPUTED = ("present", "standard", "max_damping")
+"""Candidate names the tune gives itself; the user's may not take them."""
+
+TABLE_4_3 = {"standard (thesis)": (9.4, 2.42, 31.7, 12.1),
+             "optimum damping (thesis)": (110.5, 23.8, 212.9, 75.5)}
+"""Table 4.3 (ram-type machine): contour max, RMS, tracking max, RMS (µm)."""
+
+Say = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class TuneConfig:
+    """A checked tune config: the bench session's tables (`raw`), the ``[tune]`` table,
+    the families' checked parameters, and where the result and the report go."""
+
+    raw: dict[str, Any]
+    tune: dict[str, Any]
+    bode: dict[str, Any]
+    tool_tip: dict[str, Any] | None
+    measure_gains: tuple[dict[str, float], ...]
+    candidates: dict[str, dict[str, float]]
+    result_path: Path
+    report_path: Path
+
+
+def _gain_table(table: Any, where: str, complete: bool) -> dict[str, float]:
+    """A ``[bench.gains]``-style table (CNC units) checked; `complete`: all three given."""
+    if not isinstance(table, Mapping):
+        raise ConfigError(f"{where}: must be a table of K_p_Ns_m, T_i_ms, K_v_m_min_mm")
+    gains = {k: v for k, v in validate_table(table, GAINS_SCHEMA, where).items() if v is not None}
+    missing = [key for key in GAINS_SCHEMA if key not in gains]
+    if complete and missing:
+        raise ConfigError(f"{where}.{missing[0]}: required")
+    if not gains:
+        raise ConfigError(f"{where}: give at least one of {', '.join(GAINS_SCHEMA)}")
+    return gains
+
+
+def _family_settings(name: str, table: Mapping[str, Any], where: str,
+                     session: Mapping[str, Any], **fixed: Any) -> dict[str, Any]:
+    """A family's keys checked as `feedbench run` checks them (the family's `check`, its plan
+    against the excitation limits), with the keys the tune sets itself (`fixed`: the loop,
+    the feed) refused if given."""
+    for key in ("type", *fixed):
+        if key in table:
+            raise ConfigError(f"{where}.{key}: set by the tune (the feed: tune.feed_mm_min)")
+    try:
+        return parse_run_config({**session, "experiment": {**table, "type": name, **fixed}}
+                                ).experiment.settings
+    except ConfigError as exc:  # the family names its fields experiment.<key>
+        text = str(exc)
+        raise ConfigError(where + text[len("experiment"):] if text.startswith("experiment.")
+                          else text) from None
+
+
+def parse_tune_config(raw: Mapping[str, Any], source: str = "config") -> TuneConfig:
+    """Check a whole tune config; every error is a `ConfigError` naming the field."""
+    session_tables = {key: raw[key] for key in ("bench", "limits") if key in raw}
+    session = BenchSession(session_tables, source)  # checks [bench], [limits], [limits.gains]
+    unknown = sorted(set(raw) - {"bench", "limits", "tune"})
+    if unknown:
+        raise ConfigError(f"{source}.{unknown[0]}: unknown table (bench, limits, tune)")
+    t = validate_table(raw.get("tune", {}), TUNE_SCHEMA, "tune")
+    validate_table(t["contour"], CONTOUR_SCHEMA, "tune.contour")
+    validate_table(t["feedforward"], FEEDFORWARD_SCHEMA, "tune.feedforward")
+    if not 0 < t["band_Hz"][0]:
+        raise ConfigError("tune.band_Hz: must lie above 0 Hz")
+    if t["move_feed_mm_min"] * MM_PER_MIN > 0.95 * session.limits.velocity:
+        raise ConfigError(f"tune.move_feed_mm_min: {t['move_feed_mm_min']:g} mm/min must stay "
+                          f"below 95 % of limits.velocity_mm_min")
+    feed = t["feed_mm_min"]
+    run_tables = {"bench": session.bench_config, "limits": session.limits_config}
+    bode = _family_settings("closed_loop_bode", t["bode"], "tune.bode", run_tables,
+                            loop="velocity", feed_mm_min=feed)
+    tool_tip = None if t["tool_tip"] is None else _family_settings(
+        "shaker_chirp", t["tool_tip"], "tune.tool_tip", run_tables, feeds_mm_min=[feed])
+    measure = tuple(_gain_table(g, f"tune.measure_gains.{name}", False)
+                    for name, g in t["measure_gains"].items())
+    for name, gains in zip(t["measure_gains"], measure):
+        check_gains(gains, session.gain_limits, f"tune.measure_gains.{name}")
+    candidates = {}
+    for name, table in t["candidates"].items():
+        if name in COMPUTED:
+            raise ConfigError(f"tune.candidates.{name}: a name the tune gives its own "
+                              f"candidates ({', '.join(COMPUTED)})")
+        candidates[name] = _gain_table(table, f"tune.candidates.{name}", True)
+    out = Path(session.bench_config["output_dir"])
+    return TuneConfig(dict(raw), t, bode, tool_tip, measure, candidates,
+                      Path(t["result"] or out / "tune.json"),
+                      Path(t["report"] or out / "tune.html"))
+
+
+def load_tune_config(path: str | Path) -> TuneConfig:
+    """Read and check a tune config file."""
+    return parse_tune_config(read_toml(path), str(path))
+
+
+def _session_config(config: TuneConfig) -> dict[str, Any]:
+    return {key: config.raw[key] for key in ("bench", "limits") if key in config.raw}
+
+
+# -- units ---------------------------------------------------------------------------------
+
+def gains_si(gains: Mapping[str, float]) -> CascadeGains:
+    """CNC-unit gains (K_p N·s/m, T_i ms, K_v (m/min)/mm) → `CascadeGains` in SI."""
+    return CascadeGains(K_p=float(gains["K_p_Ns_m"]), T_i=float(gains["T_i_ms"]) * 1e-3,
+                        K_v=kv_to_per_second(float(gains["K_v_m_min_mm"])))
+
+
+def gains_cnc(gains: CascadeGains) -> dict[str, float]:
+    """SI gains → the CNC's units: K_p (N·s/m), T_i (ms), K_v ((m/min)/mm)."""
+    return {"K_p_Ns_m": float(gains.K_p), "T_i_ms": float(gains.T_i * 1e3),
+            "K_v_m_min_mm": float(kv_to_m_min_per_mm(gains.K_v))}
+
+
+def gains_text(gains: Mapping[str, float]) -> str:
+    """``K_p 12968 N·s/m, T_i 5.31 ms, K_v 5.65 (m/min)/mm``."""
+    return (f"K_p {gains['K_p_Ns_m']:.0f} N·s/m, T_i {gains['T_i_ms']:.2f} ms, "
+            f"K_v {gains['K_v_m_min_mm']:.2f} (m/min)/mm")
+
+
+def change_text(old: Mapping[str, float], new: Mapping[str, float]) -> str:
+    """Old → new per gain in CNC units."""
+    return (f"K_p {old['K_p_Ns_m']:.0f} → {new['K_p_Ns_m']:.0f} N·s/m, "
+            f"T_i {old['T_i_ms']:.2f} → {new['T_i_ms']:.2f} ms, "
+            f"K_v {old['K_v_m_min_mm']:.2f} → {new['K_v_m_min_mm']:.2f} (m/min)/mm")
+
+
+# -- measurements --------------------------------------------------------------------------
+
+class StepProgress:
+    """Progress lines: one when a step starts, then at each quarter of its plan."""
+
+    def __init__(self, say: Say, total: int) -> None:
+        self.say, self.total, self.step, self._quarter = say, total, 0, -1
+
+    def start(self, text: str) -> None:
+        self.step += 1
+        self._quarter = -1
+        self.say(f"[{self.step}/{self.total}] {text}")
+
+    def __call__(self, done: float, label: str) -> None:
+        quarter = int(done * 4)
+        if quarter != self._quarter and done < 1.0:
+            self._quarter = quarter
+            self.say(f"      {100 * done:3.0f} %  {label}")
+
+
+def _polar(table: Mapping[str, Any], magnitude: str, phase: str) -> np.ndarray:
+    return np.asarray(table[magnitude]) * np.exp(1j * np.asarray(table[phase]))
+
+
+def measure_bode(session: BenchSession, config: TuneConfig, progress: StepProgress) -> dict:
+    """The closed velocity-loop Bode at the drive's gains: run id, f (Hz), closed loop,
+    open-loop mobility (Eq. 4.20, m/(N·s)) and −3 dB bandwidth (Hz)."""
+    progress.start(f"closed velocity-loop Bode at {gains_text(session.drive.gains)}")
+    run = session.run("closed_loop_bode", progress=progress, **config.bode)
+    frf = run.result["frf"]
+    return {"run": run.id, "file": str(run.path), "f_hz": frf["f_hz"],
+            "closed": {"abs": frf["abs"], "phase_rad": frf["phase_rad"]},
+            "r_squared": frf["r_squared"],
+            "mobility": {"abs": run.result["mobility"]["abs"],
+                         "phase_rad": run.result["mobility"]["phase_rad"]},
+            "bandwidth_hz": run.result["bandwidth_hz"]}
+
+
+def measure_tip(session: BenchSession, config: TuneConfig, progress: StepProgress,
+                home_mm: float) -> dict:
+    """The tool-tip FRF with the shaker at the drive's gains (from `home_mm`): run id, gains
+    (CNC units), f (Hz) and compliance x_tip/F_tip (m/N)."""
+    gains = session.drive.gains
+    progress.start(f"tool-tip FRF (shaker) at {gains_text(gains)}")
+    session.drive.move_to(home_mm, config.tune["move_feed_mm_min"])
+    run = session.run("shaker_chirp", progress=progress, **config.tool_tip)
+    feed = run.result["feeds"][0]
+    return {"run": run.id, "file": str(run.path), "gains": gains, "f_hz": feed["frf"]["f_hz"],
+            "compliance": {"abs": feed["frf"]["compliance_abs"],
+                           "phase_rad": feed["frf"]["compliance_phase_rad"]},
+            "min_coherence": feed["min_coherence"]}
+
+
+def measure(config: TuneConfig, say: Say) -> dict:
+    """Every measurement of the tune at the present gains (and the tool-tip FRF at each
+    ``measure_gains``, the present gains written back after them)."""
+    settings = len(config.measure_gains) + 1 if config.tool_tip else 0
+    progress = StepProgress(say, 1 + settings + 1)
+    with BenchSession(_session_config(config)) as session:
+        session.drive.enable()
+        present = session.drive.gains
+        if config.measure_gains:
+            check_gains(present, session.gain_limits, "present gains")
+        home = session.drive.read().position_mm
+        bode = measure_bode(session, config, progress)
+        tips = []
+        for setting in ({},) + config.measure_gains if config.tool_tip else ():
+            if setting:
+                session.drive.set_gains(**setting)
+            tips.append(measure_tip(session, config, progress, home))
+        if config.measure_gains:
+            session.drive.set_gains(**present)
+        session.drive.move_to(home, config.tune["move_feed_mm_min"])
+    return {"present_gains": present, "bode": bode, "tool_tip": tips, "progress": progress}
+
+
+# -- predictions ---------------------------------------------------------------------------
+
+def cutting() -> tuning.CuttingParameters:
+    """Table 5.1's cut for the lobes, y taken rigid (the lab flexure moves along the feed),
+    as the tool-tip families draw them (`experiments.tool_tip.tool_tip_lobes`)."""
+    start, stop = engagement_angles(TABLE_5_1.a_e, TABLE_5_1.D, TABLE_5_1.mode)
+    return tuning.CuttingParameters(LOBE_SPEEDS_RPM, TABLE_5_1.Z, TABLE_5_1.K_tc,
+                                    TABLE_5_1.K_rc / TABLE_5_1.K_tc, start, stop,
+                                    y_compliance=0.0)
+
+
+def setup_of(config: TuneConfig, measured: Mapping[str, Any], fit: PoleZeroFit
+             ) -> tuning.TuningSetup:
+    """What every candidate is judged by: the band, the contour, the feed-forward, the
+    position-loop delay and the tool-tip measurements (approach #2 from ≥ 2 settings)."""
+    t = config.tune
+    c = validate_table(t["contour"], CONTOUR_SCHEMA, "tune.contour")
+    ff = validate_table(t["feedforward"], FEEDFORWARD_SCHEMA, "tune.feedforward")
+    tip = None
+    tips = measured["tool_tip"]
+    if tips:
+        f = np.asarray(tips[0]["f_hz"])
+        tip = tuning.TipMeasurements(
+            frequency=f, mot_mot=fit.model.mobility(f) / laplace(f),
+            tip_closed=tuple(_polar(x["compliance"], "abs", "phase_rad") for x in tips)
+            if len(tips) >= 2 else (),
+            measured_gains=tuple(gains_si(x["gains"]) for x in tips) if len(tips) >= 2 else ())
+    return tuning.TuningSetup(band=tuple(t["band_Hz"]), contour=ContourSpec(**c),
+                              feedforward=Feedforward(ff["K_ffv"], ff["tau_BF_ms"] * 1e-3),
+                              position_delay=t["position_delay_ms"] * 1e-3,
+                              pade_order=t["pade_order"], tip=tip,
+                              cutting=cutting() if tip is not None else None)
+
+
+def fit_mobility(config: TuneConfig, bode: Mapping[str, Any]) -> PoleZeroFit:
+    """Eq. (4.27) fitted to the measured open-loop mobility in the critical band."""
+    f = np.asarray(bode["f_hz"])
+    return fit_pole_zero(f, _polar(bode["mobility"], "abs", "phase_rad"), config.tune["modes"])
+
+
+def velocity_bandwidth(fit: PoleZeroFit, gains: CascadeGains, band: Sequence[float]) -> float:
+    """−3 dB bandwidth (Hz) of the closed velocity loop the fit predicts, Eq. (4.21)."""
+    f = np.linspace(1.0, 2.0 * band[1], 4000)
+    return bandwidth(f, closed_velocity_loop(f, fit.model.mobility(f), gains.K_p, gains.T_i))
+
+
+MODE_BAND = 0.4
+"""Half-width of the band, relative to the peak frequency, a tool-tip mode is fitted in."""
+
+
+def quadrature_frequency(f: np.ndarray, compliance: np.ndarray) -> float:
+    """The frequency (Hz) nearest the compliance peak where its phase crosses −90°: a mode's
+    undamped f_n whatever its damping (the peak moves below it as ζ grows); NaN if none."""
+    k = int(np.argmax(np.abs(compliance)))
+    x = np.unwrap(np.angle(compliance)) + np.pi / 2
+    crossings = np.flatnonzero(np.sign(x[:-1]) != np.sign(x[1:]))
+    if not crossings.size:
+        return float("nan")
+    i = crossings[np.argmin(np.abs(crossings - k))]
+    return float(f[i] + (f[i + 1] - f[i]) * x[i] / (x[i] - x[i + 1]))
+
+
+def compliance_mode(f: np.ndarray, compliance: np.ndarray) -> dict[str, float]:
+    """Peak |x/F| (µm/N) and its frequency (Hz); the mode's f_n (Hz) by phase quadrature
+    (`quadrature_frequency`) and ζ of one mode fitted around the peak (±`MODE_BAND`,
+    `analysis.modal.fit_modes`; NaN where no mode is found)."""
+    k = int(np.argmax(np.abs(compliance)))
+    band = (max(f[0], (1 - MODE_BAND) * f[k]), min(f[-1], (1 + MODE_BAND) * f[k]))
+    modes = fit_modes(f, compliance, band, 1).modes
+    return {"peak_um_per_N": float(np.abs(compliance[k]) * 1e6), "peak_hz": float(f[k]),
+            "f_n_hz": quadrature_frequency(f, compliance),
+            "zeta": float(modes[0].zeta) if modes else float("nan")}
+
+
+def tip_curves(setup: tuning.TuningSetup, gains: CascadeGains) -> dict[str, np.ndarray]:
+    """Predicted x_tip/F_tip (m/N) by each approach the measurements allow."""
+    if setup.tip is None:
+        return {}
+    return tuning.predict_tip(setup.tip, gains, setup.position_delay)
+
+
+def predict(config: TuneConfig, measured: Mapping[str, Any], say: Say) -> dict:
+    """Fit, root loci, candidates and their predictions; the tune result (JSON-able) with the
+    objects the report draws (under ``_draw``)."""
+    progress = measured["progress"]
+    progress.start("open-loop mobility (Eq. 4.20) → pole–zero fit (Eq. 4.27), root loci over "
+                   "K_p and T_i, candidates, predictions")
+    t = config.tune
+    fit = fit_mobility(config, measured["bode"])
+    mobility = fit.model.transfer_function(t["pade_order"])
+    setup = setup_of(config, measured, fit)
+    present = gains_si(measured["present_gains"])
+    listed = {"present": present, **{k: gains_si(v) for k, v in config.candidates.items()}}
+    candidates = tuning.candidate_gains(
+        mobility, setup, fit.model.m_total, t["bandwidth_Hz"],
+        tuning.bandwidth_bounds(fit.model.m_total, *t["search_Hz"]), listed, t["seed"])
+    rows = tuning.predict_candidates(candidates, mobility, setup)
+    recommendation = tuning.recommend(rows)
+    limits = BenchSession(_session_config(config)).gain_limits
+    result = {"present_gains": measured["present_gains"],
+              "runs": {"bode": measured["bode"]["run"],
+                       "tool_tip": [x["run"] for x in measured["tool_tip"]]},
+              "bode": measured["bode"], "tool_tip": measured["tool_tip"],
+              "fit": {**asdict(fit.model), "rms_log_error": fit.rms_log_error},
+              "candidates": {row.name: candidate_entry(row, fit, setup, limits)
+                             for row in rows},
+              "recommendation": asdict(recommendation),
+              "approach": "settings (approach #2, Eqs. 4.26, 4.23)" if setup.tip and
+              setup.tip.tip_closed else "none (approach #2 needs tune.measure_gains)"}
+    result["_draw"] = {"fit": fit, "mobility": mobility, "setup": setup, "rows": rows}
+    say(f"      fit: m_total {fit.model.m_total:.2f} kg, delay {fit.model.delay * 1e3:.2f} ms, "
+        f"RMS log error {fit.rms_log_error:.4f}; {len(rows)} candidates")
+    return result
+
+
+def candidate_entry(row: tuning.CandidatePrediction, fit: PoleZeroFit,
+                    setup: tuning.TuningSetup, gain_limits: Mapping[str, Any]) -> dict:
+    """One candidate of the tune result: gains (CNC units), whether ``--apply`` may write
+    them, the critical mode, the tool-tip predictions (peak, lobes; the curve and its mode
+    by the preferred approach), the motion errors and the velocity bandwidth."""
+    gains = gains_cnc(row.gains)
+    try:
+        check_gains(gains, gain_limits, f"candidate {row.name}")
+        allowed = ""
+    except ConfigError as exc:
+        allowed = str(exc)
+    entry = {"gains": gains, "outside_limits": allowed, "critical": asdict(row.critical),
+             "tip": {k: asdict(v) for k, v in row.tip.items()},
+             "motion": {k: asdict(v) for k, v in row.motion.items()},
+             "velocity_bandwidth_hz": velocity_bandwidth(fit, row.gains, setup.band)}
+    curves = tip_curves(setup, row.gains)
+    approach = next((a for a in tuning.PREFERRED_APPROACH if a in curves), None)
+    if approach is not None:
+        f = setup.tip.frequency
+        entry["compliance"] = {"approach": approach, "f_hz": f.tolist(),
+                               "abs": np.abs(curves[approach]).tolist(),
+                               "phase_rad": np.angle(curves[approach]).tolist(),
+                               **compliance_mode(f, curves[approach])}
+    return entry
+
+
+# -- the report ----------------------------------------------------------------------------
+
+def _fmt(value: float | None, digits: int = 2) -> str:
+    return "–" if value is None else f"{value:.{digits}f}"
+
+
+def candidate_table(result: Mapping[str, Any]) -> Table:
+    """Candidate × (gains, f_n, ζ, peak compliance, min stable depth, contour and tracking
+    max/RMS of circle and corner)."""
+    rows = []
+    for name, c in result["candidates"].items():
+        g, crit = c["gains"], c["critical"]
+        tip = c.get("compliance")
+        depth = next((c["tip"][a]["min_stable_depth_mm"] for a in tuning.PREFERRED_APPROACH
+                      if a in c["tip"]), None)
+        motion = "\n".join(f"{k}: {m['contour_max_um']:.1f} / {m['contour_rms_um']:.2f}"
+                           for k, m in c["motion"].items())
+        tracking = "\n".join(f"{k}: {m['tracking_max_um']:.1f} / {m['tracking_rms_um']:.2f}"
+                             for k, m in c["motion"].items())
+        rows.append((name, f"{g['K_p_Ns_m']:.0f}", f"{g['T_i_ms']:.2f}",
+                     f"{g['K_v_m_min_mm']:.2f}", f"{crit['frequency_hz']:.1f}",
+                     f"{100 * crit['damping']:.2f}" + ("" if crit["stable"] else " unstable"),
+                     _fmt(tip and tip["peak_um_per_N"], 3), _fmt(depth, 3), motion, tracking,
+                     f"{c['velocity_bandwidth_hz']:.1f}", c["outside_limits"] or "yes"))
+    return Table("candidates: critical mode (root locus), predicted tool tip, motion errors",
+                 ("candidate", "K_p (N·s/m)", "T_i (ms)", "K_v ((m/min)/mm)", "f_n (Hz)",
+                  "ζ (%)", "peak |x/F| (µm/N)", "min stable depth (mm)",
+                  "contour max / RMS (µm)", "tracking max / RMS (µm)",
+                  "velocity bandwidth (Hz)", "within limits.gains"), tuple(rows))
+
+
+def table_4_3(result: Mapping[str, Any]) -> Table:
+    """Table 4.3 of the thesis beside the simulated standard and max-damping tunings."""
+    rows = [(name, *(f"{v:g}" for v in values)) for name, values in TABLE_4_3.items()]
+    ratio = {}
+    for name in ("standard", "max_damping"):
+        for contour, m in result["candidates"][name]["motion"].items():
+            values = (m["contour_max_um"], m["contour_rms_um"], m["tracking_max_um"],
+                      m["tracking_rms_um"])
+            ratio.setdefault(contour, []).append(values)
+            rows.append((f"{name}, {contour} (simulated)", *(f"{v:.2f}" for v in values)))
+    rows.append(("optimum / standard (thesis)", *(
+        f"{b / a:.1f}×" for a, b in zip(*TABLE_4_3.values()))))
+    for contour, (standard, damped) in ratio.items():
+        rows.append((f"max_damping / standard, {contour}", *(
+            f"{b / a:.1f}×" for a, b in zip(standard, damped))))
+    return Table("Table 4.3: the price of damping in contour error (thesis: ram-type machine)",
+                 ("tuning", "contour max (µm)", "contour RMS (µm)", "tracking max (µm)",
+                  "tracking RMS (µm)"), tuple(rows))
+
+
+def bode_plots(result: Mapping[str, Any], fit: PoleZeroFit) -> list[Plot]:
+    """The measured closed velocity loop beside the fit's (Eq. 4.21 at the present gains),
+    and the open-loop mobility (Eq. 4.20) beside the pole–zero fit (Eq. 4.27)."""
+    bode = result["bode"]
+    f = np.asarray(bode["f_hz"])
+    r2 = np.asarray(bode["r_squared"])
+    dense = np.linspace(f[0], f[-1], 800)
+    present = gains_si(result["present_gains"])
+    model = fit.model.mobility(dense)
+    no_quality = np.full(dense.size, np.nan)
+    plots = []
+    for title, measured, fitted, label in (
+            ("closed velocity loop ẋ_mot/ẋ_ref: measured, and the fit by Eq. (4.21)",
+             bode["closed"], closed_velocity_loop(dense, model, present.K_p, present.T_i),
+             "|H| closed loop (–)"),
+            ("open-loop mobility: measured by Eq. (4.20), and the pole–zero fit (Eq. 4.27)",
+             bode["mobility"], model, "|G| ((m/s)/N)")):
+        series = [FrfSeries("measured", f, np.asarray(measured["abs"]),
+                            np.asarray(measured["phase_rad"]), r2),
+                  FrfSeries("pole–zero fit", dense, np.abs(fitted), np.angle(fitted), no_quality)]
+        figure = frf_figure(series, label, "R² of the sine fits", 0.99)
+        for ax in figure.axes:
+            for line in ax.get_lines()[:1]:
+                line.set(marker="o", ms=3, lw=0)
+        plots.append(Plot(title, png_of(figure)))
+    return plots
+
+
+def root_locus_plot(result: Mapping[str, Any], mobility, setup: tuning.TuningSetup) -> Plot:
+    """Closed-cascade roots as K_p (0.1–3× present) and T_i (0.2–5× present) vary, the
+    others at the present gains; each candidate's critical root marked."""
+    present = gains_si(result["present_gains"])
+    figure = new_figure(10.0, 4.5)
+    axes = figure.subplots(1, 2, sharey=True)
+    sweeps = (("K_p", present.K_p * np.geomspace(0.1, 3.0, 300)),
+              ("T_i", present.T_i * np.geomspace(0.2, 5.0, 300)))
+    top = 1.5 * setup.band[1]
+    for ax, (name, values) in zip(axes, sweeps):
+        gains = {"K_p": present.K_p, "T_i": present.T_i, "K_v": present.K_v, name: values}
+        roots = rootlocus.polynomial_roots(rootlocus.cascade_characteristic(
+            mobility, gains["K_p"], gains["T_i"], gains["K_v"], setup.position_delay,
+            setup.pade_order)) / (2 * np.pi)
+        shown = (np.abs(roots.imag) <= top) & (roots.real > -top) & (roots.imag >= 0)
+        colour = np.broadcast_to(np.log10(values)[:, None], roots.shape)
+        points = ax.scatter(roots.real[shown], roots.imag[shown], c=colour[shown], s=3,
+                            cmap="viridis")
+        figure.colorbar(points, ax=ax, label=f"log10 {name} ({'N·s/m' if name == 'K_p' else 's'})")
+        for label, c in result["candidates"].items():
+            crit = c["critical"]
+            w, z = crit["frequency_hz"], crit["damping"]
+            ax.plot(-z * w, w * np.sqrt(max(1 - z * z, 0.0)), "x", ms=8, mew=2, label=label)
+        ax.axvline(0.0, color="k", lw=0.6)
+        ax.set_xlabel("Re(s)/2π (Hz)")
+        ax.set_title(f"{name} varied, other gains as present", fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("Im(s)/2π (Hz)")
+    axes[1].legend(fontsize=8)
+    return Plot("root locus of the P-PI cascade on the fitted mobility (Eq. 4.24, Padé delays "
+                "Eq. 4.16); ×: each candidate's critical mode", png_of(figure))
+
+
+def compliance_plot(result: Mapping[str, Any]) -> Plot:
+    """Measured tool-tip compliance at each measured setting and the predicted one of each
+    candidate (approach #2, Eqs. 4.26 and 4.23)."""
+    figure = new_figure(9.0, 4.5)
+    ax = figure.subplots()
+    for tip in result["tool_tip"]:
+        ax.semilogy(tip["f_hz"], tip["compliance"]["abs"], lw=2.5, alpha=0.35,
+                    label=f"measured at K_p {tip['gains']['K_p_Ns_m']:.0f} N·s/m")
+    for name, c in result["candidates"].items():
+        if "compliance" in c:
+            ax.semilogy(c["compliance"]["f_hz"], c["compliance"]["abs"], lw=1.0,
+                        label=f"{name}: predicted, peak {c['compliance']['peak_um_per_N']:.2f} "
+                              f"µm/N at {c['compliance']['peak_hz']:.1f} Hz")
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel(COMPLIANCE_LABEL)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    return Plot("tool-tip compliance x_tip/F_tip: measured (wide) and predicted per candidate",
+                png_of(figure))
+
+
+def contour_plot(result: Mapping[str, Any], mobility, setup: tuning.TuningSetup) -> Plot:
+    """Contour error along the circle and the corner of each candidate (time simulation of
+    the cascade on the fitted mobility, `analysis.contour.follow`)."""
+    figure = new_figure(10.0, 4.5)
+    axes = figure.subplots(1, 2)
+    for ax, (contour, path) in zip(axes, contour_paths(setup.contour).items()):
+        for name, c in result["candidates"].items():
+            run = follow(mobility, gains_si(c["gains"]), path, setup.feedforward,
+                         setup.position_delay, setup.pade_order)
+            ax.plot(path.time, run.contour_error * 1e6, lw=0.9,
+                    label=f"{name}: max {run.errors.contour_max_um:.1f} µm")
+        ax.set_xlabel("time along the path (s)")
+        ax.set_ylabel("contour error (µm)")
+        ax.set_title(f"{contour}: R {setup.contour.radius_mm:g} mm / leg "
+                     f"{setup.contour.corner_leg_mm:g} mm at {setup.contour.feed_mm_min:g} "
+                     f"mm/min", fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    return Plot("contour error of the test contours per candidate (K_ffv "
+                f"{setup.feedforward.K_ffv:g}, τ_BF {setup.feedforward.tau_BF * 1e3:g} ms)",
+                png_of(figure))
+
+
+def recommendation_text(result: Mapping[str, Any]) -> str:
+    """The plain recommendation: roughing (damping, stability) and finishing (accuracy)."""
+    r = result["recommendation"]
+    c = result["candidates"]
+    rough, fine = c[r["roughing"]], c[r["finishing"]]
+    return (f"Roughing: {r['roughing']} ({gains_text(rough['gains'])}): chosen by "
+            f"{r['roughing_by']}; critical mode {rough['critical']['frequency_hz']:.1f} Hz, "
+            f"ζ {100 * rough['critical']['damping']:.2f} %.\n"
+            f"Finishing: {r['finishing']} ({gains_text(fine['gains'])}): chosen by "
+            f"{r['finishing_by']}; circle contour error max "
+            f"{fine['motion']['circle']['contour_max_um']:.1f} µm.")
+
+
+def tune_section(result: Mapping[str, Any]) -> RunSection:
+    """The tune's report section: recommendation, candidate table, Table 4.3, and the plots."""
+    draw = result["_draw"]
+    fit, mobility, setup = draw["fit"], draw["mobility"], draw["setup"]
+    section = RunSection("tune", "tune", "complete",
+                         headline=recommendation_text(result).replace("\n", " "))
+    section.quality += [
+        Indicator("recommendation", recommendation_text(result)),
+        Indicator("pole–zero fit (Eq. 4.27)", f"RMS complex-log error {fit.rms_log_error:.4f}",
+                  fit.rms_log_error < 0.1),
+        Indicator("tool-tip prediction", result["approach"], bool(setup.tip and
+                                                                  setup.tip.tip_closed)),
+    ]
+    section.tables += [candidate_table(result), table_4_3(result), measurements_table(result)]
+    section.plots += bode_plots(result, fit) + [root_locus_plot(result, mobility, setup)]
+    if result["tool_tip"]:
+        section.plots.append(compliance_plot(result))
+        compliances = {name: (np.asarray(c["compliance"]["f_hz"]),
+                              _polar(c["compliance"], "abs", "phase_rad"))
+                       for name, c in result["candidates"].items() if "compliance" in c}
+        if compliances:
+            lobes_results(compliances, section)
+    section.plots.append(contour_plot(result, mobility, setup))
+    return section
+
+
+def measurements_table(result: Mapping[str, Any]) -> Table:
+    """The recorded runs the tune measured (their own report: ``feedbench report RUN…``)."""
+    bode = result["bode"]
+    rows = [(bode["run"], "closed velocity-loop Bode", gains_text(result["present_gains"]),
+             f"min R² {min(bode['r_squared']):.5f}", bode["file"])]
+    rows += [(x["run"], "tool-tip FRF (shaker)", gains_text(x["gains"]),
+              f"min coherence {x['min_coherence']:.4f}", x["file"]) for x in result["tool_tip"]]
+    return Table("measurements (recorded and catalogued; feedbench report RUN… shows each)",
+                 ("run", "what", "at gains", "quality", "file"), tuple(rows))
+
+
+def write_outputs(config: TuneConfig, result: dict) -> None:
+    """The HTML report (the tune's section) and the tune result."""
+    config.report_path.parent.mkdir(parents=True, exist_ok=True)
+    config.report_path.write_text(render_html([tune_section(result)], "feedbench tune"),
+                                  encoding="utf-8")
+    save_result(config.result_path, result)
+
+
+def save_result(path: Path, result: Mapping[str, Any]) -> None:
+    """The tune result as JSON (the report's drawing objects left out)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(printable_json({k: v for k, v in result.items() if k != "_draw"}) + "\n",
+                    encoding="utf-8")
+
+
+def read_result(path: Path) -> dict:
+    """A tune result file; missing or not one: `ConfigError` naming it."""
+    try:
+        result = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no tune result (run feedbench tune CONFIG first)") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: not a tune result ({exc})") from None
+    if not isinstance(result, dict) or "candidates" not in result:
+        raise ConfigError(f"{path}: not a tune result (no candidates)")
+    return result
+
+
+def run_tune(config: TuneConfig, say: Say) -> dict:
+    """Measure, predict, write the report and the result; returns the result."""
+    measured = measure(config, say)
+    result = predict(config, measured, say)
+    write_outputs(config, result)
+    return result
+
+
+# -- apply and roll back -------------------------------------------------------------------
+
+@contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Ctrl-C inside the block is held until the block ends, then raised: a gain write is
+    never cut in half (the old gains stay unless the write completed)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    seen: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: seen.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if seen:
+        raise KeyboardInterrupt
+
+
+def write_gains(session: BenchSession, new: Mapping[str, float], say: Say) -> dict[str, float]:
+    """Show old → new (CNC units), write `new` by SDO (within ``[limits.gains]``, Ctrl-C
+    held until the write is complete); returns the old gains."""
+    old = session.drive.gains
+    say(f"gains: {change_text(old, new)}")
+    with interrupts_deferred():
+        session.drive.set_gains(**new)
+    say("gains written by SDO")
+    return old
+
+
+def compare(predicted: Mapping[str, Any], measured: Mapping[str, Any]) -> dict:
+    """Predicted beside measured: tool-tip peak (µm/N), f_n (Hz), ζ (–) of the tool-tip mode,
+    velocity-loop bandwidth (Hz); each with the relative error of the prediction."""
+    rows = {}
+    for key in ("peak_um_per_N", "f_n_hz", "zeta", "velocity_bandwidth_hz"):
+        if key in predicted and key in measured:
+            p, m = predicted[key], measured[key]
+            rows[key] = {"predicted": p, "measured": m, "error": p / m - 1.0}
+    return rows
+
+
+def comparison_text(rows: Mapping[str, Mapping[str, float]]) -> str:
+    """The comparison as aligned lines."""
+    names = {"peak_um_per_N": ("tool-tip peak |x/F|", "µm/N", 1.0, 3),
+             "f_n_hz": ("tool-tip mode f_n", "Hz", 1.0, 2),
+             "zeta": ("tool-tip mode ζ", "%", 100.0, 2),
+             "velocity_bandwidth_hz": ("velocity-loop bandwidth", "Hz", 1.0, 1)}
+    lines = [f"{'':26s}{'predicted':>12s}{'measured':>12s}{'error':>9s}"]
+    for key, row in rows.items():
+        label, unit, scale, digits = names[key]
+        lines.append(f"{label:26s}{row['predicted'] * scale:>12.{digits}f}"
+                     f"{row['measured'] * scale:>12.{digits}f}{100 * row['error']:>+8.1f}%"
+                     f"  {unit}")
+    return "\n".join(lines)
+
+
+def apply_candidate(config: TuneConfig, name: str, say: Say) -> dict:
+    """Write candidate `name`'s gains, measure the tool-tip FRF and the closed velocity-loop
+    Bode again, and compare with the prediction; the tune result gets ``applied``."""
+    result = read_result(config.result_path)
+    if name not in result["candidates"]:
+        raise ConfigError(f"--apply: no candidate {name!r} in {config.result_path} (have: "
+                          f"{', '.join(result['candidates'])})")
+    candidate = result["candidates"][name]
+    session = BenchSession(_session_config(config))
+    check_gains(candidate["gains"], session.gain_limits, f"--apply {name}")
+    progress = StepProgress(say, 2 + bool(config.tool_tip))
+    with session:
+        session.drive.enable()
+        progress.start(f"write the gains of {name}")
+        old = write_gains(session, candidate["gains"], say)
+        applied = {"name": name, "old": old, "new": session.drive.gains, "measured": None}
+        save_result(config.result_path, {**result, "applied": applied})
+        home = session.drive.read().position_mm
+        measured: dict[str, Any] = {}
+        if config.tool_tip:
+            tip = measure_tip(session, config, progress, home)
+            measured = compliance_mode(np.asarray(tip["f_hz"]),
+                                       _polar(tip["compliance"], "abs", "phase_rad"))
+            measured["run_tool_tip"] = tip["run"]
+        session.drive.move_to(home, config.tune["move_feed_mm_min"])
+        bode = measure_bode(session, config, progress)
+        session.drive.move_to(home, config.tune["move_feed_mm_min"])
+    measured.update(velocity_bandwidth_hz=bode["bandwidth_hz"], run_bode=bode["run"])
+    predicted = {key: value for key, value in candidate.get("compliance", {}).items()
+                 if key not in ("f_hz", "abs", "phase_rad")}
+    predicted["velocity_bandwidth_hz"] = candidate["velocity_bandwidth_hz"]
+    applied["measured"] = measured
+    applied["comparison"] = compare(predicted, measured)
+    save_result(config.result_path, {**result, "applied": applied})
+    say(comparison_text(applied["comparison"]))
+    return applied
+
+
+def rollback(config: TuneConfig, say: Say) -> dict[str, float]:
+    """Write back the gains the tune measured at (the result's ``present_gains``)."""
+    result = read_result(config.result_path)
+    session = BenchSession(_session_config(config))
+    check_gains(result["present_gains"], session.gain_limits, "--rollback")
+    with session:
+        write_gains(session, result["present_gains"], say)
+        gains = session.drive.gains
+    save_result(config.result_path, {**result, "applied": None})
+    return gains
