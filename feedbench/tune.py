@@ -26,7 +26,7 @@ import json
 import signal
 import sys
 import threading
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Sequence
 
@@ -288,12 +288,15 @@ def measure(config: TuneConfig, say: Say) -> dict:
         home = session.drive.read().position_mm
         bode = measure_bode(session, config, progress)
         tips = []
-        for setting in ({},) + config.measure_gains if config.tool_tip else ():
-            if setting:
-                session.drive.set_gains(**setting)
-            tips.append(measure_tip(session, config, progress, home))
-        if config.measure_gains:
-            session.drive.set_gains(**present)
+        try:
+            for setting in ({},) + config.measure_gains if config.tool_tip else ():
+                if setting:
+                    session.drive.set_gains(**setting)
+                tips.append(measure_tip(session, config, progress, home))
+        finally:  # a failed or stopped measurement leaves the present gains too
+            if config.measure_gains:
+                with interrupts_deferred():
+                    session.drive.set_gains(**present)
         session.drive.move_to(home, config.tune["move_feed_mm_min"])
     return {"present_gains": present, "bode": bode, "tool_tip": tips, "progress": progress}
 
@@ -514,6 +517,7 @@ def bode_plots(result: Mapping[str, Any], fit: PoleZeroFit) -> list[Plot]:
         for ax in figure.axes:
             for line in ax.get_lines()[:1]:
                 line.set(marker="o", ms=3, lw=0)
+        figure.axes[0].legend(fontsize=8, loc="lower left")
         plots.append(Plot(title, png_of(figure)))
     return plots
 
@@ -630,6 +634,8 @@ def tune_section(result: Mapping[str, Any]) -> RunSection:
                        for name, c in result["candidates"].items() if "compliance" in c}
         if compliances:
             lobes_results(compliances, section)
+            section.plots[-1] = replace(section.plots[-1], title="stability lobes of each "
+                                        "candidate's predicted tool-tip compliance")
     section.plots.append(contour_plot(result, mobility, setup))
     return section
 
@@ -728,12 +734,15 @@ def comparison_text(rows: Mapping[str, Mapping[str, float]]) -> str:
              "f_n_hz": ("tool-tip mode f_n", "Hz", 1.0, 2),
              "zeta": ("tool-tip mode ζ", "%", 100.0, 2),
              "velocity_bandwidth_hz": ("velocity-loop bandwidth", "Hz", 1.0, 1)}
+    def number(value: float, width: int, form: str) -> str:
+        return f"{value:{form}}".rjust(width) if np.isfinite(value) else "–".rjust(width)
+
     lines = [f"{'':26s}{'predicted':>12s}{'measured':>12s}{'error':>9s}"]
     for key, row in rows.items():
         label, unit, scale, digits = names[key]
-        lines.append(f"{label:26s}{row['predicted'] * scale:>12.{digits}f}"
-                     f"{row['measured'] * scale:>12.{digits}f}{100 * row['error']:>+8.1f}%"
-                     f"  {unit}")
+        lines.append(f"{label:26s}{number(row['predicted'] * scale, 12, f'.{digits}f')}"
+                     f"{number(row['measured'] * scale, 12, f'.{digits}f')}"
+                     f"{number(100 * row['error'], 8, '+.1f')}%  {unit}")
     return "\n".join(lines)
 
 

@@ -35,10 +35,9 @@ SHORT = {"bode": {"f_start_Hz": 20.0, "f_stop_Hz": 110.0, "f_step_Hz": 3.0,
                   "cycles_per_frequency": 5, "settle_cycles": 3, "settle_s": 0.2},
          "tool_tip": {"amplitude_N": 20.0, "f_start_Hz": 20.0, "f_stop_Hz": 110.0,
                       "duration_s": 2.0, "tail_s": 0.3, "repetitions": 1,
-                      "daq_rate_Hz": 1000, "settle_s": 0.2},
-         "bandwidth_Hz": 45.0}
-"""The example's [tune] with shorter plans, and the standard tuning at 45 Hz (not the drive's
-factory 60 Hz, so that it is a candidate of its own)."""
+                      "daq_rate_Hz": 1000, "settle_s": 0.2}}
+"""The example's [tune] (its standard tuning at 45 Hz, the drive's factory one at 60 Hz) with
+shorter plans."""
 
 APPLIED = ("standard", "max_damping", "stiff")
 
