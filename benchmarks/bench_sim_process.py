@@ -56,7 +56,8 @@ def _bench_table(**values) -> dict:
     return validate_table(values, BENCH_SCHEMA, "bench")
 
 
-def _start_bench_process(directory: Path) -> tuple[subprocess.Popen, dict]:
+def start_bench_process(directory: Path) -> tuple[subprocess.Popen, dict]:
+    """`feedbench sim` (every device) on free loopback ports; its process and ready info."""
     config = directory / "bench.toml"
     config.write_text('[bench]\nsimulated = true\ninterface = "socketcand"\n'
                       'socketcand = "127.0.0.1:0"\nmodbus = "127.0.0.1:0"\n'
@@ -74,7 +75,7 @@ def lockstep_rates() -> tuple[float, float]:
     """Median cycles/s: in-process virtual bus, and the bench process over socketcand."""
     local = _bench_table(channel=f"bench-local-{uuid.uuid4().hex[:8]}")
     with tempfile.TemporaryDirectory() as directory:
-        process, info = _start_bench_process(Path(directory))
+        process, info = start_bench_process(Path(directory))
         remote = _bench_table(simulated=False, interface="socketcand",
                               socketcand=info["socketcand"], channel=info["channel"])
         try:

@@ -279,7 +279,8 @@ class Bench:
                 self.clock = LockstepClock(self.network, list(drives.values()),
                                            timeout_s=cfg["timeout_s"], cycle_s=cycle_s)
             else:
-                self.clock = RealtimeClock(self.network, list(drives.values()), period_s=cycle_s)
+                self.clock = RealtimeClock(self.network, list(drives.values()), period_s=cycle_s,
+                                           timeout_s=cfg["timeout_s"])
             self._stack.callback(self.clock.close)
             addresses = axis.addresses(self.simulated) if self.simulated is not None else {}
             links = DeviceLinks({**cfg, **addresses}, self.network, drives, self._stack)
@@ -332,10 +333,11 @@ class Bench:
         outcome = runner.run(config.plan, recorder, start)
         reason = outcome.reason
         try:
-            catalog.finish(run_id, outcome.status, reason, recorder.n_samples)
+            catalog.finish(run_id, outcome.status, reason, recorder.n_samples, outcome.timing)
         except CatalogError as exc:  # full disk: `feedbench runs` settles it from the file
             reason = f"{reason}; {exc}" if reason else str(exc)
-        return {"id": run_id, "file": str(path), "status": outcome.status, "reason": reason}
+        record = {"id": run_id, "file": str(path), "status": outcome.status, "reason": reason}
+        return {**record, "timing": outcome.timing} if outcome.timing else record
 
 
 FREE_SPACE_MARGIN = 1.5

@@ -25,6 +25,7 @@ from matplotlib.figure import Figure as MplFigure
 
 from feedbench.daq.live import bucket_size, minmax_decimate
 from feedbench.daq.recording import Recording, open_recording
+from feedbench.daq.timing import MISSED_TARGET, CycleTiming, recorded_timing
 from feedbench.experiments.family import families
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import recorded_windows
@@ -82,6 +83,23 @@ def trace_plot(recording: Recording) -> Plot:
         ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)  # beside the data
     axes[-1].set_xlabel("time (s)")
     return Plot("key time traces", png_of(figure))
+
+
+def timing_plot(timing: CycleTiming) -> Plot:
+    """A real-time run's lateness histogram (µs; `daq.timing`), log count axis."""
+    edges = np.asarray(timing.histogram_edges_us)
+    figure = new_figure(10.0, 3.2)
+    ax = figure.subplots()
+    ax.stairs(timing.histogram_counts, edges, fill=True, alpha=0.6)
+    ax.axvline(timing.lateness_p99_us, color="k", ls="--", lw=0.8,
+               label=f"p99 {timing.lateness_p99_us:.0f} µs")
+    ax.set_yscale("log")
+    ax.set_xlabel("lateness of the cycle's TPDOs behind the run's fastest answer (µs)")
+    ax.set_ylabel("cycles")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(alpha=0.3)
+    return Plot(f"cycle timing: lateness histogram ({timing.received} cycles, "
+                f"{1e-3 / timing.cycle_s:g} kHz)", png_of(figure))
 
 
 def drive_channels(recording: Recording, names: Sequence[str]) -> list[str]:
@@ -191,6 +209,20 @@ def headroom(recording: Recording, limits: Limits) -> list[Indicator]:
     ]
 
 
+def timing_quality(timing: CycleTiming) -> list[Indicator]:
+    """A real-time run's cycles: missed, repeated, late (`daq.timing`), lateness."""
+    share = 100.0 / max(timing.expected, 1)
+    return [
+        Indicator("bus cycles (real time)", f"{timing.received} of {timing.expected} received, "
+                  f"{timing.missed} missed ({share * timing.missed:.3f} %)",
+                  timing.missed_share <= MISSED_TARGET),
+        Indicator("repeated / late cycles", f"{timing.repeated} ({share * timing.repeated:.3f} "
+                  f"%) / {timing.late} ({share * timing.late:.3f} %)"),
+        Indicator("lateness", f"p50 {timing.lateness_p50_us:.0f} µs, p99 "
+                  f"{timing.lateness_p99_us:.0f} µs, max {timing.lateness_max_us:.0f} µs"),
+    ]
+
+
 def stream_quality(recording: Recording) -> list[Indicator]:
     """Samples and lost samples of every high-rate stream (the DAQ's counter)."""
     return [Indicator(f"{name} stream", f"{stream.n_samples} samples at {stream.rate_hz:g} Hz, "
@@ -209,6 +241,10 @@ def run_section(recording: Recording, truth: Mapping[str, Any] | None = None) ->
                          recording.experiment, recording.status)
     section.quality += run_quality(recording)
     section.plots.append(trace_plot(recording))
+    timing = recorded_timing(recording)
+    if timing is not None and timing.received:
+        section.quality += timing_quality(timing)
+        section.plots.append(timing_plot(timing))
     experiment = families().get(recording.experiment)
     if experiment is None:
         section.quality.append(Indicator("results", "no analysis for this experiment"))

@@ -1,4 +1,5 @@
-"""Bench clocks over the real stack: lockstep cycle counting, gaps, timeouts, real-time pacing."""
+"""Bench clocks over the real stack: lockstep cycle counting, gaps, timeouts (real time:
+tests/test_realtime.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import pytest
 
 from feedbench.bench import parse_run_config, run_config
 from feedbench.daq import clock
-from feedbench.daq.clock import BusTimeout, LockstepClock, RealtimeClock, one_core
+from feedbench.daq.clock import BusTimeout, LockstepClock, one_core
 from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
 from feedbench.protocols.canbus import open_network
@@ -24,10 +25,10 @@ from prerequisites import requires
 from test_cia402_sim import NODE_ID, enable, loopback
 
 
-def wait_for_device_cycle(drive: Cia402Drive, value: int, timeout_s: float = 2.0) -> None:
+def wait_for_tpdo_sets(drive: Cia402Drive, count: int, timeout_s: float = 2.0) -> None:
     deadline = time.monotonic() + timeout_s
-    while drive.device_cycle != value:
-        assert time.monotonic() < deadline, f"device cycle {drive.device_cycle} != {value}"
+    while drive.sets_received < count:
+        assert time.monotonic() < deadline, f"TPDO sets {drive.sets_received} < {count}"
         time.sleep(1e-3)
 
 
@@ -44,9 +45,9 @@ def test_tick_returns_the_device_counter_unwrapped_across_16_bits(can_channel):
 def test_gap_counts_a_sync_the_host_did_not_clock(can_channel):
     with loopback(can_channel) as bench:
         enable(bench, CSV, velocity=0.0)
-        before = bench.clock.cycle
+        before, sets = bench.clock.cycle, bench.drive.sets_received
         bench.listener.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
-        wait_for_device_cycle(bench.drive, before + 1)  # its TPDOs reached the host
+        wait_for_tpdo_sets(bench.drive, sets + 1)  # its TPDOs reached the host
         after_gap = bench.clock.tick()
         later = [bench.clock.tick() for _ in range(5)]
     assert after_gap == before + 2
@@ -87,37 +88,6 @@ def test_lockstep_clock_drives_two_axes(can_channel):
     assert clock.cycles == [204, 204] and clock.gaps == 0
     assert drives[0].actual.velocity == 0.0
     assert drives[1].actual.velocity == pytest.approx(0.005, rel=0.01)
-
-
-def test_realtime_clock_paces_sync_and_records_lateness(can_channel):
-    period = 2e-3
-    with loopback(can_channel) as bench:
-        clock = RealtimeClock(bench.drive.network, [bench.drive], period_s=period)
-        start = time.perf_counter()
-        for _ in range(50):
-            clock.tick()
-        elapsed = time.perf_counter() - start
-        deadline = time.monotonic() + 2.0
-        while bench.device.values[0x2020] < 50 and time.monotonic() < deadline:
-            time.sleep(1e-3)  # a late last cycle may still be in the device's queue
-        device_cycles = bench.device.values[0x2020]
-    stats = clock.jitter_stats()
-    assert elapsed >= 49 * period  # SYNC slots are never early
-    assert device_cycles == 50  # one SYNC per tick
-    assert stats["n"] == 50 and 0.0 <= stats["mean_us"] <= stats["max_us"]
-    assert stats["std_us"] >= 0.0
-    assert 0 < clock.cycle <= 50
-
-
-def test_realtime_clock_times_out_without_answers(can_channel):
-    with loopback(can_channel) as bench:
-        clock = RealtimeClock(bench.drive.network, [bench.drive], period_s=2e-3, timeout_s=0.05)
-        clock.tick()
-        bench.device.close()
-        with pytest.raises(BusTimeout, match="no complete TPDO set"):
-            for _ in range(200):
-                clock.tick()
-    assert clock.missed >= 1
 
 
 TWO_CPUS = hasattr(os, "sched_getaffinity") and len(os.sched_getaffinity(0)) >= 2

@@ -44,13 +44,14 @@ CREATE TABLE IF NOT EXISTS runs (
     n_samples INTEGER,
     params JSON NOT NULL DEFAULT '{}',
     pid INTEGER,
-    host TEXT
+    host TEXT,
+    timing JSON
 )
 """
-ADDED_COLUMNS = {"pid": "INTEGER", "host": "TEXT"}
+ADDED_COLUMNS = {"pid": "INTEGER", "host": "TEXT", "timing": "JSON"}
 """Columns a catalog made before them gets when it is opened."""
 COLUMN_NAMES = ("id", "experiment", "started_at", "stopped_at", "status", "reason", "file",
-                "n_samples", "params", "pid", "host")
+                "n_samples", "params", "pid", "host", "timing")
 COLUMNS = ", ".join(COLUMN_NAMES)
 UNFINISHED = ("created", "running")
 """Statuses of a run whose process has not finished it (yet)."""
@@ -73,7 +74,9 @@ class RunLookupError(ConfigError, KeyError):
 
 @dataclass(frozen=True)
 class RunRow:
-    """One catalog row; times are ISO 8601 UTC text, `params` the run's key parameters."""
+    """One catalog row; times are ISO 8601 UTC text, `params` the run's key parameters,
+    `timing` a real-time run's cycle timing (`daq.timing.CycleTiming.as_dict`: missed,
+    repeated and late cycles, lateness histogram in µs; None in lockstep)."""
 
     id: str
     experiment: str
@@ -86,6 +89,7 @@ class RunRow:
     params: dict[str, Any]
     pid: int | None = None
     host: str | None = None
+    timing: dict[str, Any] | None = None
 
 
 class Catalog:
@@ -180,13 +184,15 @@ class Catalog:
                  os.getpid(), socket.gethostname()),
             )
 
-    def finish(self, run_id: str, status: str, reason: str, n_samples: int) -> None:
-        """Record the end of run `run_id`: status (complete / aborted), reason, sample count."""
+    def finish(self, run_id: str, status: str, reason: str, n_samples: int,
+               timing: Mapping[str, Any] | None = None) -> None:
+        """Record the end of run `run_id`: status (complete / aborted), reason, sample count,
+        a real-time run's cycle timing."""
         with self._transaction() as connection:
             updated = connection.execute(
-                "UPDATE runs SET stopped_at = ?, status = ?, reason = ?, n_samples = ?"
-                " WHERE id = ?",
-                (utc_now_iso(), status, reason, int(n_samples), run_id),
+                "UPDATE runs SET stopped_at = ?, status = ?, reason = ?, n_samples = ?,"
+                " timing = ? WHERE id = ?",
+                (utc_now_iso(), status, reason, int(n_samples), _timing_json(timing), run_id),
             ).rowcount
         if not updated:
             raise RunLookupError(f"no run with id {run_id!r} in {self.path}")
@@ -230,7 +236,7 @@ class Catalog:
             summary, why = _summary(file)
             if summary is not None and summary.status not in UNFINISHED:
                 self._settle(run_id, summary.status, summary.reason, summary.n_samples,
-                             summary.stopped_at)
+                             summary.stopped_at, summary.timing)
             elif _ended(pid, host, file):
                 self._settle(run_id, "crashed", f"process {pid} on {host} ended without "
                              f"finishing the run{f' ({why})' if why else ''}",
@@ -271,12 +277,13 @@ class Catalog:
         return added, skipped
 
     def _settle(self, run_id: str, status: str, reason: str, n_samples: int,
-                stopped_at: str | None) -> None:
+                stopped_at: str | None, timing: Mapping[str, Any] | None = None) -> None:
         with self._transaction() as connection:
             connection.execute(
-                "UPDATE runs SET stopped_at = ?, status = ?, reason = ?, n_samples = ?"
-                " WHERE id = ? AND status IN (?, ?)",
-                (stopped_at or None, status, reason, n_samples, run_id, *UNFINISHED),
+                "UPDATE runs SET stopped_at = ?, status = ?, reason = ?, n_samples = ?,"
+                " timing = ? WHERE id = ? AND status IN (?, ?)",
+                (stopped_at or None, status, reason, n_samples, _timing_json(timing), run_id,
+                 *UNFINISHED),
             )
 
     @contextmanager
@@ -294,8 +301,13 @@ class Catalog:
 
 
 def _run_row(row: tuple[Any, ...]) -> RunRow:
-    *fields, params, pid, host = row
-    return RunRow(*fields, params=json.loads(params), pid=pid, host=host)
+    *fields, params, pid, host, timing = row
+    return RunRow(*fields, params=json.loads(params), pid=pid, host=host,
+                  timing=json.loads(timing) if timing else None)
+
+
+def _timing_json(timing: Mapping[str, Any] | None) -> str | None:
+    return to_json(dict(timing)) if timing else None
 
 
 def _summary(file: str | None) -> tuple[RecordingSummary | None, str]:
@@ -335,7 +347,8 @@ def _rebuilt_row(summary: RecordingSummary) -> tuple[Any, ...]:
     reason = summary.reason or ("no process writes it any more" if status == "crashed" else "")
     return (summary.run_id, summary.experiment, summary.started_at, summary.stopped_at or None,
             status, reason, str(summary.path), summary.n_samples,
-            to_json(summary.config.get("experiment", {})), pid, host)
+            to_json(summary.config.get("experiment", {})), pid, host,
+            _timing_json(summary.timing))
 
 
 def _writing_process(path: Path) -> int | None:

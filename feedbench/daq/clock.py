@@ -2,9 +2,13 @@
 
 `LockstepClock` (simulation): the simulated drives step their physics on the SYNC, so
 virtual time advances exactly one cycle per tick, as fast as the bus allows; a missing
-answer is an error (`BusTimeout`). `RealtimeClock` (hardware): SYNC at the cycle period on
-`time.perf_counter` (sleep, then a short spin), lateness of each SYNC recorded as jitter;
-a cycle whose TPDOs miss their slot is counted in `missed` and the run goes on.
+answer is an error (`BusTimeout`). `RealtimeClock` (hardware, or `feedbench sim` in its own
+process): SYNC every cycle from python-can's periodic sender (canopen's `network.sync`: the
+kernel's broadcast manager on SocketCAN, the adapter where the interface has it, a thread
+otherwise), and a tick is the arrival of the next complete TPDO set: nothing sleeps to a
+deadline. Each tick's setpoints go out at once and take effect at the next SYNC. Its
+per-cycle times (`TIMING_CHANNELS`: setpoints sent, TPDOs received) are recorded, and the
+run's missed, repeated and late cycles and lateness follow from them (`daq.timing`).
 
 Every tick returns the first drive's cycle counter (0x2020, 16 bit), unwrapped to a
 monotonic integer; `gaps` counts ticks where a drive's counter did not advance by exactly
@@ -35,15 +39,12 @@ from typing import Iterator, Protocol, Sequence
 import canopen
 import numpy as np
 
+from feedbench.daq.timing import TIMING_CHANNELS, TIMING_UNITS, cycle_timing
 from feedbench.protocols.cia301 import (
     HEARTBEAT_COB_BASE, HEARTBEAT_OPERATIONAL, HOST_NODE_ID, SYNC_COB_ID,
 )
 
 COUNTER_MODULO = 0x10000
-SPIN_S = 0.5e-3
-"""The real-time loop sleeps until this long before the SYNC slot, then spins."""
-RESPONSE_SHARE = 0.9
-"""The real-time loop waits for TPDOs during this share of the cycle period."""
 HEARTBEAT_S = 0.1
 """The host's heartbeat producer time (s), below the drives' consumer time
 (`drivers.cia402.HOST_CONSUMER_MS`)."""
@@ -66,6 +67,8 @@ class CycleDrive(Protocol):
 
     node: canopen.RemoteNode
 
+    set_time: float
+
     @property
     def device_cycle(self) -> int: ...
 
@@ -79,7 +82,15 @@ class CycleDrive(Protocol):
 
 
 class _BenchClock:
-    """Shared part: SYNC, per-drive unwrapped cycle counters, gap count."""
+    """Shared part: SYNC, per-drive unwrapped cycle counters, gap count.
+
+    `channels` / `units`: what the clock adds to each recorded row, `cycle_values` after
+    each tick (lockstep: nothing); `timing()`: the cycle timing of the ticks since
+    `reset_timing()` as a dict (lockstep: None, virtual time has none)."""
+
+    channels: tuple[str, ...] = ()
+    units: dict[str, str] = {}
+    cycle_values: tuple[float, ...] = ()
 
     def __init__(self, network: canopen.Network, drives: Sequence[CycleDrive]) -> None:
         if not drives:
@@ -96,6 +107,13 @@ class _BenchClock:
 
     def close(self) -> None:
         """Stop what the clock sends on its own (nothing here)."""
+
+    def reset_timing(self) -> None:
+        """Start counting the cycle timing of a run (nothing to count here)."""
+
+    def timing(self) -> dict | None:
+        """The cycle timing since `reset_timing` (None: virtual time)."""
+        return None
 
     def _check_heartbeats(self) -> None:
         """Every `HEARTBEAT_CHECK_TICKS` ticks: NodeLost if a drive's heartbeat is silent."""
@@ -166,76 +184,77 @@ class LockstepClock(_BenchClock):
 
 
 class RealtimeClock(_BenchClock):
-    """Hardware clock: SYNC every `period_s` on the wall clock, jitter recorded.
+    """Hardware clock: SYNC every `period_s` by python-can's periodic sender, ticks paced by
+    the drives' TPDO sets.
 
-    `timeout_s`: BusTimeout when no complete TPDO set arrived for this long.
+    A tick sends the setpoints (RPDOs, for the next SYNC) and returns with the next complete
+    TPDO set of every drive that the host has not seen yet: at once if it came while the host
+    was busy (the sets in between are missed cycles, a gap), else when it arrives.
+    `timeout_s`: BusTimeout when a drive sends no new set for this long.
     """
+
+    channels = TIMING_CHANNELS
+    units = TIMING_UNITS
 
     def __init__(self, network: canopen.Network, drives: Sequence[CycleDrive],
                  period_s: float, timeout_s: float = 0.5,
                  heartbeat_s: float = HEARTBEAT_S) -> None:
         super().__init__(network, drives)
-        self._heartbeat = network.send_periodic(*HOST_HEARTBEAT, heartbeat_s)
         self.period_s = period_s
         self.timeout_s = timeout_s
-        self.missed = 0
-        """Ticks whose TPDOs did not arrive within their slot."""
-        self.overruns = 0
-        """SYNC slots skipped because a tick started after its slot had passed."""
-        self._lateness = array("d")
-        self._next_sync: float | None = None
-        self._last_answer = time.perf_counter()
+        self.cycle_values = (float("nan"), float("nan"))
+        """(rpdo_time, tpdo_time) of the last tick (s, wall clock; `daq.timing`)."""
+        self._heartbeat = network.send_periodic(*HOST_HEARTBEAT, heartbeat_s)
+        network.sync.start(period_s)
+        self.reset_timing()
 
     def tick(self) -> int:
-        """Wait for the next SYNC slot, run the cycle, return the unwrapped device cycle."""
-        now = time.perf_counter()
-        if self._next_sync is None:
-            self._next_sync = self._last_answer = now
-        elif now > self._next_sync + self.period_s:
-            skipped = int((now - self._next_sync) // self.period_s)
-            self.overruns += skipped
-            self._next_sync += skipped * self.period_s
-        slot = self._next_sync
-        _sleep_until(slot)
-        sent = self._start_cycle()
-        self._lateness.append(sent - slot)
-        self._next_sync = slot + self.period_s
-        answer_by = slot + RESPONSE_SHARE * self.period_s
-        if all(drive.wait_cycle(max(0.0, answer_by - time.perf_counter()))
-               for drive in self.drives):
-            self._last_answer = sent
-            self._check_heartbeats()
-            return self._count_cycles()
-        self.missed += 1
-        if sent - self._last_answer > self.timeout_s:
-            raise BusTimeout(f"no complete TPDO set for {sent - self._last_answer:.3f} s")
-        return self.cycle
+        """Setpoints out, then the next unseen TPDO set of each drive; returns the unwrapped
+        device cycle (BusTimeout if a drive stays silent, NodeLost if its heartbeat does)."""
+        rpdo_time = time.time()
+        for drive in self.drives:
+            drive.transmit()
+        for i, drive in enumerate(self.drives):
+            self._wait_new_set(i, drive)
+        self._check_heartbeats()
+        cycle = self._count_cycles()
+        tpdo_time = max(drive.set_time for drive in self.drives)
+        self.cycle_values = (rpdo_time, tpdo_time)
+        self._cycle_log.append(cycle)
+        self._rpdo_log.append(rpdo_time)
+        self._tpdo_log.append(tpdo_time)
+        return cycle
+
+    def _wait_new_set(self, i: int, drive: CycleDrive) -> None:
+        """Until drive `i` has a set with a counter the host has not seen (a set that
+        completed while the host read the one before repeats it)."""
+        deadline = time.perf_counter() + self.timeout_s
+        while True:
+            if not drive.wait_cycle(max(0.0, deadline - time.perf_counter())):
+                raise BusTimeout(f"node {drive.node.id}: no new TPDO set for {self.timeout_s} s "
+                                 f"(after device cycle {self.cycles[i]})")
+            if drive.device_cycle != self._last_raw[i]:
+                return
+
+    def reset_timing(self) -> None:
+        """Forget the cycles ticked so far and the TPDO sets queued meanwhile (the host was
+        elsewhere, e.g. between plans): the timing of a run starts with the next set."""
+        for drive in self.drives:
+            drive.arm_cycle()
+        self._cycle_log = array("q")
+        self._rpdo_log = array("d")
+        self._tpdo_log = array("d")
+
+    def timing(self) -> dict:
+        """`daq.timing.cycle_timing` of the ticks since `reset_timing`, as a dict."""
+        return cycle_timing(np.frombuffer(self._cycle_log, dtype=np.int64),
+                            np.frombuffer(self._tpdo_log), np.frombuffer(self._rpdo_log),
+                            self.period_s).as_dict()
 
     def close(self) -> None:
-        """Stop the host's heartbeat."""
+        """Stop SYNC and the host's heartbeat."""
+        self.network.sync.stop()
         self._heartbeat.stop()
-
-    def jitter_stats(self) -> dict[str, float]:
-        """Lateness of the SYNCs behind their slots (µs): mean, max, std; n SYNCs sent.
-
-        The slot starts with the RPDOs, so the mean includes their send time; the std is the
-        jitter of the cycle.
-        """
-        late = np.frombuffer(self._lateness, dtype=float) * 1e6
-        if late.size == 0:
-            return {"n": 0, "mean_us": float("nan"), "max_us": float("nan"),
-                    "std_us": float("nan")}
-        return {"n": int(late.size), "mean_us": float(late.mean()), "max_us": float(late.max()),
-                "std_us": float(late.std())}
-
-
-def _sleep_until(deadline: float) -> None:
-    """Sleep until SPIN_S before `deadline`, then spin (yielding the GIL) until it."""
-    remaining = deadline - time.perf_counter()
-    if remaining > SPIN_S:
-        time.sleep(remaining - SPIN_S)
-    while time.perf_counter() < deadline:
-        time.sleep(0)
 
 
 @contextmanager

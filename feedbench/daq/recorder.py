@@ -210,8 +210,10 @@ class Recorder:
             self.failure = f"recording failed: {' '.join(str(exc).split())[:200]}"
             raise RecordingError(f"{self.path}: {self.failure}") from None
 
-    def close(self, status: str = "complete", reason: str = "") -> tuple[str, str]:
-        """Write the buffered rows and the final status; returns the status and reason
+    def close(self, status: str = "complete", reason: str = "",
+              attrs: Mapping[str, Any] | None = None) -> tuple[str, str]:
+        """Write the buffered rows, the final status and `attrs` (more metadata known only
+        at the end, e.g. the cycle timing: JSON attributes); returns the status and reason
         written: ``aborted`` with the failure if the recording failed (a complete run whose
         last rows could not be written is not complete). A second call does nothing.
 
@@ -233,7 +235,8 @@ class Recorder:
         try:
             with h5py.File(self.path, "r+") as file:
                 file.attrs.update(status=status, reason=reason, stopped_at=utc_now_iso(),
-                                  n_samples=self._written, n_gaps=self.gaps)
+                                  n_samples=self._written, n_gaps=self.gaps,
+                                  **{key: to_json(value) for key, value in (attrs or {}).items()})
         except (OSError, RuntimeError) as exc:
             raise RecordingError(f"{self.path}: status {status} not written ({exc})") from None
         return status, reason

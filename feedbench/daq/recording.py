@@ -173,7 +173,8 @@ class Recording:
 class RecordingSummary:
     """What the run catalog keeps of a recording, read without its data: `n_samples` counts
     the rows on disk (a crashed writer's file: up to its last flushed chunk), `run_id` is the
-    id the run was recorded under (the file's stem if the file has none)."""
+    id the run was recorded under (the file's stem if the file has none), `timing` a
+    real-time run's cycle timing (`daq.timing`; None in lockstep or before its end)."""
 
     path: Path
     run_id: str
@@ -184,6 +185,7 @@ class RecordingSummary:
     stopped_at: str
     n_samples: int
     config: dict[str, Any]
+    timing: dict[str, Any] | None = None
 
 
 def open_recording(path: str | Path) -> Recording:
@@ -244,6 +246,7 @@ def _read_summary(path: Path) -> RecordingSummary:
             stopped_at=str(attrs["stopped_at"]),
             n_samples=_complete_rows(file, json.loads(attrs["channels"])),
             config=json.loads(attrs["config"]),
+            timing=json.loads(attrs["timing"]) if "timing" in attrs else None,
         )
 
 

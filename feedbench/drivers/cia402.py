@@ -62,6 +62,9 @@ tests on a 2-core machine at load 15); in real time SYNC loss (0x2021) stops the
 HEARTBEAT_LOST_FACTOR = 30
 """The host counts a drive's heartbeat lost after this many of its producer times (3 s at
 100 ms: a stalled host must not take its own stall for the drive's)."""
+SET_QUEUE = 64
+"""Complete TPDO sets held for the host (real time: a host behind by more loses the oldest,
+seen as missed cycles)."""
 SAFE_STATES = (*DISABLED_STATES, QUICK_STOP_ACTIVE)
 """States that command no motion: de-energised, or ramping down by the drive's own quick stop."""
 
@@ -166,6 +169,12 @@ class Cia402Drive:
         self._tpdo_count = 0
         self._frames_seen = 0
         self._sets_received = 0
+        self._sets: collections.deque[tuple[dict[int, int | float], float, int]] = \
+            collections.deque(maxlen=SET_QUEUE)
+        self._latched_sets = 0
+        self.set_time = math.nan
+        """Receive timestamp (python-can's ``msg.timestamp``, s) of the last TPDO of the set
+        `wait_cycle` returned."""
         self._cycle_complete = CycleSignal()
         self._controlword = 0
         self._newton_per_mille = math.nan
@@ -252,9 +261,10 @@ class Cia402Drive:
         for number, pdo_map in self.node.rpdo.map.items():
             if self._save_map(pdo_map, self.pdo_config.rpdo.get(number, ())):
                 self._bind_writers(pdo_map)
+        pending: dict[int, int | float] = {}
         for number, pdo_map in self.node.tpdo.map.items():
             if self._save_map(pdo_map, self.pdo_config.tpdo.get(number, ())):
-                self._bind_reader(pdo_map)
+                self._bind_reader(pdo_map, pending)
         if CONTROLWORD not in self._writers or STATUSWORD not in self._raw:
             raise DriveError("the cycle loop needs 0x6040 in an RPDO and 0x6041 in a TPDO")
 
@@ -279,25 +289,32 @@ class Cia402Drive:
             self._writers[index] = (struct.Struct("<" + fmt).pack_into, pdo_map.data, offset)
         self._rpdo_frames.append((pdo_map.cob_id, pdo_map.data))
 
-    def _bind_reader(self, pdo_map: PdoMap) -> None:
-        """Decode this TPDO straight from the frame (canopen's `PdoMap.on_message` takes a
-        Condition and notifies per frame); the cycle is complete when every TPDO arrived."""
+    def _bind_reader(self, pdo_map: PdoMap, pending: dict[int, int | float]) -> None:
+        """Decode this TPDO straight from the frame into `pending` (canopen's
+        `PdoMap.on_message` takes a Condition and notifies per frame). The set is complete
+        when every TPDO arrived; the first-mapped TPDO starts a set (a drive sends them in
+        order after the SYNC), so a set that lost a frame is never completed by the next
+        one's. A complete set is queued whole with its last frame's timestamp: `wait_cycle`
+        hands the host one set at a time, in order, never a mix of two."""
         codec = pdo_codec(pdo_map)
-        update = self._raw.update
+        update = pending.update
         unpack = codec.layout.unpack
         indices = codec.indices
         complete = self._cycle_complete
         size = codec.layout.size
         rejected = self.rejected_frames
+        first = self._tpdo_count == 0
+        queue = self._sets.append
 
         def on_tpdo(can_id: int, data: bytearray, timestamp: float) -> None:
             if len(data) != size:
                 rejected[f"TPDO 0x{can_id:03X}: {len(data)} data bytes, mapped {size}"] += 1
                 return
             update(zip(indices, unpack(data)))
-            self._frames_seen += 1
+            self._frames_seen = 1 if first else self._frames_seen + 1
             if self._frames_seen == self._tpdo_count:
                 self._sets_received += 1
+                queue((pending.copy(), timestamp, self._sets_received))
                 complete.set()
 
         self.network.unsubscribe(pdo_map.cob_id, pdo_map.on_message)
@@ -497,13 +514,27 @@ class Cia402Drive:
     @property
     def device_cycle(self) -> int:
         """The drive's cycle counter 0x2020 (16 bit); without it, the TPDO sets received."""
-        return self._raw.get(CYCLE_COUNTER, self._sets_received & 0xFFFF)
+        return self._raw.get(CYCLE_COUNTER, self._latched_sets & 0xFFFF)
+
+    @property
+    def sets_received(self) -> int:
+        """Complete TPDO sets the receive thread has seen since the PDOs were mapped."""
+        return self._sets_received
 
     def arm_cycle(self) -> None:
-        """Before the SYNC: forget the TPDOs received so far."""
+        """Before the SYNC (lockstep), or when the host starts anew (real time): forget
+        the TPDOs received so far."""
         self._frames_seen = 0
+        self._sets.clear()
         self._cycle_complete.clear()
 
     def wait_cycle(self, timeout_s: float) -> bool:
-        """After the SYNC: wait until every mapped TPDO of the cycle arrived; False on timeout."""
-        return self._cycle_complete.wait(timeout_s)
+        """Take the oldest complete TPDO set not taken yet, waiting up to `timeout_s` for one
+        (lockstep: the SYNC's after `arm_cycle`; real time: the next in order, possibly in
+        already), as the actual values (`actual`, `statusword`, `device_cycle`,
+        `set_time`); False if none came."""
+        while not self._sets:
+            if not self._cycle_complete.wait(timeout_s):
+                return False
+        self._raw, self.set_time, self._latched_sets = self._sets.popleft()
+        return True

@@ -163,6 +163,8 @@ class RunOutcome:
     reason: str
     n_cycles: int
     start_position: float
+    timing: dict | None = None
+    """Real time: the run's cycle timing (`daq.timing.CycleTiming.as_dict`); else None."""
 
 
 class Runner:
@@ -191,8 +193,10 @@ class Runner:
         self.stop = stop or StopRequest()
         self.devices = list(devices)
         own_channels, own_units = drive_channels(tuple(self.drives))
-        self.channels = own_channels + tuple(c for d in self.devices for c in d.channels)
-        self.units = {**own_units, **{c: u for d in self.devices for c, u in d.units.items()}}
+        self.channels = (own_channels + clock.channels
+                         + tuple(c for d in self.devices for c in d.channels))
+        self.units = {**own_units, **clock.units,
+                      **{c: u for d in self.devices for c, u in d.units.items()}}
         self.streams = {name: spec for d in self.devices for name, spec in d.streams.items()}
         self._offsets = [0.0] * len(self.drives)
         self._block = np.zeros((BLOCK_CYCLES, len(self.channels)))
@@ -235,6 +239,7 @@ class Runner:
                 obs.on_layout(self.units, self.streams)
         device_recorder = devices_recorder(recorder, self.observers)
         status, reason = "complete", ""
+        self.clock.reset_timing()
         last_target = start
         i = 0
         with self._interrupts_request_stop():
@@ -264,10 +269,11 @@ class Runner:
                 status, reason = "aborted", f"{reason}; {unknown}" if reason else unknown
             self._stop_devices(device_recorder)
         self._flush_block()
-        status, reason = _finalize(recorder, status, reason)
+        timing = self.clock.timing()
+        status, reason = _finalize(recorder, status, reason, {"timing": timing} if timing else {})
         for obs in self.observers:
             obs.on_stop(status, reason)
-        return RunOutcome(status, reason, i, start)
+        return RunOutcome(status, reason, i, start, timing)
 
     def _next_cycle(self) -> int:
         return self.clock.cycle + 1
@@ -290,6 +296,7 @@ class Runner:
             row += a[MEASURED]
         row += (force_offset, velocity_offset)
         row += [a.statusword for a in actual]
+        row += self.clock.cycle_values
         for device in self.devices:
             row += device.after_sync(cycle)
         recorder.append(cycle, row)
@@ -435,12 +442,14 @@ class Runner:
                 signal.signal(s, h)
 
 
-def _finalize(recorder, status: str, reason: str) -> tuple[str, str]:
-    """Close the recording with the run's status, after the drives are stopped; returns
-    the status and reason of the run (`Recorder.close`: a failed recording is aborted; a
-    file whose status cannot be written says so in the reason)."""
+def _finalize(recorder, status: str, reason: str,
+              attrs: Mapping[str, Any]) -> tuple[str, str]:
+    """Close the recording with the run's status and `attrs` (the cycle timing), after the
+    drives are stopped; returns the status and reason of the run (`Recorder.close`: a
+    failed recording is aborted; a file whose status cannot be written says so in the
+    reason)."""
     try:
-        return recorder.close(status, reason)
+        return recorder.close(status, reason, attrs)
     except RecordingError as exc:
         return "aborted", f"{reason}; {exc}" if reason else str(exc)
 

@@ -1,0 +1,191 @@
+"""The hard real-time cycle at 1 kHz against `feedbench sim` in its own process (issue 18.1).
+
+Three runs of `FEEDBENCH_REALTIME_S` seconds each (60 s by default) against one
+`feedbench sim` process over its socketcand hub on loopback, the drive enabled in CSV and a
+new setpoint every cycle:
+
+- ``realtime``: `daq.clock.RealtimeClock`: SYNC from python-can's periodic sender, the host's
+  loop paced by the TPDO sets;
+- ``sleep_spin`` (baseline, the loop of before issue 18): the host sleeps to each SYNC slot,
+  spins its last 0.5 ms, sends the RPDOs and the SYNC itself and waits for the TPDOs until
+  0.9 of the cycle (`SleepSpinLoop`; kept here only);
+- ``realtime_run``: the product's whole path, `feedbench.open_bench(...).record(seconds)`:
+  runner, limits and the HDF5 recorder on the real-time clock; its timing read back from the
+  recording.
+
+Each: % missed, repeated and late cycles and p50/p99/max lateness (`daq.timing`: missed +
+received = expected; the same definitions for both loops, the baseline's "cycle" being its
+SYNC slot). The load average beside them: other processes share the 2 CPUs.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+import uuid
+from pathlib import Path
+
+from bench_sim_process import start_bench_process
+
+import feedbench
+from feedbench.bench import BENCH_SCHEMA, Bench
+from feedbench.config import validate_table
+from feedbench.daq.clock import HOST_HEARTBEAT
+from feedbench.daq.timing import MISSED_TARGET, CycleTiming, cycle_timing
+from feedbench.models.axis import CSV
+from feedbench.protocols.cia301 import SYNC_COB_ID
+
+SECONDS = float(os.environ.get("FEEDBENCH_REALTIME_S", "60"))
+CYCLE_S = 1e-3
+VELOCITY = 1e-3
+"""m/s: the commanded feed (60 mm/min), one setpoint per cycle."""
+WARMUP_CYCLES = 1000
+"""Cycles run before the measurement (a backlog the enable left drains)."""
+SPIN_S = 0.5e-3
+RESPONSE_SHARE = 0.9
+
+
+class SleepSpinLoop:
+    """The baseline: the host's own SYNC in a sleep-then-spin loop (before issue 18).
+
+    `tick()` sleeps to the next slot (the last `SPIN_S` spun), sends RPDOs and SYNC and
+    waits for the TPDO set until `RESPONSE_SHARE` of the cycle; a set that does not come, or
+    whose counter did not advance, is the old loop's repeated row (it recorded the cycle
+    again); slots that passed while the host was busy got no SYNC at all."""
+
+    def __init__(self, bench: Bench) -> None:
+        self.network, self.drive = bench.network, bench.drive
+        self.heartbeat = self.network.send_periodic(*HOST_HEARTBEAT, 0.1)
+        self.repeated = 0
+        self.slots, self.rpdo_times, self.tpdo_times = [], [], []
+        self._start = self._next = time.perf_counter()
+        self._last = None
+
+    def tick(self) -> int:
+        now = time.perf_counter()
+        if now > self._next + CYCLE_S:
+            self._next += (now - self._next) // CYCLE_S * CYCLE_S
+        slot = self._next
+        remaining = slot - time.perf_counter()
+        if remaining > SPIN_S:
+            time.sleep(remaining - SPIN_S)
+        while time.perf_counter() < slot:
+            time.sleep(0)
+        self.drive.arm_cycle()
+        rpdo_time = time.time()
+        self.drive.transmit()
+        self.network.send_message(SYNC_COB_ID, b"")
+        self._next = slot + CYCLE_S
+        fresh = self.drive.wait_cycle(max(0.0, slot + RESPONSE_SHARE * CYCLE_S
+                                           - time.perf_counter()))
+        if fresh and self.drive.device_cycle != self._last:
+            self._last = self.drive.device_cycle
+            self.slots.append(round((slot - self._start) / CYCLE_S))
+            self.rpdo_times.append(rpdo_time)
+            self.tpdo_times.append(self.drive.set_time)
+        else:
+            self.repeated += 1
+        return self.drive.device_cycle
+
+    def reset_timing(self) -> None:
+        self.repeated = 0
+        self.slots, self.rpdo_times, self.tpdo_times = [], [], []
+
+    def timing(self) -> dict:
+        timing = cycle_timing(self.slots, self.tpdo_times, self.rpdo_times, CYCLE_S).as_dict()
+        return {**timing, "repeated": self.repeated}
+
+    def close(self) -> None:
+        self.heartbeat.stop()
+
+
+def host_bench(info: dict, clock: str) -> dict:
+    """The [bench] table that reaches the sim process, with `clock`."""
+    return {"simulated": False, "interface": "socketcand", "socketcand": info["socketcand"],
+            "channel": info["channel"], "clock": clock, "cycle_ms": CYCLE_S * 1e3}
+
+
+def moving_loop(bench: Bench, tick, timing_of) -> CycleTiming:
+    """Enable in CSV, then `SECONDS` of cycles at a new setpoint each; disable."""
+    drive = bench.drive
+    drive.set_mode(CSV)
+    drive.set_targets(velocity=0.0)
+    drive.enable(tick, max_cycles=2000)
+    for _ in range(WARMUP_CYCLES):
+        tick()
+    timing_of.reset_timing()
+    for k in range(round(SECONDS / CYCLE_S)):
+        drive.set_targets(velocity=VELOCITY if k % 2000 < 1000 else -VELOCITY)
+        tick()
+    timing = timing_of.timing()
+    drive.set_targets(velocity=0.0)
+    drive.disable(tick)
+    return CycleTiming(**timing)
+
+
+def realtime_loop(info: dict) -> CycleTiming:
+    with Bench(validate_table(host_bench(info, "realtime"), BENCH_SCHEMA, "bench")) as bench:
+        return moving_loop(bench, bench.clock.tick, bench.clock)
+
+
+def sleep_spin_loop(info: dict) -> CycleTiming:
+    with Bench(validate_table(host_bench(info, "lockstep"), BENCH_SCHEMA, "bench")) as bench:
+        loop = SleepSpinLoop(bench)
+        try:
+            return moving_loop(bench, loop.tick, loop)
+        finally:
+            loop.close()
+
+
+def realtime_run(info: dict, directory: Path) -> CycleTiming:
+    """`SECONDS` recorded at standstill through the runner and recorder."""
+    config = {"bench": {**host_bench(info, "realtime"), "output_dir": str(directory)}}
+    with feedbench.open_bench(config) as bench:
+        bench.drive.enable()
+        run = bench.record(SECONDS)
+    return CycleTiming(**run.recording.metadata["timing"])
+
+
+def line(name: str, t: CycleTiming) -> str:
+    share = 100.0 / max(t.expected, 1)
+    return (f"{name:<13s} {t.expected:7d} cycles: missed {share * t.missed:7.3f} %, "
+            f"repeated {share * t.repeated:7.3f} %, late {share * t.late:7.3f} %; lateness "
+            f"p50 {t.lateness_p50_us:7.0f} µs, p99 {t.lateness_p99_us:7.0f} µs, "
+            f"max {t.lateness_max_us:7.0f} µs")
+
+
+def run() -> dict[str, float]:
+    with tempfile.TemporaryDirectory() as directory:
+        process, info = start_bench_process(Path(directory))
+        try:
+            loads = [os.getloadavg()[0]]
+            new = realtime_loop(info)
+            loads.append(os.getloadavg()[0])
+            old = sleep_spin_loop(info)
+            loads.append(os.getloadavg()[0])
+            full = realtime_run(info, Path(directory))
+            loads.append(os.getloadavg()[0])
+        finally:
+            process.terminate()
+            process.wait(timeout=20)
+    print(f"{SECONDS:g} s at {1 / CYCLE_S:g} Hz against `feedbench sim` in its own process "
+          f"(load average {' / '.join(f'{x:.1f}' for x in loads)} before/between/after):")
+    for name, timing in (("realtime", new), ("sleep_spin", old), ("realtime_run", full)):
+        print("  " + line(name, timing))
+    ratio = old.missed_share / new.missed_share if new.missed else float("inf")
+    print(f"  missed: realtime {100 * new.missed_share:.3f} % vs sleep-then-spin "
+          f"{100 * old.missed_share:.3f} % = {ratio:.1f}× fewer (target ≤ "
+          f"{100 * MISSED_TARGET:g} %: {'met' if new.missed_share <= MISSED_TARGET else 'NOT met'})")
+    figures = {}
+    for name, timing in (("realtime", new), ("sleep_spin", old), ("realtime_run", full)):
+        figures.update({f"{name}_missed_pct": 100 * timing.missed_share,
+                        f"{name}_repeated_pct": 100 * timing.repeated / max(timing.expected, 1),
+                        f"{name}_late_pct": 100 * timing.late / max(timing.expected, 1),
+                        f"{name}_lateness_p99_us": timing.lateness_p99_us})
+    figures["realtime_load_average"] = max(loads)
+    return figures
+
+
+if __name__ == "__main__":
+    run()
