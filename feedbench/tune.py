@@ -577,26 +577,38 @@ def compliance_plot(result: Mapping[str, Any]) -> Plot:
 
 
 def contour_plot(result: Mapping[str, Any], mobility, setup: tuning.TuningSetup) -> Plot:
-    """Contour error along the circle and the corner of each candidate (time simulation of
-    the cascade on the fitted mobility, `analysis.contour.follow`)."""
-    figure = new_figure(10.0, 4.5)
-    axes = figure.subplots(1, 2)
-    for ax, (contour, path) in zip(axes, contour_paths(setup.contour).items()):
+    """Contour error along the circle and the corner of each candidate, and the paths at the
+    corner (time simulation of the cascade on the fitted mobility, `analysis.contour.follow`)."""
+    figure = new_figure(12.0, 4.5)
+    axes = figure.subplots(1, 3)
+    spec = setup.contour
+    titles = {"circle": f"circle R {spec.radius_mm:g} mm", "corner": f"90° corner, legs "
+              f"{spec.corner_leg_mm:g} mm"}
+    corner = (spec.corner_leg_mm * 1e-3, 0.0)
+    for ax, (contour, path) in zip(axes, contour_paths(spec).items()):
         for name, c in result["candidates"].items():
             run = follow(mobility, gains_si(c["gains"]), path, setup.feedforward,
                          setup.position_delay, setup.pade_order)
-            ax.plot(path.time, run.contour_error * 1e6, lw=0.9,
-                    label=f"{name}: max {run.errors.contour_max_um:.1f} µm")
+            line, = ax.plot(path.time, run.contour_error * 1e6, lw=0.9,
+                            label=f"{name}: max {run.errors.contour_max_um:.1f} µm")
+            if contour == "corner":
+                axes[2].plot((run.actual[:, 0] - corner[0]) * 1e6,
+                             (run.actual[:, 1] - corner[1]) * 1e6, lw=0.9, color=line.get_color())
         ax.set_xlabel("time along the path (s)")
         ax.set_ylabel("contour error (µm)")
-        ax.set_title(f"{contour}: R {setup.contour.radius_mm:g} mm / leg "
-                     f"{setup.contour.corner_leg_mm:g} mm at {setup.contour.feed_mm_min:g} "
-                     f"mm/min", fontsize=9)
+        ax.set_title(f"{titles[contour]} at {spec.feed_mm_min:g} mm/min", fontsize=9)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    return Plot("contour error of the test contours per candidate (K_ffv "
-                f"{setup.feedforward.K_ffv:g}, τ_BF {setup.feedforward.tau_BF * 1e3:g} ms)",
-                png_of(figure))
+    span = 2.0 * max(c["motion"]["corner"]["contour_max_um"] for c in result["candidates"].values())
+    axes[2].plot([-10 * span, 0.0, 0.0], [0.0, 0.0, 10 * span], "k--", lw=0.8, label="reference")
+    axes[2].set(xlim=(-span, span), ylim=(-span, span), aspect="equal",
+                xlabel="x − corner (µm)", ylabel="y − corner (µm)")
+    axes[2].set_title("paths at the corner", fontsize=9)
+    axes[2].grid(alpha=0.3)
+    axes[2].legend(fontsize=8)
+    return Plot("test contours per candidate: contour error along the circle and the corner, "
+                f"paths at the corner (K_ffv {setup.feedforward.K_ffv:g}, τ_BF "
+                f"{setup.feedforward.tau_BF * 1e3:g} ms)", png_of(figure))
 
 
 def recommendation_text(result: Mapping[str, Any]) -> str:
