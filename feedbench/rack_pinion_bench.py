@@ -87,6 +87,7 @@ class RackPinionAxis:
 
     def start_simulated(self, cycle_s: float, bus_options: Mapping[str, Any]):
         """Both simulated nodes, their world and the load cell's server; `close()` stops them."""
+        from feedbench.sim_backends.faults import world_faults
         from feedbench.sim_backends.rack_pinion import (
             SimulatedRackPinionAxis, build_simulator, load_cell_settings,
         )
@@ -95,7 +96,8 @@ class RackPinionAxis:
         return SimulatedRackPinionAxis(
             build_simulator(cfg["world"], cycle_s), cfg["interface"], cfg["channel"],
             (cfg["node_id"], cfg["slave_node_id"]),
-            {"device_id": LOAD_CELL_ID, **load_cell_settings(cfg["world"])}, **bus_options)
+            {"device_id": LOAD_CELL_ID, **load_cell_settings(cfg["world"])},
+            faults=world_faults(cfg["world"]), **bus_options)
 
     @staticmethod
     def addresses(simulated: Any) -> dict[str, str]:

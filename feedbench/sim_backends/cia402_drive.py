@@ -64,10 +64,11 @@ from feedbench.protocols.cia402 import (
     FORCE_OFFSET_FINE, GAIN_OBJECTS, MODES_OF_OPERATION, MODES_OF_OPERATION_DISPLAY,
     OPERATION_ENABLED, POSITION_ACTUAL, POWERED, QUICK_STOP_ACTIVE, QUICK_STOP_DECELERATION,
     RATED_TORQUE, STATE_BITS, STATUSWORD, SWITCH_ON_DISABLED, SW_FOLLOWING_ERROR,
-    SW_FOLLOWS_COMMAND, SW_REMOTE, TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY, TORQUE_ACTUAL,
-    TORQUE_OFFSET, TRANSITIONS, VELOCITY_ACTUAL, VELOCITY_OFFSET, VELOCITY_WINDOW, command_of,
+    SW_FOLLOWS_COMMAND, SW_REMOTE, SW_TARGET_REACHED, TARGET_POSITION, TARGET_TORQUE,
+    TARGET_VELOCITY, TORQUE_ACTUAL, TORQUE_OFFSET, TRANSITIONS, VELOCITY_ACTUAL, VELOCITY_OFFSET, VELOCITY_WINDOW, command_of,
 )
 from feedbench.sim_backends import eds
+from feedbench.sim_backends.faults import EMCY_BUS_OFF_RECOVERED, NO_FAULTS, Faults
 from feedbench.sim_backends.watchdog import Watchdog, check_subindex
 
 LOGGER = logging.getLogger(__name__)
@@ -151,14 +152,17 @@ class SimulatedCia402Drive:
     `objects` serves the objects of a drive variant (`DriveObjects`). The owner's `lock`
     serialises its cycles with SDO, NMT and the watchdog (`sim_backends.watchdog`), and
     `free_run` is its cycle without a SYNC (the fault reaction's ramp when SYNC is gone).
+    `faults` (`sim_backends.faults`): the EMCY it faults with at a SYNC count, and bus-off
+    (fault reaction; EMCY 0x8140 once the bus is back).
     """
 
     def __init__(self, bus: can.BusABC, node_id: int, simulator: AxisSimulator,
                  eds_path: Path | str | None = None, network: canopen.Network | None = None,
                  objects: DriveObjects | None = None,
                  noise: SensorNoise = SensorNoise(), lock: threading.RLock | None = None,
-                 free_run: Callable[[], None] | None = None) -> None:
+                 free_run: Callable[[], None] | None = None, faults: Faults = NO_FAULTS) -> None:
         self.simulator = simulator
+        self.faults = faults
         self.noise = noise
         self._rng = np.random.default_rng(noise.seed)
         self._noise_block: list[list[float]] = []
@@ -168,6 +172,9 @@ class SimulatedCia402Drive:
         self.before_physics: list[Callable[[], None]] = []
         self.after_physics: list[Callable[[], None]] = []
         self._received: dict[int, int] = {}
+        self.state_log: list[tuple[int, str]] = []
+        """(SYNC count, state) of every CiA 402 state the drive entered: what it did, cycle
+        by cycle, for a test or a post-mortem."""
         self.lock = lock or threading.RLock()
         self.rejected_frames: collections.Counter[str] = collections.Counter()
         """SDO requests and NMT commands refused as malformed (shorter than CiA 301's; an SDO
@@ -185,6 +192,7 @@ class SimulatedCia402Drive:
                                  guards=lambda: self.state in POWERED,
                                  needs_cycles=lambda: self.state == FAULT_REACTION,
                                  free_run=free_run or self._cycle)
+        faults.on_bus_off(self._bus_off)
         if self._owns_network:
             self.network.subscribe(cia301.SYNC_COB_ID, self._on_sync)
             _compile_physics(simulator)
@@ -374,6 +382,15 @@ class SimulatedCia402Drive:
         self.values[STATUSWORD] = self._statusword()
         self._send_event_tpdos()
 
+    def _bus_off(self, off: bool) -> None:
+        """Bus-off (`faults`): the fault reaction, as on a lost connection; once the bus is
+        back, the EMCY that could not be sent meanwhile."""
+        with self.lock:
+            if off:
+                self._lose_connection(EMCY_BUS_OFF_RECOVERED, "bus off")
+            else:
+                self.node.emcy.send(EMCY_BUS_OFF_RECOVERED, cia301.ERROR_REGISTER_GENERIC)
+
     def world_fault(self, error: Exception) -> None:
         """The world raised `error` during this SYNC: fault (EMCY 0x6100) and one log line on
         entering the fault; the statusword and the cycle's TPDOs go out all the same."""
@@ -392,6 +409,8 @@ class SimulatedCia402Drive:
         self._count += 1
         values = self.values
         values[CYCLE_COUNTER] = self._count & 0xFFFF
+        if self.faults.emcy_code and self.faults.due():
+            values[FAULT_INJECTION] = self.faults.emcy_code
         if self._pdo_dirty:
             self._load_pdo_maps()
         values.update(self._received)  # the RPDO data received since the last SYNC
@@ -470,6 +489,7 @@ class SimulatedCia402Drive:
             values[MODES_OF_OPERATION_DISPLAY] = mode
 
     def _enter(self, state: str) -> None:
+        self.state_log.append((self._count, state))
         if state in RAMPING and self.state not in RAMPING:
             self._stop_velocity = self.simulator.velocity
             self._settling = 0
@@ -569,9 +589,15 @@ class SimulatedCia402Drive:
         v[STATUSWORD] = self._statusword()
 
     def _statusword(self) -> int:
+        """0x6041: the state's bits, remote; following the command in operation enabled;
+        target reached (bit 10) in quick stop once the ramp is at zero (the quick stop is
+        complete: the host may disable the drive, which a coupled axis that never settles
+        inside 0x606D needs)."""
         word = STATE_BITS[self.state] | SW_REMOTE
         if self.state == OPERATION_ENABLED:
             word |= SW_FOLLOWS_COMMAND
+        elif self.state == QUICK_STOP_ACTIVE and self._stop_velocity == 0.0:
+            word |= SW_TARGET_REACHED
         if self._following_error:
             word |= SW_FOLLOWING_ERROR
         return word

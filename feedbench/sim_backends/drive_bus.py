@@ -24,17 +24,21 @@ import canopen
 from feedbench.protocols.canbus import connect
 from feedbench.protocols.cia301 import SYNC_COB_ID
 from feedbench.sim_backends.cia402_drive import DriveObjects, SimulatedCia402Drive
+from feedbench.sim_backends.faults import NO_FAULTS, Faults
 
 
 class SimulatedDriveBus:
     """Simulated drives on one network over `bus` (owned: `close()` shuts it down).
 
     `step_world()` advances the shared world by one bus cycle; it runs on the network's
-    receive thread between the drives' latch and publish phases.
+    receive thread between the drives' latch and publish phases. `faults`: the drives'
+    (`sim_backends.faults`).
     """
 
-    def __init__(self, bus: can.BusABC, step_world: Callable[[], None]) -> None:
+    def __init__(self, bus: can.BusABC, step_world: Callable[[], None],
+                 faults: Faults = NO_FAULTS) -> None:
         self.network = canopen.Network(bus)
+        self.faults = faults
         self.drives: list[SimulatedCia402Drive] = []
         self._step_world = step_world
         self.lock = threading.RLock()
@@ -47,7 +51,7 @@ class SimulatedDriveBus:
         """A drive node on this bus; `simulator` is its port of the shared world."""
         drive = SimulatedCia402Drive(self.network.bus, node_id, simulator, eds_path,
                                      network=self.network, objects=objects, lock=self.lock,
-                                     free_run=self._free_run)
+                                     free_run=self._free_run, faults=self.faults)
         self.drives.append(drive)
         return drive
 

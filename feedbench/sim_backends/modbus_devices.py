@@ -45,6 +45,7 @@ from pymodbus.server.base import ModbusBaseServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from feedbench.protocols.address import LOOPBACK
+from feedbench.sim_backends.faults import NO_FAULTS, Faults
 from feedbench.protocols.modbus_registers import (
     FUNCTION_CODES,
     INVERTER_CONTROL_FAULT_RESET,
@@ -411,11 +412,15 @@ def _sim_devices(devices: Sequence[SimulatedModbusDevice]) -> list[SimDevice]:
 class AnsweringContext:
     """pymodbus's simulator context (`SimCore`) with every fault answered by a Modbus exception
     and logged as one line (module logger): an unknown device id → 0x0B, an exception raised
-    inside a device → 4; exception answers of the devices (1, 2, 3) are logged as warnings."""
+    inside a device → 4; exception answers of the devices (1, 2, 3) are logged as warnings.
+    `faults` (`sim_backends.faults`): requests left unanswered, or answered with an
+    exception, from a SYNC count on."""
 
-    def __init__(self, core, devices: Sequence[SimulatedModbusDevice]) -> None:
+    def __init__(self, core, devices: Sequence[SimulatedModbusDevice],
+                 faults: Faults = NO_FAULTS) -> None:
         self._core = core
         self._names = {device.device_id: device.register_map.device for device in devices}
+        self._faults = faults
 
     def device_ids(self) -> list[int]:
         """The device ids served (pymodbus asks for broadcasts)."""
@@ -448,6 +453,13 @@ class AnsweringContext:
             return ExcCodes.GATEWAY_NO_RESPONSE
         where = (f"modbus: {self._names[device_id]} (device id {device_id}): function "
                  f"{func_code}" + ("" if address is None else f" at address {address}"))
+        fault = self._faults.modbus_answer()
+        if fault == "timeout":  # injected: never answered, the host's request times out
+            await asyncio.Event().wait()
+        if fault == "exception":
+            answer = ExcCodes(self._faults.modbus_exception_code)
+            LOGGER.warning("%s: answered with exception %d (injected fault)", where, answer)
+            return answer
         try:
             result = await request()
         except Exception as error:  # a fault inside the device: answered, never a traceback
@@ -459,26 +471,30 @@ class AnsweringContext:
         return result
 
 
-def _answering(server: ModbusBaseServer,
-               devices: Sequence[SimulatedModbusDevice]) -> ModbusBaseServer:
+def _answering(server: ModbusBaseServer, devices: Sequence[SimulatedModbusDevice],
+               faults: Faults = NO_FAULTS) -> ModbusBaseServer:
     """`server` with its simulator context wrapped in `AnsweringContext`, decoding only the
     documented function codes (`DocumentedFunctions`)."""
-    server.context = AnsweringContext(server.context, devices)
+    server.context = AnsweringContext(server.context, devices, faults)
     server.decoder = DocumentedFunctions()
     return server
 
 
 class SimulatedModbusTcpServer:
-    """Modbus TCP server on 127.0.0.1 for `devices` (each at its own device id)."""
+    """Modbus TCP server on 127.0.0.1 for `devices` (each at its own device id), with the
+    Modbus `faults` of `sim_backends.faults`."""
 
-    def __init__(self, devices: Sequence[SimulatedModbusDevice], port: int = 0):
+    def __init__(self, devices: Sequence[SimulatedModbusDevice], port: int = 0,
+                 faults: Faults = NO_FAULTS):
         self.devices = list(devices)
         self.port = port
+        self.faults = faults
         self._thread = _ServerThread(self._make_server, "modbus-tcp-sim")
 
     def _make_server(self) -> ModbusTcpServer:
         return _answering(ModbusTcpServer(_sim_devices(self.devices),
-                                          address=(LOOPBACK, self.port)), self.devices)
+                                          address=(LOOPBACK, self.port)), self.devices,
+                          self.faults)
 
     def start(self) -> tuple[str, int]:
         """Listen; returns (host, port), the port chosen by the OS if 0 was asked."""

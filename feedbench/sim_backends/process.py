@@ -38,6 +38,7 @@ from feedbench.config import registered
 from feedbench.protocols.address import LOOPBACK, split_address
 from feedbench.protocols.serial_frames import CHANNELS
 from feedbench.sim_backends.bench import start_simulated_axis
+from feedbench.sim_backends.faults import world_faults
 from feedbench.sim_backends.modbus_devices import (
     SimulatedLoadCell, SimulatedModbusDevice, SimulatedModbusTcpServer, SimulatedSpindleInverter,
 )
@@ -158,6 +159,10 @@ class LoadCellPeer(SimulatedPeer):
         sim.drive.after_physics.append(lambda: self.load_cell.advance(sim.cycle_s))
 
 
+CORRUPTION = {"crc": "flip", "desync": "truncate"}
+"""The wire damage (`SimulatedSerialDaq.corrupt_next_frame`) of each serial fault."""
+
+
 class DaqPeer(SimulatedPeer):
     """The streaming DAQ on a pseudo-terminal (``bench.daq_port``); the worlds push their
     samples to `inputs`, summed and sent at the end of each cycle."""
@@ -170,7 +175,16 @@ class DaqPeer(SimulatedPeer):
         sim.stack.callback(self.daq.close)
         sim.addresses["daq_port"] = self.daq.port
         self.inputs = DaqInputs(self.daq)
-        self.end_of_cycle = self.inputs.flush
+        self.end_of_cycle = self._send
+
+    def _send(self) -> None:
+        """The cycle's samples to the host, through the serial faults of this cycle."""
+        damage = self.sim.faults.serial_damage()
+        if damage == "unplug":
+            self.daq.unplug()
+        elif damage:
+            self.daq.corrupt_next_frame(CORRUPTION[damage])
+        self.inputs.flush()
 
 
 class ExciterPeer(SimulatedPeer):
@@ -207,7 +221,8 @@ class SimulatedBench:
     share one server on 127.0.0.1 at port ``modbus_address[1]`` (0: a free one). `addresses`:
     ``[bench]`` key → where each peer is reached, as the host config would give it.
     `workpiece`: lane tables (mode, a_e_mm, a_p_mm, start_mm, stop_mm) a milling process
-    cuts (the SMFE plan's ``workpiece``).
+    cuts (the SMFE plan's ``workpiece``). `faults`: the world's ``faults`` table
+    (`sim_backends.faults`), injected on the drive's bus, the Modbus server and the DAQ.
     """
 
     def __init__(self, bench: Mapping[str, Any], needs: Mapping[str, Mapping[str, Any]],
@@ -225,10 +240,11 @@ class SimulatedBench:
         self.peers: dict[str, SimulatedPeer] = {}
         try:
             simulator = build_axis(self.world, self.cycle_s)
+            self.faults = world_faults(self.world)
             self.drive = start_simulated_axis(bench["interface"], bench["channel"],
                                               bench["node_id"], simulator,
                                               noise=build_sensor_noise(self.world),
-                                              **(bus_options or {}))
+                                              faults=self.faults, **(bus_options or {}))
             self.stack.callback(self.drive.close)
             self._start_peers(needs, modbus_address)
         except BaseException:
@@ -243,7 +259,8 @@ class SimulatedBench:
             if name in known:
                 self.peers[name] = known[name](self, settings)
         if self.modbus_devices:
-            server = SimulatedModbusTcpServer(self.modbus_devices, port=modbus_address[1])
+            server = SimulatedModbusTcpServer(self.modbus_devices, port=modbus_address[1],
+                                              faults=self.faults)
             address = "{}:{}".format(*server.start())
             self.stack.callback(server.stop)
             self.addresses.update(dict.fromkeys(self._modbus_keys, address))
@@ -301,7 +318,8 @@ def _start_bench(bench: Mapping[str, Any], workpiece: Sequence[Mapping[str, Any]
         axis = SimulatedRackPinionAxis(
             build_simulator(bench["world"], bench["cycle_ms"] * 1e-3), bench["interface"],
             bench["channel"], (bench["node_id"], bench["slave_node_id"]),
-            load_cell_settings(bench["world"]), modbus_port=modbus[1], **bus_options)
+            load_cell_settings(bench["world"]), modbus_port=modbus[1],
+            faults=world_faults(bench["world"]), **bus_options)
         stack.callback(axis.close)
         address = "{}:{}".format(*axis.modbus_address)
         return {"axis": "rack_pinion", "node_id": bench["node_id"],

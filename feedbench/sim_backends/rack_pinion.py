@@ -32,6 +32,7 @@ from feedbench.protocols.canbus import open_bus
 from feedbench.protocols.cia402 import CSP, RATED_TORQUE
 from feedbench.sim_backends import eds
 from feedbench.sim_backends.drive_bus import SimulatedDriveBus
+from feedbench.sim_backends.faults import NO_FAULTS, Faults
 from feedbench.sim_backends.modbus_devices import SimulatedLoadCell, SimulatedModbusTcpServer
 from feedbench.sim_backends.world import FRICTION_SCHEMA
 from feedbench.units import MIN_PER_MM, MM_PER_MIN, N_MIN_PER_MM, N_PER_UM
@@ -103,6 +104,7 @@ WORLD_SCHEMA = {
     "f_velocity_Hz": Field(float, 8000.0, "velocity-loop rate (Hz)", positive),
     "f_position_Hz": Field(float, 1000.0, "position-loop rate (Hz)", positive),
     "friction": Field(dict, {}, "guideway friction per direction, Eq. (5.2)"),
+    "faults": Field(dict, {}, "fault injection: feedbench.sim_backends.faults.FAULT_SCHEMA"),
 }
 
 CARRIAGE_FRICTION = {"F_c_N": 600.0, "F_s_N": 900.0, "v_s_mm_min": 300.0,
@@ -339,6 +341,7 @@ class AxisObjects(MotorObjects):
 class SimulatedRackPinionAxis:
     """Master and slave drives on one bus channel, their world, the load cell's server.
 
+    `faults` (`sim_backends.faults`) act on the drives' bus and the load cell's server.
     `close()` stops everything. `modbus_address` is where the load cell answers (device
     id `load_cell_id`; its server listens on 127.0.0.1:`modbus_port`, 0: a free port).
     """
@@ -346,15 +349,16 @@ class SimulatedRackPinionAxis:
     def __init__(self, simulator: RackPinionSimulator, interface: str = "virtual",
                  channel: str = "feedbench", node_ids: tuple[int, int] = (1, 2),
                  load_cell: dict[str, Any] | None = None, modbus_port: int = 0,
-                 **bus_options: Any) -> None:
+                 faults: Faults = NO_FAULTS, **bus_options: Any) -> None:
         self.world = RackPinionWorld(simulator)
         self.load_cell = SimulatedLoadCell(lambda: simulator.bumper_force, **(load_cell or {}))
         self.world.sampled.append(self.load_cell)
-        self._server = SimulatedModbusTcpServer([self.load_cell], port=modbus_port)
+        self._server = SimulatedModbusTcpServer([self.load_cell], port=modbus_port,
+                                                faults=faults)
         self.modbus_address = self._server.start()
         try:
-            self.bus = SimulatedDriveBus(open_bus(interface, channel, **bus_options),
-                                         self.world.step)
+            self.bus = SimulatedDriveBus(faults.bus(open_bus(interface, channel, **bus_options)),
+                                         self.world.step, faults)
         except BaseException:
             self._server.stop()
             raise

@@ -161,6 +161,8 @@ class SimulatedSerialDaq:
     def push(self, samples: np.ndarray) -> None:
         """One bench cycle's samples: (samples_per_cycle, 12) in SI; streamed if started."""
         samples = np.asarray(samples, dtype=float)
+        if self._closing:  # unplugged: nothing reaches the host any more
+            return
         with self._lock:
             if self._waveform is not None:
                 raise RuntimeError("the instrument is free-running; push is for the bench clock")
@@ -190,8 +192,16 @@ class SimulatedSerialDaq:
         with self._lock:
             self._corruption = kind
 
+    def unplug(self) -> None:
+        """The cable pulled: the pty closes (the host's reads fail); later pushes are
+        dropped."""
+        self.close()
+
     def close(self) -> None:
-        """Stop the service thread and close the pty (the host then sees the device vanish)."""
+        """Stop the service thread and close the pty (the host then sees the device vanish);
+        a second call does nothing."""
+        if self._closing:
+            return
         self._closing = True
         self._wake()
         self._thread.join(timeout=2.0)

@@ -52,6 +52,7 @@ WORLD_SCHEMA = {
                      "feedbench.sim_backends.smfe_world.MILLING_SCHEMA"),
     "structure": Field(dict, {}, "exciters and sensors at the tool tip (shaker, inertial "
                        "actuator, hammer): feedbench.sim_backends.structure_world"),
+    "faults": Field(dict, {}, "fault injection: feedbench.sim_backends.faults.FAULT_SCHEMA"),
 }
 
 
