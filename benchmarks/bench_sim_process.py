@@ -45,7 +45,7 @@ REPEATS = 3
 FS = 10_000.0
 
 
-def _cycles_per_s(bench: Bench, n: int) -> float:
+def cycles_per_s(bench: Bench, n: int) -> float:
     t0 = time.perf_counter()
     for _ in range(n):
         bench.clock.tick()
@@ -80,7 +80,7 @@ def lockstep_rates() -> tuple[float, float]:
                               socketcand=info["socketcand"], channel=info["channel"])
         try:
             with Bench(local) as near, Bench(remote) as far:
-                rates = [(_cycles_per_s(near, N_CYCLES), _cycles_per_s(far, N_CYCLES))
+                rates = [(cycles_per_s(near, N_CYCLES), cycles_per_s(far, N_CYCLES))
                          for _ in range(ROUNDS)]
         finally:
             process.terminate()
