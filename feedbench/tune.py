@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import json
 import signal
-import sys
 import threading
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -336,7 +335,8 @@ def setup_of(config: TuneConfig, measured: Mapping[str, Any], fit: PoleZeroFit
 
 
 def fit_mobility(config: TuneConfig, bode: Mapping[str, Any]) -> PoleZeroFit:
-    """Eq. (4.27) fitted to the measured open-loop mobility in the critical band."""
+    """Eq. (4.27) with `tune.modes` pole/zero pairs fitted to the measured open-loop mobility
+    (Eq. 4.20, m/(N·s)) over the Bode's frequencies."""
     f = np.asarray(bode["f_hz"])
     return fit_pole_zero(f, _polar(bode["mobility"], "abs", "phase_rad"), config.tune["modes"])
 
@@ -410,7 +410,7 @@ def predict(config: TuneConfig, measured: Mapping[str, Any], say: Say) -> dict:
               "recommendation": asdict(recommendation),
               "approach": "settings (approach #2, Eqs. 4.26, 4.23)" if setup.tip and
               setup.tip.tip_closed else "none (approach #2 needs tune.measure_gains)"}
-    result["_draw"] = {"fit": fit, "mobility": mobility, "setup": setup, "rows": rows}
+    result["_draw"] = {"fit": fit, "mobility": mobility, "setup": setup}
     say(f"      fit: m_total {fit.model.m_total:.2f} kg, delay {fit.model.delay * 1e3:.2f} ms, "
         f"RMS log error {fit.rms_log_error:.4f}; {len(rows)} candidates")
     return result
@@ -759,6 +759,7 @@ def comparison_text(rows: Mapping[str, Mapping[str, float]]) -> str:
              "f_n_hz": ("tool-tip mode f_n", "Hz", 1.0, 2),
              "zeta": ("tool-tip mode ζ", "%", 100.0, 2),
              "velocity_bandwidth_hz": ("velocity-loop bandwidth", "Hz", 1.0, 1)}
+
     def number(value: float, width: int, form: str) -> str:
         return f"{value:{form}}".rjust(width) if np.isfinite(value) else "–".rjust(width)
 
@@ -769,6 +770,22 @@ def comparison_text(rows: Mapping[str, Mapping[str, float]]) -> str:
                      f"{number(row['measured'] * scale, 12, f'.{digits}f')}"
                      f"{number(100 * row['error'], 8, '+.1f')}%  {unit}")
     return "\n".join(lines)
+
+
+def remeasure(session: BenchSession, config: TuneConfig, progress: StepProgress) -> dict:
+    """The tool-tip FRF (where the config has one: its peak, f_n, ζ by `compliance_mode`) and
+    the closed velocity-loop Bode (its −3 dB bandwidth) at the gains the drive has now."""
+    home = session.drive.read().position_mm
+    measured: dict[str, Any] = {}
+    if config.tool_tip:
+        tip = measure_tip(session, config, progress, home)
+        measured = {**compliance_mode(np.asarray(tip["f_hz"]),
+                                      _polar(tip["compliance"], "abs", "phase_rad")),
+                    "run_tool_tip": tip["run"]}
+    session.drive.move_to(home, config.tune["move_feed_mm_min"])
+    bode = measure_bode(session, config, progress)
+    session.drive.move_to(home, config.tune["move_feed_mm_min"])
+    return {**measured, "velocity_bandwidth_hz": bode["bandwidth_hz"], "run_bode": bode["run"]}
 
 
 def apply_candidate(config: TuneConfig, name: str, say: Say) -> dict:
@@ -788,17 +805,7 @@ def apply_candidate(config: TuneConfig, name: str, say: Say) -> dict:
         old = write_gains(session, candidate["gains"], say)
         applied = {"name": name, "old": old, "new": session.drive.gains, "measured": None}
         save_result(config.result_path, {**result, "applied": applied})
-        home = session.drive.read().position_mm
-        measured: dict[str, Any] = {}
-        if config.tool_tip:
-            tip = measure_tip(session, config, progress, home)
-            measured = compliance_mode(np.asarray(tip["f_hz"]),
-                                       _polar(tip["compliance"], "abs", "phase_rad"))
-            measured["run_tool_tip"] = tip["run"]
-        session.drive.move_to(home, config.tune["move_feed_mm_min"])
-        bode = measure_bode(session, config, progress)
-        session.drive.move_to(home, config.tune["move_feed_mm_min"])
-    measured.update(velocity_bandwidth_hz=bode["bandwidth_hz"], run_bode=bode["run"])
+        measured = remeasure(session, config, progress)
     predicted = {key: value for key, value in candidate.get("compliance", {}).items()
                  if key not in ("f_hz", "abs", "phase_rad")}
     predicted["velocity_bandwidth_hz"] = candidate["velocity_bandwidth_hz"]

@@ -15,6 +15,7 @@ import os
 import signal
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,7 @@ import pytest
 
 from feedbench.api import open_bench
 from feedbench.cli import main
-from feedbench.config import ConfigError, read_toml
+from feedbench.config import read_toml
 from feedbench.tune import (
     apply_candidate, interrupts_deferred, parse_tune_config, read_result, rollback, run_tune,
 )
@@ -170,7 +171,7 @@ def test_ctrl_c_after_the_write_keeps_the_new_gains(tuned, tmp_path):
     sim, info = start_sim(tmp_path, "tune")
     try:
         raw = read_toml(EXAMPLE)
-        host = read_toml_text(_host_bench({**info, "directory": tmp_path}))
+        host = tomllib.loads(_host_bench({**info, "directory": tmp_path}))
         raw["bench"] = {**host["bench"], "timeout_s": 5.0}
         raw["tune"].update({**SHORT, "result": str(tmp_path / "tune.json")})
         (tmp_path / "tune.json").write_text(config.result_path.read_text(encoding="utf-8"))
@@ -191,12 +192,6 @@ def test_ctrl_c_after_the_write_keeps_the_new_gains(tuned, tmp_path):
     finally:
         sim.terminate()
         sim.communicate(timeout=20)
-
-
-def read_toml_text(text: str) -> dict:
-    import tomllib
-
-    return tomllib.loads(text)
 
 
 def _toml(raw: dict, prefix: str = "") -> str:
