@@ -364,4 +364,5 @@ def run_config(config: RunConfig, observers: Sequence[Observer] = (),
     with Bench(config.bench, config.plan, config.experiment.devices()) as bench:
         output_dir.mkdir(parents=True, exist_ok=True)
         catalog = Catalog(output_dir / "catalog.sqlite")
+        catalog.reconcile()  # runs a dead process left `running`: crashed, in their files too
         return bench.run(config, catalog, output_dir, observers, progress, stop)

@@ -30,6 +30,7 @@ SLOW_FIRST = (
     "test_notebook.py", "test_stepped_loading.py", "test_scripts.py", "test_live_window.py",
     "test_config_cli.py", "test_closure_cases.py", "test_api.py", "test_fault_paths.py",
     "test_campaign.py", "test_rack_pinion_bench.py", "test_sim_process.py",
+    "test_fault_matrix.py", "test_fault_matrix_devices.py", "test_fault_matrix_host.py",
 )
 """Test files, longest first (measured under `make test`: the demo ≈ 170 s, the scripts
 ≈ 85 s, the others 15–60 s each); they start first so the other worker spreads the short

@@ -12,13 +12,16 @@ from pathlib import Path
 from feedbench.sim_backends.process import READY
 
 
-def start_sim(directory: Path, prefix: str = "sim") -> tuple[subprocess.Popen, dict]:
-    """Start `feedbench sim` with a config in `directory`; its process and its ready info
-    (addresses, channel) with ``directory`` added."""
-    config = directory / "bench.toml"
-    config.write_text('[bench]\nsimulated = true\ninterface = "socketcand"\n'
-                      'socketcand = "127.0.0.1:0"\nmodbus = "127.0.0.1:0"\n'
-                      f'channel = "{prefix}-{uuid.uuid4().hex[:8]}"\n')
+def start_sim(directory: Path, prefix: str = "sim",
+              config: Path | None = None) -> tuple[subprocess.Popen, dict]:
+    """Start `feedbench sim` with a config in `directory` (or `config`, which listens on
+    loopback itself); its process and its ready info (addresses, channel) with
+    ``directory`` added."""
+    if config is None:
+        config = directory / "bench.toml"
+        config.write_text('[bench]\nsimulated = true\ninterface = "socketcand"\n'
+                          'socketcand = "127.0.0.1:0"\nmodbus = "127.0.0.1:0"\n'
+                          f'channel = "{prefix}-{uuid.uuid4().hex[:8]}"\n')
     process = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "sim", str(config)],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     line = process.stdout.readline()

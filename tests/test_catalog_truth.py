@@ -87,6 +87,10 @@ def test_a_run_killed_mid_recording_is_listed_crashed_with_the_samples_of_its_fi
                                                             in_file.n_samples)
     assert row["reason"] == (f"process {writer.pid} on {socket.gethostname()} ended without "
                              "finishing the run")
+    marked = open_recording(tmp_path / f"{run_id}.h5")
+    assert (marked.status, marked.reason, marked.n_samples) == (
+        "crashed", row["reason"], in_file.n_samples), "the file says so too"
+    assert (marked.cycle == in_file.cycle).all()
     assert main(["runs", "--dir", str(tmp_path)]) == 0
     line = capsys.readouterr().out.splitlines()[0].split()
     assert line[:3] == [run_id, "crashed", str(in_file.n_samples)]
@@ -116,7 +120,7 @@ def test_a_simulated_run_killed_mid_run_is_listed_crashed(tmp_path, can_channel,
     run.wait(10)
     [row] = runs_json(tmp_path, capsys)
     in_file = open_recording(row["file"])
-    assert in_file.status == "running" and in_file.n_samples >= 2000, in_file.n_samples
+    assert in_file.status == "crashed" and in_file.n_samples >= 2000, in_file.n_samples
     assert (row["status"], row["n_samples"], row["pid"]) == ("crashed", in_file.n_samples,
                                                              run.pid)
 

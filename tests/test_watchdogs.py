@@ -335,7 +335,7 @@ def test_a_host_killed_mid_chirp_leaves_the_drive_stopped_and_the_run_readable(
     """SIGKILL of `feedbench run` (chirp) against `feedbench sim`: the drive sends EMCY
     0x8130 within the consumer time (3 s, + `LATE_S`) of the kill and ends in FAULT with its
     power stage off; the recording reads back to its last flushed cycle and `feedbench runs`
-    lists it crashed with that many samples."""
+    lists it crashed with that many samples, and marks the file crashed too."""
     from feedbench.cli import main
 
     host, port = sim_process["socketcand"].split(":")
@@ -372,7 +372,7 @@ def test_a_host_killed_mid_chirp_leaves_the_drive_stopped_and_the_run_readable(
     assert main(["runs", "--dir", str(tmp_path), "--json"]) == 0
     [row] = json.loads(capsys.readouterr().out)["runs"]
     recording = open_recording(row["file"])
-    assert recording.n_samples >= 3000 and recording.status == "running"
+    assert recording.n_samples >= 3000 and recording.status == "crashed"
     assert (row["status"], row["n_samples"]) == ("crashed", recording.n_samples)
 
 

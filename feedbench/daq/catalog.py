@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from feedbench.config import ConfigError
+from feedbench.daq.recorder import mark_crashed
 from feedbench.daq.recording import RecordingSummary, read_summary, to_json, utc_now_iso
 
 SCHEMA = """
@@ -225,7 +226,7 @@ class Catalog:
     def reconcile(self) -> list[str]:
         """Settle the runs left `created` or `running` by a process that has ended: the
         recording's own final status if it has one, else `crashed` with the samples its file
-        holds. A run whose process still runs, or runs on another host, stays as it is.
+        holds, which the file then says too (`recorder.mark_crashed`). A run whose process still runs, or runs on another host, stays as it is.
         Returns the ids changed."""
         with self._transaction() as connection:
             rows = connection.execute(
@@ -238,8 +239,11 @@ class Catalog:
                 self._settle(run_id, summary.status, summary.reason, summary.n_samples,
                              summary.stopped_at, summary.timing)
             elif _ended(pid, host, file):
-                self._settle(run_id, "crashed", f"process {pid} on {host} ended without "
-                             f"finishing the run{f' ({why})' if why else ''}",
+                reason = (f"process {pid} on {host} ended without finishing the run"
+                          f"{f' ({why})' if why else ''}")
+                if summary is not None:
+                    _mark_file(file, reason, summary.n_samples)
+                self._settle(run_id, "crashed", reason,
                              summary.n_samples if summary else 0, None)
             else:
                 continue
@@ -318,6 +322,15 @@ def _summary(file: str | None) -> tuple[RecordingSummary | None, str]:
         return read_summary(file), ""
     except ConfigError as exc:
         return None, str(exc)
+
+
+def _mark_file(file: str, reason: str, n_samples: int) -> None:
+    """The recording of a run whose process has ended says so too (`mark_crashed`); a file
+    that cannot be written (read-only medium) keeps its status, the catalog row is settled."""
+    try:
+        mark_crashed(file, reason, n_samples)
+    except (OSError, RuntimeError) as exc:
+        LOGGER.warning("%s: not marked crashed (%s)", file, exc)
 
 
 def _ended(pid: int | None, host: str | None, file: str | None) -> bool:

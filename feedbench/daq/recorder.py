@@ -9,9 +9,10 @@ while it is written, and a writer killed mid-run leaves a readable file with sta
 A full disk (or a file-size limit) is found before HDF5 writes: the recorder keeps
 `RESERVE_BYTES` allocated ahead of what the file has used, so a write that cannot get its
 space raises `RecordingError` while the file is still whole; it can then be closed and
-marked `aborted` with the reason, and the samples flushed before stay readable. After that
-first failure the recorder drops what it is given without I/O: the safe stop of the drive
-goes on without the file.
+marked `aborted` with the reason. The reserve still holds the block that found the failure
+and what comes after it (the rows in memory, the safe stop's rows and events): they are
+written while they fit, and what no longer fits is dropped without an error, so no sample
+given before the failure is lost and the safe stop of the drive never waits on the file.
 """
 
 from __future__ import annotations
@@ -39,19 +40,30 @@ VERSIONED_DISTRIBUTIONS = (
 )
 EVENTS_CHUNK_ROWS = 64
 STREAM_CHUNK_ROWS = 10_000
-"""Rows of a high-rate stream held in memory before they are written (1 s at 10 kHz)."""
+"""Rows of a high-rate stream held in memory before they are written (1 s at 10 kHz), at
+most (`stream_chunk_rows`)."""
 RESERVE_BYTES = 1 << 20
 """Disk space (bytes) held allocated beyond what the file has used: HDF5's own writes
 (chunks, metadata, the final flush and status) land in space already held."""
 RESERVE_STEP_BYTES = 1 << 16
 """The reserve is topped up in steps of this many bytes (64 KiB)."""
+CLOSE_BYTES = RESERVE_BYTES // 4
+"""Of the reserve, what is kept for HDF5's own writes when the file is closed (metadata,
+chunk indices) once it can no longer be topped up."""
+STREAM_CHUNK_BYTES = RESERVE_BYTES // 8
+"""A stream's chunk is at most this big: the block that finds a full disk still leaves most
+of the reserve for the rows and events after it."""
 WRITE_OVERHEAD_BYTES = 4096
 """Metadata HDF5 may add per write (chunk index, dataset extents), counted generously."""
 
 
 class RecordingError(RuntimeError):
     """The recording cannot be written (disk full, file-size limit): raised once, by the
-    write that found it; the recorder drops everything after it without I/O."""
+    write that found it; the recorder goes on writing into its reserve while that holds."""
+
+
+class _NoRoom(Exception):
+    """A block that no longer fits in the reserve after the failure: dropped."""
 
 
 class StreamSpec(NamedTuple):
@@ -130,8 +142,8 @@ class Recorder:
 
     @property
     def n_samples(self) -> int:
-        """Samples appended so far (on disk plus buffered; after a failure: on disk)."""
-        return self._written + (0 if self.failure else self._buffered)
+        """Samples appended so far (on disk plus buffered; once closed: on disk)."""
+        return self._written + self._buffered
 
     @property
     def buffer_rows(self) -> int:
@@ -191,9 +203,7 @@ class Recorder:
         """Write an event marker and flush it at once (kinds: segment, fault, limit, abort,
         gap, info)."""
         self._require_open()
-        if self.failure:
-            return
-        with self.writing(WRITE_OVERHEAD_BYTES):
+        with suppress(_NoRoom), self.writing(WRITE_OVERHEAD_BYTES):
             row = len(self._event_set)
             self._event_set.resize((row + 1,))
             self._event_set[row] = (cycle, kind, text)
@@ -201,12 +211,26 @@ class Recorder:
 
     @contextmanager
     def writing(self, n_bytes: int) -> Iterator[None]:
-        """Hold `n_bytes` (+ the reserve) on disk, then run the block's HDF5 writes; a failure
-        becomes `failure` and one `RecordingError`."""
+        """Hold `n_bytes` (+ the reserve) on disk, then run the block's HDF5 writes. The first
+        failure (the reserve cannot be topped up, a write fails) becomes `failure` and one
+        `RecordingError`, raised after the block if the reserve still held it; after it, a
+        block that does not fit raises `_NoRoom` for its caller to drop it."""
         try:
-            self._space.hold(n_bytes + WRITE_OVERHEAD_BYTES)
+            short = self._space.hold(n_bytes + WRITE_OVERHEAD_BYTES)
+        except OSError as exc:
+            self._fail(exc)
+            raise _NoRoom from None
+        try:
             yield
         except (OSError, RuntimeError) as exc:  # h5py reports a failed write as either
+            self._fail(exc)
+            raise _NoRoom from None
+        if short is not None:
+            self._fail(short)
+
+    def _fail(self, exc: Exception) -> None:
+        """The first failure: kept in `failure`, raised as `RecordingError`; later: nothing."""
+        if not self.failure:
             self.failure = f"recording failed: {' '.join(str(exc).split())[:200]}"
             raise RecordingError(f"{self.path}: {self.failure}") from None
 
@@ -226,7 +250,11 @@ class Recorder:
             self._write_buffer()
             for stream in self._streams.values():
                 stream.write()
-        self._file.close()
+        try:
+            self._file.close()
+        except (OSError, RuntimeError) as exc:  # HDF5's own last writes did not fit
+            with suppress(RecordingError):
+                self._fail(exc)
         self._closed = True
         if self.failure:
             status, reason = "aborted", reason or self.failure
@@ -298,14 +326,14 @@ class Recorder:
     def _write_buffer(self) -> None:
         """Extend every dataset by the buffered rows, write them and flush."""
         count, self._buffered = self._buffered, 0
-        if not count or self.failure:
-            return  # after a failure the rows are dropped
-        with self.writing(count * (len(self._data_sets) + 1) * 8):
+        if not count:
+            return
+        with suppress(_NoRoom), self.writing(count * (len(self._data_sets) + 1) * 8):
             for column, dataset in enumerate(self._data_sets):
                 _write_rows(dataset, self._written, self._values[:count, column])
             _write_rows(self._cycle_set, self._written, self._cycles[:count])
             self._file.flush()
-        self._written += count
+            self._written += count
 
     def _check_step(self, cycle: int) -> None:
         """Called when `cycle` is not the expected next one (or for the first sample)."""
@@ -330,7 +358,7 @@ class Recorder:
 
 
 class _StreamWriter:
-    """Buffers one stream's samples and writes them in chunks of `STREAM_CHUNK_ROWS`."""
+    """Buffers one stream's samples and writes them in chunks of `stream_chunk_rows`."""
 
     def __init__(self, recorder: Recorder, group: h5py.Group, n_channels: int) -> None:
         self._recorder = recorder
@@ -342,6 +370,7 @@ class _StreamWriter:
         self._buffered = 0
         self._written = 0
         self._n_channels = n_channels
+        self._chunk_rows = stream_chunk_rows(n_channels)
 
     def append(self, cycles: np.ndarray, sequence: np.ndarray, samples: np.ndarray) -> None:
         samples = np.asarray(samples, dtype=np.float64)
@@ -352,25 +381,25 @@ class _StreamWriter:
         self._sequences.append(np.asarray(sequence, dtype=np.int64))
         self._samples.append(samples)
         self._buffered += len(sequence)
-        if self._buffered >= STREAM_CHUNK_ROWS:
+        if self._buffered >= self._chunk_rows:
             self.write()
 
     def write(self) -> None:
         """Write the buffered samples and flush (SWMR readers then see them); after the
-        recorder's failure they are dropped."""
+        recorder's failure, while its reserve holds them."""
         samples, sequences, cycles = self._samples, self._sequences, self._cycles
         count = self._buffered
         self._cycles, self._sequences, self._samples, self._buffered = [], [], [], 0
-        if not count or self._recorder.failure:
+        if not count:
             return
         samples = np.concatenate(samples)
-        with self._recorder.writing(count * (self._n_channels + 2) * 8):
+        with suppress(_NoRoom), self._recorder.writing(count * (self._n_channels + 2) * 8):
             for column, dataset in enumerate(self._data_sets):
                 _write_rows(dataset, self._written, np.ascontiguousarray(samples[:, column]))
             _write_rows(self._sequence_set, self._written, np.concatenate(sequences))
             _write_rows(self._cycle_set, self._written, np.concatenate(cycles))
             self._cycle_set.file.flush()
-        self._written += count
+            self._written += count
 
 
 class _DiskSpace:
@@ -385,20 +414,36 @@ class _DiskSpace:
         self._fd = file.id.get_vfd_handle()
         self._used = file.id.get_filesize()
         self._held = self._used
-        self.hold(0)
+        if (short := self.hold(0)) is not None:
+            raise short
 
-    def hold(self, n_bytes: int) -> None:
-        """Count `n_bytes` as used and make sure the reserve beyond them is allocated."""
+    def hold(self, n_bytes: int) -> OSError | None:
+        """Count `n_bytes` as used and make sure the reserve beyond them is allocated. If it
+        cannot be, the error is returned while the bytes fit in what is held (`CLOSE_BYTES`
+        kept back: the caller writes them), else raised."""
         self._used += n_bytes
         if self._used + RESERVE_BYTES > self._held:
             target = self._used + RESERVE_BYTES + RESERVE_STEP_BYTES
-            os.posix_fallocate(self._fd, self._held, target - self._held)
+            try:
+                os.posix_fallocate(self._fd, self._held, target - self._held)
+            except OSError as exc:
+                if self._used > self._held - CLOSE_BYTES:
+                    raise
+                return exc
             self._held = target
+        return None
+
+
+def stream_chunk_rows(n_channels: int) -> int:
+    """Rows per written chunk of a stream of `n_channels`: `STREAM_CHUNK_ROWS`, fewer if
+    that would exceed `STREAM_CHUNK_BYTES` (its counters and bus cycles counted)."""
+    return max(1, min(STREAM_CHUNK_ROWS, STREAM_CHUNK_BYTES // ((n_channels + 2) * 8)))
 
 
 def _create_streams(group: h5py.Group, streams: Mapping[str, StreamSpec]) -> None:
-    extendable = dict(shape=(0,), maxshape=(None,), chunks=(STREAM_CHUNK_ROWS,))
     for name, spec in streams.items():
+        extendable = dict(shape=(0,), maxshape=(None,),
+                          chunks=(stream_chunk_rows(len(spec.channels)),))
         stream = group.create_group(name)
         stream.attrs.update(rate_hz=float(spec.rate_hz), channels=to_json(list(spec.channels)))
         stream.create_dataset(CYCLE, dtype=np.int64, **extendable)
@@ -424,3 +469,68 @@ def _check_metadata_keys(metadata: Mapping[str, Any]) -> None:
     clashing = set(metadata) & (RESERVED_ATTRS - {"experiment", "config"})
     if clashing:
         raise ValueError(f"metadata keys {sorted(clashing)} are reserved by the recorder")
+
+
+SUPERBLOCK_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+"""The HDF5 format signature the superblock starts with."""
+
+
+def mark_crashed(path: str | Path, reason: str, n_samples: int) -> None:
+    """Mark a recording whose writer died (SIGKILL, power loss) with status `crashed`, the
+    `reason` and its `n_samples` rows on disk, in the file itself: what feedbench does at
+    its next start for a run whose process has ended (`Catalog.reconcile`). Only for a
+    file no process writes any more: its SWMR writer's consistency flags are cleared first
+    (what HDF5's h5clear does; h5py has no call for it), which a live writer needs."""
+    _clear_consistency_flags(Path(path))
+    with h5py.File(path, "r+") as file:
+        file.attrs.update(status="crashed", reason=reason, n_samples=n_samples)
+
+
+def _clear_consistency_flags(path: Path) -> None:
+    """Zero the file consistency flags of a version 2/3 superblock (at offset 0) and write
+    its checksum again (Jenkins lookup3, as HDF5 computes it)."""
+    with open(path, "r+b") as file:
+        head = bytearray(file.read(12))
+        if head[:8] != SUPERBLOCK_SIGNATURE or head[8] < 2 or not head[11]:
+            return
+        offsets = head[9]
+        body = head + file.read(4 * offsets)
+        body[11] = 0
+        file.seek(0)
+        file.write(bytes(body) + _lookup3(bytes(body)).to_bytes(4, "little"))
+
+
+def _lookup3(data: bytes, initval: int = 0) -> int:
+    """Bob Jenkins' lookup3 `hashlittle` of `data`, byte by byte (HDF5's H5_checksum_lookup3)."""
+    mask = 0xFFFFFFFF
+
+    def rot(x: int, k: int) -> int:
+        return ((x << k) | (x >> (32 - k))) & mask
+
+    a = b = c = (0xDEADBEEF + len(data) + initval) & mask
+    words = [int.from_bytes(data[i:i + 4].ljust(4, b"\0"), "little")
+             for i in range(0, len(data), 4)]
+    rest = len(data)
+    while rest > 12:
+        i = (len(data) - rest) // 4
+        a, b, c = (a + words[i]) & mask, (b + words[i + 1]) & mask, (c + words[i + 2]) & mask
+        a = (a - c) & mask ^ rot(c, 4); c = (c + b) & mask
+        b = (b - a) & mask ^ rot(a, 6); a = (a + c) & mask
+        c = (c - b) & mask ^ rot(b, 8); b = (b + a) & mask
+        a = (a - c) & mask ^ rot(c, 16); c = (c + b) & mask
+        b = (b - a) & mask ^ rot(a, 19); a = (a + c) & mask
+        c = (c - b) & mask ^ rot(b, 4); b = (b + a) & mask
+        rest -= 12
+    if rest == 0:
+        return c
+    i = (len(data) - rest) // 4
+    tail = words[i:i + 3] + [0, 0, 0]
+    a, b, c = (a + tail[0]) & mask, (b + tail[1]) & mask, (c + tail[2]) & mask
+    c = (c ^ b) - rot(b, 14) & mask
+    a = (a ^ c) - rot(c, 11) & mask
+    b = (b ^ a) - rot(a, 25) & mask
+    c = (c ^ b) - rot(b, 16) & mask
+    a = (a ^ c) - rot(c, 4) & mask
+    b = (b ^ a) - rot(a, 14) & mask
+    c = (c ^ b) - rot(b, 24) & mask
+    return c

@@ -186,6 +186,8 @@ class SerialDaq:
         self._blocks: collections.deque[DaqBlock] = collections.deque()
         self._queued = 0
         self.overflowed_frames = 0
+        self.gone = ""
+        """Why the port stopped reading (the device went away), "" while it reads."""
         self._lock = threading.Lock()
         self._command_lock = threading.Lock()
         self._replies: queue.Queue[str] = queue.Queue()
@@ -195,11 +197,16 @@ class SerialDaq:
         self._reader.start()
         try:
             self.identity = self.command("*IDN?")
+            self.command("STOP")  # a stream a host that died left running (fault matrix)
             self.command(f"CHAN {self.mask:04X}")
             self.command(f"RATE {int(rate)}")
         except SerialDaqError:
             self.close()
             raise
+        with self._lock:  # what that stream sent is not this host's: its losses neither
+            self._blocks.clear()
+            self._queued = 0
+            self._parser = FrameParser(len(enabled))
 
     @property
     def crc_errors(self) -> int:
@@ -227,9 +234,12 @@ class SerialDaq:
         self.command("STOP")
 
     def read_available(self) -> DaqBlock:
-        """Everything received since the last call: sequence (n,) int64, samples (n, ch) SI."""
+        """Everything received since the last call: sequence (n,) int64, samples (n, ch) SI;
+        once all of it is read, `SerialDaqError` if the device went away (`gone`)."""
         with self._lock:
             blocks, self._blocks, self._queued = list(self._blocks), collections.deque(), 0
+        if not blocks and self.gone:
+            raise SerialDaqError(f"{self._serial.port}: the device went away ({self.gone})")
         if not blocks:
             return DaqBlock(np.empty(0, np.int64), np.empty((0, len(self.channels))))
         return DaqBlock(np.concatenate([b.sequence for b in blocks]),
@@ -264,8 +274,9 @@ class SerialDaq:
         while not self._closing.is_set():
             try:
                 data = self._serial.read(65536)
-            except (serial.SerialException, OSError):
-                return  # the device went away: later commands time out
+            except (serial.SerialException, OSError) as exc:  # the device went away
+                self.gone = " ".join(f"{type(exc).__name__}: {exc}".split())
+                return
             if data:
                 self._handle(data)
 

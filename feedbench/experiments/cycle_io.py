@@ -145,6 +145,7 @@ class DaqStream:
         self._last_cycle = cycle
         if not self._failed:
             self._silent = 0 if self._drain() else self._silent + 1
+            self._check_lost(cycle)
             now = time.monotonic()
             if not self._silent:
                 self._last_sample = now
@@ -153,6 +154,15 @@ class DaqStream:
                 raise DeviceLinkError(f"DAQ: no sample for {self._silent} bus cycles "
                                       f"({now - self._last_sample:.1f} s)")
         return ()
+
+    def _check_lost(self, cycle: int) -> None:
+        """A frame lost on the link (CRC error, a gap in the sample counter) ends the run:
+        the stream it leaves has a hole no analysis of it may bridge."""
+        crc, dropped = self.daq.crc_errors, self.daq.dropped_frames
+        if crc or dropped:
+            self._failed = True
+            raise DeviceLinkError(f"DAQ: samples lost on the serial link by bus cycle {cycle} "
+                                  f"({crc} CRC errors, {dropped} frames dropped)")
 
     def stop(self, recorder) -> None:
         """STOP the stream, record what was still in flight and the link's loss counters."""
@@ -167,7 +177,11 @@ class DaqStream:
 
     def _drain(self) -> int:
         """Everything received so far into the recording; returns the number of samples."""
-        block = self.daq.read_available()
+        try:
+            block = self.daq.read_available()
+        except Exception as exc:  # the device went away: the run stops, the link is silent
+            self._failed = True
+            raise DeviceLinkError(f"DAQ: {exc}") from None
         n = len(block.sequence)
         if n:
             if self._first_sequence is None:

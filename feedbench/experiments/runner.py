@@ -4,9 +4,10 @@ Before anything moves the runner reads where the axis stands, turns the plan's r
 trajectory into absolute targets and checks every limit on it. During the run it checks
 the measured position, velocity and force every cycle, watches the drive's fault state
 and the bus; a trip, a fault, a bus timeout or a stop request (Ctrl-C, the live window's
-Stop button) ramps the setpoint down, removes the excitation, disables the drive through
-the controlword sequence and closes the recording as aborted with the reason. Every
-sample up to the stop stays on disk.
+Stop button) removes the excitation, quick-stops the drive in the next cycle (CiA 402: out
+of operation enabled at once, the drive ramps down at its own quick-stop deceleration and
+switches off), holds the setpoint and closes the recording as aborted with the reason.
+Every sample up to the stop stays on disk.
 
 The safe stop depends on nothing but the bus: a recording that fails (full disk) aborts the
 run like any fault, and the stop goes on without it; the file is finalized after the drives
@@ -18,6 +19,7 @@ says so in the run's reason: "drive state unknown".
 from __future__ import annotations
 
 import json
+import math
 import signal
 import sys
 import threading
@@ -174,9 +176,11 @@ class Runner:
     master and slave of a rack-and-pinion axis): then each drive follows the plan from
     where it stood at `read_position`, every drive is enabled, watched and disabled, and
     the channels are named per drive (`drive_channels`). `clock` is a `LockstepClock` or
-    `RealtimeClock` from `feedbench.daq.clock`; `stop_accel` (m/s²) is the deceleration of
-    the safe stop. `devices` are served every cycle: `before_sync(plan index)` before the
-    SYNC (None outside the plan: enable, disable, stop ramp), `after_sync` after it, their
+    `RealtimeClock` from `feedbench.daq.clock`; `stop_accel` (m/s²) is the deceleration the
+    safe stop waits for (the drives' quick stop ramps at their own 0x6085). `devices` are
+    served every cycle: `before_sync(plan index)` before the SYNC (None outside the plan:
+    enable, disable, stop), `after_sync` after it (a device that raises there: its
+    channels NaN in that cycle's row, which is recorded), their
     values appended to the row; `start` before the enable sequence, `stop` at the end of
     every run (complete or aborted), after the drive is disabled.
     """
@@ -261,10 +265,11 @@ class Runner:
             except Exception as exc:  # bus timeout, driver error, full disk: still stop safely
                 status, reason = "aborted", f"{type(exc).__name__}: {exc}"
             velocity = 0.0
-            if status == "aborted":
+            quick = status == "aborted"
+            if quick:
                 self._note(recorder, "abort", reason)
                 velocity = (targets[i] - targets[i - 1]) / plan.cycle_s if 0 < i < len(targets) else 0.0
-            unknown = self._safe_stop(recorder, last_target, velocity, plan.cycle_s)
+            unknown = self._safe_stop(recorder, last_target, velocity, plan.cycle_s, quick)
             if unknown:
                 status, reason = "aborted", f"{reason}; {unknown}" if reason else unknown
             self._stop_devices(device_recorder)
@@ -297,8 +302,12 @@ class Runner:
         row += (force_offset, velocity_offset)
         row += [a.statusword for a in actual]
         row += self.clock.cycle_values
-        for device in self.devices:
-            row += device.after_sync(cycle)
+        try:
+            for device in self.devices:
+                row += device.after_sync(cycle)
+        except Exception:  # the drives' values of this cycle are kept; the devices' NaN
+            recorder.append(cycle, row + [math.nan] * (len(self.channels) - len(row)))
+            raise
         recorder.append(cycle, row)
         if self.observers:
             self._to_block(cycle, row)
@@ -344,16 +353,17 @@ class Runner:
         states = ", ".join(drive.state for drive in self.drives.values())
         raise RunAborted(f"drive did not reach operation enabled (state {states})")
 
-    def _safe_stop(self, recorder, x: float, velocity: float, dt: float) -> str:
-        """Ramp the commanded velocity (m/s) to zero at `stop_accel`, excitation off, disable;
-        if that fails, `_stop_by_sdo`. Returns "" once the drives are stopped, else the one
-        line saying the drive state is unknown."""
+    def _safe_stop(self, recorder, x: float, velocity: float, dt: float, quick: bool) -> str:
+        """Disable the drives with the setpoint held at `x` (m) and the excitation off: after
+        an abort (`quick`) by their own quick stop, controlword 0x02 from the next cycle on
+        (out of operation enabled at once; each drive ramps down at its 0x6085 and switches
+        off), waited for as long as a ramp from `velocity` (m/s) at `stop_accel` takes; after
+        a complete plan, at standstill, by disable operation. If that fails, `_stop_by_sdo`.
+        Returns "" once the drives are stopped, else the one line saying the drive state is
+        unknown."""
         try:
-            steps = int(np.ceil(abs(velocity) / (self.stop_accel * dt)))
-            for v in np.linspace(velocity, 0.0, steps + 1)[1:]:
-                x += v * dt
-                self._stop_cycle(recorder, x, v)
-            if self._disable(recorder, x):
+            ramp = int(np.ceil(abs(velocity) / (self.stop_accel * dt)))
+            if self._disable(recorder, x, quick, DISABLE_TIMEOUT_CYCLES + ramp):
                 return ""
             why = "not disabled by the controlword sequence"
         except Exception as exc:  # the bus may be gone: record why the ramp ended early
@@ -402,19 +412,20 @@ class Runner:
         except RecordingError:  # kept in the recorder's `failure`
             pass
 
-    def _disable(self, recorder, hold: float) -> bool:
-        """Controlword sequence back to switch-on-disabled, one step per cycle.
-
-        The setpoint is already at standstill, so operation is disabled directly (0x07,
-        then 0x00) rather than through the drive's own quick-stop ramp.
-        """
+    def _disable(self, recorder, hold: float, quick: bool = False,
+                 cycles: int = DISABLE_TIMEOUT_CYCLES) -> bool:
+        """Controlword sequence back to switch-on-disabled, one step per cycle, for at most
+        `cycles`: with `quick` through the drive's own quick stop (0x02, then 0x00 once it
+        stopped); else, the setpoint at standstill, operation disabled directly (0x07, then
+        0x00)."""
         self._note(recorder, "segment", segment_text(None, "disable"))
-        for _ in range(DISABLE_TIMEOUT_CYCLES):
-            if all([drive.disable_step(at_standstill=True) for drive in self.drives.values()]):
+        for _ in range(cycles):
+            if all([drive.disable_step(at_standstill=not quick)
+                    for drive in self.drives.values()]):
                 return True
             self._stop_cycle(recorder, hold)
         states = ", ".join(drive.state for drive in self.drives.values())
-        self._note(recorder, "fault", f"drive still {states} after {DISABLE_TIMEOUT_CYCLES} cycles")
+        self._note(recorder, "fault", f"drive still {states} after {cycles} cycles")
         return False
 
     def _stop_devices(self, recorder) -> None:
