@@ -12,18 +12,19 @@ from pathlib import Path
 from feedbench.sim_backends.process import READY
 
 
-def start_sim(directory: Path, prefix: str = "sim",
-              config: Path | None = None) -> tuple[subprocess.Popen, dict]:
+def start_sim(directory: Path, prefix: str = "sim", config: Path | None = None,
+              options: tuple[str, ...] = ()) -> tuple[subprocess.Popen, dict]:
     """Start `feedbench sim` with a config in `directory` (or `config`, which listens on
-    loopback itself); its process and its ready info (addresses, channel) with
-    ``directory`` added."""
+    loopback itself) and command-line `options`; its process and its ready info
+    (addresses, channel) with ``directory`` added."""
     if config is None:
         config = directory / "bench.toml"
         config.write_text('[bench]\nsimulated = true\ninterface = "socketcand"\n'
                           'socketcand = "127.0.0.1:0"\nmodbus = "127.0.0.1:0"\n'
                           f'channel = "{prefix}-{uuid.uuid4().hex[:8]}"\n')
-    process = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "sim", str(config)],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "sim", str(config),
+                                *options], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True)
     line = process.stdout.readline()
     assert line.startswith(READY), process.stderr.read()
     return process, {**json.loads(line[len(READY):]), "directory": directory}

@@ -128,3 +128,24 @@ def test_sigkill_row(family, sims, tmp_path, capsys):
     check_line(FAULT["sigkill"], family, Measured(
         None, last, f"≤ {STOPPED_WITHIN_S:g} s (heartbeat consumer {CONSUMER_S:g} s)",
         before, recording.reason))
+
+
+def test_feedbench_sim_injects_the_faults_of_its_command_line(tmp_path):
+    """`feedbench sim --fault at_cycle=200 --fault emcy_code=0x2310`: a friction sweep from
+    another process aborts on that EMCY, and the drive is in FAULT."""
+    process, info = start_sim(tmp_path, options=("--fault", "at_cycle=200",
+                                                 "--fault", "emcy_code=0x2310"))
+    try:
+        config = tmp_path / "run.toml"
+        config.write_text(host_bench_table(info) + f'\noutput_dir = "{tmp_path}"\n'
+                          + tables_after_bench(example_text("friction_sweep")))
+        run = subprocess.run([sys.executable, "-m", "feedbench.cli", "run", str(config)],
+                             capture_output=True, text=True, timeout=120)
+        assert run.returncode == 1, run.stderr
+        [row] = Catalog(tmp_path / "catalog.sqlite").list()
+        assert row.reason == "drive fault (EMCY 0x2310)"
+        assert open_recording(row.file).cycle[-1] < 220
+        assert drive_states(info) == ["FAULT"]
+    finally:
+        process.terminate()
+        process.communicate(timeout=20)
