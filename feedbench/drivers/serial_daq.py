@@ -160,6 +160,11 @@ class FrameParser:
         return sequence
 
 
+COMMAND_TIMEOUT_S = 3.0
+"""How long a command waits for its reply (s): the instrument answers within a millisecond,
+but on a loaded 2-core machine the fault matrix saw a reply later than 1 s."""
+
+
 class SerialDaq:
     """The streaming DAQ behind a serial port path, with a reader thread and a bounded queue.
 
@@ -171,7 +176,7 @@ class SerialDaq:
     """
 
     def __init__(self, port: str, channels: Sequence[str], rate: float, *,
-                 timeout: float = 1.0, buffer_s: float = 10.0) -> None:
+                 timeout: float = COMMAND_TIMEOUT_S, buffer_s: float = 10.0) -> None:
         if rate != int(rate):
             raise SerialDaqError(f"rate must be a whole number of Hz, got {rate}")
         self.channels = tuple(channels)
