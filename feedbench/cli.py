@@ -209,8 +209,8 @@ def cmd_tune(args: argparse.Namespace) -> int:
     """`feedbench tune CONFIG [--apply NAME | --rollback]` (`feedbench.tune`): progress and
     results on stdout (on stderr with --json, which prints the outcome)."""
     from feedbench.daq.recording import printable_json
-    from feedbench.tune import (apply_candidate, load_tune_config, recommendation_text,
-                                rollback, run_tune)
+    from feedbench.tune import (apply_candidate, damping_text, load_tune_config,
+                                recommendation_text, rollback, run_tune)
 
     def say(text: str) -> None:
         print(text, file=sys.stderr if args.json else sys.stdout, flush=True)
@@ -225,6 +225,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
     else:
         result = run_tune(config, say)
         say(recommendation_text(result))
+        say(f"Price of damping (Table 4.3): {damping_text(result)}")
         say(f"report: {config.report_path}\nresult: {config.result_path}")
         out = {"result": str(config.result_path), "report": str(config.report_path),
                "recommendation": result["recommendation"]}

@@ -30,9 +30,10 @@ from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
+from scipy.signal import TransferFunction
 
 from feedbench.analysis import rootlocus, tuning
-from feedbench.analysis.contour import ContourSpec, Feedforward, contour_paths, follow
+from feedbench.analysis.contour import ContourSpec, Feedforward
 from feedbench.analysis.modal import fit_modes
 from feedbench.analysis.polezero import PoleZeroFit, fit_pole_zero
 from feedbench.analysis.servo import closed_velocity_loop, laplace
@@ -138,7 +139,8 @@ def _family_settings(name: str, table: Mapping[str, Any], where: str,
     the feed) refused if given."""
     for key in ("type", *fixed):
         if key in table:
-            raise ConfigError(f"{where}.{key}: set by the tune (the feed: tune.feed_mm_min)")
+            raise ConfigError(f"{where}.{key}: set by the tune"
+                              + (" (tune.feed_mm_min)" if "feed" in key else ""))
     try:
         return parse_run_config({**session, "experiment": {**table, "type": name, **fixed}}
                                 ).experiment.settings
@@ -155,14 +157,18 @@ def parse_tune_config(raw: Mapping[str, Any], source: str = "config") -> TuneCon
     unknown = sorted(set(raw) - {"bench", "limits", "tune"})
     if unknown:
         raise ConfigError(f"{source}.{unknown[0]}: unknown table (bench, limits, tune)")
+    if not isinstance(raw.get("tune", {}), Mapping):
+        raise ConfigError("tune: must be a table")
     t = validate_table(raw.get("tune", {}), TUNE_SCHEMA, "tune")
-    validate_table(t["contour"], CONTOUR_SCHEMA, "tune.contour")
-    validate_table(t["feedforward"], FEEDFORWARD_SCHEMA, "tune.feedforward")
-    if not 0 < t["band_Hz"][0]:
-        raise ConfigError("tune.band_Hz: must lie above 0 Hz")
-    if t["move_feed_mm_min"] * MM_PER_MIN > 0.95 * session.limits.velocity:
-        raise ConfigError(f"tune.move_feed_mm_min: {t['move_feed_mm_min']:g} mm/min must stay "
-                          f"below 95 % of limits.velocity_mm_min")
+    t["contour"] = validate_table(t["contour"], CONTOUR_SCHEMA, "tune.contour")
+    t["feedforward"] = validate_table(t["feedforward"], FEEDFORWARD_SCHEMA, "tune.feedforward")
+    for key in ("band_Hz", "search_Hz"):
+        if not 0 < t[key][0]:
+            raise ConfigError(f"tune.{key}: must lie above 0 Hz")
+    for key in ("feed_mm_min", "move_feed_mm_min"):
+        if t[key] * MM_PER_MIN > 0.95 * session.limits.velocity:
+            raise ConfigError(f"tune.{key}: {t[key]:g} mm/min must stay below 95 % of "
+                              "limits.velocity_mm_min")
     feed = t["feed_mm_min"]
     run_tables = {"bench": session.bench_config, "limits": session.limits_config}
     bode = _family_settings("closed_loop_bode", t["bode"], "tune.bode", run_tables,
@@ -316,8 +322,7 @@ def setup_of(config: TuneConfig, measured: Mapping[str, Any], fit: PoleZeroFit
     """What every candidate is judged by: the band, the contour, the feed-forward, the
     position-loop delay and the tool-tip measurements (approach #2 from ≥ 2 settings)."""
     t = config.tune
-    c = validate_table(t["contour"], CONTOUR_SCHEMA, "tune.contour")
-    ff = validate_table(t["feedforward"], FEEDFORWARD_SCHEMA, "tune.feedforward")
+    c, ff = t["contour"], t["feedforward"]
     tip = None
     tips = measured["tool_tip"]
     if tips:
@@ -522,7 +527,8 @@ def bode_plots(result: Mapping[str, Any], fit: PoleZeroFit) -> list[Plot]:
     return plots
 
 
-def root_locus_plot(result: Mapping[str, Any], mobility, setup: tuning.TuningSetup) -> Plot:
+def root_locus_plot(result: Mapping[str, Any], mobility: TransferFunction,
+                    setup: tuning.TuningSetup) -> Plot:
     """Closed-cascade roots as K_p (0.1–3× present) and T_i (0.2–5× present) vary, the
     others at the present gains; each candidate's critical root marked."""
     present = gains_si(result["present_gains"])
@@ -576,7 +582,8 @@ def compliance_plot(result: Mapping[str, Any]) -> Plot:
                 png_of(figure))
 
 
-def contour_plot(result: Mapping[str, Any], mobility, setup: tuning.TuningSetup) -> Plot:
+def contour_plot(result: Mapping[str, Any], mobility: TransferFunction,
+                 setup: tuning.TuningSetup) -> Plot:
     """Contour error along the circle and the corner of each candidate, and the paths at the
     corner (time simulation of the cascade on the fitted mobility, `analysis.contour.follow`)."""
     figure = new_figure(12.0, 4.5)
@@ -585,15 +592,14 @@ def contour_plot(result: Mapping[str, Any], mobility, setup: tuning.TuningSetup)
     titles = {"circle": f"circle R {spec.radius_mm:g} mm", "corner": f"90° corner, legs "
               f"{spec.corner_leg_mm:g} mm"}
     corner = (spec.corner_leg_mm * 1e-3, 0.0)
-    for ax, (contour, path) in zip(axes, contour_paths(spec).items()):
-        for name, c in result["candidates"].items():
-            run = follow(mobility, gains_si(c["gains"]), path, setup.feedforward,
-                         setup.position_delay, setup.pade_order)
-            line, = ax.plot(path.time, run.contour_error * 1e6, lw=0.9,
-                            label=f"{name}: max {run.errors.contour_max_um:.1f} µm")
-            if contour == "corner":
-                axes[2].plot((run.actual[:, 0] - corner[0]) * 1e6,
-                             (run.actual[:, 1] - corner[1]) * 1e6, lw=0.9, color=line.get_color())
+    for name, c in result["candidates"].items():
+        runs = tuning.contour_runs(mobility, gains_si(c["gains"]), setup)
+        for ax, run in zip(axes, runs.values()):
+            ax.plot(run.path.time, run.contour_error * 1e6, lw=0.9,
+                    label=f"{name}: max {run.errors.contour_max_um:.1f} µm")
+        axes[2].plot((runs["corner"].actual[:, 0] - corner[0]) * 1e6,
+                     (runs["corner"].actual[:, 1] - corner[1]) * 1e6, lw=0.9)
+    for ax, contour in zip(axes, ("circle", "corner")):
         ax.set_xlabel("time along the path (s)")
         ax.set_ylabel("contour error (µm)")
         ax.set_title(f"{titles[contour]} at {spec.feed_mm_min:g} mm/min", fontsize=9)

@@ -23,12 +23,12 @@ import pytest
 
 from feedbench.api import open_bench
 from feedbench.cli import main
-from feedbench.config import read_toml
+from feedbench.sim_backends.process import host_bench_table
+from feedbench.config import ConfigError, read_toml
 from feedbench.tune import (
     apply_candidate, interrupts_deferred, parse_tune_config, read_result, rollback, run_tune,
 )
 from sim_peer import start_sim
-from test_sim_process import _host_bench
 
 EXAMPLE = Path(__file__).parents[1] / "feedbench" / "examples" / "tune.toml"
 
@@ -120,7 +120,11 @@ def test_bad_tune_configs_are_one_line_before_anything_moves(tmp_path, capsys):
              ({"bode": {"feed_mm_min": 400.0}}, "tune.bode.feed_mm_min: set by the tune"),
              ({"tool_tip": {"duration_s": -1.0}}, "tune.tool_tip.duration_s:"),
              ({"tool_tip": {"amplitude_N": 400.0}}, "limits.excitation_N"),
-             ({"move_feed_mm_min": 3000.0}, "tune.move_feed_mm_min:")]
+             ({"move_feed_mm_min": 3000.0}, "tune.move_feed_mm_min:"),
+             ({"feed_mm_min": 2900.0}, "tune.feed_mm_min: 2900 mm/min must stay below"),
+             ({"search_Hz": [0.0, 87.0]}, "tune.search_Hz: must lie above 0 Hz"),
+             ({"contour": {"radius_mm": 0.0}}, "tune.contour.radius_mm:"),
+             ({"bode": {"type": "x"}}, "tune.bode.type: set by the tune")]
     for tune, field in cases:
         raw = _config(tmp_path, "test-tune-bad")
         for key, value in tune.items():
@@ -131,6 +135,8 @@ def test_bad_tune_configs_are_one_line_before_anything_moves(tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and field in err, (field, err)
     assert not list(tmp_path.glob("*.h5"))
+    with pytest.raises(ConfigError, match="^tune: must be a table$"):
+        parse_tune_config({**_config(tmp_path, "test-tune-bad"), "tune": "x"})
 
 
 def test_apply_refuses_unknown_and_out_of_limits_candidates(tuned, tmp_path, capsys):
@@ -165,33 +171,59 @@ def test_ctrl_c_during_the_write_is_held_until_it_completed(tmp_path):
 
 def test_ctrl_c_after_the_write_keeps_the_new_gains(tuned, tmp_path):
     """`feedbench tune --apply` in its own process against the simulated bench in another:
-    SIGINT once the gains are written stops the measurement (status 130) and leaves the new
-    gains in the drive (the write completed), read by SDO from a third connection."""
+    SIGINT once the gains are written stops the measurement (status 130, one line) and leaves
+    the new gains in the drive (the write completed), read by SDO from a third connection."""
     config, _, _, _, _ = tuned
     sim, info = start_sim(tmp_path, "tune")
     try:
-        raw = read_toml(EXAMPLE)
-        host = tomllib.loads(_host_bench({**info, "directory": tmp_path}))
-        raw["bench"] = {**host["bench"], "timeout_s": 5.0}
-        raw["tune"].update({**SHORT, "result": str(tmp_path / "tune.json")})
         (tmp_path / "tune.json").write_text(config.result_path.read_text(encoding="utf-8"))
-        path = tmp_path / "tune.toml"
-        path.write_text(_toml(raw), encoding="utf-8")
-        command = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "tune", str(path),
-                                    "--apply", "stiff"], stdout=subprocess.PIPE,
-                                   stderr=subprocess.PIPE, text=True)
-        for line in command.stdout:
-            if line.startswith("gains written"):
-                command.send_signal(signal.SIGINT)
-                break
-        _, err = command.communicate(timeout=60)
-        assert command.returncode == 130, err
+        raw = _interrupted(tmp_path, info, ["--apply", "stiff"], "gains written")
         with open_bench({"bench": raw["bench"], "limits": raw["limits"]}) as bench:
             assert bench.drive.gains["K_p_Ns_m"] == 20000.0
             assert bench.drive.gains["T_i_ms"] == pytest.approx(4.0, rel=1e-6)
     finally:
         sim.terminate()
         sim.communicate(timeout=20)
+
+
+def test_ctrl_c_while_measuring_at_another_setting_restores_the_present_gains(tmp_path):
+    """`feedbench tune` (no --apply) interrupted during the tool-tip FRF at the
+    ``measure_gains`` setting K_p 7000 N·s/m: status 130, one line, and the drive has its
+    present gains (the 60 Hz factory K_p 12968.5 N·s/m) again."""
+    sim, info = start_sim(tmp_path, "tune-measure")
+    try:
+        raw = _interrupted(tmp_path, info, [], "[3/4] tool-tip FRF (shaker) at K_p 7000",
+                           bode={**SHORT["bode"], "f_step_Hz": 30.0},
+                           tool_tip={**SHORT["tool_tip"], "duration_s": 0.5})
+        with open_bench({"bench": raw["bench"], "limits": raw["limits"]}) as bench:
+            assert bench.drive.gains["K_p_Ns_m"] == pytest.approx(12968.5, rel=1e-4)
+    finally:
+        sim.terminate()
+        sim.communicate(timeout=20)
+
+
+def _interrupted(tmp_path: Path, info: dict, options: list[str], line: str, **tune) -> dict:
+    """`feedbench tune` (`SHORT` plans, `tune` keys over them) in its own process against the
+    simulated bench `info` names, SIGINT at the first output line starting with `line`;
+    asserts status 130 and the one line on stderr; returns the config it ran."""
+    raw = read_toml(EXAMPLE)
+    host = tomllib.loads(host_bench_table(info))
+    raw["bench"] = {**host["bench"], "output_dir": str(tmp_path), "timeout_s": 5.0}
+    raw["tune"].update({**SHORT, "result": str(tmp_path / "tune.json"), **tune})
+    raw["tune"]["tool_tip"] = {**raw["tune"]["tool_tip"], "io_node_id": info["io_node_id"]}
+    path = tmp_path / "tune.toml"
+    path.write_text(_toml(raw), encoding="utf-8")
+    command = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "tune", str(path),
+                                *options], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True)
+    for text in command.stdout:
+        if text.startswith(line):
+            command.send_signal(signal.SIGINT)
+            break
+    _, err = command.communicate(timeout=60)
+    assert command.returncode == 130, err
+    assert err == "feedbench: error: interrupted\n"
+    return raw
 
 
 def _toml(raw: dict, prefix: str = "") -> str:
