@@ -162,6 +162,7 @@ def parse_tune_config(raw: Mapping[str, Any], source: str = "config") -> TuneCon
     t = validate_table(raw.get("tune", {}), TUNE_SCHEMA, "tune")
     t["contour"] = validate_table(t["contour"], CONTOUR_SCHEMA, "tune.contour")
     t["feedforward"] = validate_table(t["feedforward"], FEEDFORWARD_SCHEMA, "tune.feedforward")
+    check_contour(t["contour"])
     for key in ("band_Hz", "search_Hz"):
         if not 0 < t[key][0]:
             raise ConfigError(f"tune.{key}: must lie above 0 Hz")
@@ -186,9 +187,40 @@ def parse_tune_config(raw: Mapping[str, Any], source: str = "config") -> TuneCon
                               f"candidates ({', '.join(COMPUTED)})")
         candidates[name] = _gain_table(table, f"tune.candidates.{name}", True)
     out = Path(session.bench_config["output_dir"])
-    return TuneConfig(dict(raw), t, bode, tool_tip, measure, candidates,
-                      Path(t["result"] or out / "tune.json"),
-                      Path(t["report"] or out / "tune.html"))
+    paths = {key: Path(t[key] or out / f"tune.{suffix}")
+             for key, suffix in (("result", "json"), ("report", "html"))}
+    for key, path in paths.items():
+        if path.is_dir():
+            raise ConfigError(f"tune.{key}: {path} is a directory (give a file)")
+    return TuneConfig(dict(raw), t, bode, tool_tip, measure, candidates, paths["result"],
+                      paths["report"])
+
+
+CONTOUR_MAX_S = 60.0
+"""Longest test contour the tune simulates (s of path time, each candidate and contour)."""
+
+
+def move_time(distance: float, speed: float, acceleration: float) -> float:
+    """Duration (s) of a rest-to-rest move over `distance` (m) with sin² ramps of peak
+    `acceleration` (m/s²) to `speed` (m/s), or the speed they reach (`contour.ramp_profile`)."""
+    speed = min(speed, np.sqrt(2.0 * distance * acceleration / np.pi))
+    return distance / speed + np.pi * speed / (2.0 * acceleration)
+
+
+def check_contour(c: Mapping[str, float]) -> None:
+    """The test contour (`CONTOUR_SCHEMA`) simulable: the circle's centripetal acceleration
+    v²/R within the acceleration, circle and corner at most `CONTOUR_MAX_S` long."""
+    speed, radius, a = c["feed_mm_min"] * MM_PER_MIN, c["radius_mm"] * 1e-3, c["acceleration_m_s2"]
+    if speed**2 / radius > a:
+        raise ConfigError(f"tune.contour.feed_mm_min: {c['feed_mm_min']:g} mm/min on the "
+                          f"{c['radius_mm']:g} mm circle needs {speed**2 / radius:.3g} m/s² "
+                          "centripetal, above tune.contour.acceleration_m_s2")
+    circle = move_time(2 * np.pi * radius + np.pi * speed**2 / (2 * a), speed, a)
+    corner = 2 * move_time(c["corner_leg_mm"] * 1e-3, speed, a)
+    if max(circle, corner) > CONTOUR_MAX_S:
+        raise ConfigError(f"tune.contour: the test contour lasts {max(circle, corner):.3g} s, "
+                          f"more than {CONTOUR_MAX_S:g} s (raise feed_mm_min or "
+                          "acceleration_m_s2, or shorten it)")
 
 
 def load_tune_config(path: str | Path) -> TuneConfig:
@@ -592,7 +624,9 @@ def contour_plot(result: Mapping[str, Any], mobility: TransferFunction,
     titles = {"circle": f"circle R {spec.radius_mm:g} mm", "corner": f"90° corner, legs "
               f"{spec.corner_leg_mm:g} mm"}
     corner = (spec.corner_leg_mm * 1e-3, 0.0)
-    for name, c in result["candidates"].items():
+    drawn = {name: c for name, c in result["candidates"].items()  # a diverging loop: "inf"
+             if all(np.isfinite(m["contour_max_um"]) for m in c["motion"].values())}
+    for name, c in drawn.items():
         runs = tuning.contour_runs(mobility, gains_si(c["gains"]), setup)
         for ax, run in zip(axes, runs.values()):
             ax.plot(run.path.time, run.contour_error * 1e6, lw=0.9,
@@ -605,7 +639,7 @@ def contour_plot(result: Mapping[str, Any], mobility: TransferFunction,
         ax.set_title(f"{titles[contour]} at {spec.feed_mm_min:g} mm/min", fontsize=9)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    span = 2.0 * max(c["motion"]["corner"]["contour_max_um"] for c in result["candidates"].values())
+    span = 2.0 * max(c["motion"]["corner"]["contour_max_um"] for c in drawn.values())
     axes[2].plot([-10 * span, 0.0, 0.0], [0.0, 0.0, 10 * span], "k--", lw=0.8, label="reference")
     axes[2].set(xlim=(-span, span), ylim=(-span, span), aspect="equal",
                 xlabel="x − corner (µm)", ylabel="y − corner (µm)")
@@ -802,6 +836,9 @@ def apply_candidate(config: TuneConfig, name: str, say: Say) -> dict:
         raise ConfigError(f"--apply: no candidate {name!r} in {config.result_path} (have: "
                           f"{', '.join(result['candidates'])})")
     candidate = result["candidates"][name]
+    if not candidate["critical"]["stable"]:
+        raise ConfigError(f"--apply {name}: the tune predicts an unstable closed loop "
+                          f"(critical mode {candidate['critical']['frequency_hz']:.1f} Hz)")
     session = BenchSession(_session_config(config))
     check_gains(candidate["gains"], session.gain_limits, f"--apply {name}")
     progress = StepProgress(say, 2 + bool(config.tool_tip))

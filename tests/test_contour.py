@@ -127,6 +127,21 @@ def test_distance_to_path_is_to_the_segments_not_the_vertices():
                                [1e-6, 1.5e-3, np.sqrt(2) * 1e-3], rtol=1e-9)
 
 
+def test_an_unstable_loop_has_infinite_errors():
+    """Gains that put a closed-loop pole of the lab cascade in the right half-plane (K_p
+    29000 N·s/m, T_i 1 ms, K_v 10 (m/min)/mm): the path and its four errors are infinite, not
+    an overflow or a crash; a point at infinity is infinitely far from the path."""
+    wild = CascadeGains(K_p=29000.0, T_i=1e-3, K_v=10.0 / 60e-3)
+    system = contour.cascade_state_space(LAB_MOBILITY, wild)
+    assert np.linalg.eigvals(system[0]).real.max() > 0
+    run = contour.follow(LAB_MOBILITY, wild, contour.corner_path(contour.ContourSpec()))
+    assert np.isinf(run.actual).all()
+    assert np.isinf(list(dataclasses.asdict(run.errors).values())).all()
+    vertices = np.column_stack([np.arange(0.0, 0.01, 1e-3), np.zeros(10)])
+    np.testing.assert_allclose(contour.distance_to_path(
+        vertices, np.array([[0.0045, 1e-6], [np.inf, 0.0]])), [1e-6, np.inf], rtol=1e-9)
+
+
 def test_corner_is_two_rest_to_rest_legs():
     """Exact stop at the corner (speed 0 there), the acceleration limit on each axis."""
     spec = contour.ContourSpec(feed_mm_min=3000.0, acceleration_m_s2=2.0, corner_leg_mm=15.0)

@@ -41,6 +41,8 @@ SHORT = {"bode": {"f_start_Hz": 20.0, "f_stop_Hz": 110.0, "f_step_Hz": 3.0,
 shorter plans."""
 
 APPLIED = ("standard", "max_damping", "stiff")
+UNSTABLE = {"K_p_Ns_m": 29000.0, "T_i_ms": 1.0, "K_v_m_min_mm": 10.0}
+"""A listed gain set within [limits.gains] that the tune predicts unstable."""
 
 
 def _config(tmp: Path, channel: str, **tune) -> dict:
@@ -54,7 +56,9 @@ def _config(tmp: Path, channel: str, **tune) -> dict:
 def tuned(tmp_path_factory):
     """The tune, then each of `APPLIED` applied and measured, then rolled back."""
     tmp = tmp_path_factory.mktemp("tune")
-    config = parse_tune_config(_config(tmp, "test-tune"))
+    raw = _config(tmp, "test-tune")
+    raw["tune"]["candidates"]["unstable"] = UNSTABLE
+    config = parse_tune_config(raw)
     lines: list[str] = []
     result = run_tune(config, lines.append)
     applied = {name: apply_candidate(config, name, lines.append) for name in APPLIED}
@@ -90,7 +94,11 @@ def test_tune_result_report_and_rollback(tuned):
     present = saved["present_gains"]
     assert present["K_p_Ns_m"] == pytest.approx(12968.5, rel=1e-4)  # the 60 Hz factory tuning
     assert restored == pytest.approx(present, rel=1e-6)
-    assert set(saved["candidates"]) == {"present", "standard", "max_damping", "stiff"}
+    assert set(saved["candidates"]) == {"present", "standard", "max_damping", "stiff",
+                                        "unstable"}
+    unstable = saved["candidates"].pop("unstable")  # reported, its errors infinite (null)
+    assert not unstable["critical"]["stable"] and unstable["gains"] == UNSTABLE
+    assert unstable["motion"]["circle"]["contour_max_um"] is None
     standard = saved["candidates"]["standard"]
     assert standard["gains"]["T_i_ms"] == pytest.approx(1e3 / (np.pi * 45.0), rel=1e-6)
     for row in saved["candidates"].values():
@@ -124,7 +132,11 @@ def test_bad_tune_configs_are_one_line_before_anything_moves(tmp_path, capsys):
              ({"feed_mm_min": 2900.0}, "tune.feed_mm_min: 2900 mm/min must stay below"),
              ({"search_Hz": [0.0, 87.0]}, "tune.search_Hz: must lie above 0 Hz"),
              ({"contour": {"radius_mm": 0.0}}, "tune.contour.radius_mm:"),
-             ({"bode": {"type": "x"}}, "tune.bode.type: set by the tune")]
+             ({"bode": {"type": "x"}}, "tune.bode.type: set by the tune"),
+             ({"contour": {"feed_mm_min": 20000.0}}, "tune.contour.feed_mm_min: 20000 mm/min "
+              "on the 20 mm circle needs 5.56 m/s² centripetal"),
+             ({"contour": {"feed_mm_min": 10.0}}, "tune.contour: the test contour lasts 754 s"),
+             ({"report": str(Path(__file__).parent)}, "tune.report:")]
     for tune, field in cases:
         raw = _config(tmp_path, "test-tune-bad")
         for key, value in tune.items():
@@ -151,6 +163,8 @@ def test_apply_refuses_unknown_and_out_of_limits_candidates(tuned, tmp_path, cap
     path = tmp_path / "tune.toml"
     path.write_text(_toml(raw), encoding="utf-8")
     for name, text in (("nope", "--apply: no candidate 'nope'"),
+                       ("unstable", "--apply unstable: the tune predicts an unstable closed "
+                                    "loop"),
                        ("wild", "--apply wild.K_p_Ns_m: 90000 outside limits.gains.K_p_Ns_m")):
         assert main(["tune", str(path), "--apply", name]) == 2
         err = capsys.readouterr().err

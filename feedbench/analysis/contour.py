@@ -238,6 +238,11 @@ def distance_to_path(vertices: RealArray, points: RealArray) -> RealArray:
 
     The nearest vertex (k-d tree) and the segments on either side of it: exact where the
     polyline is sampled finer than the distances and its curvature radius."""
+    finite = np.all(np.isfinite(points), axis=1)
+    if not finite.all():  # a diverging (unstable) loop's points: infinitely far
+        distance = np.full(points.shape[0], np.inf)
+        distance[finite] = distance_to_path(vertices, points[finite])
+        return distance
     keep = np.r_[True, np.any(np.diff(vertices, axis=0) != 0, axis=1)]
     v = vertices[keep]
     if v.shape[0] == 1:
@@ -273,14 +278,18 @@ def follow(mobility: signal.TransferFunction, gains: CascadeGains, path: Path,
            pade_order: int = 2) -> ContourRun:
     """Both axes (matching dynamics) following `path` from rest: actual positions and errors.
 
-    The loop is linear, so each axis is simulated from its start point as the origin."""
+    The loop is linear, so each axis is simulated from its start point as the origin. An
+    unstable loop (a pole in the right half-plane) diverges: positions and errors infinite."""
     system = cascade_state_space(mobility, gains, feedforward, position_delay, pade_order)
     start = path.position[0]
-    actual = np.column_stack([
-        signal.lsim(system, np.column_stack([path.position[:, axis] - start[axis],
-                                             path.velocity[:, axis]]), path.time)[1]
-        for axis in (0, 1)
-    ]) + start
+    if np.any(np.linalg.eigvals(system[0]).real > 0):
+        actual = np.full(path.position.shape, np.inf)
+    else:
+        actual = np.column_stack([
+            signal.lsim(system, np.column_stack([path.position[:, axis] - start[axis],
+                                                 path.velocity[:, axis]]), path.time)[1]
+            for axis in (0, 1)
+        ]) + start
     contour, tracking, summary = motion_errors(path, actual)
     return ContourRun(path, actual, contour, tracking, summary)
 
