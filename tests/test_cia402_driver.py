@@ -47,7 +47,9 @@ def test_disable_quick_stops_then_de_energises(can_channel):
         bench.drive.disable(bench.clock.tick)
         controlwords = [struct.unpack_from("<H", d)[0] for c, d in bench.frames() if c == RPDO1]
         assert bench.drive.state == "SWITCH ON DISABLED"
-        assert set(controlwords) == {0x02}  # quick stop until the drive switched itself off
+        # quick stop until the stop is complete (bit 10), then disable voltage, never back
+        assert controlwords[0] == 0x02 and set(controlwords) <= {0x02, 0x00}
+        assert controlwords == sorted(controlwords, reverse=True)
         assert abs(bench.drive.actual.velocity) < 10e-6
         assert bench.drive.disable_step() is True
         bench.clock.tick()

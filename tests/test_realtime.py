@@ -8,6 +8,7 @@ they are asserted only for consistency here; the targets are `benchmarks/bench_r
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -131,3 +132,30 @@ def test_realtime_clock_times_out_when_the_drive_stops_answering(sim):
             for _ in range(500):
                 clock.tick()
         bench.drive.node.nmt.state = "OPERATIONAL"
+
+
+def test_a_host_loop_that_stalls_mid_run_leaves_the_drive_to_stop_itself(sim):
+    """SYNC and the heartbeat come from periodic senders, which would keep a hung host's
+    drive enabled: the run's stall guard stops both once no tick came for `timeout_s`, the
+    drive's SYNC-loss watchdog (0x2021) stops the axis, and the host, back, aborts the run
+    with one reason and keeps its samples. Here the hang is a progress callback that blocks
+    the cycle loop for 2 s (the bench's bus timeout is 1 s) at a third of a 1 s record."""
+    stalled = []
+
+    def hang_once(fraction: float, step: str) -> None:
+        if fraction > 0.3 and not stalled:
+            stalled.append(fraction)
+            time.sleep(2.0)
+
+    with feedbench.open_bench({"bench": host_bench(sim, "realtime")}) as bench:
+        bench.drive.enable()
+        with pytest.raises(RunError) as error:
+            bench.record(1.0, progress=hang_once)
+        state = bench.drive.state
+    run = error.value.run
+    assert run.reason.startswith("host cycle loop stalled for more than 1 s: SYNC and "
+                                 "heartbeat stopped")
+    assert state != "operation enabled"
+    recording = open_recording(run.path)
+    assert recording.status == "aborted"
+    assert recording.n_samples >= 250  # the cycles before the stall are kept

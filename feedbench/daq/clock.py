@@ -30,9 +30,10 @@ from __future__ import annotations
 import fcntl
 import os
 import tempfile
+import threading
 import time
 from array import array
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from pathlib import Path
 from typing import Iterator, Protocol, Sequence
 
@@ -56,6 +57,11 @@ HOST_HEARTBEAT = (HEARTBEAT_COB_BASE + HOST_NODE_ID, bytes([HEARTBEAT_OPERATIONA
 
 class BusTimeout(RuntimeError):
     """A drive's TPDOs of a cycle did not arrive in time."""
+
+
+class HostStalled(RuntimeError):
+    """The host's cycle loop stopped ticking during a run (real time): SYNC and the host's
+    heartbeat were stopped so that the drives' own watchdogs stop the axis."""
 
 
 class NodeLost(RuntimeError):
@@ -114,6 +120,14 @@ class _BenchClock:
     def timing(self) -> dict | None:
         """The cycle timing since `reset_timing` (None: virtual time)."""
         return None
+
+    def raise_if_stalled(self) -> None:
+        """Nothing stalls in lockstep (see `RealtimeClock`)."""
+
+    def guarded(self) -> AbstractContextManager[None]:
+        """While a run's cycles go: what keeps a hung host from holding the drives enabled
+        (lockstep: nothing needed, a hung host sends no SYNC)."""
+        return nullcontext()
 
     def _check_heartbeats(self) -> None:
         """Every `HEARTBEAT_CHECK_TICKS` ticks: NodeLost if a drive's heartbeat is silent."""
@@ -190,7 +204,8 @@ class RealtimeClock(_BenchClock):
     A tick sends the setpoints (RPDOs, for the next SYNC) and returns with the next complete
     TPDO set of every drive that the host has not seen yet: at once if it came while the host
     was busy (the sets in between are missed cycles, a gap), else when it arrives.
-    `timeout_s`: BusTimeout when a drive sends no new set for this long.
+    `timeout_s`: BusTimeout when a drive sends no new set for this long, and HostStalled
+    when the host loop does not tick for this long during a run (`guarded`).
     """
 
     channels = TIMING_CHANNELS
@@ -204,13 +219,17 @@ class RealtimeClock(_BenchClock):
         self.timeout_s = timeout_s
         self.cycle_values = (float("nan"), float("nan"))
         """(rpdo_time, tpdo_time) of the last tick (s, wall clock; `daq.timing`)."""
-        self._heartbeat = network.send_periodic(*HOST_HEARTBEAT, heartbeat_s)
-        network.sync.start(period_s)
+        self.heartbeat_s = heartbeat_s
+        self._start_senders()
+        self._last_tick = time.perf_counter()
+        self._stalled = threading.Event()
         self.reset_timing()
 
     def tick(self) -> int:
         """Setpoints out, then the next unseen TPDO set of each drive; returns the unwrapped
-        device cycle (BusTimeout if a drive stays silent, NodeLost if its heartbeat does)."""
+        device cycle (BusTimeout if a drive stays silent, NodeLost if its heartbeat does,
+        HostStalled if `guarded` found the host loop stalled)."""
+        self.raise_if_stalled()
         rpdo_time = time.time()
         for drive in self.drives:
             drive.transmit()
@@ -223,6 +242,7 @@ class RealtimeClock(_BenchClock):
         self._cycle_log.append(cycle)
         self._rpdo_log.append(rpdo_time)
         self._tpdo_log.append(tpdo_time)
+        self._last_tick = time.perf_counter()
         return cycle
 
     def _wait_new_set(self, i: int, drive: CycleDrive) -> None:
@@ -255,6 +275,48 @@ class RealtimeClock(_BenchClock):
         """Stop SYNC and the host's heartbeat."""
         self.network.sync.stop()
         self._heartbeat.stop()
+
+    def raise_if_stalled(self) -> None:
+        """HostStalled if `guarded` found the host loop stalled (the cause of whatever the
+        drives did meanwhile: their SYNC-loss fault)."""
+        if self._stalled.is_set():
+            raise HostStalled(f"host cycle loop stalled for more than {self.timeout_s:g} s: "
+                              "SYNC and heartbeat stopped, the drives' watchdogs stop the axis")
+
+    @contextmanager
+    def guarded(self) -> Iterator[None]:
+        """SYNC and the heartbeat come from periodic senders that run on whatever the host
+        loop does; while a run's cycles go, a thread stops both when no tick came for
+        `timeout_s` (a hung host: the drives' SYNC-loss watchdog, 0x2021, then stops the
+        axis, and the heartbeat consumer, 0x1016, if SYNC loss is off). The next tick raises
+        HostStalled; on exit both run again, for the safe stop."""
+        done = threading.Event()
+        self._last_tick = time.perf_counter()
+        watch = threading.Thread(target=self._watch_ticks, args=(done,), daemon=True,
+                                 name="feedbench host stall watchdog")
+        watch.start()
+        try:
+            yield
+        finally:
+            done.set()
+            watch.join()
+            if self._stalled.is_set():
+                self._stalled.clear()
+                self._start_senders()
+
+    def _start_senders(self) -> None:
+        """The host's heartbeat and SYNC, each from python-can's periodic sender."""
+        self._heartbeat = self.network.send_periodic(*HOST_HEARTBEAT, self.heartbeat_s)
+        self.network.sync.start(self.period_s)
+
+    def _watch_ticks(self, done: threading.Event) -> None:
+        """Until `done`: stop SYNC and heartbeat once the last tick is `timeout_s` old."""
+        while not done.wait(self.timeout_s / 4):
+            if time.perf_counter() - self._last_tick > self.timeout_s:
+                self._stalled.set()
+                self.network.sync.stop()
+                self._heartbeat.stop()
+                return
 
 
 @contextmanager

@@ -30,7 +30,7 @@ from typing import Any, Iterator, Mapping, Protocol, Sequence
 
 import numpy as np
 
-from feedbench.daq.clock import NodeLost
+from feedbench.daq.clock import HostStalled, NodeLost
 from feedbench.daq.recorder import RecordingError
 from feedbench.drivers.cia402 import SAFE_STATES, Actual
 from feedbench.experiments.limits import Limits
@@ -46,6 +46,10 @@ MEASURED = slice(Actual._fields.index(DRIVE_CHANNELS[0]),
 """The fields of a drive's `Actual` recorded as DRIVE_CHANNELS, as one slice."""
 
 ENABLE_TIMEOUT_CYCLES = 200
+ENABLE_TIMEOUT_S = 2.0
+"""At short cycles the enable may take this long (s) rather than ENABLE_TIMEOUT_CYCLES: a
+real drive releasing its brake takes a few hundred ms, and a real-time host behind the
+drive's TPDO sets sees each state change some cycles late."""
 DISABLE_TIMEOUT_CYCLES = 50
 BLOCK_CYCLES = 50
 """Cycles per block handed to observers (live plot, progress); the recorder gets every row."""
@@ -250,17 +254,19 @@ class Runner:
             try:
                 for device in self.devices:
                     device.start(plan, device_recorder)
-                self._enable(plan.mode, start, recorder)
-                for index, segment in enumerate(plan.segments):
-                    recorder.event(self._next_cycle(), "segment", segment_text(segment))
-                    for obs in self.observers:
-                        obs.on_segment(index, segment, self._next_cycle())
-                    for _ in range(segment.n_cycles):
-                        self._cycle(recorder, targets[i], force_offsets[i], velocity_offsets[i],
-                                    index=i, velocity=target_velocities[i])
-                        last_target = targets[i]
-                        i += 1
-            except (RunAborted, NodeLost) as exc:
+                self._enable(plan.mode, start, recorder, plan.cycle_s)
+                with self.clock.guarded():
+                    for index, segment in enumerate(plan.segments):
+                        recorder.event(self._next_cycle(), "segment", segment_text(segment))
+                        for obs in self.observers:
+                            obs.on_segment(index, segment, self._next_cycle())
+                        for _ in range(segment.n_cycles):
+                            self._cycle(recorder, targets[i], force_offsets[i],
+                                        velocity_offsets[i], index=i,
+                                        velocity=target_velocities[i])
+                            last_target = targets[i]
+                            i += 1
+            except (RunAborted, NodeLost, HostStalled) as exc:
                 status, reason = "aborted", str(exc)
             except Exception as exc:  # bus timeout, driver error, full disk: still stop safely
                 status, reason = "aborted", f"{type(exc).__name__}: {exc}"
@@ -313,6 +319,7 @@ class Runner:
             self._to_block(cycle, row)
         if not watch:
             return
+        self.clock.raise_if_stalled()  # an observer that held the loop: the cause comes first
         if self.stop.reason is not None:
             raise RunAborted(self.stop.reason)
         for (name, drive), a in zip(self.drives.items(), actual):
@@ -341,12 +348,13 @@ class Runner:
                 obs.on_block(cycles, block)
         self._block_fill = 0
 
-    def _enable(self, mode: int, hold: float, recorder) -> None:
-        """Walk the CiA 402 state machine to operation enabled, one controlword per cycle."""
+    def _enable(self, mode: int, hold: float, recorder, cycle_s: float) -> None:
+        """Walk the CiA 402 state machine to operation enabled, one controlword per cycle
+        (`cycle_s`, s), for ENABLE_TIMEOUT_CYCLES or ENABLE_TIMEOUT_S, whichever is longer."""
         recorder.event(self._next_cycle(), "segment", segment_text(None, "enable"))
         for drive in self.drives.values():
             drive.set_mode(mode)
-        for _ in range(ENABLE_TIMEOUT_CYCLES):
+        for _ in range(max(ENABLE_TIMEOUT_CYCLES, math.ceil(ENABLE_TIMEOUT_S / cycle_s))):
             if all([drive.enable_step() for drive in self.drives.values()]):
                 return
             self._cycle(recorder, hold, 0.0, 0.0, watch=False)

@@ -78,6 +78,9 @@ RAMPING = (QUICK_STOP_ACTIVE, FAULT_REACTION)
 """States that run the quick-stop ramp (0x6085)."""
 SETTLE_CYCLES = 200
 """Cycles a fault reaction waits at a zero ramp for |v| < 0x606D before it disables."""
+STOP_SETTLE_CYCLES = 20
+"""Cycles a quick stop waits at a zero ramp for |v| < 0x606D before it reports the stop
+complete (target reached) to a host that waits at most `runner.DISABLE_TIMEOUT_CYCLES`."""
 ASYNCHRONOUS = 254
 """PDO transmission types from here on are event-driven (254 manufacturer, 255 profile)."""
 INT16_MAX = 0x7FFF
@@ -590,13 +593,15 @@ class SimulatedCia402Drive:
 
     def _statusword(self) -> int:
         """0x6041: the state's bits, remote; following the command in operation enabled;
-        target reached (bit 10) in quick stop once the ramp is at zero (the quick stop is
-        complete: the host may disable the drive, which a coupled axis that never settles
-        inside 0x606D needs)."""
+        target reached (bit 10) in quick stop once the ramp has been at zero for
+        `STOP_SETTLE_CYCLES` without the axis settling inside 0x606D (the quick stop is complete:
+        the host may disable the drive, which a coupled axis that never settles needs; an
+        axis that settles switches itself off first)."""
         word = STATE_BITS[self.state] | SW_REMOTE
         if self.state == OPERATION_ENABLED:
             word |= SW_FOLLOWS_COMMAND
-        elif self.state == QUICK_STOP_ACTIVE and self._stop_velocity == 0.0:
+        elif (self.state == QUICK_STOP_ACTIVE and self._stop_velocity == 0.0
+              and self._settling >= STOP_SETTLE_CYCLES):
             word |= SW_TARGET_REACHED
         if self._following_error:
             word |= SW_FOLLOWING_ERROR
