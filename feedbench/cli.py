@@ -18,7 +18,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 from feedbench.config import ConfigError
 from feedbench.experiments.limits import LimitError
@@ -395,7 +395,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         with _noting_interrupts():
-            return args.func(args)
+            status = args.func(args)
+        if _SIGINT_SEEN.is_set():  # dropped where it landed: the command still is interrupted
+            raise KeyboardInterrupt
+        return status
     except Exception as exc:
         if args.debug:
             raise
@@ -426,16 +429,25 @@ def _raise_interrupt(signum: int, frame: object) -> None:
 
 @contextlib.contextmanager
 def _noting_interrupts():
-    """SIGINT raises KeyboardInterrupt as by default and is remembered in `_SIGINT_SEEN`."""
+    """SIGINT raises KeyboardInterrupt as by default and is remembered in `_SIGINT_SEEN`; one
+    Python cannot raise (in a weakref callback or a __del__, e.g. matplotlib's) is not
+    printed as 'Exception ignored'."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     _SIGINT_SEEN.clear()
-    previous = signal.signal(signal.SIGINT, _raise_interrupt)
+    previous, previous_hook = signal.signal(signal.SIGINT, _raise_interrupt), sys.unraisablehook
+
+    def unraisable(info: Any) -> None:
+        if not isinstance(info.exc_value, KeyboardInterrupt):
+            previous_hook(info)
+
+    sys.unraisablehook = unraisable
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
+        sys.unraisablehook = previous_hook
 
 
 def _user_message(exc: Exception) -> str:

@@ -16,12 +16,14 @@ import signal
 import subprocess
 import sys
 import tomllib
+import weakref
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from feedbench.api import open_bench
+from feedbench import cli
 from feedbench.cli import main
 from feedbench.sim_backends.process import host_bench_table
 from feedbench.config import ConfigError, read_toml
@@ -214,6 +216,26 @@ def test_ctrl_c_while_measuring_at_another_setting_restores_the_present_gains(tm
     finally:
         sim.terminate()
         sim.communicate(timeout=20)
+
+
+def test_ctrl_c_python_cannot_raise_still_interrupts(monkeypatch):
+    """A SIGINT landing in a weakref callback (matplotlib's, while the report is drawn) is
+    not printed as 'Exception ignored' and is remembered: `main` then ends as interrupted
+    (status 130, one line) instead of finishing with status 0."""
+    class Drawn:
+        pass
+
+    def callback(_: object) -> None:
+        os.kill(os.getpid(), signal.SIGINT)
+        sum(range(100_000))  # the handler runs here, inside the callback
+
+    printed: list[object] = []  # what Python would print as 'Exception ignored'
+    monkeypatch.setattr(sys, "unraisablehook", printed.append)
+    with cli._noting_interrupts():
+        drawn = Drawn()
+        reference = weakref.ref(drawn, callback)
+        del drawn
+    assert reference() is None and cli._SIGINT_SEEN.is_set() and printed == []
 
 
 def _interrupted(tmp_path: Path, info: dict, options: list[str], line: str, **tune) -> dict:
