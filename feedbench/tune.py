@@ -79,7 +79,8 @@ TUNE_SCHEMA = {
     "modes": Field(int, 1, "pole/zero pairs of the mobility fit, Eq. 4.27", positive),
     "position_delay_ms": Field(float, 0.5, "position-loop delay (ms): the zero-order hold of "
                                "its sampling, half its period", non_negative),
-    "pade_order": Field(int, 2, "Padé order of the delays, Eq. 4.16", positive),
+    "pade_order": Field(int, 2, "Padé order of the delays, Eq. 4.16 (at most 6: higher "
+                        "orders are ill-conditioned)", positive),
     "seed": Field(int, 0, "seed of the maximum-damping search", non_negative),
     "result": Field(str, "", "tune result file (JSON); empty: <bench.output_dir>/tune.json"),
     "report": Field(str, "", "HTML report; empty: <bench.output_dir>/tune.html"),
@@ -163,6 +164,9 @@ def parse_tune_config(raw: Mapping[str, Any], source: str = "config") -> TuneCon
     t["contour"] = validate_table(t["contour"], CONTOUR_SCHEMA, "tune.contour")
     t["feedforward"] = validate_table(t["feedforward"], FEEDFORWARD_SCHEMA, "tune.feedforward")
     check_contour(t["contour"])
+    if t["pade_order"] > 6:
+        raise ConfigError(f"tune.pade_order: at most 6 (got {t['pade_order']}): higher orders "
+                          "are ill-conditioned")
     for key in ("band_Hz", "search_Hz"):
         if not 0 < t[key][0]:
             raise ConfigError(f"tune.{key}: must lie above 0 Hz")

@@ -138,7 +138,8 @@ def test_bad_tune_configs_are_one_line_before_anything_moves(tmp_path, capsys):
              ({"contour": {"feed_mm_min": 20000.0}}, "tune.contour.feed_mm_min: 20000 mm/min "
               "on the 20 mm circle needs 5.56 m/s² centripetal"),
              ({"contour": {"feed_mm_min": 10.0}}, "tune.contour: the test contour lasts 754 s"),
-             ({"report": str(Path(__file__).parent)}, "tune.report:")]
+             ({"report": str(Path(__file__).parent)}, "tune.report:"),
+             ({"pade_order": 10}, "tune.pade_order: at most 6")]
     for tune, field in cases:
         raw = _config(tmp_path, "test-tune-bad")
         for key, value in tune.items():
