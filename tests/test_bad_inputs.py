@@ -498,3 +498,35 @@ def test_ctrl_c_outside_a_run_is_one_line_and_status_130(capsys, monkeypatch):
 
     monkeypatch.setattr(command, "run_case", interrupted)
     assert run_main(["closure", "--cases"], capsys) == (130, ["feedbench: error: interrupted"])
+
+
+CTRL_C_WHILE_IMPORTING = """
+import builtins, os, signal, sys
+from feedbench.console import run
+
+real_import = builtins.__import__
+
+
+def import_then_ctrl_c(name, *args, **kwargs):
+    if name == "feedbench.cli":
+        os.kill(os.getpid(), signal.SIGINT)
+    return real_import(name, *args, **kwargs)
+
+
+builtins.__import__ = import_then_ctrl_c if sys.argv[1] == "importing" else real_import
+sys.argv[1:] = ["runs", "--dir", sys.argv[2]]
+status = run()
+os.kill(os.getpid(), signal.SIGINT)  # while the interpreter exits
+sys.exit(status)
+"""
+
+
+@pytest.mark.parametrize("moment, status", [("importing", 130), ("exiting", 0)])
+def test_ctrl_c_before_and_after_the_command_is_one_line_or_none(tmp_path, moment, status):
+    """The console script (`feedbench.console.run`): a real SIGINT while Python imports the
+    command's modules ends with one line and status 130; one after the command, while the
+    interpreter exits, changes nothing (no 'Exception ignored', no traceback)."""
+    done = subprocess.run([sys.executable, "-c", CTRL_C_WHILE_IMPORTING, moment, str(tmp_path)],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == status
+    assert done.stderr.splitlines() == (["feedbench: error: interrupted"] if status else [])
