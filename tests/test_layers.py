@@ -37,6 +37,7 @@ LAYERS = (
     ("closure_command", "demo", "api"),  # api: the scripting face (issue 17), reports too
     ("campaign", "tune"),  # Dask runs against the demo's truth; the tuning workflow (issue 15)
     ("cli",),
+    ("console",),  # the console script: cli.main with Ctrl-C one line around it
 )
 LAYER = {room: level for level, rooms in enumerate(LAYERS) for room in rooms}
 
