@@ -1,10 +1,10 @@
 """A gain map as a Dask campaign (`feedbench campaign`, issue 15): 2 workers against 1.
 
 The map is a short closed velocity-loop Bode (20–120 Hz in 10 Hz steps, 4 cycles each) at
-every K_p × T_i of `GAINS`, `N_RUNS` runs (``FEEDBENCH_CAMPAIGN_RUNS`` overrides; the issue's
-figure is for 200). Each campaign runs on its own LocalCluster of worker processes, timed
-whole as a user waits for it (cluster start and the workers' imports included); the
-baseline is the same map on one worker. Printed: both wall times, the speedup, and whether
+every K_p × T_i of `GAINS`, `N_RUNS` runs (200, the issue's figure, about 5 min on 2
+cores; ``FEEDBENCH_CAMPAIGN_RUNS`` overrides). Each campaign runs on its own LocalCluster of
+worker processes, timed whole as a user waits for it (cluster start and the workers' imports
+included); the baseline is the same map on one worker. Printed: both wall times, the speedup, and whether
 every run's parameters and results (bandwidth, f_t, f_r, R² …) are identical either way.
 """
 
@@ -21,7 +21,7 @@ import numpy as np
 from feedbench.campaign import parse_campaign, run_campaign
 from feedbench.demo import example_config
 
-N_RUNS = int(os.environ.get("FEEDBENCH_CAMPAIGN_RUNS", "40"))
+N_RUNS = int(os.environ.get("FEEDBENCH_CAMPAIGN_RUNS", "200"))
 SHORT_BODE = {"f_start_Hz": 20.0, "f_stop_Hz": 120.0, "f_step_Hz": 10.0,
               "cycles_per_frequency": 4, "settle_cycles": 2}
 
