@@ -69,7 +69,12 @@ class ReceiveErrors(can.Listener):
 
 def connect(network: canopen.Network) -> canopen.Network:
     """Start the network's receive thread with a short poll period, so it closes quickly,
-    and `ReceiveErrors` handling its receive errors."""
+    and `ReceiveErrors` handling its receive errors. A bus that hands its frames to
+    listeners itself (a `listen(listeners)` method: the simulated bench's hub port) gets the
+    network's listeners instead, and no receive thread."""
+    if callable(getattr(network.bus, "listen", None)):
+        network.bus.listen(network.listeners)
+        return network
     network.NOTIFIER_CYCLE = NOTIFIER_POLL_S
     network.connect()
     network.notifier.add_listener(ReceiveErrors(network.notifier))

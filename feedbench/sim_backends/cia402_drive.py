@@ -10,9 +10,14 @@ is the SYNC consumer. Lockstep virtual time: each SYNC
   3. advances the CiA 402 state machine on the controlword (`protocols.cia402`: the
      commands the host writes, `command_of`, `TRANSITIONS`),
   4. steps the physics one bus cycle (`AxisSimulator.step_cycle`, servo loops inside),
-     between the world's `before_physics` and `after_physics` hooks,
+     after the world's `before_physics` hooks,
   5. publishes the actual values and sends the synchronous TPDOs (types 0–240) and the
-     event-driven ones (254/255) whose content changed.
+     event-driven ones (254/255) whose content changed,
+  6. runs the world's `after_physics` hooks (the instruments sample the cycle), still
+     inside the cycle's lock: the drive answers as soon as its own values are known, as a
+     real drive does not wait for the instruments beside it, and the host's next frames
+     and its Modbus requests (`SimulatedBench`: the Modbus devices share this lock) are
+     served once the whole cycle is done.
 Without SYNC, as a real drive: NMT, SDO, and the state machine on a controlword (and the
 mode display on 0x6060) written by SDO or by an asynchronous RPDO (254/255), which takes
 effect on reception; event-driven TPDOs report the new state (docs/canopen.md). Watchdogs
@@ -146,8 +151,9 @@ class SimulatedCia402Drive:
     `simulator` is the axis behind the drive; `tip_force` (N) is the external force the
     simulated world applies to the tool tip during the next cycles. `before_physics` and
     `after_physics` are the world's per-cycle hooks (callables without arguments), run in
-    the SYNC handler around the physics step in every state: a world device sets `tip_force`
-    for the cycle before it, an instrument samples the cycle after it.
+    the SYNC handler in every state: `before_physics` before the physics step (a world
+    device sets `tip_force` for the cycle), `after_physics` after the cycle's TPDOs went out
+    (an instrument samples the cycle; it must not change what the TPDOs report).
 
     With `network`, the drive joins a network several drives share (`drive_bus`): the
     network's owner consumes the SYNC and calls `begin_cycle` and `end_cycle` around the
@@ -425,13 +431,13 @@ class SimulatedCia402Drive:
 
     def end_cycle(self) -> None:
         """Second half of a SYNC, after the world stepped: actual values, TPDOs out."""
-        for hook in self.after_physics:
-            hook()
         self._finish_quick_stop()
         self._publish_actual_values()
         if self._operational:
             self._send_tpdos()
             self._send_event_tpdos()
+        for hook in self.after_physics:
+            hook()
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Keep a synchronous RPDO's values until the SYNC; an asynchronous one (254/255)

@@ -85,7 +85,12 @@ class SimulatedModbusDevice(abc.ABC):
 
     def __init__(self, device_id: int):
         self.device_id = device_id
-        self.lock = threading.Lock()
+        self.lock: threading.Lock | threading.RLock = threading.Lock()
+
+    def answer_between_cycles(self, cycle_lock: threading.RLock) -> None:
+        """Guard the device with the bus cycle's lock (the simulated drive's): a request is
+        answered before or after a cycle, never while the cycle's hooks still advance it."""
+        self.lock = cycle_lock
 
     @abc.abstractmethod
     def advance(self, dt_s: float) -> None:

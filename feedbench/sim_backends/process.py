@@ -35,6 +35,7 @@ from typing import Any, Callable, ClassVar, TextIO
 import numpy as np
 
 from feedbench.config import registered
+from feedbench.daq.clock import frozen_heap
 from feedbench.protocols.address import LOOPBACK, split_address
 from feedbench.protocols.serial_frames import CHANNELS
 from feedbench.sim_backends.bench import start_simulated_axis
@@ -258,6 +259,8 @@ class SimulatedBench:
         for name, settings in needs.items():
             if name in known:
                 self.peers[name] = known[name](self, settings)
+        for device in self.modbus_devices:  # advanced by the drive's hooks, after its TPDOs
+            device.answer_between_cycles(self.drive.lock)
         if self.modbus_devices:
             server = SimulatedModbusTcpServer(self.modbus_devices, port=modbus_address[1],
                                               faults=self.faults)
@@ -301,11 +304,13 @@ def serve(bench: Mapping[str, Any], workpiece: Sequence[Mapping[str, Any]] = (),
     try:
         with one_line_logging(), ExitStack() as stack:
             info = {"socketcand": f"{host}:{port}", "channel": bench["channel"],
-                    **_start_bench({**bench, "interface": "socketcand"}, workpiece,
-                                   {"host": host, "port": port}, stack)}
+                    **_start_bench({**bench, "interface": "feedbench_hub"}, workpiece,
+                                   {"hub": hub}, stack)}
+            stack.callback(hub.stop)  # on exit first: no frame reaches a device as it closes
             print(f"{READY} {json.dumps(info)}", file=out)
             print(host_bench_table(info), file=out, flush=True)
-            _wait_for_stop(stop)
+            with frozen_heap():  # no 0.1 s full collection in the middle of the cycles
+                _wait_for_stop(stop)
     finally:
         hub.stop()
 

@@ -13,17 +13,26 @@ A frame goes to every other client that opened the same bus name, never back to 
 (as on SocketCAN without `recv_own_msgs`). A new client receives frames only once it has sent
 its first frame or `JOIN_S` after its raw-mode `< ok >`: python-can reads that `< ok >` with
 a single `recv` and would fail if a frame arrived in the same TCP segment.
+
+Nodes in the hub's own process (`feedbench sim`'s simulated drives) join a bus through a
+`HubPort` (python-can interface ``feedbench_hub``) instead of a TCP connection to themselves:
+a frame a TCP client sends reaches them as a `can.Message` without a second trip through the
+text protocol and the kernel, and a frame they send is written to the TCP clients at once by
+the sending thread. Within one process, that halves the loopback hops of a cycle.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import queue
 import selectors
 import socket
 import threading
 import time
 from dataclasses import dataclass, field
+
+import can
 
 from feedbench.protocols.address import LOOPBACK
 
@@ -56,6 +65,11 @@ def frame_text(can_id: str, data: bytes, now: float) -> bytes:
     return f"< frame {can_id} {now:.6f} {data.hex().upper()} >".encode("ascii")
 
 
+def id_text(msg: can.Message) -> str:
+    """A frame's id as socketcand writes it: 3 hex digits, or 8 for an extended id."""
+    return f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id:03X}"
+
+
 def parse_send(fields: list[str]) -> tuple[str, bytes]:
     """`send <id> <dlc> <bytes…>` tokens → (id as sent, 3 or 8 hex digits; payload)."""
     can_id, dlc = fields[1], int(fields[2], 16)
@@ -75,6 +89,10 @@ class SocketcandHub:
         """Frames received from clients (each delivered to every other client of its bus)."""
         self._selector = selectors.DefaultSelector()
         self._clients: dict[socket.socket, _Client] = {}
+        self._ports: list[HubPort] = []
+        self._lock = threading.RLock()
+        """Guards the clients and their outboxes: the hub's thread and its ports' threads
+        relay frames (in one order to every client)."""
         self._listener: socket.socket | None = None
         self._wake_read, self._wake_write = os.pipe()
         self._closing = False
@@ -149,9 +167,38 @@ class SocketcandHub:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         sock.setblocking(False)
         client = _Client(sock)
-        self._clients[sock] = client
-        self._selector.register(sock, selectors.EVENT_READ)
-        self._send(client, b"< hi >")
+        with self._lock:
+            self._clients[sock] = client
+            self._selector.register(sock, selectors.EVENT_READ)
+            self._send(client, b"< hi >")
+
+    def attach(self, port: HubPort) -> None:
+        """Deliver the frames of `port.channel` to `port` from now on."""
+        with self._lock:
+            self._ports.append(port)
+
+    def detach(self, port: HubPort) -> None:
+        """No more frames to `port`."""
+        with self._lock:
+            if port in self._ports:
+                self._ports.remove(port)
+
+    def relay_from_port(self, sender: HubPort, msg: can.Message) -> None:
+        """A frame a port sends: to every TCP client and every other port of its bus."""
+        text = frame_text(id_text(msg), bytes(msg.data), time.time())
+        with self._lock:
+            self.frames += 1
+            now = time.monotonic()
+            for client in list(self._clients.values()):
+                if client.bus == sender.channel and client.receives(now):
+                    self._send(client, text)
+            ports = self._ports_of(sender.channel, sender)
+        for port in ports:
+            port.deliver(msg)
+
+    def _ports_of(self, bus: str | None, sender: object) -> list[HubPort]:
+        """The ports a frame from `sender` on `bus` goes to (under the lock)."""
+        return [port for port in self._ports if port is not sender and port.channel == bus]
 
     def _receive(self, client: _Client) -> None:
         try:
@@ -198,35 +245,98 @@ class SocketcandHub:
             self._send(sender, b"< error malformed frame >")
             return
         now = time.monotonic()
-        sender.joined_at = min(sender.joined_at, now)
-        self.frames += 1
-        text = frame_text(can_id, data, time.time())
-        for client in list(self._clients.values()):
-            if client is not sender and client.bus == sender.bus and client.receives(now):
-                self._send(client, text)
+        stamp = time.time()
+        text = frame_text(can_id, data, stamp)
+        msg = can.Message(timestamp=stamp, arbitration_id=int(can_id, 16), data=data,
+                          is_extended_id=len(can_id) == 8, channel=sender.bus)
+        with self._lock:
+            sender.joined_at = min(sender.joined_at, now)
+            self.frames += 1
+            for client in list(self._clients.values()):
+                if client is not sender and client.bus == sender.bus and client.receives(now):
+                    self._send(client, text)
+            ports = self._ports_of(sender.bus, sender)
+        for port in ports:  # outside the lock: a port's listeners send frames themselves
+            port.deliver(msg)
 
     def _send(self, client: _Client, text: bytes) -> None:
         """Queue `text` and write what the socket takes now (never blocks the hub)."""
-        client.outbox += text
-        self._flush(client)
+        with self._lock:
+            client.outbox += text
+            self._flush(client)
 
     def _flush(self, client: _Client) -> None:
-        try:
-            sent = client.sock.send(client.outbox)
-        except (BlockingIOError, InterruptedError):
-            sent = 0
-        except OSError:
-            self._drop(client.sock)
-            return
-        del client.outbox[:sent]
-        wanted = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.outbox else 0)
-        if self._selector.get_key(client.sock).events != wanted:
-            self._selector.modify(client.sock, wanted)
+        with self._lock:
+            if client.sock not in self._clients:
+                return
+            try:
+                sent = client.sock.send(client.outbox)
+            except (BlockingIOError, InterruptedError):
+                sent = 0
+            except OSError:
+                self._drop(client.sock)
+                return
+            del client.outbox[:sent]
+            wanted = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.outbox else 0)
+            if self._selector.get_key(client.sock).events != wanted:
+                self._selector.modify(client.sock, wanted)
 
     def _drop(self, sock: socket.socket) -> None:
-        self._clients.pop(sock, None)
+        with self._lock:
+            self._clients.pop(sock, None)
+            try:
+                self._selector.unregister(sock)
+            except (KeyError, ValueError):
+                pass
+            sock.close()
+
+
+class HubPort(can.BusABC):
+    """A python-can bus on the hub's bus `channel` for nodes in the hub's own process
+    (interface ``feedbench_hub``, option ``hub``: the running `SocketcandHub`).
+
+    `send` relays the frame to the bus's TCP clients and other ports in the calling thread.
+    Frames from them queue for `recv`, or, once `listen` was called, go straight to the
+    listeners in the thread that relayed them (the hub's): no receive thread, no hand-over
+    between threads in a cycle (`protocols.canbus.connect` does this for a canopen network).
+    """
+
+    def __init__(self, channel: str, hub: SocketcandHub, **_: object) -> None:
+        self.channel = str(channel)
+        self.channel_info = f"feedbench hub port on {self.channel}"
+        self._hub = hub
+        self._inbox: queue.SimpleQueue[can.Message] = queue.SimpleQueue()
+        self._listeners: list[can.Listener] = []
+        super().__init__(channel=self.channel)
+        hub.attach(self)
+
+    def listen(self, listeners: list[can.Listener]) -> None:
+        """From now on give every frame to `listeners` (python-can `Listener`s) at once."""
+        self._listeners = list(listeners)
+
+    def deliver(self, msg: can.Message) -> None:
+        """A frame of the bus for this port (called by the hub, any thread). A listener's
+        error is logged, one line, and the frame goes on to the next listener."""
+        if not self._listeners:
+            self._inbox.put(msg)
+        for listener in self._listeners:
+            try:
+                listener.on_message_received(msg)
+            except Exception as error:  # a listener's bug must not stop the hub
+                LOGGER.error("hub port %s: listener %s failed on frame 0x%03X: %s: %s",
+                             self.channel, type(listener).__name__, msg.arbitration_id,
+                             type(error).__name__, error)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self._hub.relay_from_port(self, msg)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         try:
-            self._selector.unregister(sock)
-        except (KeyError, ValueError):
-            pass
-        sock.close()
+            return self._inbox.get(timeout=timeout), False
+        except queue.Empty:
+            return None, False
+
+    def shutdown(self) -> None:
+        self._listeners = []
+        self._hub.detach(self)
+        super().shutdown()
