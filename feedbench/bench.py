@@ -297,7 +297,8 @@ class Bench:
         drives = {name: Cia402Drive(self.network, node_id, eds, axis.pdo_config)
                   for name, node_id in axis.nodes().items()}
         for drive in drives.values():
-            drive.configure(gains=gains, sync_loss_cycles=SYNC_LOSS_CYCLES
+            drive.configure(gains=gains, cycle_s=self.config["cycle_ms"] * 1e-3,
+                            sync_loss_cycles=SYNC_LOSS_CYCLES
                             if self.config["clock"] == "realtime" else 0)
         return drives
 

@@ -13,6 +13,7 @@ import sys
 import numpy as np
 import pytest
 
+from feedbench.config import ConfigError
 from feedbench.drivers.cia402 import DriveError, PdoConfig, decode_state
 from feedbench.models.axis import CSP, CST, CSV
 from test_cia402_sim import NODE_ID, enable, loopback
@@ -132,3 +133,16 @@ def test_drivers_do_not_import_the_simulation():
             "'feedbench.models'))))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_the_driver_tells_the_drive_its_bus_cycle_and_a_drive_on_another_cycle_refuses(
+        can_channel):
+    """0x1006 (µs): the period the drive counts missed SYNCs in. The simulated axis runs
+    1 ms; a host on 2 ms is stopped before anything moves, naming bench.cycle_ms."""
+    with loopback(can_channel, configure=False) as bench:
+        bench.drive.configure(cycle_s=1e-3)
+        assert bench.drive.node.sdo[0x1006].raw == 1000
+        with pytest.raises(ConfigError, match=rf"bench.cycle_ms: drive node {NODE_ID} refuses a bus "
+                                              r"cycle of 2 ms: it runs 1 ms"):
+            bench.drive.configure(cycle_s=2e-3)
+        assert bench.device.values[0x1006] == 1000

@@ -187,7 +187,7 @@ class Cia402Drive:
 
     def configure(self, heartbeat_ms: int = 100, timeout_s: float = 2.0,
                   gains: dict[str, float] | None = None, consumer_ms: int = HOST_CONSUMER_MS,
-                  sync_loss_cycles: int = 0) -> None:
+                  sync_loss_cycles: int = 0, cycle_s: float | None = None) -> None:
         """NMT pre-operational, heartbeat on, watchdogs, PDO maps by SDO, gains, NMT
         operational.
 
@@ -195,13 +195,17 @@ class Cia402Drive:
         after `HEARTBEAT_LOST_FACTOR` times that) and is told to consume the host's
         (`cia301.HOST_NODE_ID`, lost after `consumer_ms`) and, with `sync_loss_cycles`, to
         stop after that many missed SYNCs (real time; 0: off, for lockstep virtual time),
-        where its EDS has the objects (0x1016, 0x2021).
+        where its EDS has the objects (0x1016, 0x2021). With `cycle_s` (s) the drive is told
+        the bus cycle (0x1006, µs, where writable): the period it counts missed SYNCs in; a
+        drive that runs another cycle refuses it, a `ConfigError` naming ``bench.cycle_ms``.
         """
         node = self.node
         node.nmt.state = "PRE-OPERATIONAL"
         self._first_contact(heartbeat_ms)
         self._wait_for_heartbeat(timeout_s)
         self._heartbeat_lost_s = HEARTBEAT_LOST_FACTOR * heartbeat_ms * 1e-3
+        if cycle_s is not None:
+            self._write_cycle_period(round(cycle_s * 1e6))
         self._configure_watchdogs(consumer_ms, sync_loss_cycles)
         self._newton_per_mille = node.sdo[RATED_TORQUE].raw * 1e-6
         self._supported_modes = node.sdo[SUPPORTED_DRIVE_MODES].raw
@@ -223,6 +227,19 @@ class Cia402Drive:
                               f"({exc})") from None
         finally:
             log.disabled = False
+
+    def _write_cycle_period(self, period_us: int) -> None:
+        """0x1006 = `period_us` where the EDS makes it writable."""
+        od = self.node.object_dictionary
+        if cia301.CYCLE_PERIOD not in od or "w" not in od[cia301.CYCLE_PERIOD].access_type:
+            return
+        try:
+            self.node.sdo[cia301.CYCLE_PERIOD].raw = period_us
+        except canopen.SdoAbortedError as exc:
+            own = self.node.sdo[cia301.CYCLE_PERIOD].raw
+            raise ConfigError(f"bench.cycle_ms: drive node {self.node.id} refuses a bus cycle "
+                              f"of {period_us / 1000:g} ms: it runs {own / 1000:g} ms "
+                              f"(communication cycle period 0x1006; {exc})") from None
 
     def _configure_watchdogs(self, consumer_ms: int, sync_loss_cycles: int) -> None:
         """Consumer entry 1 (0x1016) on the host's heartbeat, the SYNC loss limit (0x2021)."""

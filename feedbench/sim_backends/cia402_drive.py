@@ -286,6 +286,9 @@ class SimulatedCia402Drive:
         check_subindex(subindex, od)
         if index == cia301.CONSUMER_HEARTBEAT_TIME and subindex:
             self.watchdog.set_entry(subindex, od.decode_raw(data))
+        elif index == cia301.CYCLE_PERIOD:
+            if od.decode_raw(data) != self.values[cia301.CYCLE_PERIOD]:
+                raise SdoAbortedError(cia301.SDO_ABORT_VALUE_RANGE)  # the axis's cycle is fixed
         elif cia301.RPDO_COMMUNICATION <= index < cia301.PDO_RECORDS_END:
             if (cia301.RPDO_MAPPING <= index < cia301.TPDO_COMMUNICATION
                     or cia301.TPDO_MAPPING <= index):

@@ -64,8 +64,9 @@ F32 = datatypes.REAL32
 COMMUNICATION = (
     Entry(cia301.DEVICE_TYPE, "Device type", U32, "ro", default=DEVICE_TYPE),
     Entry(cia301.ERROR_REGISTER, "Error register", U8, "ro", default=0),
-    Entry(cia301.CYCLE_PERIOD, "Communication cycle period", U32, "ro", default=1000,
-          unit="us", description="bus cycle: one SYNC advances the simulated axis by this time"),
+    Entry(cia301.CYCLE_PERIOD, "Communication cycle period", U32, "rw", default=1000,
+          unit="us", description="bus cycle: one SYNC advances the simulated axis by this "
+          "time; the host writes its cycle, another than the axis's is refused (0x06090030)"),
     Entry(cia301.HEARTBEAT_TIME, "Producer heartbeat time", U16, "rw", default=1000, unit="ms"),
 )
 
