@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import threading
 import time
 
 import can
@@ -134,6 +135,53 @@ def test_hub_relays_frames_between_clients_of_one_bus_only():
             for bus in (a, b, other):
                 bus.shutdown()
     assert hub.frames == 4
+
+
+class _Answer(can.Listener):
+    """Answers every frame at once from the thread that delivers it (as a drive's SYNC
+    handler does), and remembers that thread."""
+
+    def __init__(self, port: can.BusABC) -> None:
+        self.port = port
+        self.threads: set[str] = set()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.threads.add(threading.current_thread().name)
+        if msg.arbitration_id == 0x666:
+            raise ValueError("a listener's bug")
+        self.port.send(can.Message(arbitration_id=msg.arbitration_id + 1, data=msg.data,
+                                   is_extended_id=msg.is_extended_id))
+
+
+def test_a_hub_port_is_a_python_can_bus_for_the_nodes_in_the_hub_process(caplog):
+    """`feedbench sim`'s drives join the hub through a `HubPort` (interface
+    ``feedbench_hub``): frames from TCP clients queue for `recv` until `listen`, then go to
+    the listeners in the hub's own thread; what the port sends reaches the TCP clients of
+    its bus only. A listener's error is one log line and the next frame is delivered."""
+    with SocketcandHub() as hub:
+        options = {"host": hub.host, "port": hub.port}
+        port = can.Bus(interface="feedbench_hub", channel="b1", hub=hub)
+        host, other = (open_bus("socketcand", name, **options) for name in ("b1", "b2"))
+        try:
+            host.send(can.Message(arbitration_id=0x200, data=b"\x07", is_extended_id=False))
+            got = port.recv(1.0)
+            assert (got.arbitration_id, bytes(got.data)) == (0x200, b"\x07")
+            answer = _Answer(port)
+            port.listen([answer])
+            for can_id, extended in ((0x180, False), (0x666, False), (0x1ABCDEF0, True)):
+                host.send(can.Message(arbitration_id=can_id, data=bytes(range(8)),
+                                      is_extended_id=extended))
+            assert [(m.arbitration_id, bytes(m.data), m.is_extended_id)
+                    for m in (host.recv(1.0), host.recv(1.0))] == [
+                (0x181, bytes(range(8)), False), (0x1ABCDEF1, bytes(range(8)), True)]
+            assert host.recv(0.1) is None and other.recv(0.1) is None
+            assert port.recv(0.1) is None  # listened to, never queued
+            assert answer.threads == {"socketcand-hub"}
+        finally:
+            for bus in (port, host, other):
+                bus.shutdown()
+    assert [r.getMessage() for r in caplog.records if r.levelname == "ERROR"] == [
+        "hub port b1: listener _Answer failed on frame 0x666: ValueError: a listener's bug"]
 
 
 def test_sim_config_error_names_the_field(tmp_path, capsys):
