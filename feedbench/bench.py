@@ -8,6 +8,7 @@ the same bus. Everything else stays in its room.
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -46,6 +47,9 @@ BENCH_SCHEMA = {
     "clock": Field(str, "lockstep", "lockstep (simulation) or realtime (hardware)",
                    one_of("lockstep", "realtime")),
     "timeout_s": Field(float, 1.0, "how long a cycle may wait for its TPDOs (s)", positive),
+    "sync_loss_ms": Field(float, 10.0, "real time: the drives stop when no SYNC came for this "
+                          "long (ms; 0x2021 in bus cycles, at most 255; lockstep: off)",
+                          positive),
     "one_core": Field(bool, True, "simulated lockstep bench: its threads on one CPU "
                       "(faster, same results; `feedbench.daq.clock.one_core`)"),
     "eds": Field(str, "", "EDS file of the drive (empty: the packaged simulated drive's)"),
@@ -232,8 +236,21 @@ AXES = {"lab": LabAxis, "rack_pinion": RackPinionAxis}
 it `needs` and the `addresses` of their simulated peers."""
 
 
-SYNC_LOSS_CYCLES = 10
-"""Real time: the drives stop after this many missed SYNCs (lockstep: off, virtual time)."""
+SYNC_LOSS_LIMIT_MAX = 255
+"""The largest SYNC loss limit a drive holds (0x2021, UNSIGNED8), in bus cycles."""
+
+
+def sync_loss_cycles(cfg: Mapping[str, Any]) -> int:
+    """Missed SYNCs after which the drives stop (0x2021): ``sync_loss_ms`` in whole bus
+    cycles, rounded up, in real time; 0 (off) in lockstep, where time is virtual."""
+    if cfg["clock"] != "realtime":
+        return 0
+    cycles = math.ceil(cfg["sync_loss_ms"] / cfg["cycle_ms"] - 1e-9)
+    if cycles > SYNC_LOSS_LIMIT_MAX:
+        raise ConfigError(f"bench.sync_loss_ms: {cfg['sync_loss_ms']:g} ms is {cycles} bus "
+                          f"cycles of {cfg['cycle_ms']:g} ms; a drive counts at most "
+                          f"{SYNC_LOSS_LIMIT_MAX} (0x2021)")
+    return cycles
 
 
 class Bench:
@@ -262,6 +279,7 @@ class Bench:
         the configured ones); what is open is closed again if a step fails."""
         cfg = self.config
         cycle_s = cfg["cycle_ms"] * 1e-3
+        sync_loss_cycles(cfg)  # a bad limit is an error before anything opens
         try:
             if cfg["one_core"] and cfg["simulated"] and cfg["clock"] == "lockstep":
                 self._stack.enter_context(one_core())  # first: every thread below inherits it
@@ -298,8 +316,7 @@ class Bench:
                   for name, node_id in axis.nodes().items()}
         for drive in drives.values():
             drive.configure(gains=gains, cycle_s=self.config["cycle_ms"] * 1e-3,
-                            sync_loss_cycles=SYNC_LOSS_CYCLES
-                            if self.config["clock"] == "realtime" else 0)
+                            sync_loss_cycles=sync_loss_cycles(self.config))
         return drives
 
     def __exit__(self, *exc) -> None:
