@@ -237,7 +237,6 @@ def cmd_tune(args: argparse.Namespace) -> int:
 def cmd_sim(args: argparse.Namespace) -> int:
     """Serve the simulated bench of a config as its own process until Ctrl-C / SIGTERM."""
     from feedbench.bench import sim_config
-    from feedbench.daq.clock import one_core
     from feedbench.sim_backends.faults import with_fault_options
     from feedbench.sim_backends.process import serve
     from feedbench.sim_backends.socketcand_hub import HubError
@@ -248,8 +247,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     for key in SIM_LISTENS:
         check_can_listen(f"bench.{key}", bench[key])
     try:
-        with one_core():  # hub and drive threads hand the GIL over on one CPU, not across two
-            serve(bench, workpiece)
+        serve(bench, workpiece)  # not pinned (`one_core`): the hub's thread runs the cycle alone
     except HubError as exc:
         raise ConfigError(f"bench.socketcand: {exc}") from exc
     return 0
