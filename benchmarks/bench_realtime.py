@@ -129,7 +129,10 @@ def moving_loop(bench: Bench, tick, timing_of) -> CycleTiming:
 
 
 def realtime_loop(info: dict) -> CycleTiming:
-    with Bench(validate_table(host_bench(info, "realtime"), BENCH_SCHEMA, "bench")) as bench:
+    """The moving loop on the real-time clock, inside `guarded()` as the runner runs its
+    cycles (the stall guard, and no full garbage collection meanwhile)."""
+    with Bench(validate_table(host_bench(info, "realtime"), BENCH_SCHEMA, "bench")) as bench, \
+            bench.clock.guarded():
         return moving_loop(bench, bench.clock.tick, bench.clock)
 
 

@@ -47,8 +47,9 @@ BENCH_SCHEMA = {
     "clock": Field(str, "lockstep", "lockstep (simulation) or realtime (hardware)",
                    one_of("lockstep", "realtime")),
     "timeout_s": Field(float, 1.0, "how long a cycle may wait for its TPDOs (s)", positive),
-    "sync_loss_ms": Field(float, 10.0, "real time: the drives stop when no SYNC came for this "
-                          "long (ms; 0x2021 in bus cycles, at most 255; lockstep: off)",
+    "sync_loss_ms": Field(float, 50.0, "real time: the drives stop when no SYNC came for this "
+                          "long (ms; 0x2021 in bus cycles, at most 255; lockstep: off). Keep "
+                          "it above the host's scheduling hiccups (docs/realtime.md)",
                           positive),
     "one_core": Field(bool, True, "simulated lockstep bench: its threads on one CPU "
                       "(faster, same results; `feedbench.daq.clock.one_core`)"),

@@ -74,8 +74,8 @@ def test_realtime_run_records_its_cycle_timing(sim, capsys):
     """1 s recorded through the runner: the per-cycle times are rows, the counts are in the
     file's metadata, equal to those the rows give, missed + received = expected, missed =
     the recording's gaps; `feedbench runs --json` and the report show them. (On a loaded
-    machine the sim process may miss SYNCs for its 10 ms limit and stop the run: an aborted
-    run's counts are written the same way.)"""
+    machine the sim process may miss SYNCs for longer than `bench.sync_loss_ms` and stop
+    the run: an aborted run's counts are written the same way.)"""
     with feedbench.open_bench({"bench": host_bench(sim, "realtime")}) as bench:
         bench.drive.enable()
         try:
