@@ -22,15 +22,13 @@ on the wall clock (`close()` stops it). The host consumes the drives' heartbeats
 clock: a drive silent for its consumer time raises `NodeLost` ("node N heartbeat lost").
 
 `one_core()` runs a simulated bench's threads on one CPU, which makes lockstep cycles
-cheaper (see there). `frozen_heap()` keeps Python's full garbage collections, which stop
-every thread of the process for ≈ 0.1 s once numpy, scipy and numba are loaded, out of a
-real-time run's cycles.
+cheaper (see there). A real-time run's cycles run in `protocols.canbus.frozen_heap()`: no
+full garbage collection (≈ 0.1 s without any thread running) in the middle of them.
 """
 
 from __future__ import annotations
 
 import fcntl
-import gc
 import os
 import tempfile
 import threading
@@ -44,6 +42,7 @@ import canopen
 import numpy as np
 
 from feedbench.daq.timing import TIMING_CHANNELS, TIMING_UNITS, cycle_timing
+from feedbench.protocols.canbus import frozen_heap
 from feedbench.protocols.cia301 import (
     HEARTBEAT_COB_BASE, HEARTBEAT_OPERATIONAL, HOST_NODE_ID, SYNC_COB_ID,
 )
@@ -321,24 +320,6 @@ class RealtimeClock(_BenchClock):
                 self.network.sync.stop()
                 self._heartbeat.stop()
                 return
-
-
-@contextmanager
-def frozen_heap() -> Iterator[None]:
-    """While inside, Python's garbage collector leaves every object that exists on entry
-    alone (`gc.freeze`); on exit they are its again (`gc.unfreeze`). A full collection walks
-    every object of the process: ≈ 0.1 s with numpy, scipy and numba loaded, during which
-    no thread of the process runs, so no SYNC is sent, no TPDO received, no setpoint sent
-    (measured: one such pause per ≈ 15 s of 1 kHz cycles, long enough for the drive's
-    SYNC-loss watchdog to stop the axis). Objects made inside are collected as before; the
-    young ones cost microseconds. Nested use keeps the outer freeze until the outer exit."""
-    outer = gc.get_freeze_count() > 0
-    gc.freeze()
-    try:
-        yield
-    finally:
-        if not outer:
-            gc.unfreeze()
 
 
 @contextmanager

@@ -35,8 +35,8 @@ from typing import Any, Callable, ClassVar, TextIO
 import numpy as np
 
 from feedbench.config import registered
-from feedbench.daq.clock import frozen_heap
 from feedbench.protocols.address import LOOPBACK, split_address
+from feedbench.protocols.canbus import frozen_heap
 from feedbench.protocols.serial_frames import CHANNELS
 from feedbench.sim_backends.bench import start_simulated_axis
 from feedbench.sim_backends.faults import world_faults

@@ -185,20 +185,21 @@ class SocketcandHub:
 
     def relay_from_port(self, sender: HubPort, msg: can.Message) -> None:
         """A frame a port sends: to every TCP client and every other port of its bus."""
-        text = frame_text(id_text(msg), bytes(msg.data), time.time())
+        self._fan_out(sender, sender.channel, frame_text(id_text(msg), bytes(msg.data),
+                                                         time.time()), msg)
+
+    def _fan_out(self, sender: object, bus: str | None, text: bytes, msg: can.Message) -> None:
+        """One frame from `sender` on `bus`: `text` to every TCP client of the bus that
+        receives frames, `msg` to every port of it; never back to `sender`."""
         with self._lock:
             self.frames += 1
             now = time.monotonic()
             for client in list(self._clients.values()):
-                if client.bus == sender.channel and client.receives(now):
+                if client is not sender and client.bus == bus and client.receives(now):
                     self._send(client, text)
-            ports = self._ports_of(sender.channel, sender)
-        for port in ports:
+            ports = [port for port in self._ports if port is not sender and port.channel == bus]
+        for port in ports:  # outside the lock: a port's listeners send frames themselves
             port.deliver(msg)
-
-    def _ports_of(self, bus: str | None, sender: object) -> list[HubPort]:
-        """The ports a frame from `sender` on `bus` goes to (under the lock)."""
-        return [port for port in self._ports if port is not sender and port.channel == bus]
 
     def _receive(self, client: _Client) -> None:
         try:
@@ -244,20 +245,11 @@ class SocketcandHub:
                            " ".join(message))
             self._send(sender, b"< error malformed frame >")
             return
-        now = time.monotonic()
+        sender.joined_at = min(sender.joined_at, time.monotonic())
         stamp = time.time()
-        text = frame_text(can_id, data, stamp)
         msg = can.Message(timestamp=stamp, arbitration_id=int(can_id, 16), data=data,
                           is_extended_id=len(can_id) == 8, channel=sender.bus)
-        with self._lock:
-            sender.joined_at = min(sender.joined_at, now)
-            self.frames += 1
-            for client in list(self._clients.values()):
-                if client is not sender and client.bus == sender.bus and client.receives(now):
-                    self._send(client, text)
-            ports = self._ports_of(sender.bus, sender)
-        for port in ports:  # outside the lock: a port's listeners send frames themselves
-            port.deliver(msg)
+        self._fan_out(sender, sender.bus, frame_text(can_id, data, stamp), msg)
 
     def _send(self, client: _Client, text: bytes) -> None:
         """Queue `text` and write what the socket takes now (never blocks the hub)."""
