@@ -332,7 +332,9 @@ class BenchSession:
         bench.__enter__()
         self._bench, self._needs = bench, key
         self.output_dir.mkdir(parents=True, exist_ok=True)
-        self._catalog = self._catalog or Catalog(self.output_dir / "catalog.sqlite")
+        if self._catalog is None:
+            self._catalog = Catalog(self.output_dir / "catalog.sqlite")
+            self._catalog.reconcile()  # runs a dead process left `running`: crashed, files too
         return bench
 
     def close_bench(self) -> None:

@@ -22,6 +22,7 @@ import time
 from importlib import resources
 from pathlib import Path
 
+import feedbench
 from feedbench.bench import parse_run_config, run_config
 from feedbench.cli import main
 from feedbench.config import ConfigError
@@ -94,6 +95,25 @@ def test_a_run_killed_mid_recording_is_listed_crashed_with_the_samples_of_its_fi
     assert main(["runs", "--dir", str(tmp_path)]) == 0
     line = capsys.readouterr().out.splitlines()[0].split()
     assert line[:3] == [run_id, "crashed", str(in_file.n_samples)]
+
+
+def test_the_scripting_session_marks_a_killed_writers_run_crashed_as_it_opens(
+        tmp_path, can_channel):
+    """`feedbench.open_bench` settles the catalog as `feedbench run` does: a run a dead
+    process left `running` is `crashed`, in its file too, before the session records."""
+    writer = subprocess.Popen([sys.executable, "-c", WRITER, str(tmp_path), str(CHUNK_ROWS),
+                               "1"], stdout=subprocess.PIPE, text=True)
+    try:
+        run_id = writer.stdout.readline().strip()
+    finally:
+        writer.send_signal(signal.SIGKILL)
+        writer.wait(10)
+    assert open_recording(tmp_path / f"{run_id}.h5").status == "running"
+    with feedbench.open_bench({"bench": {"channel": can_channel,
+                                         "output_dir": str(tmp_path)}}):
+        marked = open_recording(tmp_path / f"{run_id}.h5")
+    assert (marked.status, marked.n_samples % CHUNK_ROWS) == ("crashed", 0)
+    assert marked.n_samples >= CHUNK_ROWS
 
 
 def _flushed(directory: Path, at_least: int) -> bool:
