@@ -14,6 +14,7 @@ import h5py
 import numpy as np
 import pytest
 
+from feedbench.config import ConfigError
 from feedbench.daq.recorder import Recorder
 from feedbench.daq.recording import Segment, open_recording
 
@@ -194,3 +195,25 @@ def test_close_is_idempotent_and_closed_recorder_refuses_rows(tmp_path: Path) ->
     )
     with pytest.raises(RuntimeError, match="closed"):
         recorder.append(1, [2.0])
+
+
+def test_a_header_declaring_more_rows_than_the_file_holds_is_refused_before_reading(
+        tmp_path: Path) -> None:
+    """Found by fuzzing: a damaged extent made the reader allocate gigabytes of fill values.
+    Every row dataset's rows must fit the file's bytes (but for one unwritten chunk)."""
+    path = tmp_path / "run.h5"
+    with Recorder(path, ["x"], {"x": "m"}, {}, chunk_rows=100) as recorder:
+        recorder.append_block(np.arange(250), np.zeros((250, 1)))
+    with h5py.File(path, "r+") as file:
+        for name in ("cycle", "data/x"):
+            file[name].resize((10**9,))  # nothing allocated: reading it would make 8 GB
+    size = path.stat().st_size
+    assert size < 10**6
+    with pytest.raises(ConfigError, match=rf"^{path}: not a feedbench recording \(/cycle: "
+                                          rf"1000000000 rows of 8 bytes do not fit in the "
+                                          rf"file's \d+ bytes\)$"):
+        open_recording(path)
+    with h5py.File(path, "r+") as file:
+        file["cycle"].resize((250,))
+        file["data/x"].resize((350,))  # a writer died between this resize and the next
+    assert open_recording(path).n_samples == 250

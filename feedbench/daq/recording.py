@@ -295,12 +295,27 @@ def missing_cycles(cycle: np.ndarray) -> int:
 
 def _complete_rows(file: h5py.File, names: list[str]) -> int:
     """Rows present in every dataset (a crash between two resizes leaves them unequal)."""
-    return min([len(file[CYCLE])] + [len(file[DATA][name]) for name in names])
+    return min([_rows(file[CYCLE])] + [_rows(file[DATA][name]) for name in names])
+
+
+def _rows(dataset: h5py.Dataset) -> int:
+    """The dataset's rows, if the file can hold them: the recorder writes uncompressed
+    chunks, so a dataset's rows fit the file's bytes but for one chunk (resized, not yet
+    written when its writer died). A damaged header declaring more is a ValueError, not a
+    read that allocates gigabytes of fill values."""
+    rows, row_bytes = len(dataset), dataset.dtype.itemsize
+    unwritten = dataset.chunks[0] if dataset.chunks else 0
+    file_bytes = dataset.file.id.get_filesize()
+    if (rows - unwritten) * row_bytes > file_bytes:
+        raise ValueError(f"{dataset.name}: {rows} rows of {row_bytes} bytes do not fit in "
+                         f"the file's {file_bytes} bytes")
+    return rows
 
 
 def _read_stream(group: h5py.Group) -> Stream:
     names = json.loads(group.attrs["channels"])
-    rows = min([len(group[CYCLE]), len(group[SEQUENCE])] + [len(group[DATA][n]) for n in names])
+    rows = min([_rows(group[CYCLE]), _rows(group[SEQUENCE])]
+               + [_rows(group[DATA][n]) for n in names])
     return Stream(
         rate_hz=float(group.attrs["rate_hz"]),
         cycle=_read_only(group[CYCLE][:rows]),
@@ -312,7 +327,8 @@ def _read_stream(group: h5py.Group) -> Stream:
 
 def _read_events(dataset: h5py.Dataset) -> list[Event]:
     return [
-        Event(int(cycle), _text(kind), _text(text)) for cycle, kind, text in dataset[:]
+        Event(int(cycle), _text(kind), _text(text))
+        for cycle, kind, text in dataset[:_rows(dataset)]
     ]
 
 
