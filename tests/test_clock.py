@@ -179,14 +179,25 @@ def test_simulated_run_on_one_core_records_exactly_the_same_samples(tmp_path, ca
         np.testing.assert_array_equal(pinned.channels[name], values, err_msg=name)
 
 
-def test_a_frozen_heap_keeps_what_exists_out_of_the_collector_until_the_outer_exit():
+def test_a_frozen_heap_keeps_what_exists_out_of_the_collector_until_the_last_block_exits():
     """A real-time run's cycles (`guarded`) and `feedbench sim` run in `frozen_heap`: a full
-    collection walks only what was made inside, not the ≈ 200 000 objects of the imports."""
+    collection walks only what was made inside, not the ≈ 200 000 objects of the imports.
+    Blocks of two threads overlap: the first to exit leaves the other's freeze alone."""
     assert gc.get_freeze_count() == 0
-    with frozen_heap():
-        frozen = gc.get_freeze_count()
-        assert frozen > 1000  # this process's modules, functions, test objects
+    entered, leave = threading.Event(), threading.Event()
+
+    def other_thread() -> None:
         with frozen_heap():
-            pass
-        assert gc.get_freeze_count() >= frozen  # the inner exit leaves the outer freeze
+            entered.set()
+            leave.wait(5)
+
+    thread = threading.Thread(target=other_thread)
+    thread.start()
+    assert entered.wait(5)
+    assert gc.get_freeze_count() > 1000  # this process's modules, functions, test objects
+    with frozen_heap():
+        pass
+    assert gc.get_freeze_count() > 1000, "the other thread's block is still open"
+    leave.set()
+    thread.join(5)
     assert gc.get_freeze_count() == 0

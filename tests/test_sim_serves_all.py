@@ -46,7 +46,7 @@ from feedbench.sim_backends.process import READY, one_line_logging
 from feedbench.sim_backends.rack_pinion import packaged_eds_path as rack_eds_path
 from feedbench.sim_backends.rack_pinion import world_truth
 from feedbench.sim_backends.world import build_axis
-from test_cia402_sim import enable, loopback
+from test_cia402_sim import NODE_ID, enable, loopback
 
 DOCS = Path(__file__).parents[1] / "docs"
 START_TIMEOUT_S = 60.0
@@ -531,9 +531,14 @@ def test_an_exception_inside_a_device_is_exception_4_and_one_line():
                         "ArithmeticError: register image lost; answered with exception 4")
 
 
-def test_an_exception_inside_the_world_faults_the_drive_with_emcy(can_channel):
-    """A world device raises in the SYNC handler: the host's tick still gets the cycle's
-    TPDOs, the statusword shows FAULT, EMCY 0x6100 (internal software) arrives, one line is
+TPDO1 = 0x180 + NODE_ID
+
+
+@pytest.mark.parametrize("hooks", ["before_physics", "after_physics"])
+def test_an_exception_inside_the_world_faults_the_drive_with_emcy(can_channel, hooks):
+    """A world device raises in the SYNC handler (before the physics, or an instrument after
+    the cycle's TPDOs went out): the host's tick still gets one TPDO set per SYNC, never
+    two, the statusword shows FAULT, EMCY 0x6100 (internal software) arrives, one line is
     logged; after a fault reset with a healthy world the drive enables again."""
     broken = []
 
@@ -543,11 +548,14 @@ def test_an_exception_inside_the_world_faults_the_drive_with_emcy(can_channel):
 
     stream = io.StringIO()
     with one_line_logging(stream), loopback(can_channel) as bench:
-        bench.device.before_physics.append(world_device)
+        getattr(bench.device, hooks).append(world_device)
         enable(bench, CSV, velocity=0.0)
+        bench.frames()
         broken.append(True)
         for _ in range(3):
             bench.clock.tick()
+        cob_ids = [cob_id for cob_id, _ in bench.frames()]
+        assert cob_ids.count(TPDO1) == cob_ids.count(0x80) == 3
         assert bench.drive.fault and bench.drive.emcy_code == 0x6100
         broken.clear()
         bench.drive.enable(bench.clock.tick)

@@ -12,6 +12,7 @@ import gc
 import logging
 import socket
 import struct
+import threading
 import time
 from contextlib import contextmanager
 from typing import Any, Callable, Iterable, Iterator, NamedTuple
@@ -84,22 +85,31 @@ def connect(network: canopen.Network) -> canopen.Network:
     return network
 
 
+_frozen = 0
+"""How many `frozen_heap` blocks are open (any thread)."""
+_frozen_lock = threading.Lock()
+
+
 @contextmanager
 def frozen_heap() -> Iterator[None]:
     """While inside, Python's garbage collector leaves every object that exists on entry
-    alone (`gc.freeze`); on exit they are its again (`gc.unfreeze`). A full collection walks
-    every object of the process: ≈ 0.1 s with numpy, scipy and numba loaded, during which
-    no thread of the process runs, so no SYNC is sent, no TPDO received, no setpoint sent
-    (measured: one such pause per ≈ 15 s of 1 kHz cycles, long enough for the drive's
-    SYNC-loss watchdog to stop the axis). Objects made inside are collected as before; the
-    young ones cost microseconds. Nested use keeps the outer freeze until the outer exit."""
-    outer = gc.get_freeze_count() > 0
-    gc.freeze()
+    alone (`gc.freeze`); once the last open block (of any thread) exits, they are its again
+    (`gc.unfreeze`). A full collection walks every object of the process: ≈ 0.1 s with
+    numpy, scipy and numba loaded, during which no thread of the process runs, so no SYNC
+    is sent, no TPDO received, no setpoint sent (measured: one such pause per ≈ 15 s of
+    1 kHz cycles, long enough for the drive's SYNC-loss watchdog to stop the axis). Objects
+    made inside are collected as before; the young ones cost microseconds."""
+    global _frozen
+    with _frozen_lock:
+        gc.freeze()
+        _frozen += 1
     try:
         yield
     finally:
-        if not outer:
-            gc.unfreeze()
+        with _frozen_lock:
+            _frozen -= 1
+            if not _frozen:
+                gc.unfreeze()
 
 
 def open_bus(interface: str, channel: str, bitrate: int = 1_000_000, **options: Any) -> can.BusABC:

@@ -403,9 +403,11 @@ class SimulatedCia402Drive:
             else:
                 self.node.emcy.send(EMCY_BUS_OFF_RECOVERED, cia301.ERROR_REGISTER_GENERIC)
 
-    def world_fault(self, error: Exception) -> None:
+    def world_fault(self, error: Exception, tpdos_sent: bool = False) -> None:
         """The world raised `error` during this SYNC: fault (EMCY 0x6100) and one log line on
-        entering the fault; the statusword and the cycle's TPDOs go out all the same."""
+        entering the fault; the statusword and the cycle's TPDOs go out all the same, once:
+        if they were already out (`tpdos_sent`: an instrument's hook failed after them),
+        only the event-driven ones that changed, and the next SYNC's set shows the fault."""
         if self.state != FAULT:
             LOGGER.error("CiA 402 node %d: fault inside the simulated world at SYNC %d: %s: %s;"
                          " EMCY 0x%04X", self.node.id, self._count, type(error).__name__, error,
@@ -413,7 +415,7 @@ class SimulatedCia402Drive:
             self._fault(EMCY_INTERNAL_SOFTWARE)
         self.values[STATUSWORD] = self._statusword()
         if self._operational:
-            self._send_tpdos()
+            self._send_event_tpdos() if tpdos_sent else self._send_tpdos()
 
     def begin_cycle(self) -> None:
         """First half of a SYNC: count, latch the RPDOs, state machine, setpoints to the
@@ -439,8 +441,11 @@ class SimulatedCia402Drive:
         if self._operational:
             self._send_tpdos()
             self._send_event_tpdos()
-        for hook in self.after_physics:
-            hook()
+        try:
+            for hook in self.after_physics:
+                hook()
+        except Exception as error:  # the cycle's TPDOs are out: not a second set
+            self.world_fault(error, tpdos_sent=True)
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Keep a synchronous RPDO's values until the SYNC; an asynchronous one (254/255)

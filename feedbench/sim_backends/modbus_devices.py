@@ -34,7 +34,8 @@ import select
 import struct
 import threading
 import tty
-from typing import Awaitable, Callable, Sequence
+from contextlib import AbstractContextManager
+from typing import Any, Awaitable, Callable, Sequence
 
 import numpy as np
 from pymodbus.constants import ExcCodes
@@ -85,9 +86,9 @@ class SimulatedModbusDevice(abc.ABC):
 
     def __init__(self, device_id: int):
         self.device_id = device_id
-        self.lock: threading.Lock | threading.RLock = threading.Lock()
+        self.lock: AbstractContextManager[Any] = threading.Lock()
 
-    def answer_between_cycles(self, cycle_lock: threading.RLock) -> None:
+    def answer_between_cycles(self, cycle_lock: AbstractContextManager[Any]) -> None:
         """Guard the device with the bus cycle's lock (the simulated drive's): a request is
         answered before or after a cycle, never while the cycle's hooks still advance it."""
         self.lock = cycle_lock

@@ -12,11 +12,12 @@ handler after the axis physics. Virtual time stays lockstep: the host's SYNC adv
 world one bus cycle.
 
 `serve` runs a bench as a separate process that the host reaches only over loopback, exactly
-as it would reach hardware: CAN through a socketcand hub (`socketcand_hub.SocketcandHub`,
-python-can's ``socketcand`` interface on both sides), Modbus TCP on 127.0.0.1, the DAQ on the
-printed pseudo-terminal path. The lab axis serves every device (both worlds on one DAQ);
-``axis = "rack_pinion"`` serves the master and slave drives and the bumper's load cell
-(`rack_pinion.SimulatedRackPinionAxis`). It prints one JSON line with the addresses, then
+as it would reach hardware: CAN through a socketcand hub (`socketcand_hub.SocketcandHub`;
+the host uses python-can's ``socketcand`` interface, the bench's own nodes join the hub in
+process through its `HubPort`, interface ``feedbench_hub``), Modbus TCP on 127.0.0.1, the
+DAQ on the printed pseudo-terminal path. The lab axis serves every device (both worlds on
+one DAQ); ``axis = "rack_pinion"`` serves the master and slave drives and the bumper's load
+cell (`rack_pinion.SimulatedRackPinionAxis`). It prints one JSON line with the addresses, then
 serves until SIGINT or SIGTERM; every log record, and any exception a thread does not catch,
 is one line on stderr (`one_line_logging`), never a traceback.
 """
@@ -173,6 +174,7 @@ class DaqPeer(SimulatedPeer):
     def __init__(self, sim: SimulatedBench, settings: Mapping[str, Any]) -> None:
         super().__init__(sim, settings)
         self.daq = SimulatedSerialDaq(sim.cycle_s)
+        self.daq.answer_between_cycles(sim.drive.lock)  # samples pushed after the TPDOs
         sim.stack.callback(self.daq.close)
         sim.addresses["daq_port"] = self.daq.port
         self.inputs = DaqInputs(self.daq)
@@ -218,7 +220,8 @@ class SimulatedBench:
     to the drive); `close()` stops them.
 
     The drive (CiA 402 on its CAN bus, `bus_options` to python-can: ``host``, ``port`` of a
-    socketcand server) starts first, then each peer (`SimulatedPeer`); the peers on Modbus
+    socketcand server, or ``hub``, the `SocketcandHub` a ``feedbench_hub`` port joins)
+    starts first, then each peer (`SimulatedPeer`); the peers on Modbus
     share one server on 127.0.0.1 at port ``modbus_address[1]`` (0: a free one). `addresses`:
     ``[bench]`` key → where each peer is reached, as the host config would give it.
     `workpiece`: lane tables (mode, a_e_mm, a_p_mm, start_mm, stop_mm) a milling process

@@ -34,7 +34,8 @@ import select
 import threading
 import time
 import tty
-from typing import Callable, Literal
+from contextlib import AbstractContextManager, nullcontext
+from typing import Any, Callable, Literal
 
 import numpy as np
 
@@ -138,6 +139,7 @@ class SimulatedSerialDaq:
         self._host_took_at = time.monotonic()
         self._commands = bytearray()
         self._lock = threading.Lock()
+        self._cycle_lock: AbstractContextManager[Any] = nullcontext()
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
         os.set_blocking(self._master, False)
@@ -147,6 +149,12 @@ class SimulatedSerialDaq:
         self._closing = False
         self._thread = threading.Thread(target=self._serve, name="sim-daq", daemon=True)
         self._thread.start()
+
+    def answer_between_cycles(self, cycle_lock: AbstractContextManager[Any]) -> None:
+        """Execute the host's commands under the bus cycle's lock (the simulated drive's,
+        whose hooks push the cycle's samples after its TPDOs): a STOP sent after the last
+        cycle's TPDOs still sees that cycle's samples pushed."""
+        self._cycle_lock = cycle_lock
 
     @property
     def samples_per_cycle(self) -> int:
@@ -250,7 +258,7 @@ class SimulatedSerialDaq:
             return
         *lines, self._commands = self._commands.split(b"\n")
         for line in lines:
-            with self._lock:
+            with self._cycle_lock, self._lock:
                 self._catch_up()  # a command takes effect at the sample clock's present
                 reply = self._execute(line.decode("ascii", "replace").strip())
                 self._fifo += encode_frame(TYPE_REPLY, reply_payload(reply))

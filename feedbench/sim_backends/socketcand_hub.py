@@ -86,7 +86,8 @@ class SocketcandHub:
         self.host = host
         self.port = port
         self.frames = 0
-        """Frames received from clients (each delivered to every other client of its bus)."""
+        """Frames relayed: from TCP clients and from ports (each delivered to every other
+        client and port of its bus)."""
         self._selector = selectors.DefaultSelector()
         self._clients: dict[socket.socket, _Client] = {}
         self._ports: list[HubPort] = []
@@ -153,11 +154,11 @@ class SocketcandHub:
             self._accept()
         elif source == self._wake_read:
             os.read(self._wake_read, 64)
-        elif source in self._clients:
+        elif (client := self._clients.get(source)) is not None:  # a port may drop it meanwhile
             if events & selectors.EVENT_READ:
-                self._receive(self._clients[source])
-            if source in self._clients and events & selectors.EVENT_WRITE:
-                self._flush(self._clients[source])
+                self._receive(client)
+            if events & selectors.EVENT_WRITE:
+                self._flush(client)
 
     def _accept(self) -> None:
         try:
@@ -290,7 +291,10 @@ class HubPort(can.BusABC):
     `send` relays the frame to the bus's TCP clients and other ports in the calling thread.
     Frames from them queue for `recv`, or, once `listen` was called, go straight to the
     listeners in the thread that relayed them (the hub's): no receive thread, no hand-over
-    between threads in a cycle (`protocols.canbus.connect` does this for a canopen network).
+    between threads in a cycle (`protocols.canbus.connect` does this for a canopen network;
+    a port wrapped for fault injection, `faults.FaultyBus`, is read by canopen's receive
+    thread as before). `feedbench sim` has one port per hub: a frame from one port to
+    another would run the receiver's listeners in the sender's thread, under its locks.
     """
 
     def __init__(self, channel: str, hub: SocketcandHub, **_: object) -> None:
@@ -303,8 +307,11 @@ class HubPort(can.BusABC):
         hub.attach(self)
 
     def listen(self, listeners: list[can.Listener]) -> None:
-        """From now on give every frame to `listeners` (python-can `Listener`s) at once."""
+        """From now on give every frame to `listeners` (python-can `Listener`s) at once;
+        frames queued before go to them first."""
         self._listeners = list(listeners)
+        while not self._inbox.empty():
+            self.deliver(self._inbox.get())
 
     def deliver(self, msg: can.Message) -> None:
         """A frame of the bus for this port (called by the hub, any thread). A listener's
@@ -320,6 +327,8 @@ class HubPort(can.BusABC):
                              type(error).__name__, error)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if self._is_shutdown:
+            raise can.CanOperationError(f"{self.channel_info}: shut down")
         self._hub.relay_from_port(self, msg)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
