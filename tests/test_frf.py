@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import scipy.signal
@@ -19,6 +21,7 @@ from feedbench.analysis.frf import (
     welch_spectra,
 )
 from feedbench.models.axis import TwoMassAxis
+from feedbench.experiments.chirp import mobility_extrema
 
 # The lab-bench flexure with the motor held (DIGEST §3): 11.3 kg on 1.68 N/µm, c = 104 N·s/m.
 BENCH = TwoMassAxis()
@@ -200,3 +203,16 @@ def test_bad_input_names_the_field():
         estimate_frf(x, np.zeros(99), 100.0, nperseg=50)
     with pytest.raises(ValueError, match="overlap"):
         estimate_frf(x, x, 100.0, nperseg=50, overlap=1.0)
+
+
+def test_mobility_extrema_take_a_silent_bin_as_the_smallest_magnitude_without_a_warning():
+    """A live estimate's first windows can hold |H| = 0 bins: the anti-resonance search
+    takes them as the smallest magnitude (as -inf dB would), and numpy warns nothing."""
+    f = np.arange(0.0, 101.0)
+    H = 1.0 / np.abs(1.0 - (f / 60.0) ** 2 + 0.05j * f / 60.0)  # resonance at 60 Hz
+    H[30] = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        f_t, f_r = mobility_extrema(f, H, (20.0, 90.0))
+    assert abs(f_t - 30.0) < 0.01
+    assert abs(f_r - 60.0) < 0.5

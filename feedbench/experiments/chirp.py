@@ -144,9 +144,11 @@ def mobility_extrema(f: np.ndarray, H: np.ndarray, band: tuple[float, float]) ->
     """Anti-resonance and resonance (Hz) of a servo mobility in `band`.
 
     The resonance f_r is the largest |H| in the band (Eq. 4.14); the anti-resonance f_t is
-    the smallest |H| below it (the motor-locked tip mode, Eq. 4.13).
+    the smallest |H| below it (the motor-locked tip mode, Eq. 4.13). A bin with |H| = 0 (a
+    live estimate from the first, still silent samples) counts as the smallest magnitude
+    there is, not as a log10(0) warning.
     """
-    db = 20 * np.log10(np.abs(H))
+    db = 20 * np.log10(np.maximum(np.abs(H), np.finfo(float).tiny))
     inside = np.flatnonzero((f >= band[0]) & (f <= band[1]))
     k_r = inside[np.argmax(db[inside])]
     below = inside[inside < k_r]
