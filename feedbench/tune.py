@@ -151,6 +151,17 @@ def _family_settings(name: str, table: Mapping[str, Any], where: str,
                           else text) from None
 
 
+def check_position_delay(delay_ms: float, pade_order: int, band_top_Hz: float) -> None:
+    """The Padé approximant of order n (Eq. 4.16) follows e^(-sτ) up to ωτ ≈ n: a position
+    delay beyond that at the top of the band (a delay in µs typed as ms, a slow position
+    loop) would rank the candidates on a wrong phase. ConfigError naming the field."""
+    limit_ms = pade_order / (2 * np.pi * band_top_Hz) * 1e3
+    if delay_ms > limit_ms:
+        raise ConfigError(f"tune.position_delay_ms: {delay_ms:g} ms is more than a Padé order "
+                          f"{pade_order} follows at {band_top_Hz:g} Hz (at most {limit_ms:.3g} "
+                          "ms; raise tune.pade_order or lower tune.band_Hz)")
+
+
 def parse_tune_config(raw: Mapping[str, Any], source: str = "config") -> TuneConfig:
     """Check a whole tune config; every error is a `ConfigError` naming the field."""
     session_tables = {key: raw[key] for key in ("bench", "limits") if key in raw}
@@ -170,6 +181,7 @@ def parse_tune_config(raw: Mapping[str, Any], source: str = "config") -> TuneCon
     for key in ("band_Hz", "search_Hz"):
         if not 0 < t[key][0]:
             raise ConfigError(f"tune.{key}: must lie above 0 Hz")
+    check_position_delay(t["position_delay_ms"], t["pade_order"], t["band_Hz"][1])
     for key in ("feed_mm_min", "move_feed_mm_min"):
         if t[key] * MM_PER_MIN > 0.95 * session.limits.velocity:
             raise ConfigError(f"tune.{key}: {t[key]:g} mm/min must stay below 95 % of "

@@ -139,7 +139,9 @@ def test_bad_tune_configs_are_one_line_before_anything_moves(tmp_path, capsys):
               "on the 20 mm circle needs 5.56 m/s² centripetal"),
              ({"contour": {"feed_mm_min": 10.0}}, "tune.contour: the test contour lasts 754 s"),
              ({"report": str(Path(__file__).parent)}, "tune.report:"),
-             ({"pade_order": 10}, "tune.pade_order: at most 6")]
+             ({"pade_order": 10}, "tune.pade_order: at most 6"),
+             ({"position_delay_ms": 50.0}, "tune.position_delay_ms: 50 ms is more than a "
+              "Padé order 2 follows at 120 Hz (at most 2.65 ms")]
     for tune, field in cases:
         raw = _config(tmp_path, "test-tune-bad")
         for key, value in tune.items():
