@@ -414,8 +414,10 @@ class SimulatedCia402Drive:
                          EMCY_INTERNAL_SOFTWARE)
             self._fault(EMCY_INTERNAL_SOFTWARE)
         self.values[STATUSWORD] = self._statusword()
-        if self._operational:
-            self._send_event_tpdos() if tpdos_sent else self._send_tpdos()
+        if self._operational and tpdos_sent:
+            self._send_event_tpdos()
+        elif self._operational:
+            self._send_tpdos()
 
     def begin_cycle(self) -> None:
         """First half of a SYNC: count, latch the RPDOs, state machine, setpoints to the
