@@ -134,14 +134,19 @@ def _case(name: str, injected: str | None, kind: str, structure: str = "2mass",
 
 
 def _sized(effect: str, small: dict, large: dict, inside: str = "plant",
-           **common) -> list[CaseSpec]:
-    """The small and the large case of one effect of the plant (or inside="drive")."""
-    return [_case(f"{effect}_{size}", effect, "effect", **{inside: dict(world)}, **common)
+           injected: str | None = None, **common) -> list[CaseSpec]:
+    """The small and the large case of one effect of the plant (or inside="drive"), named
+    `effect`, expected to be found as `injected` (default: `effect`)."""
+    return [_case(f"{effect}_{size}", injected or effect, "effect", **{inside: dict(world)},
+                  **common)
             for size, world in (("small", small), ("large", large))]
 
 
 _RIPPLE = {"pitch_mm": 5.0, "phase_deg": 40.0}
 _CLEAN_FREE = (None, "clean")
+_TABLE_FRICTION = {"F_tip_N": 20.0}
+"""Coulomb friction (N) of the table's guides behind a drive-train play, out of the axis's
+30 N: it keeps the play closed while the axis cruises."""
 _LIST = [
     *[_case(f"clean_{s}", None, "clean", s)
       for s in ("2mass", "2mass_stiff", "2mass_soft", "3mass", "rigid", *MODE_GRID)],
@@ -171,6 +176,13 @@ _LIST = [
           declared={"M_kg": TWO_MASS.total_kg * 1.10}, free=_CLEAN_FREE),
     _case("recal_viscous", "recalibrate:viscous.F_v_Ns_m", "recalibration",
           declared={"F_v_Ns_m": TWO_MASS.sigma * 1.30}, free=_CLEAN_FREE),
+    *_sized("backlash_drivetrain", {"play_um": 30.0, **_TABLE_FRICTION},
+            {"play_um": 100.0, **_TABLE_FRICTION}, injected="backlash"),
+    _case("second_mode", "structural_mode", "effect",
+          plant={"m2_kg": 3.0, "f2_Hz": 130.0, "zeta2": 0.02}),
+    _case("ripple_long_pitch", "ripple", "effect",
+          plant={"amplitude_N": 3.0, "pitch_mm": 40.0, "phase_deg": 90.0}),
+    _case("channel_skew", "delay", "effect", plant={"skew_cycles": 0.375}),
 ]
 CASES: dict[str, CaseSpec] = {case.name: case for case in _LIST}
 """Every case by name."""
@@ -181,38 +193,58 @@ deflection (m): k d (1 + stiffening (d / d_ref)²)."""
 
 
 def world(case: CaseSpec) -> tuple[Plant, Drive]:
-    """The simulated axis and drive of a case. A backlash load is carved out of the motor
-    side and its friction out of the motor's Coulomb level: as declared, the axis's mass and
-    friction include them, and only the play is undeclared."""
+    """The simulated axis and drive of a case. A backlash load and a second mode's mass are
+    carved out of the motor side, the backlash load's and the table's friction (behind a
+    play in the drive train) out of the motor's Coulomb level: as declared, the axis's mass
+    and friction include them, and only the play or the second mode is undeclared."""
     s, w = STRUCTURES[case.structure], case.truth
-    load_kg, load_N = w.get("m_load_kg", 0.0), w.get("F_load_N", 0.0)
-    masses = [s.motor_kg + w.get("dM_kg", 0.0) - load_kg]
-    springs = []
-    if s.modal_kg:
-        masses.append(s.tip_kg)
-        springs.append(_spring(0, 1, s.modal_kg, s.f_n_Hz, s.zeta, w.get("stiffening", 0.0)))
-    if s.third:
-        masses.append(s.third[0])
-        springs.append(_spring(1, 2, *s.third))
-    friction = Friction(s.sigma, w["F_c_N"] - load_N, w.get("dF_s_N", 0.0),
+    load_N, tip_N = w.get("F_load_N", 0.0), w.get("F_tip_N", 0.0)
+    masses, springs = _chain(s, w)
+    friction = Friction(s.sigma, w["F_c_N"] - load_N - tip_N, w.get("dF_s_N", 0.0),
                         w.get("v_s_mm_min", 1.0) * 1e-3 / 60.0, 2.0, w.get("dF_v_Ns_m", 0.0))
-    backlash = ((w["m_load_kg"], w["F_load_N"], w["width_um"] * 1e-6)
+    backlash = ((w["m_load_kg"], load_N, w["width_um"] * 1e-6)
                 if "m_load_kg" in w else None)
     ripple = (w.get("amplitude_N", 0.0), w.get("pitch_mm", 1.0) * 1e-3,
               math.radians(w.get("phase_deg", 0.0)))
-    plant = Plant(tuple(masses), tuple(springs), friction, w.get("offset_N", 0.0), ripple,
-                  backlash)
+    plant = Plant(masses, springs, friction, w.get("offset_N", 0.0), ripple, backlash, tip_N)
     return plant, Drive(*_gains(s.total_kg), FORCE_LIMIT_N, w["tau_ms"] * 1e-3,
                         w.get("beta_per_kN", 0.0) * 1e-3, w.get("gain", 1.0))
 
 
-def _spring(i: int, j: int, mass: float, f: float, zeta: float, stiffening: float = 0.0
-            ) -> Spring:
+def _chain(s: Structure, w: dict[str, float]) -> tuple[tuple[float, ...], tuple[Spring, ...]]:
+    """Masses (kg) and springs of a structure with the world's overrides: a mass error, a
+    load carved out, cubic stiffening or a play (µm) in the mode's spring, a second mode
+    (kg, Hz, ζ) on its own spring from the motor."""
+    second_kg = w.get("m2_kg", 0.0)
+    masses = [s.motor_kg + w.get("dM_kg", 0.0) - w.get("m_load_kg", 0.0) - second_kg]
+    springs = []
+    if s.modal_kg:
+        masses.append(s.tip_kg)
+        springs.append(_spring(0, 1, s.modal_kg, s.f_n_Hz, s.zeta, w.get("stiffening", 0.0),
+                               w.get("play_um", 0.0) * 1e-6))
+    if s.third:
+        masses.append(s.third[0])
+        springs.append(_spring(1, 2, *s.third))
+    if second_kg:
+        masses.append(second_kg)
+        springs.append(_spring(0, len(masses) - 1, second_kg, w["f2_Hz"], w["zeta2"]))
+    return tuple(masses), tuple(springs)
+
+
+def _spring(i: int, j: int, mass: float, f: float, zeta: float, stiffening: float = 0.0,
+            play: float = 0.0) -> Spring:
     """The spring-damper that makes `mass` (kg) on it ring at f (Hz) with ζ when i is held,
-    stiffer by the share `stiffening` at STIFFENING_DEFLECTION_M."""
+    stiffer by the share `stiffening` at STIFFENING_DEFLECTION_M, with a play (m)."""
     omega = 2 * math.pi * f
     k = mass * omega ** 2
-    return Spring(i, j, k, 2 * zeta * omega * mass, k * stiffening / STIFFENING_DEFLECTION_M ** 2)
+    return Spring(i, j, k, 2 * zeta * omega * mass,
+                  k * stiffening / STIFFENING_DEFLECTION_M ** 2, play)
+
+
+def sensors(case: CaseSpec) -> Sensors:
+    """The case's sensors: the default ones, the position latched `skew_cycles` of a
+    recording cycle before its time stamp (whole physics steps)."""
+    return Sensors(position_skew=case.truth.get("skew_cycles", 0.0) * RECORD_STEPS / PHYSICS_HZ)
 
 
 def _gains(mass: float) -> tuple[float, float, float]:
@@ -225,7 +257,15 @@ def record(case: CaseSpec, program: Program, seed: int) -> Run:
     """One recording of the case's world running `program`."""
     plant, drive = world(case)
     x, v, exc = program_signals(program, 1.0 / PHYSICS_HZ)
-    return simulate(plant, drive, Sensors(), x, v, exc, seed)
+    return simulate(plant, drive, sensors(case), x, v, exc, seed)
+
+
+def recordings(name: str) -> tuple[Run, Run]:
+    """The fit and the validation recording of case `name` (in memory, as `write_case`
+    writes them: FIT_PROGRAM and VALIDATION_PROGRAM, seeds crc32(name) and crc32(name) + 1);
+    a few seconds per case."""
+    case, seed = CASES[name], zlib.crc32(name.encode())
+    return record(case, FIT_PROGRAM, seed), record(case, VALIDATION_PROGRAM, seed + 1)
 
 
 _CACHE: dict[tuple[str, Path], float] = {}
@@ -244,9 +284,8 @@ def write_case(name: str, directory: Path, free_mass_viscous: bool = False,
     data, validation = directory / f"{stem}_data.csv", directory / f"{stem}_validation.csv"
     key = (stem, directory.resolve())
     if key not in _CACHE:
-        seed = zlib.crc32(name.encode())
-        _write_recording(data, record(case, FIT_PROGRAM, seed), case, "fit", tip_channel)
-        held = record(case, VALIDATION_PROGRAM, seed + 1)
+        fit, held = recordings(name)
+        _write_recording(data, fit, case, "fit", tip_channel)
         _write_recording(validation, held, case, "validation", tip_channel)
         _CACHE[key] = float(np.linalg.norm(held.force - held.force_clean)
                             / np.linalg.norm(held.force_clean))

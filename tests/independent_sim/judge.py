@@ -15,9 +15,11 @@ AT_THE_FLOOR = 1.5
 exact model gets on a clean recording (issue 13's own target for the clean cases), so fixed
 even where halving would need an error below the noise."""
 
-SAME_PHYSICS = {"recalibrate:inertia.M_kg": "inertia_mismatch"}
+SAME_PHYSICS = {"recalibrate:inertia.M_kg": "inertia_mismatch",
+                "recalibrate:delay.tau_ms": "delay"}
 """Findings that name an injected effect of the simulator: a mass the declared model does not
-know is the recalibration of the declared mass."""
+know is the recalibration of the declared mass; an undeclared timing skew between the
+channels is a timing finding, an added `delay` or the declared delay moved."""
 
 
 def findings(report: Mapping[str, Any]) -> list[str]:

@@ -6,16 +6,19 @@ Shares no code with feedbench: every force below is written from its physics.
 
 State s = [x_0 … x_{n−1}, v_0 … v_{n−1}] (m, m/s); mass 0 is the motor side, where the drive
 force, the encoder and the guide friction act. Springs and dampers join pairs of masses:
-M v̇ = −K x − C v + u. A backlash load (optional, the last mass) touches the motor through a
-stiff contact spring only when the play L is used up; the three contact states (free, pushed,
-pulled) each have their own exact discretization, the constant ±k_c L/2 of the contact force
-entering as a held force. Forces that are nonlinear in the state (friction, ripple, cubic
+M v̇ = −K x − C v + u. One contact element is allowed: a backlash load (optional, the last
+mass) that touches the motor through a stiff contact spring only when the play L is used up, or
+a play inside a spring from the motor (a dead zone in the drive train, Ch. 3.2.3: its spring
+and damper act only beyond ±L/2); the three contact states (free, pushed, pulled) each have
+their own exact discretization, the constant ±k L/2 of the contact force entering as a held
+force. Forces that are nonlinear in the state (friction, ripple, cubic
 stiffening, the load's friction) are held over each physics step: the position-dependent ones
 evaluated at the state half a step ahead (first-order extrapolation), which keeps a held cubic
 spring from pumping energy into a lightly damped mode; friction at the step's velocity (it only
 dissipates, and FRICTION_SMOOTHING keeps it stable). The recorded force is the drive's command
 averaged over each 1 kHz cycle (it leads the acting force by the delay); positions are the
-encoder's at the cycle's end.
+encoder's at the cycle's end, or latched a whole number of physics steps before it (a channel
+skew).
 """
 
 from __future__ import annotations
@@ -48,13 +51,15 @@ CONTACT_ZETA = 0.3
 @dataclass(frozen=True)
 class Spring:
     """A spring k (N/m) and damper c (N·s/m) between masses i and j; cubic stiffening adds
-    k3 d³ (N/m³), d = x_j − x_i."""
+    k3 d³ (N/m³), d = x_j − x_i; a play (m, total width; only with i = 0 and no k3) makes
+    both act on d ∓ play/2 beyond ±play/2 and vanish inside it (the dead zone)."""
 
     i: int
     j: int
     k: float
     c: float
     k3: float = 0.0
+    play: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -76,7 +81,8 @@ class Plant:
 
     offset (N): a constant force on the motor side (gravity, a counterweight);
     ripple (N, m, rad): A sin(2π x / pitch + phase) on the motor side;
-    backlash (kg, N, m): a load mass behind a play, with its own Coulomb friction.
+    backlash (kg, N, m): a load mass behind a play, with its own Coulomb friction;
+    tip_coulomb (N): Coulomb friction F tanh(v_1/v_ε) on mass 1 (the table's own guides).
     """
 
     masses: tuple[float, ...]
@@ -85,11 +91,36 @@ class Plant:
     offset: float = 0.0
     ripple: tuple[float, float, float] = (0.0, 1.0, 0.0)
     backlash: tuple[float, float, float] | None = None
+    tip_coulomb: float = 0.0
 
     @property
     def all_masses(self) -> tuple[float, ...]:
         """The masses including the backlash load (kg)."""
         return self.masses + ((self.backlash[0],) if self.backlash else ())
+
+    @property
+    def contact(self) -> Spring | None:
+        """The one contact element: the backlash load's contact spring (CONTACT_HZ,
+        CONTACT_ZETA) or the spring with a play; None if there is none."""
+        played = [s for s in self.springs if s.play]
+        if self.backlash:
+            load = len(self.masses)
+            k_c = self.backlash[0] * (2 * math.pi * CONTACT_HZ) ** 2
+            c_c = 2 * CONTACT_ZETA * math.sqrt(k_c * self.backlash[0])
+            played.append(Spring(0, load, k_c, c_c, play=self.backlash[2]))
+        if len(played) > 1 or any(s.i != 0 or s.k3 for s in played):
+            raise ValueError("one contact element only, from the motor (mass 0), not cubic")
+        return played[0] if played else None
+
+    def coulomb(self) -> np.ndarray:
+        """Coulomb level (N) acting on each mass but the motor (whose friction is
+        `friction`): the table's and the backlash load's; 0 on the motor."""
+        levels = np.zeros(len(self.all_masses))
+        if len(self.masses) > 1:
+            levels[1] = self.tip_coulomb
+        if self.backlash:
+            levels[-1] = self.backlash[1]
+        return levels
 
 
 @dataclass(frozen=True)
@@ -111,12 +142,14 @@ class Drive:
 @dataclass(frozen=True)
 class Sensors:
     """Encoder resolution (m) and noise (m RMS), force-reading noise (N RMS), tip
-    accelerometer noise (m/s² RMS)."""
+    accelerometer noise (m/s² RMS); position_skew (s, whole physics steps): the recorded
+    position is latched this long before the cycle's end, where its time stamp says."""
 
     resolution: float = 1e-7
     position_noise: float = 2e-8
     force_noise: float = 1.5
     acceleration_noise: float = 0.05
+    position_skew: float = 0.0
 
 
 def _matrices(plant: Plant, contact: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -125,15 +158,13 @@ def _matrices(plant: Plant, contact: int) -> tuple[np.ndarray, np.ndarray, np.nd
     masses = np.array(plant.all_masses)
     n = masses.size
     K, C, const = np.zeros((n, n)), np.zeros((n, n)), np.zeros(n)
-    links = list(plant.springs)
-    if plant.backlash and contact:
-        load = n - 1
-        k_c = masses[load] * (2 * math.pi * CONTACT_HZ) ** 2
-        c_c = 2 * CONTACT_ZETA * math.sqrt(k_c * masses[load])
-        links.append(Spring(0, load, k_c, c_c))
-        half_play = 0.5 * plant.backlash[2]
-        const[load] -= contact * k_c * half_play      # the spring acts on d ∓ L/2
-        const[0] += contact * k_c * half_play
+    links = [s for s in plant.springs if not s.play]
+    touching = plant.contact
+    if touching and contact:
+        links.append(touching)
+        push = contact * touching.k * 0.5 * touching.play     # the spring acts on d ∓ L/2
+        const[touching.j] -= push
+        const[0] += push
     for s in links:
         for matrix, value in ((K, s.k), (C, s.c)):
             matrix[s.i, s.i] += value
@@ -163,9 +194,10 @@ def discretize(plant: Plant, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndar
     return np.array(Ads), np.array(Bds), np.array(consts)
 
 
-def natural_modes(plant: Plant) -> list[tuple[float, float]]:
-    """(frequency Hz, damping ratio) of every oscillating pole of the free plant (no drive)."""
-    A, _, _ = _matrices(plant, 0)
+def natural_modes(plant: Plant, contact: int = 0) -> list[tuple[float, float]]:
+    """(frequency Hz, damping ratio) of every oscillating pole of the free plant (no drive),
+    in a contact state (0 free, ±1 in contact)."""
+    A, _, _ = _matrices(plant, contact)
     poles = np.linalg.eigvals(A)
     poles = poles[poles.imag > 1e-6]
     return sorted((abs(p) / (2 * math.pi), -p.real / abs(p)) for p in poles)
@@ -200,14 +232,17 @@ def simulate(plant: Plant, drive: Drive, sensors: Sensors, reference: np.ndarray
     record_noise = rng.normal(0.0, sensors.position_noise, steps // RECORD_STEPS)
     f = plant.friction
     springs = np.array([[s.i, s.j, s.k3] for s in plant.springs if s.k3] or np.zeros((0, 3)))
-    backlash = plant.backlash or (0.0, 0.0, 0.0)
+    touching = plant.contact
     motor = np.array([f.F_c, f.dF_s, f.v_s, f.delta, f.dsigma_neg, plant.offset,
                       *plant.ripple, FRICTION_SMOOTHING])
     control = np.array([drive.K_p, drive.T_i, drive.K_v, drive.force_limit, drive.beta,
                         drive.gain, sensors.resolution])
-    delay_steps = int(round(drive.delay * PHYSICS_HZ))
-    x_rec, f_rec, s_rec = _loop(Ad, Bd, const, springs, motor, control, delay_steps,
-                                1 if plant.backlash else 0, backlash[1], backlash[2],
+    timing = np.array([round(drive.delay * PHYSICS_HZ), round(sensors.position_skew * PHYSICS_HZ),
+                       touching.j if touching else -1], dtype=np.int64)
+    if not 0 <= timing[1] < RECORD_STEPS:
+        raise ValueError(f"position_skew must be within one cycle, got {sensors.position_skew}")
+    x_rec, f_rec, s_rec = _loop(Ad, Bd, const, springs, motor, control, timing,
+                                plant.coulomb(), touching.play if touching else 0.0,
                                 reference[:steps], feedforward[:steps], excitation[:steps],
                                 encoder_noise, record_noise, dt)
     cycles = steps // RECORD_STEPS
@@ -221,11 +256,18 @@ def simulate(plant: Plant, drive: Drive, sensors: Sensors, reference: np.ndarray
 
 
 def tip_acceleration(plant: Plant, states: np.ndarray) -> np.ndarray:
-    """Acceleration (m/s²) of mass 1 at each state (rows): its springs, dampers and cubic
-    stiffening; nothing else acts on it."""
-    A, _, _ = _matrices(plant, 0)
+    """Acceleration (m/s²) of mass 1 at each state (rows): its springs and dampers in the
+    state's contact state, cubic stiffening and its Coulomb friction."""
     n = len(plant.all_masses)
-    acceleration = states @ A[n + 1]
+    acceleration = np.zeros(states.shape[0])
+    touching = plant.contact
+    gap = states[:, 0] - states[:, touching.j] if touching else np.zeros(states.shape[0])
+    half = 0.5 * touching.play if touching else 0.0
+    for contact, rows in ((0, np.abs(gap) <= half), (1, gap > half), (-1, gap < -half)):
+        A, _, const = _matrices(plant, contact)
+        acceleration[rows] = states[rows] @ A[n + 1] + const[1] / plant.masses[1]
+    friction = plant.tip_coulomb * np.tanh(states[:, n + 1] / FRICTION_SMOOTHING)
+    acceleration -= friction / plant.masses[1]
     for s in plant.springs:
         if 1 in (s.i, s.j):
             d = states[:, s.j] - states[:, s.i]
@@ -246,12 +288,15 @@ def _motor_force(v: float, x: float, p: np.ndarray) -> float:
 
 
 @njit(cache=True)
-def _loop(Ad, Bd, const, springs, motor, control, delay_steps, has_load, load_friction,
-          play, reference, feedforward, excitation, encoder_noise, record_noise, dt):
-    """The closed loop, physics step by step; returns encoder position, mean force command
-    per recording cycle, and the states at the recording instants."""
+def _loop(Ad, Bd, const, springs, motor, control, timing, coulomb, play, reference,
+          feedforward, excitation, encoder_noise, record_noise, dt):
+    """The closed loop, physics step by step; timing: force delay and position skew
+    (physics steps), the contact element's mass (−1: none); coulomb: Coulomb level (N) on
+    each mass but the motor; play (m). Returns encoder position, mean force command per
+    recording cycle, and the states at the recording instants."""
     n2 = Ad.shape[1]
     n = n2 // 2
+    delay_steps, skew_steps, touching = timing[0], timing[1], timing[2]
     K_p, T_i, K_v, limit, beta, gain, resolution = (
         control[0], control[1], control[2], control[3], control[4], control[5], control[6])
     steps = reference.size
@@ -271,6 +316,7 @@ def _loop(Ad, Bd, const, springs, motor, control, delay_steps, has_load, load_fr
     x_enc = round(reference[0] / resolution) * resolution
     x_prev = x_enc
     force_sum = 0.0
+    latched = 0.0
     tick = 0
     for step in range(steps):
         if step % VELOCITY_STEPS == 0:
@@ -297,21 +343,23 @@ def _loop(Ad, Bd, const, springs, motor, control, delay_steps, has_load, load_fr
             d = state[j] - state[i] + 0.5 * dt * (state[n + j] - state[n + i])
             u[i] += k3 * d * d * d
             u[j] -= k3 * d * d * d
+        for k in range(1, n):
+            u[k] -= coulomb[k] * math.tanh(state[n + k] / motor[9])
         mode = 0
-        if has_load:
-            load = n - 1
-            gap = state[0] - state[load]
+        if touching >= 0:
+            gap = state[0] - state[touching]
             if gap > 0.5 * play:
                 mode = 1
             elif gap < -0.5 * play:
                 mode = 2
-            u[load] -= load_friction * math.tanh(state[n + load] / motor[9])
         state = Ad[mode] @ state + Bd[mode] @ u + const[mode]
         force_sum += command
+        if (step + 1 + skew_steps) % RECORD_STEPS == 0:
+            latched = state[0]
         if (step + 1) % RECORD_STEPS == 0:
             c = (step + 1) // RECORD_STEPS - 1
             f_rec[c] = force_sum / RECORD_STEPS
             force_sum = 0.0
-            x_rec[c] = round((state[0] + record_noise[c]) / resolution) * resolution
+            x_rec[c] = round((latched + record_noise[c]) / resolution) * resolution
             s_rec[c] = state
     return x_rec, f_rec, s_rec
