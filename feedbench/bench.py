@@ -24,12 +24,28 @@ from feedbench.protocols.address import split_address
 from feedbench.protocols.canbus import disconnect, open_network
 from feedbench.drivers.cia402 import Cia402Drive
 from feedbench.experiments.devices import DeviceLinks, open_cycle_devices
-from feedbench.experiments.family import Experiment, families, family
+from feedbench.experiments.family import Experiment, families, family, judged_analysis
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan
 from feedbench.experiments.runner import Observer, ProgressPrinter, Runner, StopRequest
 from feedbench.rack_pinion_bench import RackPinionAxis
-from feedbench.units import kv_to_per_second
+from feedbench.units import MS_TYPOS, kv_to_per_second, typed_in
+
+BUS_CYCLE_MS = (0.125, 10.0)
+"""Bus cycles (ms) CiA 402 drives run their cyclic synchronous modes at (8 kHz to 100 Hz)."""
+
+
+def bus_cycle(value: float) -> str | None:
+    """Check: a bus cycle > 0 inside `BUS_CYCLE_MS`; outside it the line says which unit the
+    value was probably typed in (s or µs)."""
+    low, high = BUS_CYCLE_MS
+    if not value > 0:
+        return positive(value)
+    if low <= value <= high:
+        return None
+    return (f" = {value:g} is outside the {low:g}–{high:g} ms a CiA 402 drive runs its cyclic "
+            f"synchronous modes at{typed_in(value, 'ms', low, high, MS_TYPOS)}")
+
 
 GAINS_SCHEMA = {
     "K_p_Ns_m": Field(float, None, "velocity-loop gain (N·s/m)", positive),
@@ -43,7 +59,7 @@ BENCH_SCHEMA = {
     "channel": Field(str, "feedbench", "python-can channel (e.g. can0)"),
     "bitrate": Field(int, 1_000_000, "CAN bitrate (bit/s)", positive),
     "node_id": Field(int, 1, "CANopen node id of the drive", positive),
-    "cycle_ms": Field(float, 1.0, "bus cycle: SYNC period (ms)", positive),
+    "cycle_ms": Field(float, 1.0, "bus cycle: SYNC period (ms)", bus_cycle),
     "clock": Field(str, "lockstep", "lockstep (simulation) or realtime (hardware)",
                    one_of("lockstep", "realtime")),
     "timeout_s": Field(float, 1.0, "how long a cycle may wait for its TPDOs (s)", positive),
@@ -136,7 +152,7 @@ def analyze_file(path: str | Path) -> dict:
     if recording.experiment not in families():
         raise ConfigError(f"{path}: no analysis for experiment {recording.experiment!r}")
     try:
-        result = families()[recording.experiment].analyze(recording)
+        result = judged_analysis(families()[recording.experiment], recording)
     except ConfigError:
         raise
     except (ValueError, KeyError) as exc:  # the recorded data do not fit the analysis

@@ -26,7 +26,7 @@ from matplotlib.figure import Figure as MplFigure
 from feedbench.daq.live import bucket_size, minmax_decimate
 from feedbench.daq.recording import Recording, open_recording
 from feedbench.daq.timing import MISSED_TARGET, CycleTiming, recorded_timing
-from feedbench.experiments.family import families
+from feedbench.experiments.family import families, judged_analysis
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import recorded_windows
 from feedbench.units import MM_PER_MIN, RPM
@@ -250,8 +250,10 @@ def run_section(recording: Recording, truth: Mapping[str, Any] | None = None) ->
         section.quality.append(Indicator("results", "no analysis for this experiment"))
     else:
         try:
-            result = experiment.analyze(recording)
+            result = judged_analysis(experiment, recording)
             experiment.report(recording, result, section)
+            section.headline = experiment.headline(result)
+            section.quality += check_indicators(result["checks"], section.quality)
             if truth is not None:
                 section.tables.insert(0, experiment.truth_table(result, truth))
         except Exception as exc:  # an aborted run may be too short to analyse: say so
@@ -259,6 +261,15 @@ def run_section(recording: Recording, truth: Mapping[str, Any] | None = None) ->
                                              False))
     section.tables.append(config_table(recording))
     return section
+
+
+def check_indicators(checks: Sequence[Mapping[str, Any]],
+                     shown: Sequence[Indicator]) -> list[Indicator]:
+    """A result's checks (`analysis.checks`) as quality rows, a failed one's reason beside its
+    value; rows the section already `shown` (the run's status, gaps) are not repeated."""
+    names = {ind.name for ind in shown}
+    return [Indicator(c["name"], c["value"] + (f" — {c['reason']}" if c["reason"] else ""),
+                      c["ok"]) for c in checks if c["name"] not in names]
 
 
 def closure_section(report: Any) -> RunSection:

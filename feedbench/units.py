@@ -41,3 +41,21 @@ def kv_to_per_second(kv_m_min_per_mm: float) -> float:
 def kv_to_m_min_per_mm(kv_per_s: float) -> float:
     """Position-loop gain 1/s → (m/min)/mm."""
     return kv_per_s / M_PER_MIN_PER_MM
+
+
+FEED_TYPOS = (("m/min", 1000.0), ("mm/s", 60.0))
+"""Units a feed typed into a ``_mm_min`` field was probably meant in, with their size in
+mm/min: m/min (×1000), mm/s (×60)."""
+
+MS_TYPOS = (("s", 1000.0), ("µs", 1e-3))
+"""Units a time typed into a ``_ms`` field was probably meant in, with their size in ms."""
+
+
+def typed_in(value: float, unit: str, low: float, high: float,
+             typos: tuple[tuple[str, float], ...]) -> str:
+    """``; typed in m/min? 0.5 m/min = 500 mm/min``: the first of `typos` (unit, its size in
+    `unit`) that brings `value` into [`low`, `high`] (in `unit`), or "" when none does."""
+    for name, size in typos:
+        if low <= value * size <= high:
+            return f"; typed in {name}? {value:g} {name} = {value * size:g} {unit}"
+    return ""

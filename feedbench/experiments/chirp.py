@@ -12,10 +12,12 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from feedbench.analysis.checks import above_noise, measurable_velocity, peak_checks, slid
 from feedbench.analysis.frf import estimate_frf, findings_in_band
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
 from feedbench.experiments.family import TRUTH_TITLE, Experiment, percent_error
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
+from feedbench.experiments.preflight import check_feed
 from feedbench.experiments.signals import chirp, integrate_velocity, move_to, ramp_to_feed
 from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN
@@ -70,7 +72,29 @@ def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
             f"experiment.f_start_Hz: must be below f_stop_Hz ({p['f_stop_Hz']:g} Hz)"
         )
     mobility_band(p)
+    check_feed("experiment.feed_mm_min", p["feed_mm_min"], cycle_s)
+    check_sweep_resolves(p)
+    if p["inject"] == "velocity" and p["feed_mm_min"] and p["amplitude_mm_min"] >= p["feed_mm_min"]:
+        raise ConfigError(
+            f"experiment.amplitude_mm_min = {p['amplitude_mm_min']:g} reaches the feed "
+            f"{p['feed_mm_min']:g} mm/min: the axis would reverse and stick every period "
+            "(Ch. 5.3.2); keep it below the feed, or hold position (feed_mm_min = 0)")
     return p
+
+
+MIN_PERIODS = 5
+"""Periods of the lowest frequency a sweep record must hold for it to be resolved."""
+
+
+def check_sweep_resolves(p: Mapping[str, Any]) -> None:
+    """A record (sweep and tail) holding `MIN_PERIODS` periods of ``f_start_Hz``, else a
+    `ConfigError` naming ``experiment.duration_s``."""
+    record_s = p["duration_s"] + p["tail_s"]
+    if record_s * p["f_start_Hz"] < MIN_PERIODS:
+        raise ConfigError(
+            f"experiment.duration_s = {p['duration_s']:g}: a {record_s:g} s record holds "
+            f"{record_s * p['f_start_Hz']:.2g} periods of f_start_Hz = {p['f_start_Hz']:g} Hz; "
+            f"it needs {MIN_PERIODS} to resolve the lowest frequency")
 
 
 def mobility_band(p: Mapping[str, Any]) -> tuple[float, float]:
@@ -163,7 +187,8 @@ def analyze_recording(recording) -> dict:
     response starts and ends inside it, so nothing leaks); spectra are averaged over the
     records, and the coherence tells how well the repetitions agree. f_t and f_r are
     searched in the configured mobility band; warnings are about the swept band
-    (f_start–f_stop) only.
+    (f_start–f_stop) only. Checks (`sweep_checks`): the excitation beat the noise, the axis
+    slid, f_t and f_r are modes with a high coherence, not the band's edges.
     """
     p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
     band = mobility_band(p)
@@ -175,6 +200,11 @@ def analyze_recording(recording) -> dict:
     f_t, f_r = mobility_extrema(est.f, est.H1, band)
     inside = (est.f >= band[0]) & (est.f <= band[1])
     warnings, details = findings_in_band(est, (p["f_start_Hz"], p["f_stop_Hz"]))
+    checks = [*sweep_checks(recording, p, windows),
+              *peak_checks("anti-resonance f_t", f_t, est.f[inside], est.coherence[inside],
+                           MIN_COHERENCE),
+              *peak_checks("resonance f_r", f_r, est.f[inside], est.coherence[inside],
+                           MIN_COHERENCE)]
     return {
         "experiment": NAME,
         "antiresonance_hz": f_t,
@@ -184,10 +214,37 @@ def analyze_recording(recording) -> dict:
         "n_sweeps": len(windows),
         "warnings": warnings,
         "warning_details": details,
+        "checks": checks,
         "frf": {"f_hz": est.f[inside].tolist(), "H1_abs": np.abs(est.H1[inside]).tolist(),
                 "H1_phase_rad": np.angle(est.H1[inside]).tolist(),
                 "coherence": est.coherence[inside].tolist()},
     }
+
+
+def sweep_checks(recording, p: Mapping[str, Any], windows: list[Window]) -> list[dict]:
+    """The excitation reached the axis: the motor force and the motor velocity of the sweeps
+    above their noise floor (their RMS while settling at the feed; for the velocity at least
+    the measurable one), and at a feed the axis slid through every sweep (`slid`)."""
+    settles = recorded_windows(recording, "settle")
+    force, velocity = (recording.channels[c] for c in ("force", "velocity"))
+    cycle_s = float(recording.metadata["cycle_s"])
+
+    def joined(x: np.ndarray, of: list[Window]) -> np.ndarray:
+        return np.concatenate([x[w.start:w.stop] - x[w.start:w.stop].mean() for w in of]
+                              or [np.zeros(0)])
+
+    def rms(x: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(x ** 2))) if x.size else 0.0
+
+    checks = [above_noise("motor force", joined(force, windows), rms(joined(force, settles)), "N"),
+              above_noise("motor velocity", joined(velocity, windows),
+                          max(rms(joined(velocity, settles)), measurable_velocity(cycle_s)),
+                          "m/s")]
+    if p["feed_mm_min"]:
+        feed = SIGNS[p["direction"]] * p["feed_mm_min"] * MM_PER_MIN
+        sweeps = np.concatenate([velocity[w.start:w.stop] for w in windows])
+        checks.append(slid(sweeps, feed, measurable_velocity(cycle_s)))
+    return checks
 
 
 def band_text(result: Mapping[str, Any]) -> str:
@@ -243,8 +300,11 @@ class Chirp(Experiment):
         section.quality.append(Indicator(f"min coherence in {band_text(result)}",
                                          f"{min_coherence:.4f}", min_coherence >= MIN_COHERENCE))
         section.quality.append(frf_warnings(result["warnings"], result["warning_details"]))
-        section.headline = (f"f_t {result['antiresonance_hz']:.1f} Hz, "
-                            f"f_r {result['resonance_hz']:.1f} Hz")
+
+    @classmethod
+    def headline(cls, result: Mapping[str, Any]) -> str:
+        """f_t and f_r of the servo mobility."""
+        return f"f_t {result['antiresonance_hz']:.1f} Hz, f_r {result['resonance_hz']:.1f} Hz"
 
     @classmethod
     def live_view(cls, result: Mapping[str, Any]) -> ResultView:
@@ -292,7 +352,8 @@ class Chirp(Experiment):
                                     ("resonance f_r (Eq. 4.14)", "resonance_hz", "f_r_hz"))))
 
     @classmethod
-    def describe(cls, result: Mapping[str, Any]) -> list[str]:
+    def details(cls, result: Mapping[str, Any]) -> list[str]:
+        """f_t and f_r to 0.01 Hz, the lowest coherence in the band, the FRF warnings."""
         return ([f"  anti-resonance {result['antiresonance_hz']:.2f} Hz, "
                  f"resonance {result['resonance_hz']:.2f} Hz",
                  f"  min coherence {band_text(result)} {result['min_coherence']:.4f}"]

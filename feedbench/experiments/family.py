@@ -7,8 +7,15 @@ frozen dataclass), the devices it needs besides the drive, `plan()` (the segment
 runner executes), `analyze` (the recording → a JSON-able result; the same function runs on
 a finished recording and, in the live window, on the windows completed so far:
 `experiments.incremental.LiveAnalysis`), and how a person sees the result: `report`
-(its report section), `live_view` (its live panels), `summary` (the demo's line against the
-simulated world's truth) and `describe` (`feedbench analyze`'s text).
+(its report section), `live_view` (its live panels), `headline` (what it measured, in one
+line), `summary` (the demo's line against the simulated world's truth) and `details`
+(`feedbench analyze`'s lines beyond the headline).
+
+A result judges itself: a family's `analyze` puts its checks of the physics it relies on
+into the result (``checks``, `analysis.checks`); `judged_analysis`, the one way every
+command and the live view run an analysis, adds the run's own checks (status) and the
+verdict (``valid``, ``not_valid_because``). The report's quality rows, `describe` (the
+terminal), ``--json`` and the live summary all read them from there.
 
 The registry is Python's entry points, group ``feedbench.experiments``, as python-can finds
 its bus interfaces: feedbench declares its own families in its pyproject.toml, and a lab
@@ -27,6 +34,7 @@ import dataclasses
 from functools import cache
 from typing import Any, ClassVar, Iterator, Mapping
 
+from feedbench.analysis.checks import check, check_line, verdict, verdict_line
 from feedbench.config import ConfigError, Field, registered, validate_table
 from feedbench.experiments.plan import Plan
 from feedbench.views.frfs import ExchangeFrf
@@ -85,8 +93,14 @@ class Experiment:
 
     @classmethod
     def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
-        """Add the result's plots, tables, quality indicators and headline to `section`."""
-        section.headline = scalar_text(result)
+        """Add the result's plots, tables and quality indicators to `section` (its headline
+        and checks are added by `report.run_section`)."""
+
+    @classmethod
+    def headline(cls, result: Mapping[str, Any]) -> str:
+        """What the run measured, in one line: the report's "what it measured" and the first
+        line of `describe`."""
+        return scalar_text(result)
 
     @classmethod
     def live_view(cls, result: Mapping[str, Any]) -> ResultView:
@@ -113,10 +127,36 @@ class Experiment:
                      tuple((part,) for part in parts))
 
     @classmethod
+    def details(cls, result: Mapping[str, Any]) -> list[str]:
+        """`feedbench analyze`'s lines between the headline and the checks (none by default)."""
+        return []
+
+    @classmethod
     def describe(cls, result: Mapping[str, Any]) -> list[str]:
-        """`feedbench analyze`'s lines for the result (after the run line)."""
-        return [f"  {key}: {value}" for key, value in result.items()
-                if key != "experiment" and isinstance(value, (int, float, str))]
+        """`feedbench analyze`'s lines for the result (after the run line): the `headline`,
+        the family's `details`, every check with its reason, and the verdict."""
+        return [f"  {cls.headline(result)}", *cls.details(result),
+                *(f"  {check_line(c)}" for c in result.get("checks", ())),
+                f"  {verdict_line(result)}"]
+
+
+def run_checks(recording, final: bool) -> list[dict[str, Any]]:
+    """The run's own checks for a `final` result: it completed its plan, no sample lost."""
+    if not final:
+        return []
+    status = recording.status + (f" ({recording.reason})" if recording.reason else "")
+    return [check("status", status, recording.status == "complete",
+                  "the run stopped before its plan ended: the result is of partial data"),
+            check("missing samples (gaps)", str(recording.n_gaps), recording.n_gaps == 0,
+                  "samples were lost: the spectra and fits mix records across the gaps")]
+
+
+def judged_analysis(family: type[Experiment], recording, final: bool = True) -> dict[str, Any]:
+    """`family`'s analysis of `recording` with its checks, the run's (`run_checks`) and the
+    verdict (``valid``, ``not_valid_because``): what every command and the live view show."""
+    result = family.analyze(recording, final=final)
+    checks = [*result.get("checks", ()), *run_checks(recording, final)]
+    return {**result, "checks": checks, **verdict(checks)}
 
 
 TRUTH_TITLE = "identified vs true (simulated world)"
@@ -140,7 +180,8 @@ def scalar_text(result: Mapping[str, Any]) -> str:
     """The result's top-level numbers and words as one line (a family's fallback headline)."""
     return ", ".join(f"{key} {value:.4g}" if isinstance(value, float) else f"{key} {value}"
                      for key, value in result.items()
-                     if key not in ("experiment", "run") and isinstance(value, (int, float, str)))
+                     if key not in ("experiment", "run", "valid")
+                     and isinstance(value, (int, float, str)))
 
 
 @cache

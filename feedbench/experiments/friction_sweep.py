@@ -14,17 +14,19 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from feedbench.analysis.checks import check, positive_parameters
 from feedbench.analysis.friction import FrictionFit, fit_andersson
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
 from feedbench.experiments.family import TRUTH_TITLE, Experiment, headline, percent_error
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
+from feedbench.experiments.preflight import check_feeds
 from feedbench.experiments.signals import constant_feed_move
 from feedbench.models.friction import AnderssonFriction
 from feedbench.protocols.cia402 import CSP
 from feedbench.units import MIN_PER_MM, MM_PER_MIN, N_MIN_PER_MM
 from feedbench.views.panels import Curve, Panel, ResultView
 from feedbench.views.sections import (
-    MIN_R_SQUARED, Indicator, Plot, RunSection, Table, new_figure, png_of,
+    MIN_R_SQUARED, Plot, RunSection, Table, new_figure, png_of,
 )
 
 NAME = "friction_sweep"
@@ -121,6 +123,33 @@ def _fit_summary(fit: FrictionFit) -> dict:
         "r_squared": fit.r_squared,
         "n_points": fit.n_points,
     }
+
+
+def fit_checks(result: Mapping[str, Any]) -> list[dict]:
+    """Per fitted direction: R² of Eq. (5.2) over its points at least `MIN_R_SQUARED`, and
+    F_c, F_s, v_s > 0 (a flipped force sign or a sweep that never left stiction fails); the
+    windows not at steady state (left out of the fit)."""
+    checks = []
+    for direction in (d for d in SIGNS if d in result):
+        fit = result[direction]
+        checks += [
+            check(f"R² of the {direction} fit",
+                  f"{fit['r_squared']:.5f} (rms {fit['rms_N']:.2f} N) over its "
+                  f"{fit['n_points']} points", fit["r_squared"] >= MIN_R_SQUARED,
+                  f"below {MIN_R_SQUARED:g}: Eq. (5.2) does not describe the {direction} points"),
+            positive_parameters(f"{direction} fit", {k: fit["identified"][k]
+                                                     for k in ("F_c", "F_s", "v_s")},
+                                {"F_c": "N", "F_s": "N", "v_s": "m/s"}),
+        ]
+    points = result["points"]
+    left_out = [f"{x / MM_PER_MIN:g}" for x, ok in zip(points["velocity_m_s"], points["steady"])
+                if not ok]
+    checks.append(check("windows not at steady state (left out of the fit)",
+                        f"{len(left_out)}" + (f": at {', '.join(left_out)} mm/min"
+                                              if left_out else ""), not left_out,
+                        "the velocity was off the feed or the force still drifting: raise "
+                        "settle_s or settle_mm"))
+    return checks
 
 
 def _check_finite(recording, windows: list[Window], v: np.ndarray, f: np.ndarray) -> None:
@@ -234,9 +263,11 @@ class FrictionSweep(Experiment):
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
-        """The schema's checks, then what the analysis needs, before anything moves: at least
-        `MIN_FEEDS` different feeds and both directions."""
+        """The schema's checks, then what the analysis needs, before anything moves: every
+        feed measurable (`preflight.check_feeds`), at least `MIN_FEEDS` different feeds and
+        both directions."""
         p = validate_table(params, SCHEMA, "experiment")
+        check_feeds("experiment.feeds_mm_min", p["feeds_mm_min"], cycle_s)
         feeds = len(set(p["feeds_mm_min"]))
         if feeds < MIN_FEEDS:
             raise ConfigError(f"experiment.feeds_mm_min: the Andersson fit (Eq. 5.2) needs at "
@@ -293,9 +324,10 @@ class FrictionSweep(Experiment):
         k_tanh = params["k_tanh_min_mm"] * MIN_PER_MM
         fits = {direction: _fit_summary(fit_andersson(v[side], f[side], k_tanh=k_tanh))
                 for direction, side in sides.items() if side.sum() >= MIN_FEEDS}
-        return {"experiment": NAME, "points": {"velocity_m_s": v.tolist(), "force_N": f.tolist(),
-                                               "steady": steady.tolist()},
-                "k_tanh_s_m": k_tanh, **fits}
+        result = {"experiment": NAME, "points": {"velocity_m_s": v.tolist(), "force_N": f.tolist(),
+                                                 "steady": steady.tolist()},
+                  "k_tanh_s_m": k_tanh, **fits}
+        return {**result, "checks": fit_checks(result)}
 
     @classmethod
     def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
@@ -304,20 +336,12 @@ class FrictionSweep(Experiment):
         section.plots.append(Plot("friction curve and fitted model, Eq. (5.2)",
                                   png_of(curve_figure(result))))
         section.tables.append(parameter_table(result))
-        for direction in SIGNS:
-            fit = result[direction]
-            section.quality.append(Indicator(
-                f"R² of the {direction} fit",
-                f"{fit['r_squared']:.5f} (rms {fit['rms_N']:.2f} N) over its {fit['n_points']} "
-                "points", fit["r_squared"] >= MIN_R_SQUARED))
-        left_out = [f"{x / MM_PER_MIN:g}" for x, ok in zip(result["points"]["velocity_m_s"],
-                                                           result["points"]["steady"]) if not ok]
-        section.quality.append(Indicator(
-            "windows not at steady state (left out of the fit)",
-            f"{len(left_out)}" + (f": at {', '.join(left_out)} mm/min" if left_out else ""),
-            not left_out))
+
+    @classmethod
+    def headline(cls, result: Mapping[str, Any]) -> str:
+        """F_c and F_s of the positive direction."""
         p = result["positive"]["identified"]
-        section.headline = f"F_c {p['F_c']:.1f} N, F_s {p['F_s']:.1f} N (positive)"
+        return f"F_c {p['F_c']:.1f} N, F_s {p['F_s']:.1f} N (positive)"
 
     @classmethod
     def live_view(cls, result: Mapping[str, Any]) -> ResultView:
@@ -356,7 +380,7 @@ class FrictionSweep(Experiment):
                            for direction, c in comparison(result, truth).items() for key in UNITS))
 
     @classmethod
-    def describe(cls, result: Mapping[str, Any]) -> list[str]:
+    def details(cls, result: Mapping[str, Any]) -> list[str]:
         """Per direction the fit's R² and rms, then its parameters in Fig. 5.11's units."""
         lines = []
         for direction in SIGNS:

@@ -12,7 +12,7 @@ a `LiveAnalysis` gives the offline result bit for bit (tests/test_live_offline.p
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -20,7 +20,8 @@ import numpy as np
 
 from feedbench.config import ConfigError
 from feedbench.daq.recording import Event, Recording, Stream, missing_cycles
-from feedbench.experiments.family import Experiment
+from feedbench.analysis.checks import verdict_line
+from feedbench.experiments.family import Experiment, judged_analysis
 from feedbench.experiments.plan import Plan, Segment
 from feedbench.experiments.runner import segment_text
 from feedbench.views.panels import ResultView
@@ -151,8 +152,9 @@ class LiveAnalysis(RecordingBuilder):
             self.version += 1
 
     def result(self, final: bool = False) -> dict[str, Any]:
-        """The family's result of what has completed (`final`: as the offline analysis)."""
-        return self.family.analyze(self.recording(), final=final)
+        """The family's judged result of what has completed (`final`: as the offline
+        analysis, `family.judged_analysis`)."""
+        return judged_analysis(self.family, self.recording(), final=final)
 
     def view(self) -> ResultView:
         """The live panels of the current result, rebuilt when `version` changed."""
@@ -166,6 +168,10 @@ class LiveAnalysis(RecordingBuilder):
         if not self.version:
             return ResultView(title, (), "waiting for the first completed step")
         try:
-            return self.family.live_view(self.result())
+            result = self.result()
+            view = self.family.live_view(result)
         except (ConfigError, ValueError) as exc:
             return ResultView(title, (), f"waiting: {exc}")
+        if result["valid"]:
+            return view
+        return replace(view, summary=f"{verdict_line(result)} | {view.summary}")

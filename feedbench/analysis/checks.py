@@ -1,0 +1,140 @@
+"""A result judges itself: checks that the physics an analysis relies on was there.
+
+Each check is a JSON-able dict ``{"name", "value", "ok", "reason"}``: what was checked,
+the measured value as text, the verdict (True passed, False failed) and, for a failed
+check, why in one line a person can act on ("hit 2 at 0.050 s: double hit"). A result
+holding a failed check is not valid (`verdict`). These are pure functions of arrays and
+numbers; `experiments.family.judged_analysis` puts them into every family's result, and
+the terminal, ``--json``, the report and the live view read them from there.
+
+Display convention (docs/units.md): SI with engineering prefixes (Hz, N, µm/N, kg),
+feeds in mm/min, as the thesis writes them.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+
+EDGE_BINS = 2
+"""A peak within this many frequency lines of its band's edge is taken to be the edge
+(the maximum of a falling or rising slope), not a mode."""
+
+NOISE_FACTOR = 10.0
+"""An excitation or response counts as above the noise floor when its RMS is this many
+times the noise's (20 dB)."""
+
+SLID_SHARE = 0.99
+"""An in-motion measurement needs the axis sliding (no sticking, no reversal) in at least
+this share of its samples: only then does friction act only by its viscous part (Ch. 5.3.2)."""
+
+
+def check(name: str, value: str, ok: bool, reason: str = "") -> dict[str, Any]:
+    """One check; `reason` is kept only for a failed one."""
+    return {"name": name, "value": value, "ok": bool(ok), "reason": "" if ok else reason}
+
+
+def verdict(checks: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """``valid``: no check failed; ``not_valid_because``: ``"name: reason"`` of each failed."""
+    failed = [f"{c['name']}: {c['reason'] or c['value']}" for c in checks if c["ok"] is False]
+    return {"valid": not failed, "not_valid_because": failed}
+
+
+def check_line(c: Mapping[str, Any]) -> str:
+    """``✔ name: value`` or ``✘ name: value — reason``: a check as one line of text."""
+    mark = "✔" if c["ok"] else "✘"
+    reason = f" — {c['reason']}" if c.get("reason") else ""
+    return f"{mark} {c['name']}: {c['value']}{reason}"
+
+
+def verdict_line(result: Mapping[str, Any]) -> str:
+    """``NOT VALID: …`` with every failed check's reason, or ``all n checks passed``."""
+    if not result.get("valid", True):
+        return "NOT VALID: " + "; ".join(result["not_valid_because"])
+    return f"all {len(result.get('checks', ()))} checks passed"
+
+
+def peak_checks(label: str, f_peak: float, f: np.ndarray, coherence: np.ndarray,
+                gate: float) -> list[dict[str, Any]]:
+    """A peak (or anti-resonance) at `f_peak` Hz of an FRF on lines `f` (Hz): not on an edge
+    of the band `f` spans (`EDGE_BINS`), and its coherence γ² at least `gate` there."""
+    f = np.asarray(f, dtype=float)
+    k = int(np.argmin(np.abs(f - f_peak)))
+    on_edge = k < EDGE_BINS or k > len(f) - 1 - EDGE_BINS
+    gamma = float(np.asarray(coherence, dtype=float)[k])
+    return [
+        check(f"{label} inside the band", f"{f_peak:.2f} Hz in {f[0]:.4g}–{f[-1]:.4g} Hz",
+              not on_edge, f"{f_peak:.2f} Hz is the band edge, not a mode: widen the band or "
+              "check that the excitation reached the structure"),
+        check(f"coherence at the {label}", f"{gamma:.3f}", gamma >= gate,
+              f"γ² {gamma:.3f} below {gate:g} at {f_peak:.2f} Hz: the response there is "
+              "noise or another input, not this excitation"),
+    ]
+
+
+def above_noise(name: str, signal: np.ndarray, noise_rms: float, unit: str) -> dict[str, Any]:
+    """`signal`'s RMS about its mean against `NOISE_FACTOR` × `noise_rms` (same unit): a
+    channel unplugged (all zeros or constant) or an excitation too small fails."""
+    signal = np.asarray(signal, dtype=float)
+    rms = float(np.sqrt(np.mean((signal - signal.mean()) ** 2))) if signal.size else 0.0
+    floor = NOISE_FACTOR * noise_rms
+    reason = ("constant: channel unplugged or sensor not powered?" if rms == 0.0 else
+              f"{rms:.3g} {unit} RMS is below {NOISE_FACTOR:g} × the noise floor "
+              f"{noise_rms:.3g} {unit}: excitation too small or wrong channel")
+    return check(f"{name} above the noise floor", f"{rms:.3g} {unit} RMS", rms > floor, reason)
+
+
+def slid(velocity: np.ndarray, feed: float, band: float) -> dict[str, Any]:
+    """The axis slid at feed `feed` (m/s, signed) during an in-motion record: the share of
+    `velocity` samples (m/s) on the feed's side of the stiction band ±`band` (m/s) against
+    `SLID_SHARE` (Ch. 5.3.2: friction then acts only by its viscous part)."""
+    velocity = np.asarray(velocity, dtype=float)
+    share = float(np.mean(np.sign(feed) * velocity > band)) if velocity.size else 0.0
+    return check("the axis slid", f"{100 * share:.1f} % of the samples above the stiction band "
+                 f"{band * 6e4:.3g} mm/min", share >= SLID_SHARE,
+                 f"the axis stuck or reversed in {100 * (1 - share):.1f} % of the samples: "
+                 "raise the feed or lower the excitation amplitude")
+
+
+def positive_parameters(label: str, values: Mapping[str, float], units: Mapping[str, str]
+                        ) -> dict[str, Any]:
+    """Identified masses, stiffnesses, dampings, friction forces (SI, `units` per name) of
+    `label` all > 0 and finite."""
+    bad = [k for k, v in values.items() if not (np.isfinite(v) and v > 0.0)]
+    text = ", ".join(f"{k} {v:.4g} {units.get(k, '')}".rstrip() for k, v in values.items())
+    return check(f"{label} parameters > 0", text, not bad,
+                 f"{', '.join(bad)} not > 0: the model does not describe the data")
+
+
+def damping_ratio(zeta: Iterable[float]) -> dict[str, Any]:
+    """Identified damping ratios ζ in (0, 1): an under-damped mode."""
+    zeta = [float(z) for z in zeta]
+    ok = all(0.0 < z < 1.0 for z in zeta)
+    return check("damping ratio 0 < ζ < 1", ", ".join(f"{100 * z:.2f} %" for z in zeta), ok,
+                 "a damping ratio outside (0, 1) is not an under-damped mode: no resonance "
+                 "was identified")
+
+
+def fit_within_noise(name: str, rms_residual: float, noise: float, unit: str) -> dict[str, Any]:
+    """A fitted curve within the noise of its points: residual RMS ≤ 3 × `noise`."""
+    return check(f"{name} within the noise of its points",
+                 f"rms {rms_residual:.3g} {unit} (noise {noise:.3g} {unit})",
+                 rms_residual <= 3.0 * noise,
+                 f"residual {rms_residual:.3g} {unit} RMS is more than 3 × the points' noise: "
+                 "the law does not describe these points")
+
+
+POSITION_RESOLUTION_M = 1e-9
+"""The finest position the host reads: the bus's position unit, 1 nm (protocols.cia402)."""
+
+MEASURABLE_INCREMENTS = 40
+"""Position increments per bus cycle below which a velocity is not measurable: the ±1
+increment quantisation of a one-cycle difference is then more than 2.5 % of it."""
+
+
+def measurable_velocity(cycle_s: float) -> float:
+    """The slowest velocity (m/s) resolved at a bus cycle of `cycle_s` s:
+    `MEASURABLE_INCREMENTS` × `POSITION_RESOLUTION_M` / cycle (2.4 mm/min at 1 ms); the
+    stiction band of the in-motion checks (`slid`)."""
+    return MEASURABLE_INCREMENTS * POSITION_RESOLUTION_M / cycle_s
