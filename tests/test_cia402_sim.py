@@ -212,7 +212,12 @@ def test_injected_fault_via_0x2030(can_channel):
         bench.drive.node.sdo[0x2030].raw = 0x5530
         bench.run(1, velocity=0.0)
         assert bench.drive.emcy_code == 0x5530 and bench.drive.state == "FAULT"
-        assert bench.drive.node.sdo[0x2030].raw == 0  # one-shot
+        enable(bench, CSV, velocity=0.0)  # fault reset, enabled again
+        bench.run(2, velocity=0.0)
+        assert bench.drive.state == "OPERATION ENABLED"  # one-shot
+        with pytest.raises(SdoAbortedError) as info:
+            bench.drive.node.sdo[0x2030].raw  # a command: write-only
+        assert info.value.code == 0x06010001
 
 
 # -- physics through the bus equals the physics driven directly ----------------------------
@@ -284,6 +289,9 @@ def test_sdo_gains_change_the_closed_loop(can_channel):
 def test_device_refuses_unmappable_and_oversized_pdo_maps(can_channel):
     with loopback(can_channel) as bench:
         sdo = bench.drive.node.sdo
+        for pdo in (0x1801, 0x1401):  # CiA 301: PDO not valid, then no entries, then map
+            sdo[pdo][1].raw |= 0x80000000
+            sdo[pdo + 0x200][0].raw = 0
         with pytest.raises(SdoAbortedError) as info:
             sdo[0x1A01][1].raw = 0x60650020  # following error window: not PDO-mappable
         assert info.value.code == 0x06040041

@@ -20,10 +20,11 @@ from typing import Any, Callable, Iterable, Iterator, NamedTuple
 import can
 import canopen
 from canopen.nmt import NMT_STATES
-from canopen.objectdictionary import ODVariable
+from canopen.objectdictionary import NUMBER_TYPES, ODVariable
 from canopen.pdo import PdoMap
 
 from feedbench.config import ConfigError
+from feedbench.protocols import cia301
 
 SDO_TIMEOUT_S = 2.0
 """How long an SDO request waits for its answer (canopen's default 0.3 s is short for a peer
@@ -40,11 +41,16 @@ SDO_BYTES, EMCY_BYTES, NMT_BYTES, HEARTBEAT_BYTES = 8, 8, 2, 1
 """Data bytes of an SDO, EMCY, NMT command and heartbeat frame (CiA 301)."""
 
 HEARTBEAT_STATE_MASK = 0x7F  # bit 7: the toggle bit
-SDO_COMMAND_MASK, SDO_ABORT = 0xE0, 0x80
-SDO_SEGMENT_REQUESTS = (0x00, 0x60)
-"""Command specifiers of a download and an upload segment request (CiA 301)."""
-SDO_ABORT_FRAME = struct.Struct("<BHBL")
-SDO_ABORT_COMMAND_SPECIFIER = 0x05040001
+SDO_COMMAND_MASK = 0xE0
+SDO_DOWNLOAD_SEGMENT, SDO_INITIATE_DOWNLOAD, SDO_INITIATE_UPLOAD, SDO_UPLOAD_SEGMENT = (
+    0x00, 0x20, 0x40, 0x60)
+SDO_SEGMENT_REQUESTS = (SDO_DOWNLOAD_SEGMENT, SDO_UPLOAD_SEGMENT)
+SDO_BLOCK_REQUESTS = (0xA0, 0xC0)
+"""Client command specifiers (CiA 301, bits 5–7 of the first byte): segments, initiates,
+block upload and block download."""
+SDO_LAST_SEGMENT = 0x01
+"""Download segment request: no more segments."""
+SDO_INDEX = struct.Struct("<HB")
 
 Handler = Callable[[int, bytearray, float], None]
 """A frame handler of a canopen Network: (COB-ID, data, timestamp)."""
@@ -226,21 +232,74 @@ def state_checked(on_heartbeat: Handler, rejected: collections.Counter[str]) -> 
     return checked
 
 
-def check_sdo_server(server: canopen.sdo.SdoServer, rejected: collections.Counter[str]) -> None:
-    """Guard canopen's SDO server (before its node joins the network): a request shorter
-    than 8 bytes is dropped and counted in `rejected`; a segment request outside a segmented
-    transfer is aborted with 0x05040001 (canopen's server would raise TypeError on its empty
-    buffer and log the traceback)."""
-    serve = server.on_request
+class GuardedSdoServer:
+    """canopen's SDO server as CiA 301 §7.2.4.3 requires it to answer (its node's simulated
+    side): a segment request that does not continue the open transfer (none open, an upload
+    segment during a download or the reverse) and a block transfer (none offered) are
+    aborted with 0x05040001 (canopen's server answers a stale segment from its old buffer
+    and a block upload as an ordinary upload); a download of more or fewer bytes than the
+    object's data type is aborted with 0x06070012 / 0x06070013 (canopen: 0x06070010 for
+    both). A request shorter than 8 bytes is dropped and counted in `rejected`."""
 
-    def on_request(can_id: int, data: bytearray, timestamp: float) -> None:
-        if data[0] & SDO_COMMAND_MASK in SDO_SEGMENT_REQUESTS and server._buffer is None:
-            rejected[f"COB-ID 0x{can_id:03X}: SDO segment without a transfer"] += 1
-            server.send_response(SDO_ABORT_FRAME.pack(SDO_ABORT, 0, 0,
-                                                      SDO_ABORT_COMMAND_SPECIFIER))
+    def __init__(self, server: canopen.sdo.SdoServer, rejected: collections.Counter[str]) -> None:
+        self.server = server
+        self.rejected = rejected
+        self.expected: int | None = None
+        """The segment request the open transfer expects next (None: no transfer open)."""
+        self._serve = server.on_request
+        self._abort = server.abort
+        server.abort = self._aborted
+        self._set_data = server._node.set_data
+        server._node.set_data = self._length_checked_set_data
+        server.on_request = length_checked(self.on_request, SDO_BYTES, rejected)
+
+    def on_request(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """Serve one request, or abort it with 0x05040001."""
+        ccs = data[0] & SDO_COMMAND_MASK
+        if ccs in SDO_BLOCK_REQUESTS or (ccs in SDO_SEGMENT_REQUESTS and ccs != self.expected):
+            self._refuse(can_id, ccs, data)
+            return
+        if ccs not in SDO_SEGMENT_REQUESTS:  # a new request ends any open transfer
+            self.server._buffer = None
+        self._serve(can_id, data, timestamp)
+        self.expected = self._next_segment(ccs, data[0])
+
+    def _refuse(self, can_id: int, ccs: int, data: bytearray) -> None:
+        server = self.server
+        if ccs in SDO_BLOCK_REQUESTS:
+            server._index, server._subindex = SDO_INDEX.unpack_from(data, 1)
         else:
-            serve(can_id, data, timestamp)
-    server.on_request = length_checked(on_request, SDO_BYTES, rejected)
+            self.rejected[f"COB-ID 0x{can_id:03X}: SDO segment without a transfer"] += 1
+            server._index, server._subindex = 0, 0
+        self._aborted(cia301.SDO_ABORT_COMMAND_SPECIFIER)
+
+    def _aborted(self, code: int = cia301.SDO_ABORT_GENERAL) -> None:
+        """canopen's abort, and the transfer is closed."""
+        self.server._buffer = None
+        self.expected = None
+        self._abort(code)
+
+    def _next_segment(self, ccs: int, command: int) -> int | None:
+        """The segment request expected after serving `ccs` (None: the transfer is over)."""
+        buffer = self.server._buffer
+        if buffer is None:
+            return None
+        if ccs in (SDO_INITIATE_UPLOAD, SDO_UPLOAD_SEGMENT):
+            return SDO_UPLOAD_SEGMENT if buffer else None
+        if ccs == SDO_INITIATE_DOWNLOAD or (ccs == SDO_DOWNLOAD_SEGMENT
+                                            and not command & SDO_LAST_SEGMENT):
+            return SDO_DOWNLOAD_SEGMENT
+        return None
+
+    def _length_checked_set_data(self, index: int, subindex: int, data: bytes,
+                                 check_writable: bool = False) -> None:
+        obj = self.server._node._find_object(index, subindex)
+        writable = obj.writable or not check_writable
+        if writable and obj.data_type in NUMBER_TYPES and 8 * len(data) != len(obj):
+            raise canopen.SdoAbortedError(cia301.SDO_ABORT_LENGTH_TOO_HIGH
+                                          if 8 * len(data) > len(obj)
+                                          else cia301.SDO_ABORT_LENGTH_TOO_LOW)
+        self._set_data(index, subindex, data, check_writable)
 
 
 def remote_node(network: canopen.Network, node_id: int,

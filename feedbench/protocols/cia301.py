@@ -51,6 +51,14 @@ RPDO_COB_BASE, TPDO_COB_BASE = 0x200, 0x180
 TRANSMISSION_SYNC = 1
 """PDO transmission type: every SYNC."""
 
+SDO_ABORT_GENERAL = 0x08000000
+"""SDO abort code: general error."""
+SDO_ABORT_COMMAND_SPECIFIER = 0x05040001
+"""SDO abort code: the command specifier is not valid or unknown (a block transfer, which
+the simulated nodes do not offer; a segment outside a transfer)."""
+SDO_ABORT_UNSUPPORTED_ACCESS = 0x06010000
+"""SDO abort code: unsupported access (a PDO mapping written while the PDO is valid or its
+sub-index 0 is not 0)."""
 SDO_ABORT_NO_OBJECT = 0x06020000
 """SDO abort code: the object does not exist in the object dictionary."""
 SDO_ABORT_NOT_MAPPABLE = 0x06040041
@@ -60,7 +68,11 @@ SDO_ABORT_PDO_LENGTH = 0x06040042
 SDO_ABORT_NO_SUBINDEX = 0x06090011
 """SDO abort code: the sub-index does not exist (e.g. any sub-index ≠ 0 of a plain VAR)."""
 SDO_ABORT_VALUE_RANGE = 0x06090030
-"""SDO abort code: the value is out of the parameter's range."""
+"""SDO abort code: the value is out of the parameter's range (not one it accepts)."""
+SDO_ABORT_VALUE_TOO_HIGH, SDO_ABORT_VALUE_TOO_LOW = 0x06090031, 0x06090032
+"""SDO abort codes: the value is above the object's HighLimit / below its LowLimit."""
+SDO_ABORT_LENGTH_TOO_HIGH, SDO_ABORT_LENGTH_TOO_LOW = 0x06070012, 0x06070013
+"""SDO abort codes: more / fewer data bytes than the object's data type has."""
 
 EMCY_COMMUNICATION = 0x8100
 """EMCY code: communication error, here the loss of SYNC (`SYNC_LOSS_LIMIT`)."""

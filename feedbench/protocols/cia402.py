@@ -45,6 +45,9 @@ ERROR_CODE = 0x603F
 CONTROLWORD = 0x6040
 STATUSWORD = 0x6041
 QUICK_STOP_OPTION_CODE = 0x605A
+"""How the drive stops on the quick-stop command (`QUICK_STOP_OPTIONS`)."""
+FAULT_REACTION_OPTION_CODE = 0x605E
+"""How the drive stops on a fault (`FAULT_REACTIONS`)."""
 MODES_OF_OPERATION = 0x6060
 MODES_OF_OPERATION_DISPLAY = 0x6061
 POSITION_ACTUAL = 0x6064
@@ -142,6 +145,29 @@ transition numbers); absent pairs leave the state unchanged. Quick-stop option c
 transition 16 back to operation enabled."""
 POWERED = (OPERATION_ENABLED, QUICK_STOP_ACTIVE, FAULT_REACTION)
 """States in which the drive's power stage is on."""
+
+# -- how the drive stops (0x605A, 0x605E) --------------------------------------------------
+
+STOP_COAST, STOP_SLOW_DOWN_RAMP, STOP_QUICK_RAMP, STOP_CURRENT_LIMIT, STOP_VOLTAGE_LIMIT = range(5)
+"""Ramps a stop slows the axis on: none (the power stage off at once, the axis coasts), the
+slow-down ramp (profile deceleration 0x6084), the quick-stop ramp (0x6085), at the current
+(force) limit, at the voltage limit (CiA 402 option codes 0–4)."""
+QUICK_STOP_OPTIONS = range(9)
+"""0x605A codes: 0–4 stop on `STOP_*` and switch on disabled (0 at once); 5–8 stop on the
+ramp of code − 4 and stay in quick stop active until the host disables the drive."""
+FAULT_REACTIONS = range(5)
+"""0x605E codes: stop on `STOP_*`, then FAULT."""
+
+
+def quick_stop_ramp(option: int) -> int:
+    """The `STOP_*` ramp of quick-stop option code `option` (0–8)."""
+    return option - 4 if option > STOP_VOLTAGE_LIMIT else option
+
+
+def quick_stop_holds(option: int) -> bool:
+    """True if quick-stop option code `option` stays in quick stop active once stopped."""
+    return option > STOP_VOLTAGE_LIMIT
+
 
 # -- controlword (0x6040) ------------------------------------------------------------------
 

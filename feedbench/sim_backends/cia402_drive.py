@@ -60,7 +60,7 @@ from canopen.sdo import SdoAbortedError
 from feedbench.models.axis import AxisSimulator
 from feedbench.protocols import cia301
 from feedbench.protocols.canbus import (
-    NMT_BYTES, check_sdo_server, connect, length_checked, pdo_codec)
+    NMT_BYTES, GuardedSdoServer, connect, length_checked, pdo_codec)
 from feedbench.protocols.cia402 import (
     CONTROLWORD, CSP, CSV, CW_FAULT_RESET, CYCLE_COUNTER, EMCY_FOLLOWING_ERROR,
     DRIVE_MODES, EMCY_INTERNAL_SOFTWARE, EMCY_PDO_LENGTH, ERROR_CODE, FAULT, FAULT_INJECTION,
@@ -70,11 +70,13 @@ from feedbench.protocols.cia402 import (
     OPERATION_ENABLED, POSITION_ACTUAL, POWERED, QUICK_STOP_ACTIVE, QUICK_STOP_DECELERATION,
     RATED_TORQUE, STATE_BITS, STATUSWORD, SWITCH_ON_DISABLED, SW_FOLLOWING_ERROR,
     SW_FOLLOWS_COMMAND, SW_REMOTE, SW_TARGET_REACHED, TARGET_POSITION, TARGET_TORQUE,
-    TARGET_VELOCITY, TORQUE_ACTUAL, TORQUE_OFFSET, TRANSITIONS, VELOCITY_ACTUAL, VELOCITY_OFFSET, VELOCITY_WINDOW, command_of,
+    TARGET_VELOCITY, TORQUE_ACTUAL, TORQUE_OFFSET, TRANSITIONS, VELOCITY_ACTUAL, VELOCITY_OFFSET,
+    VELOCITY_WINDOW, FAULT_REACTION_OPTION_CODE, QUICK_STOP_OPTION_CODE, STOP_COAST,
+    STOP_QUICK_RAMP, STOP_SLOW_DOWN_RAMP, command_of, quick_stop_holds, quick_stop_ramp,
 )
 from feedbench.sim_backends import eds
 from feedbench.sim_backends.faults import EMCY_BUS_OFF_RECOVERED, NO_FAULTS, Faults
-from feedbench.sim_backends.watchdog import Watchdog, check_subindex
+from feedbench.sim_backends.watchdog import Watchdog, check_range, check_subindex
 
 LOGGER = logging.getLogger(__name__)
 
@@ -190,7 +192,7 @@ class SimulatedCia402Drive:
         segment outside a transfer, answered with an abort), by reason."""
         self.node = canopen.LocalNode(node_id, eds.load(node_id, eds_path))
         self.network = network if network is not None else canopen.Network(bus)
-        check_sdo_server(self.node.sdo, self.rejected_frames)
+        GuardedSdoServer(self.node.sdo, self.rejected_frames)
         self.network.add_node(self.node)
         self.node.add_read_callback(self._on_sdo_read)
         self.node.add_write_callback(self._on_sdo_write)
@@ -244,6 +246,8 @@ class SimulatedCia402Drive:
         self._previous_controlword = 0
         self._following_error = False
         self._stop_velocity = 0.0
+        self._stop_complete = False
+        self._settling = 0
         self._profile_velocity = 0.0
         self._count = 0
         self._newton_per_mille = self.values[RATED_TORQUE] * 1e-6  # N per ‰ (0x6076: mN)
@@ -284,6 +288,9 @@ class SimulatedCia402Drive:
         """Validate and apply an SDO download (raise SdoAbortedError to refuse it); the
         controlword and the mode take effect at once, as on a real drive (no SYNC needed)."""
         check_subindex(subindex, od)
+        check_range(od, od.decode_raw(data))
+        if index == MODES_OF_OPERATION and od.decode_raw(data) not in DRIVE_MODES:
+            raise SdoAbortedError(cia301.SDO_ABORT_VALUE_RANGE)
         if index == cia301.CONSUMER_HEARTBEAT_TIME and subindex:
             self.watchdog.set_entry(subindex, od.decode_raw(data))
         elif index == cia301.CYCLE_PERIOD:
@@ -322,8 +329,13 @@ class SimulatedCia402Drive:
         self._newton_per_mille = self.values[RATED_TORQUE] * 1e-6
 
     def _check_mapping(self, index: int, subindex: int, value: int) -> None:
-        """CiA 301 checks of a mapping entry (sub 1–8) or of the number of entries (sub 0)."""
+        """CiA 301 checks of a mapping entry (sub 1–8) or of the number of entries (sub 0):
+        only while the PDO is not valid (COB-ID bit 31), an entry only while sub 0 is 0."""
         receive = index < cia301.TPDO_COMMUNICATION
+        sdo = self.node.sdo
+        cob_id = sdo[index - cia301.RPDO_MAPPING + cia301.RPDO_COMMUNICATION][cia301.PDO_COB_ID]
+        if not cob_id.raw & eds.PDO_NOT_VALID or (subindex and sdo[index][0].raw):
+            raise SdoAbortedError(cia301.SDO_ABORT_UNSUPPORTED_ACCESS)
         if subindex == 0:
             if value > 8 or sum(self.node.sdo[index][sub].raw & 0xFF
                                 for sub in range(1, value + 1)) > 64:
@@ -500,18 +512,31 @@ class SimulatedCia402Drive:
             self._fault(values[FAULT_INJECTION])
             values[FAULT_INJECTION] = 0
         else:
-            state = TRANSITIONS.get((self.state, command_of(controlword)), self.state)
+            state = self._transition(command_of(controlword))
             if state != self.state:
                 self._enter(state)
         mode = values[MODES_OF_OPERATION]
         if mode in DRIVE_MODES:
             values[MODES_OF_OPERATION_DISPLAY] = mode
 
+    def _transition(self, command: str) -> str:
+        """The state `command` leads to (`TRANSITIONS`), by the quick-stop option code
+        0x605A: code 0 disables at once (the axis coasts); codes 5–8 allow transition 16,
+        back to operation enabled from a quick stop."""
+        option = self.values[QUICK_STOP_OPTION_CODE]
+        if self.state == QUICK_STOP_ACTIVE and command == "ENABLE OPERATION":
+            return OPERATION_ENABLED if quick_stop_holds(option) else self.state
+        state = TRANSITIONS.get((self.state, command), self.state)
+        if state == QUICK_STOP_ACTIVE and quick_stop_ramp(option) == STOP_COAST:
+            return SWITCH_ON_DISABLED
+        return state
+
     def _enter(self, state: str) -> None:
         self.state_log.append((self._count, state))
         if state in RAMPING and self.state not in RAMPING:
             self._stop_velocity = self.simulator.velocity
             self._settling = 0
+            self._stop_complete = False
         if state == OPERATION_ENABLED:
             self._profile_velocity = self.simulator.velocity
         self.state = state
@@ -521,7 +546,8 @@ class SimulatedCia402Drive:
 
     def _fault(self, code: int, reaction: bool = False) -> None:
         """Fault with EMCY `code`: straight to FAULT, or with `reaction` through the fault
-        reaction (the quick-stop ramp, FAULT once stopped)."""
+        reaction (the ramp of 0x605E, FAULT once stopped; straight to FAULT for code 0)."""
+        reaction = reaction and self.values[FAULT_REACTION_OPTION_CODE] != STOP_COAST
         self._enter(FAULT_REACTION if reaction else FAULT)
         self.values[ERROR_CODE] = code
         self.values[cia301.ERROR_REGISTER] = cia301.ERROR_REGISTER_GENERIC
@@ -550,13 +576,23 @@ class SimulatedCia402Drive:
             v[TORQUE_OFFSET] * per_mille + v[FORCE_OFFSET_FINE] * 1e-3, self.tip_force)
 
     def _step_quick_stop(self) -> None:
-        """Quick-stop ramp (0x6085) in velocity control; switch on disabled when stopped."""
-        v = self.values
+        """The stop ramp (`_stop_deceleration`) in velocity control."""
         sim = self.simulator
-        ramp = v[QUICK_STOP_DECELERATION] * 1e-9 * sim.timing.cycle
+        ramp = self._stop_deceleration() * sim.timing.cycle
         self._stop_velocity = math.copysign(max(0.0, abs(self._stop_velocity) - ramp),
                                             self._stop_velocity)
         sim.step_cycle(CSV, 0.0, self._stop_velocity, 0.0, 0.0, 0.0, self.tip_force)
+
+    def _stop_deceleration(self) -> float:
+        """m/s² of this stop: the ramp of 0x605A (quick stop) or 0x605E (fault reaction),
+        0x6084 or 0x6085; at the force or voltage limit a zero velocity command at once
+        (the velocity loop saturates at 0x2004)."""
+        v = self.values
+        ramp = (quick_stop_ramp(v[QUICK_STOP_OPTION_CODE]) if self.state == QUICK_STOP_ACTIVE
+                else v[FAULT_REACTION_OPTION_CODE])
+        if ramp == STOP_SLOW_DOWN_RAMP:
+            return v[PROFILE_DECELERATION] * 1e-9
+        return v[QUICK_STOP_DECELERATION] * 1e-9 if ramp == STOP_QUICK_RAMP else math.inf
 
     def _step_profile_velocity(self, target: float) -> float:
         """Profile velocity: this cycle's velocity command (m/s), ramped towards `target` at
@@ -569,16 +605,21 @@ class SimulatedCia402Drive:
         return self._profile_velocity
 
     def _finish_quick_stop(self) -> None:
-        """Quick stop complete (ramp at zero, |v| below 0x606D): switch on disabled, or at
-        the end of a fault reaction FAULT; a fault reaction also ends `SETTLE_CYCLES` after
-        its ramp reached zero (a coupled axis may never settle inside the window)."""
+        """Stop complete (ramp at zero, |v| below 0x606D): switch on disabled (0x605A codes
+        1–4; 5–8 stay in quick stop, the stop complete), or at the end of a fault reaction
+        FAULT; a fault reaction also ends `SETTLE_CYCLES` after its ramp reached zero (a
+        coupled axis may never settle inside the window)."""
         if self.state not in RAMPING or self._stop_velocity != 0.0:
             return
         self._settling += 1
         reaction = self.state == FAULT_REACTION
-        if (abs(self.simulator.velocity) * 1e9 < self.values[VELOCITY_WINDOW]
-                or reaction and self._settling >= SETTLE_CYCLES):
-            self._enter(FAULT if reaction else SWITCH_ON_DISABLED)
+        settled = abs(self.simulator.velocity) * 1e9 < self.values[VELOCITY_WINDOW]
+        if reaction and (settled or self._settling >= SETTLE_CYCLES):
+            self._enter(FAULT)
+        elif settled and quick_stop_holds(self.values[QUICK_STOP_OPTION_CODE]):
+            self._stop_complete = True
+        elif settled and not reaction:
+            self._enter(SWITCH_ON_DISABLED)
 
     def _next_noise(self) -> tuple[float, float]:
         """This cycle's measurement noise (force N, velocity m/s) from the pre-drawn block."""
@@ -617,7 +658,7 @@ class SimulatedCia402Drive:
         if self.state == OPERATION_ENABLED:
             word |= SW_FOLLOWS_COMMAND
         elif (self.state == QUICK_STOP_ACTIVE and self._stop_velocity == 0.0
-              and self._settling >= STOP_SETTLE_CYCLES):
+              and (self._settling >= STOP_SETTLE_CYCLES or self._stop_complete)):
             word |= SW_TARGET_REACHED
         if self._following_error:
             word |= SW_FOLLOWING_ERROR

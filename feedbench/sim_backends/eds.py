@@ -22,7 +22,8 @@ from canopen.objectdictionary.eds import export_eds
 
 from feedbench.protocols import cia301
 from feedbench.protocols.cia402 import (
-    ABORT_CONNECTION_OPTION_CODE, CONTROLWORD, CSV, CYCLE_COUNTER, DEFAULT_RPDO_MAPS,
+    ABORT_CONNECTION_OPTION_CODE, CONTROLWORD, FAULT_REACTION_OPTION_CODE, FAULT_REACTIONS,
+    QUICK_STOP_OPTIONS, STOP_QUICK_RAMP, CSV, CYCLE_COUNTER, DEFAULT_RPDO_MAPS,
     DEFAULT_TPDO_MAPS, DEVICE_TYPE, ERROR_CODE, FAULT_INJECTION, FOLLOWING_ERROR_ACTUAL,
     FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL, FORCE_LIMIT, FORCE_OFFSET_FINE, GAIN_OBJECTS,
     MODES_OF_OPERATION, MODES_OF_OPERATION_DISPLAY, POSITION_ACTUAL, PROFILE_ACCELERATION,
@@ -37,8 +38,10 @@ PRODUCT_NAME = "Simulated CiA 402 feed drive"
 RPDO_COUNT = TPDO_COUNT = 4
 PDO_NOT_VALID = 0x80000000
 
-QUICK_STOP_OPTION = 2
+QUICK_STOP_OPTION = STOP_QUICK_RAMP
 """0x605A: slow down on the quick-stop ramp, then switch on disabled."""
+FAULT_REACTION = STOP_QUICK_RAMP
+"""0x605E: slow down on the quick-stop ramp, then FAULT."""
 ABORT_CONNECTION_FAULT = 1
 """0x6007: a lost heartbeat or SYNC is a fault (through the fault reaction: quick-stop ramp)."""
 
@@ -55,6 +58,9 @@ class Entry:
     default: int | float | None = None
     unit: str = ""
     description: str = ""
+    low: int | None = None
+    high: int | None = None
+    """LowLimit / HighLimit: a value outside is aborted with 0x06090032 / 0x06090031."""
 
 
 I8, I16, I32 = datatypes.INTEGER8, datatypes.INTEGER16, datatypes.INTEGER32
@@ -77,8 +83,14 @@ PROFILE = (
     Entry(ERROR_CODE, "Error code", U16, "ro", True, 0),
     Entry(CONTROLWORD, "Controlword", U16, "rw", True, 0),
     Entry(STATUSWORD, "Statusword", U16, "ro", True, 0),
-    Entry(QUICK_STOP_OPTION_CODE, "Quick stop option code", I16, "const",
-          default=QUICK_STOP_OPTION),
+    Entry(QUICK_STOP_OPTION_CODE, "Quick stop option code", I16, "rw",
+          default=QUICK_STOP_OPTION, description="0-4: stop on no ramp / 0x6084 / 0x6085 / the "
+          "force limit (3, 4), then switch on disabled; 5-8: as 1-4, staying in quick stop",
+          low=QUICK_STOP_OPTIONS.start, high=QUICK_STOP_OPTIONS.stop - 1),
+    Entry(FAULT_REACTION_OPTION_CODE, "Fault reaction option code", I16, "rw",
+          default=FAULT_REACTION, description="lost heartbeat or SYNC, bus-off: stop on no ramp "
+          "/ 0x6084 / 0x6085 / the force limit (3, 4), then fault",
+          low=FAULT_REACTIONS.start, high=FAULT_REACTIONS.stop - 1),
     Entry(MODES_OF_OPERATION, "Modes of operation", I8, "rw", True, CSV),
     Entry(MODES_OF_OPERATION_DISPLAY, "Modes of operation display", I8, "ro", True, CSV),
     Entry(POSITION_ACTUAL, "Position actual value", I32, "ro", True, 0, "nm"),
@@ -116,7 +128,7 @@ MANUFACTURER = (
     Entry(FORCE_OFFSET_FINE, "Force offset fine", I32, "rw", True, 0, "mN", "added to 0x60B2"),
     Entry(CYCLE_COUNTER, "Cycle counter", U16, "ro", True, 0, "",
           "number of SYNCs processed (wraps at 65536)"),
-    Entry(FAULT_INJECTION, "Fault injection", U16, "rw", False, 0, "",
+    Entry(FAULT_INJECTION, "Fault injection", U16, "wo", False, 0, "",
           "write an EMCY error code: the drive faults with it at the next SYNC"),
     Entry(cia301.SYNC_LOSS_LIMIT, "SYNC loss limit", U8, "rw", False, 0, "SYNCs",
           "fault (EMCY 0x8100) after this many cycle periods 0x1006 without SYNC; 0: off"),
@@ -131,6 +143,7 @@ def _variable(entry: Entry) -> ODVariable:
     var.default = entry.default
     var.unit = entry.unit
     var.description = entry.description
+    var.min, var.max = entry.low, entry.high
     return var
 
 

@@ -47,6 +47,15 @@ def check_subindex(subindex: int, od: ODVariable) -> None:
         raise SdoAbortedError(cia301.SDO_ABORT_NO_SUBINDEX)
 
 
+def check_range(od: ODVariable, value: int | float) -> None:
+    """Abort 0x06090031 / 0x06090032 for a value above the object's HighLimit / below its
+    LowLimit (canopen's SDO server does not check them)."""
+    if od.max is not None and value > od.max:
+        raise SdoAbortedError(cia301.SDO_ABORT_VALUE_TOO_HIGH)
+    if od.min is not None and value < od.min:
+        raise SdoAbortedError(cia301.SDO_ABORT_VALUE_TOO_LOW)
+
+
 class Watchdog:
     """Heartbeat consumer and SYNC-loss monitor of one node on `network`.
 
