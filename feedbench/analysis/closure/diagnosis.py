@@ -43,7 +43,12 @@ class ClosureOptions:
     """Search settings. bic_threshold: ΔBIC an effect must beat (−10: very strong evidence);
     min_explained: share of the fit-part residual it must explain; max_effects: stop after
     this many; candidates: effect names the search may add; starts: fits per candidate;
-    recalibrate: also try freeing each declared parameter."""
+    recalibrate: also try freeing each declared parameter; describes_below: held-out NRMSE
+    above which a model is reported as not describing the data; agreement_sigmas: how many
+    combined standard deviations two recordings' values of an effect may differ by, besides
+    each parameter's physical `tolerance`; as_well: an effect whose fit-part SSR is within
+    this factor of the best recalibration's explains the residual as well, and is taken
+    first (a declared value moves only when no missing effect explains it as well)."""
 
     bic_threshold: float = 10.0
     min_explained: float = 0.15
@@ -51,6 +56,9 @@ class ClosureOptions:
     candidates: tuple[str, ...] = CANDIDATES
     starts: int = 1
     recalibrate: bool = True
+    describes_below: float = 0.15
+    agreement_sigmas: float = 3.0
+    as_well: float = 1.1
 
     def __post_init__(self) -> None:
         retired = sorted(set(self.candidates) & set(RETIRED))
@@ -116,8 +124,21 @@ class Step:
 
 
 @dataclass(frozen=True)
+class Verdict:
+    """Whether a fitted model describes the data: `reasons` why not (empty when it does),
+    `bounds` the parameters that ended on a physical bound ("term.key = value unit"), and
+    `diagnosis`, the signature that dominates what it leaves."""
+
+    describes: bool
+    reasons: tuple[str, ...]
+    bounds: tuple[str, ...]
+    diagnosis: str
+
+
+@dataclass(frozen=True)
 class ClosureResult:
-    """The whole search: the base fit, the steps, the final ranking that stopped it."""
+    """The whole search: the base fit, the steps, the final ranking that stopped it, and
+    the verdicts on the base and the final model."""
 
     base: Fit
     steps: tuple[Step, ...]
@@ -125,6 +146,8 @@ class ClosureResult:
     error_before: float
     error_after: float
     options: ClosureOptions
+    base_verdict: Verdict | None = None
+    final_verdict: Verdict | None = None
 
     @property
     def final(self) -> Fit:
@@ -161,15 +184,52 @@ def close_the_loop(model: Model, fit_kin: Kinematics, holdout_kin: Kinematics,
     while len(steps) < options.max_effects:
         ranking = rank_candidates(current, fit_kin, options)
         if options.recalibrate:
-            ranking = sorted(ranking + rank_recalibrations(current, fit_kin, options), key=_order)
+            ranking = effects_first(
+                sorted(ranking + rank_recalibrations(current, fit_kin, options), key=_order),
+                options)
         step, ranking = _first_passing(current, ranking, fit_kin, holdout_kin, options)
         if step is None:
             break
         steps.append(step)
         current = step.fit
-    return ClosureResult(base, tuple(steps), tuple(ranking),
-                         held_out_error(base.model, holdout_kin),
-                         held_out_error(current.model, holdout_kin), options)
+    before = held_out_error(base.model, holdout_kin)
+    after = held_out_error(current.model, holdout_kin)
+    first_ranking = steps[0].ranking if steps else ranking
+    return ClosureResult(base, tuple(steps), tuple(ranking), before, after, options,
+                         judge(base, before, first_ranking, options),
+                         judge(current, after, ranking, options))
+
+
+def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ...],
+          options: ClosureOptions) -> Verdict:
+    """Whether `fit` describes the data: its held-out NRMSE `error` within
+    `describes_below`, and the rigid-body mass off its bound (a moving axis has one). The
+    parameters on a bound are listed either way; the diagnosis is the candidate whose
+    signature explains most of what the model leaves (from `ranking`, tried on it)."""
+    bounds = at_bounds(fit.model)
+    reasons = []
+    if not error <= options.describes_below:
+        reasons.append(f"held-out force NRMSE {error:.1%} is above the "
+                       f"{options.describes_below:.0%} a describing model leaves")
+    reasons += [f"{b} is on its physical bound" for b in bounds if b.startswith("inertia.")]
+    screened = [c for c in ranking if c.freed is None and np.isfinite(c.screened)]
+    best = max(screened, key=lambda c: c.screened, default=None)
+    diagnosis = ("no candidate signature in the residual" if best is None or best.screened <= 0
+                 else f"{best.name} ({best.evidence})")
+    return Verdict(not reasons, tuple(reasons), bounds, diagnosis)
+
+
+def at_bounds(model: Model) -> tuple[str, ...]:
+    """"term.key = value unit" of every free parameter that sits on a bound of its range."""
+    out = []
+    for term in model.terms:
+        for key in term.free:
+            p = term.effect.parameter(key)
+            value = term.values[key]
+            if any(math.isfinite(b) and math.isclose(value, b, rel_tol=1e-4, abs_tol=1e-12)
+                   for b in (p.lower, p.upper)):
+                out.append(f"{term.name}.{key} = {value / p.to_si:.4g} {p.unit}")
+    return tuple(out)
 
 
 def base_fit(model: Model, kin: Kinematics) -> Fit:
@@ -207,10 +267,62 @@ def _first_passing(current: Fit, ranking: list[Candidate], fit_kin: Kinematics,
             ranking[j] = replace(candidate, rejected=f"not confirmed on the held-out data "
                                  f"(ΔBIC {evidence:.0f}: {before:.2%} → {after:.2%})")
             continue
+        disagreement = disagreement_on(refit, current, candidate.freed, holdout_kin, options)
+        if disagreement is not None:
+            ranking[j] = replace(candidate, rejected=disagreement)
+            continue
         declared = (math.nan if candidate.freed is None else
                     current.model.terms[candidate.freed[0]].values[candidate.freed[1]])
         return Step(candidate, tuple(ranking), refit, before, after, evidence, declared), ranking
     return None, ranking
+
+
+def disagreement_on(refit: Fit, current: Fit, freed: tuple[int, str] | None,
+                    holdout_kin: Kinematics, options: ClosureOptions) -> str | None:
+    """Why the effect (or recalibration) of `refit` does not hold on the held-out recording,
+    None if it does. The same model is fitted there separately (from the fit recording's
+    values); each of the effect's quantities (`Effect.invariants`), or the recalibrated
+    parameter's move from its declared value, must agree within `agreement_sigmas`
+    combined standard deviations plus the parameter's physical `tolerance` of the larger."""
+    try:
+        other = fit_model(refit.model, holdout_kin)
+    except FitError as exc:
+        return f"does not hold on the held-out recording: its fit there fails ({exc})"
+    worst = None
+    for name, unit, a, sa, b, sb, tolerance in _compared(refit, other, current, freed):
+        allowed = options.agreement_sigmas * math.hypot(sa, sb) + tolerance * max(abs(a), abs(b))
+        excess = abs(a - b) / allowed if allowed > 0.0 else math.inf
+        if not excess <= 1.0 and (worst is None or excess > worst[0]):
+            worst = (excess, f"{name} {a:.4g} ± {sa:.2g} on the fit recording, {b:.4g} ± "
+                             f"{sb:.2g} on the held-out one ({unit}; {abs(a - b):.3g} apart, "
+                             f"{allowed:.3g} allowed)")
+    return None if worst is None else f"does not hold on every recording: {worst[1]}"
+
+
+def _compared(fit: Fit, other: Fit, current: Fit, freed: tuple[int, str] | None):
+    """(name, unit, value, σ on the fit recording, value, σ on the held-out one, tolerance)
+    of the quantities an effect or recalibration stands for, in config units: a
+    recalibration's move from the declared value, an added term's invariants."""
+    if freed is not None:
+        i, key = freed
+        term = fit.model.terms[i]
+        p = term.effect.parameter(key)
+        declared = current.model.terms[i].values[key]
+        std = (fit.std.get((term.name, key), 0.0), other.std.get((term.name, key), 0.0))
+        yield (f"{term.name}.{key} − declared", p.unit, (term.values[key] - declared) / p.to_si,
+               _finite(std[0]) / p.to_si, (other.model.terms[i].values[key] - declared) / p.to_si,
+               _finite(std[1]) / p.to_si, p.tolerance)
+        return
+    term, again = fit.model.terms[-1], other.model.terms[-1]
+    mine, theirs = term.effect.invariants(term, fit.std), term.effect.invariants(again, other.std)
+    for name, (unit, a, sa, tolerance) in mine.items():
+        b, sb = theirs[name][1], theirs[name][2]
+        yield f"{term.name}.{name}", unit, a, _finite(sa), b, _finite(sb), tolerance
+
+
+def _finite(std: float) -> float:
+    """A standard deviation usable in a sum (a non-finite one counts as none)."""
+    return std if math.isfinite(std) else 0.0
 
 
 def holdout_delta_bic(before: float, after: float, added: int, kin: Kinematics) -> float:
@@ -219,6 +331,22 @@ def holdout_delta_bic(before: float, after: float, added: int, kin: Kinematics) 
     n_eff = kin.effective_n
     return float(2.0 * n_eff * np.log(max(after, 1e-300) / max(before, 1e-300))
                  + added * np.log(n_eff))
+
+
+def effects_first(ranking: list[Candidate], options: ClosureOptions) -> list[Candidate]:
+    """`ranking` with the best significant effect moved ahead of the recalibrations that
+    beat it by less than `as_well` in fit-part SSR: a declared value moves only when no
+    missing effect explains the residual as well (a missing second mode is a mode, not a
+    moved first mode)."""
+    significant = [c for c in ranking if c.significant(options)]
+    recalibrations = [c for c in significant if c.freed is not None]
+    effects = [c for c in significant if c.freed is None]
+    if not recalibrations or not effects or ranking[0].freed is None:
+        return ranking
+    effect = effects[0]
+    if effect.fit.cost > options.as_well * recalibrations[0].fit.cost:
+        return ranking
+    return [effect] + [c for c in ranking if c is not effect]
 
 
 def _order(candidate: Candidate) -> tuple[bool, float]:

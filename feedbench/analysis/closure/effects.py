@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Mapping, Protocol
 
 import numpy as np
 import scipy.fft
@@ -52,7 +52,11 @@ class Parameter:
 
     linear: enters the prediction linearly (solved by least squares, needs no start);
     setting: a shape constant that is declared, never fitted; default: SI start or setting;
-    lower, upper: SI bounds of a nonlinear parameter.
+    lower, upper: SI bounds: of a nonlinear parameter, its search range; of a linear one, its
+    physical range (a mass, a stiffness, a damping or a friction level cannot be negative:
+    the least squares are bounded there, and a value that ends on the bound is reported).
+    tolerance: relative difference (beside the two fits' uncertainty) within which the
+    values fitted on two recordings count as the same physical effect.
     """
 
     key: str
@@ -64,6 +68,7 @@ class Parameter:
     default: float = 0.0
     lower: float = -math.inf
     upper: float = math.inf
+    tolerance: float = 0.25
 
 
 @dataclass(frozen=True)
@@ -78,6 +83,13 @@ class Context:
     acting: np.ndarray
     terms: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     """SI values of the current model's terms, by name."""
+
+
+class TermLike(Protocol):
+    """A term's values (SI) and which parameters are free (`closure.model.Term`)."""
+
+    values: Mapping[str, float]
+    free: frozenset[str]
 
 
 @dataclass(frozen=True)
@@ -161,6 +173,19 @@ class Effect:
         """Why fitted values cannot be physical, or cannot be told on the data `kin` (None if
         they can)."""
         return None
+
+    def invariants(self, term: TermLike, std: Mapping[tuple[str, str], float]
+                   ) -> dict[str, tuple[str, float, float, float]]:
+        """What must come out the same on every recording if the effect is physical:
+        {name: (unit, value, σ, relative tolerance)} in config units; by default every
+        fitted parameter (a tolerance of inf: an effective value, not compared)."""
+        out = {}
+        for p in self.parameters:
+            if p.setting or p.key not in term.free:
+                continue
+            out[p.key] = (p.unit, term.values[p.key] / p.to_si,
+                          std.get((self.name, p.key), math.nan) / p.to_si, p.tolerance)
+        return out
 
     def describe(self, values: Mapping[str, float]) -> str:
         """What the fitted effect looks like, in engineering units."""
@@ -277,6 +302,17 @@ class Ripple(Effect):
             return (f"pitch {values['pitch_mm'] * 1e3:.3g} mm longer than half the stroke "
                     f"({longest * 1e3:.3g} mm): not a periodic force on this data")
         return None
+
+    def invariants(self, term, std):
+        """Amplitude and pitch (the phase depends on where each recording's encoder zero is)."""
+        values, pitch = term.values, self.parameter("pitch_mm")
+        sigma = max(std.get((self.name, "A_sin_N"), math.nan),
+                    std.get((self.name, "A_cos_N"), math.nan))
+        return {"amplitude_N": ("N", math.hypot(values["A_sin_N"], values["A_cos_N"]), sigma,
+                                pitch.tolerance),
+                "pitch_mm": ("mm", values["pitch_mm"] / pitch.to_si,
+                             std.get((self.name, "pitch_mm"), math.nan) / pitch.to_si,
+                             pitch.tolerance)}
 
     def describe(self, values):
         amplitude = math.hypot(values["A_sin_N"], values["A_cos_N"])
@@ -525,6 +561,12 @@ class SensorGain(Effect):
         gain = 1.0 + float(q @ context.residual / max(q @ q, 1e-300))
         return [{"gain": float(np.clip(gain, *_bounds(self, "gain")))}]
 
+    def invariants(self, term, std):
+        """The gain's departure from 1 (what the effect is)."""
+        p = self.parameter("gain")
+        return {"gain − 1": (p.unit, term.values["gain"] - 1.0,
+                             std.get((self.name, "gain"), math.nan), p.tolerance)}
+
     def describe(self, values):
         return f"gain {values['gain']:.4g}"
 
@@ -599,22 +641,23 @@ def _bounds(effect: Effect, key: str) -> tuple[float, float]:
 
 
 def _nonlinear(key: str, unit: str, to_si: float, doc: str, default: float, lower: float,
-               upper: float) -> Parameter:
+               upper: float, tolerance: float = 0.25) -> Parameter:
     return Parameter(key, unit, to_si, doc, linear=False, default=default, lower=lower,
-                     upper=upper)
+                     upper=upper, tolerance=tolerance)
 
 
 LIBRARY: tuple[Effect, ...] = (
     Inertia("inertia", "rigid-body inertia M a", "declared (base term)",
-            (Parameter("M_kg", "kg", 1.0, "moving mass (kg; kg·m² for a rotary axis)"),)),
+            (Parameter("M_kg", "kg", 1.0, "moving mass (kg; kg·m² for a rotary axis)",
+                       lower=0.0),)),
     Viscous("viscous", "viscous friction σ v, Eq. (5.2)", "residual ∝ v",
-            (Parameter("F_v_Ns_m", "N·s/m", 1.0, "viscous coefficient σ"),)),
+            (Parameter("F_v_Ns_m", "N·s/m", 1.0, "viscous coefficient σ", lower=0.0),)),
     Coulomb("coulomb", "Coulomb friction F_c tanh(k_tanh v), Eq. (5.2)",
             "residual ∝ sign(v)",
-            (Parameter("F_c_N", "N", 1.0, "Coulomb level F_c"), _k_tanh_setting())),
+            (Parameter("F_c_N", "N", 1.0, "Coulomb level F_c", lower=0.0), _k_tanh_setting())),
     Stribeck("stribeck", "Stribeck excess (F_s − F_c) exp(−(|v|/v_s)^δ) tanh(k_tanh v), Eq. (5.2)",
              "residual ∝ sign(v), decaying with |v|",
-             (Parameter("dF_s_N", "N", 1.0, "static excess F_s − F_c"),
+             (Parameter("dF_s_N", "N", 1.0, "static excess F_s − F_c", lower=0.0),
               _nonlinear("v_s_mm_min", "mm/min", MM_PER_MIN, "Stribeck velocity v_s",
                          100 * MM_PER_MIN, 1e-6, 10.0),
               Parameter("delta", "-", 1.0, "Stribeck shape exponent δ", linear=False,
@@ -631,11 +674,12 @@ LIBRARY: tuple[Effect, ...] = (
            (Parameter("offset_N", "N", 1.0, "constant force"),)),
     Backlash("backlash", "a load behind a play, on a contact spring (dead zone, Ch. 3.4)",
              "residual after each reversal, while the motor crosses the play",
-             (Parameter("m_load_kg", "kg", 1.0, "mass behind the play"),
+             (Parameter("m_load_kg", "kg", 1.0, "mass behind the play", lower=0.0),
               _nonlinear("width_um", "µm", 1e-6, "total play L_z", 20e-6, 0.0, 0.05),
               _nonlinear("f_contact_Hz", "Hz", 1.0, "contact frequency √(k_c/m_L)/2π",
-                         200.0, 1.0, 5e3),
-              _nonlinear("zeta_contact", "-", 1.0, "contact damping ratio", 0.2, 0.0, 2.0),
+                         200.0, 1.0, 5e3, tolerance=math.inf),
+              _nonlinear("zeta_contact", "-", 1.0, "contact damping ratio", 0.2, 0.0, 2.0,
+                         tolerance=math.inf),
               _nonlinear("friction_N_kg", "N/kg", 1.0, "load's Coulomb friction per kg F_L/m_L",
                          1.0, 0.0, 100.0),
               _k_tanh_setting()),
@@ -648,14 +692,14 @@ LIBRARY: tuple[Effect, ...] = (
     StructuralMode("structural_mode",
                    "a mass on a spring-damper behind the motor (Eqs. 4.13, 4.25)",
                    "residual ∝ (T(s) − 1)·a: resonant near f_n",
-                   (Parameter("m_kg", "kg", 1.0, "mass on the spring"),
+                   (Parameter("m_kg", "kg", 1.0, "mass on the spring", lower=0.0),
                     _nonlinear("f_n_Hz", "Hz", 1.0, "motor-locked frequency √(k/m)/2π",
                                50.0, 0.5, 1e4),
                     _nonlinear("zeta", "-", 1.0, "damping ratio", 0.05, 1e-3, 1.0))),
     CubicStiffening("cubic_stiffening",
                     "the structural spring stiffens with deflection k d (1 + κ d²)",
                     "residual at the mode, growing with the deflection's cube",
-                    (Parameter("m_kg", "kg", 1.0, "mass on the spring"),
+                    (Parameter("m_kg", "kg", 1.0, "mass on the spring", lower=0.0),
                      _nonlinear("kappa_per_um2", "1/µm²", 1e12, "stiffening κ", 1e8, 0.0,
                                 1e13),
                      Parameter("f_n_Hz", "Hz", 1.0, "the structural mode's f_n", linear=False,

@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 from typing import Mapping
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import least_squares, lsq_linear
 
 from feedbench.analysis.closure.effects import DIFFERENCE_STEP, EFFECTS, Effect, spectral
 from feedbench.analysis.closure.trace import Kinematics, nrmse
@@ -256,6 +256,27 @@ def least_squares_solution(columns: np.ndarray, target: np.ndarray) -> np.ndarra
     return solution / norms
 
 
+def bounded_least_squares(columns: np.ndarray, target: np.ndarray, lower: np.ndarray,
+                          upper: np.ndarray) -> np.ndarray:
+    """argmin ‖columns θ − target‖ with lower ≤ θ ≤ upper (SI physical ranges): the
+    unconstrained solution where it is physical, else scipy's bounded linear least squares
+    (a negative mass that absorbs an effect the model lacks is held at zero instead)."""
+    theta = least_squares_solution(columns, target)
+    if np.all((theta >= lower) & (theta <= upper)):
+        return theta
+    norms = np.linalg.norm(columns, axis=0)
+    norms[norms == 0.0] = 1.0
+    result = lsq_linear(columns / norms, target, bounds=(lower * norms, upper * norms),
+                        method="bvls")
+    return result.x / norms
+
+
+def linear_bounds(model: Model, owners: list[tuple[int, str]]) -> tuple[np.ndarray, np.ndarray]:
+    """SI physical ranges of the linear parameters `owners` (term index, key)."""
+    params = [model.terms[i].effect.parameter(key) for i, key in owners]
+    return np.array([p.lower for p in params]), np.array([p.upper for p in params])
+
+
 def solve_linear(model: Model, kin: Kinematics) -> Model:
     """Least-squares values of the free linear parameters for the model's current η, on
     the used samples."""
@@ -269,9 +290,11 @@ def _solve(model: Model, kin: Kinematics, rows: np.ndarray,
     theta = d.theta.copy()
     if d.free.any():
         target = inverse(model, kin.force[rows]) - d.columns[:, ~d.free] @ theta[~d.free]
-        theta[d.free] = least_squares_solution(d.columns[:, d.free], target)
+        owners = [o for o, f in zip(d.owners, d.free) if f]
+        theta[d.free] = bounded_least_squares(d.columns[:, d.free], target,
+                                              *linear_bounds(model, owners))
         terms = list(model.terms)
-        for value, (i, key) in zip(theta[d.free], [o for o, f in zip(d.owners, d.free) if f]):
+        for value, (i, key) in zip(theta[d.free], owners):
             terms[i] = terms[i].with_values({key: float(value)})
         model = replace(model, terms=tuple(terms))
     return model, forward(model, d.columns @ theta)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from feedbench.analysis.closure.diagnosis import Candidate, ClosureResult, Step
+from feedbench.analysis.closure.diagnosis import Candidate, ClosureResult, Step, Verdict
 from feedbench.analysis.closure.model import Fit, Term, tip_error
 from feedbench.analysis.closure.replay import ReplayErrors
 from feedbench.analysis.closure.run import ClosureReport
@@ -107,6 +107,26 @@ def _recalibration_text(r: dict[str, Any]) -> str:
     return f"declared {moved} {r['unit']}, σ unknown ({why})"
 
 
+def verdict_dict(verdict: Verdict | None) -> dict[str, Any] | None:
+    """Whether a model describes the data, why not, what sits on a bound, the diagnosis."""
+    if verdict is None:
+        return None
+    return {"describes": verdict.describes, "reasons": list(verdict.reasons),
+            "on_bounds": list(verdict.bounds), "diagnosis": verdict.diagnosis}
+
+
+def verdict_text(which: str, verdict: Verdict) -> list[str]:
+    """One line saying whether the `which` model describes the data, one for its bounds."""
+    if verdict.describes:
+        lines = [f"{which} model describes the data"]
+    else:
+        lines = [f"{which} model does not describe this data: {'; '.join(verdict.reasons)}; "
+                 f"the residual is dominated by {verdict.diagnosis}"]
+    if verdict.bounds:
+        lines.append(f"    on a physical bound: {', '.join(verdict.bounds)}")
+    return lines
+
+
 def report_dict(report: ClosureReport) -> dict[str, Any]:
     """The machine-readable report (`feedbench closure --json`)."""
     result = report.result
@@ -132,6 +152,8 @@ def report_dict(report: ClosureReport) -> dict[str, Any]:
         "params": {name: term_params(final.model.term(name), final) for name in result.effects},
         "final_params": model_params(final),
         "stopped": stop_reason(result),
+        "base_verdict": verdict_dict(result.base_verdict),
+        "final_verdict": verdict_dict(result.final_verdict),
         "final_ranking": [candidate_dict(c) for c in result.final_ranking],
         "rejected": [{"effect": c.name, "reason": c.rejected} for c in result.rejected],
         "replay": None if report.replay_before is None else {
@@ -185,6 +207,7 @@ def report_text(report: ClosureReport) -> str:
     ]
     for name, params in data["base_params"].items():
         lines.append(f"  {name}:" + _params_text(params, " "))
+    lines += verdict_text("the declared", result.base_verdict)
     for i, step in enumerate(data["steps"], 1):
         runners = "; ".join(f"{c['effect']} ΔBIC {c['delta_bic']:.0f}, {c['explained']:.1%}"
                             + (f" [{c['rejected']}]" if c["rejected"] else "")
@@ -202,8 +225,10 @@ def report_text(report: ClosureReport) -> str:
     for r in data["rejected"]:
         lines.append(f"rejected: {r['effect']}: {r['reason']}")
     if not result.steps:
-        lines.append("no missing effect found: nothing added, the declared model stands")
+        lines.append("no missing effect found: nothing added")
     lines.append(f"stop: {data['stopped']}")
+    if result.steps:
+        lines += verdict_text("the final", result.final_verdict)
     lines.append(f"held-out force NRMSE before → after: {result.error_before:.2%} → "
                  f"{result.error_after:.2%}")
     if data["tip_error_before"] is not None:
