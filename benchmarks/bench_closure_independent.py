@@ -26,11 +26,13 @@ verdict) and the totals. Figures, per variant (`exact`, `free`), with the target
 - independent_<variant>_crashes: cases where the closure raised (0).
 - independent_<variant>_median_s: median closure wall time per case (≤ 10 s on 2 cores).
 
-Run alone: `python benchmarks/bench_closure_independent.py [CASE ...]`.
+Run alone: `python benchmarks/bench_closure_independent.py [--cases NAME,...]
+[--variants exact,free] [CASE ...]` (default: every case, both variants).
 """
 
 from __future__ import annotations
 
+import argparse
 import statistics
 import sys
 import tempfile
@@ -91,15 +93,18 @@ def totals(verdicts: list[Verdict], seconds: list[float]) -> dict[str, float]:
             "median_s": statistics.median(seconds)}
 
 
-def run(names: list[str] | None = None) -> dict[str, float]:
-    """Measure, print and return the figures."""
+def run(names: list[str] | None = None, variants: list[str] | None = None
+        ) -> dict[str, float]:
+    """Measure, print and return the figures of the cases `names` (default: all) in the
+    `variants` (default: both)."""
     names = names or list(CASES)
+    chosen = {variant: VARIANTS[variant] for variant in variants or VARIANTS}
     figures, notes = {}, {}
     targets = {"named_first": "≥ 0.9", "halved": "(as written)", "fixed": "≥ 0.9",
                "one_finding": "1.0", "clean_untouched": "1.0",
                "recalibrated": "≥ 0.8", "crashes": "0", "median_s": "≤ 10 s"}
     with tempfile.TemporaryDirectory() as directory:
-        for variant, free in VARIANTS.items():
+        for variant, free in chosen.items():
             print(f"-- {variant}: {'mass and viscous free' if free else 'exact model declared'}")
             print(f"{'case':<30s} {'injected':<36s} {'found':<40s} before → after   floor")
             verdicts, seconds = [], []
@@ -115,5 +120,24 @@ def run(names: list[str] | None = None) -> dict[str, float]:
     return figures
 
 
+def _arguments(argv: list[str]) -> argparse.Namespace:
+    """--cases NAME,... and --variants exact,free (both checked), or case names alone."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("names", nargs="*", metavar="CASE")
+    parser.add_argument("--cases", default="", help="comma-separated case names")
+    parser.add_argument("--variants", default=",".join(VARIANTS), help="exact,free")
+    arguments = parser.parse_args(argv)
+    arguments.names += [name for name in arguments.cases.split(",") if name]
+    arguments.variants = [v for v in arguments.variants.split(",") if v]
+    for name in arguments.names:
+        if name not in CASES:
+            parser.error(f"unknown case {name!r}")
+    for variant in arguments.variants:
+        if variant not in VARIANTS:
+            parser.error(f"unknown variant {variant!r} (exact, free)")
+    return arguments
+
+
 if __name__ == "__main__":
-    run(sys.argv[1:])
+    parsed = _arguments(sys.argv[1:])
+    run(parsed.names, parsed.variants)

@@ -144,9 +144,6 @@ def _sized(effect: str, small: dict, large: dict, inside: str = "plant",
 
 _RIPPLE = {"pitch_mm": 5.0, "phase_deg": 40.0}
 _CLEAN_FREE = (None, "clean")
-_TABLE_FRICTION = {"F_tip_N": 20.0}
-"""Coulomb friction (N) of the table's guides behind a drive-train play, out of the axis's
-30 N: it keeps the play closed while the axis cruises."""
 _LIST = [
     *[_case(f"clean_{s}", None, "clean", s)
       for s in ("2mass", "2mass_stiff", "2mass_soft", "3mass", "rigid", *MODE_GRID)],
@@ -176,12 +173,11 @@ _LIST = [
           declared={"M_kg": TWO_MASS.total_kg * 1.10}, free=_CLEAN_FREE),
     _case("recal_viscous", "recalibrate:viscous.F_v_Ns_m", "recalibration",
           declared={"F_v_Ns_m": TWO_MASS.sigma * 1.30}, free=_CLEAN_FREE),
-    *_sized("backlash_drivetrain", {"play_um": 30.0, **_TABLE_FRICTION},
-            {"play_um": 100.0, **_TABLE_FRICTION}, injected="backlash"),
-    _case("second_mode", "structural_mode", "effect",
+    *_sized("backlash_drivetrain", {"play_um": 30.0}, {"play_um": 100.0}, injected="backlash"),
+    _case("second_mode", "second_mode", "effect",
           plant={"m2_kg": 3.0, "f2_Hz": 130.0, "zeta2": 0.02}),
     _case("ripple_long_pitch", "ripple", "effect",
-          plant={"amplitude_N": 3.0, "pitch_mm": 40.0, "phase_deg": 90.0}),
+          plant={"amplitude_N": 3.0, "pitch_mm": 60.0, "phase_deg": 90.0}),
     _case("channel_skew", "delay", "effect", plant={"skew_cycles": 0.375}),
 ]
 CASES: dict[str, CaseSpec] = {case.name: case for case in _LIST}
@@ -194,19 +190,19 @@ deflection (m): k d (1 + stiffening (d / d_ref)²)."""
 
 def world(case: CaseSpec) -> tuple[Plant, Drive]:
     """The simulated axis and drive of a case. A backlash load and a second mode's mass are
-    carved out of the motor side, the backlash load's and the table's friction (behind a
-    play in the drive train) out of the motor's Coulomb level: as declared, the axis's mass
-    and friction include them, and only the play or the second mode is undeclared."""
+    carved out of the motor side, the backlash load's friction out of the motor's Coulomb
+    level: as declared, the axis's mass and friction include them, and only the play or the
+    second mode is undeclared."""
     s, w = STRUCTURES[case.structure], case.truth
-    load_N, tip_N = w.get("F_load_N", 0.0), w.get("F_tip_N", 0.0)
+    load_N = w.get("F_load_N", 0.0)
     masses, springs = _chain(s, w)
-    friction = Friction(s.sigma, w["F_c_N"] - load_N - tip_N, w.get("dF_s_N", 0.0),
+    friction = Friction(s.sigma, w["F_c_N"] - load_N, w.get("dF_s_N", 0.0),
                         w.get("v_s_mm_min", 1.0) * 1e-3 / 60.0, 2.0, w.get("dF_v_Ns_m", 0.0))
     backlash = ((w["m_load_kg"], load_N, w["width_um"] * 1e-6)
                 if "m_load_kg" in w else None)
     ripple = (w.get("amplitude_N", 0.0), w.get("pitch_mm", 1.0) * 1e-3,
               math.radians(w.get("phase_deg", 0.0)))
-    plant = Plant(masses, springs, friction, w.get("offset_N", 0.0), ripple, backlash, tip_N)
+    plant = Plant(masses, springs, friction, w.get("offset_N", 0.0), ripple, backlash)
     return plant, Drive(*_gains(s.total_kg), FORCE_LIMIT_N, w["tau_ms"] * 1e-3,
                         w.get("beta_per_kN", 0.0) * 1e-3, w.get("gain", 1.0))
 

@@ -81,8 +81,7 @@ class Plant:
 
     offset (N): a constant force on the motor side (gravity, a counterweight);
     ripple (N, m, rad): A sin(2π x / pitch + phase) on the motor side;
-    backlash (kg, N, m): a load mass behind a play, with its own Coulomb friction;
-    tip_coulomb (N): Coulomb friction F tanh(v_1/v_ε) on mass 1 (the table's own guides).
+    backlash (kg, N, m): a load mass behind a play, with its own Coulomb friction.
     """
 
     masses: tuple[float, ...]
@@ -91,7 +90,6 @@ class Plant:
     offset: float = 0.0
     ripple: tuple[float, float, float] = (0.0, 1.0, 0.0)
     backlash: tuple[float, float, float] | None = None
-    tip_coulomb: float = 0.0
 
     @property
     def all_masses(self) -> tuple[float, ...]:
@@ -114,10 +112,8 @@ class Plant:
 
     def coulomb(self) -> np.ndarray:
         """Coulomb level (N) acting on each mass but the motor (whose friction is
-        `friction`): the table's and the backlash load's; 0 on the motor."""
+        `friction`): the backlash load's; 0 elsewhere."""
         levels = np.zeros(len(self.all_masses))
-        if len(self.masses) > 1:
-            levels[1] = self.tip_coulomb
         if self.backlash:
             levels[-1] = self.backlash[1]
         return levels
@@ -257,7 +253,7 @@ def simulate(plant: Plant, drive: Drive, sensors: Sensors, reference: np.ndarray
 
 def tip_acceleration(plant: Plant, states: np.ndarray) -> np.ndarray:
     """Acceleration (m/s²) of mass 1 at each state (rows): its springs and dampers in the
-    state's contact state, cubic stiffening and its Coulomb friction."""
+    state's contact state and cubic stiffening; nothing else acts on it."""
     n = len(plant.all_masses)
     acceleration = np.zeros(states.shape[0])
     touching = plant.contact
@@ -266,8 +262,6 @@ def tip_acceleration(plant: Plant, states: np.ndarray) -> np.ndarray:
     for contact, rows in ((0, np.abs(gap) <= half), (1, gap > half), (-1, gap < -half)):
         A, _, const = _matrices(plant, contact)
         acceleration[rows] = states[rows] @ A[n + 1] + const[1] / plant.masses[1]
-    friction = plant.tip_coulomb * np.tanh(states[:, n + 1] / FRICTION_SMOOTHING)
-    acceleration -= friction / plant.masses[1]
     for s in plant.springs:
         if 1 in (s.i, s.j):
             d = states[:, s.j] - states[:, s.i]
