@@ -157,7 +157,7 @@ def test_a_finished_file_settles_its_row_and_a_row_without_a_file_crashes(tmp_pa
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
                           capture_output=True, text=True, check=True)
     with sqlite3.connect(tmp_path / "catalog.sqlite") as connection:  # as that process left it
-        connection.execute("UPDATE runs SET pid = ? WHERE id = ?", (int(dead.stdout), never))
+        connection.execute("UPDATE runs SET pid = ?", (int(dead.stdout),))
     assert sorted(catalog.reconcile()) == sorted([closed, never])
     rows = {row.id: row for row in catalog.list()}
     assert (rows[closed].status, rows[closed].reason, rows[closed].n_samples) == (
@@ -329,3 +329,16 @@ def test_runs_on_a_full_disk_is_one_line(tmp_path):
     assert proc.stderr.startswith(f"feedbench: error: {tmp_path / 'catalog.sqlite'}: cannot use "
                                   "the run catalog ("), proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_a_run_whose_process_is_alive_is_left_alone(tmp_path):
+    """The owner finishes its run: `reconcile` does not settle its row from the file even
+    when the file says how it ended (reading it at the wrong moment cost a writer its final
+    status)."""
+    catalog = Catalog(tmp_path / "catalog.sqlite")
+    closed = catalog.new_run_id("friction_sweep")
+    record(tmp_path / f"{closed}.h5", "friction_sweep", friction_steps(), status="aborted",
+           reason="limit tripped: |force|")
+    catalog.add(closed, "friction_sweep", tmp_path / f"{closed}.h5", {})
+    assert catalog.reconcile() == []
+    assert [(row.id, row.status) for row in catalog.list()] == [(closed, "running")]

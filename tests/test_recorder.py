@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from feedbench.config import ConfigError
-from feedbench.daq.recorder import Recorder
+from feedbench.daq import recorder as recorder_module
+from feedbench.daq.recorder import Recorder, RecordingError
 from feedbench.daq.recording import Segment, open_recording
 
 CHANNELS = [f"ch{index}" for index in range(10)]
@@ -217,3 +218,48 @@ def test_a_header_declaring_more_rows_than_the_file_holds_is_refused_before_read
         file["cycle"].resize((250,))
         file["data/x"].resize((350,))  # a writer died between this resize and the next
     assert open_recording(path).n_samples == 250
+
+
+LOCKING_READER = textwrap.dedent("""
+    import sys, time
+    import h5py
+    with h5py.File(sys.argv[1], "r", swmr=True):  # h5py's default: a shared file lock
+        print("open", flush=True)
+        time.sleep(float(sys.argv[2]))
+""")
+
+
+def closed_while_locked(path: Path, hold_s: float) -> Recorder:
+    """A recorder of 10 rows and another process that holds a lock on its file for
+    `hold_s` (s) while the recorder closes it: the recorder, closed or having raised."""
+    recorder = Recorder(path, CHANNELS, UNITS, METADATA, chunk_rows=4)
+    recorder.append_block(np.arange(10), reference_values(np.arange(10)))
+    holder = subprocess.Popen([sys.executable, "-c", LOCKING_READER, str(path), str(hold_s)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "open\n"
+        recorder.close()
+    finally:
+        holder.wait(30)
+    return recorder
+
+
+def test_a_lock_held_by_another_process_delays_the_status_and_the_file_says_so(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    closed_while_locked(tmp_path / "run.h5", hold_s=0.5)
+    recording = open_recording(tmp_path / "run.h5")
+    assert (recording.status, recording.n_samples) == ("complete", 10)
+    wait = recording.metadata["status_wait"]
+    assert wait["attempts"] > 1 and 0.2 < wait["waited_s"] < recorder_module.STATUS_LOCK_WAIT_S
+    [line] = [r.getMessage() for r in caplog.records if r.name == recorder_module.__name__]
+    assert line.startswith(f"{tmp_path / 'run.h5'}: status complete written after "
+                           f"{wait['attempts']} attempts in ")
+
+
+def test_a_lock_held_past_the_bound_is_one_error_naming_the_wait(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(recorder_module, "STATUS_LOCK_WAIT_S", 0.3)
+    with pytest.raises(RecordingError, match=r"status complete not written \(.*unable to lock "
+                       r"file.*; locked by another process through \d+ attempts in 0\.\d s\)"):
+        closed_while_locked(tmp_path / "run.h5", hold_s=1.5)
+    assert open_recording(tmp_path / "run.h5").status == "running"

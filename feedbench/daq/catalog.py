@@ -9,8 +9,15 @@ The recordings are the source of truth, the catalog an index of them: `reconcile
 `crashed` a run whose process ended without finishing it (samples counted from its file),
 `rebuild` recreates the rows from the recordings in the catalog's directory, and a catalog
 file that SQLite finds corrupt is moved aside (``catalog.sqlite.corrupt-<UTC time>``) and
-rebuilt when it is opened, with one warning line. A catalog that cannot be read or written
-(read-only or full disk) raises `CatalogError`, one line.
+rebuilt when it is opened, with one warning line; so is an empty file or one without the
+runs table when recordings sit beside it. A row that cannot be read (a JSON column that is
+not JSON) is listed with status `damaged`, its file and why; the other rows as they are. A
+catalog that cannot be read or written (read-only or full disk) raises `CatalogError`, one
+line.
+
+Recording paths are stored relative to the catalog's directory and given back as paths from
+the current directory, so every command finds them from anywhere; a catalog made before
+(paths relative to the directory its runs were started from, or absolute) is still read.
 """
 
 from __future__ import annotations
@@ -56,6 +63,10 @@ COLUMN_NAMES = ("id", "experiment", "started_at", "stopped_at", "status", "reaso
 COLUMNS = ", ".join(COLUMN_NAMES)
 UNFINISHED = ("created", "running")
 """Statuses of a run whose process has not finished it (yet)."""
+DAMAGED = "damaged"
+"""Status of a row the catalog cannot read (its file and why in the reason)."""
+JSON_COLUMNS = {"params": {}, "timing": None}
+"""The JSON columns and what a row without a value has."""
 CORRUPT = (sqlite3.SQLITE_NOTADB, sqlite3.SQLITE_CORRUPT)
 BUSY_TIMEOUT_S = 10.0
 LOGGER = logging.getLogger(__name__)
@@ -95,16 +106,20 @@ class RunRow:
 
 class Catalog:
     """The run catalog stored in the SQLite file `path` (created if missing; a corrupt one
-    is moved aside and rebuilt from the recordings beside it)."""
+    is moved aside and rebuilt from the recordings beside it, an empty one or one without
+    the runs table rebuilt from them unless `rebuild_empty` is False)."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, *, rebuild_empty: bool = True) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._made_table = False
         if self._problems():
             with open(f"{self.path}.lock", "w") as lock:
                 fcntl.flock(lock, fcntl.LOCK_EX)  # one process replaces it, the others wait
                 if problems := self._problems():  # and then find the new one sound
                     self._replace_corrupt("; ".join(problems[:3]))
+        elif self._made_table and rebuild_empty and any(self.path.parent.glob("*.h5")):
+            self._rebuild_empty()
 
     def _problems(self) -> list[str]:
         """`_create`, and what makes the file a corrupt catalog (nothing: an empty list)."""
@@ -122,6 +137,8 @@ class Catalog:
         with self._transaction() as connection:
             connection.execute("PRAGMA journal_mode=WAL")
         with self._transaction(immediate=True) as connection:
+            self._made_table = not connection.execute(
+                "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'runs'").fetchone()
             connection.execute(SCHEMA)
             present = {row[1] for row in connection.execute("PRAGMA table_info(runs)")}
             for name, kind in ADDED_COLUMNS.items():
@@ -139,7 +156,7 @@ class Catalog:
         fresh = self.path.with_name(f"{self.path.name}.rebuilding")
         for suffix in ("", "-wal", "-shm"):  # what a rebuild cut short left
             Path(f"{fresh}{suffix}").unlink(missing_ok=True)
-        added, skipped = Catalog(fresh).rebuild()
+        added, skipped = Catalog(fresh, rebuild_empty=False).rebuild()
         os.link(self.path, aside)
         for suffix in ("-wal", "-shm"):  # the corrupt file's: never the new one's
             with suppress(FileNotFoundError):
@@ -147,6 +164,14 @@ class Catalog:
         fresh.replace(self.path)
         LOGGER.warning("%s: corrupt run catalog (%s) moved to %s; rebuilt from %d recording(s)"
                        "%s", self.path, problem, aside.name, added,
+                       f", {len(skipped)} file(s) skipped" if skipped else "")
+
+    def _rebuild_empty(self) -> None:
+        """Rebuild a catalog that had no runs table (a new or empty file, or another SQLite
+        file) from the recordings beside it; say so in one line."""
+        added, skipped = self.rebuild()
+        LOGGER.warning("%s: run catalog had no runs table (empty or new file) with recordings "
+                       "beside it; rebuilt from %d recording(s)%s", self.path, added,
                        f", {len(skipped)} file(s) skipped" if skipped else "")
 
     def new_run_id(self, experiment: str) -> str:
@@ -181,7 +206,7 @@ class Catalog:
                 " started_at = excluded.started_at, status = excluded.status,"
                 " file = excluded.file, params = excluded.params, pid = excluded.pid,"
                 " host = excluded.host",
-                (run_id, experiment, utc_now_iso(), str(file), to_json(dict(params)),
+                (run_id, experiment, utc_now_iso(), self._stored(file), to_json(dict(params)),
                  os.getpid(), socket.gethostname()),
             )
 
@@ -205,7 +230,7 @@ class Catalog:
                 f"SELECT {COLUMNS} FROM runs ORDER BY rowid DESC LIMIT ?",
                 (-1 if limit is None else limit,),
             ).fetchall()
-        return [_run_row(row) for row in rows]
+        return [self._row(row) for row in rows]
 
     def get(self, run_id_or_prefix: str) -> RunRow:
         """The run with this exact id, else the only run whose id starts with it."""
@@ -221,32 +246,34 @@ class Catalog:
         if len(rows) > 1:
             matches = ", ".join(row[0] for row in rows)
             raise RunLookupError(f"run id prefix {run_id_or_prefix!r} is ambiguous: {matches}")
-        return _run_row(rows[0])
+        return self._row(rows[0])
 
     def reconcile(self) -> list[str]:
         """Settle the runs left `created` or `running` by a process that has ended: the
         recording's own final status if it has one, else `crashed` with the samples its file
-        holds, which the file then says too (`recorder.mark_crashed`). A run whose process still runs, or runs on another host, stays as it is.
-        Returns the ids changed."""
+        holds, which the file then says too (`recorder.mark_crashed`). A run whose process
+        still runs, or runs on another host, is left alone, its file not even opened: its
+        process finishes it. Returns the ids changed."""
         with self._transaction() as connection:
             rows = connection.execute(
                 "SELECT id, file, pid, host FROM runs WHERE status IN (?, ?)", UNFINISHED
             ).fetchall()
         changed = []
         for run_id, file, pid, host in rows:
+            file = self._resolved(file)
+            if not _ended(pid, host, file):
+                continue
             summary, why = _summary(file)
             if summary is not None and summary.status not in UNFINISHED:
                 self._settle(run_id, summary.status, summary.reason, summary.n_samples,
                              summary.stopped_at, summary.timing)
-            elif _ended(pid, host, file):
+            else:
                 reason = (f"process {pid} on {host} ended without finishing the run"
                           f"{f' ({why})' if why else ''}")
                 if summary is not None:
                     _mark_file(file, reason, summary.n_samples)
                 self._settle(run_id, "crashed", reason,
                              summary.n_samples if summary else 0, None)
-            else:
-                continue
             changed.append(run_id)
         return changed
 
@@ -263,14 +290,14 @@ class Catalog:
             if summary is None:
                 skipped.append(why)
             else:
-                rows[summary.run_id] = _rebuilt_row(summary)
+                rows[summary.run_id] = _rebuilt_row(summary, self._stored(path))
         added = len(rows)
         with self._transaction(immediate=True) as connection:
             for row in connection.execute(
                     f"SELECT {COLUMNS} FROM runs WHERE status IN (?, ?)", UNFINISHED).fetchall():
                 live = dict(zip(COLUMN_NAMES, row))
                 in_file = dict(zip(COLUMN_NAMES, rows.get(live["id"], row)))
-                if (not _ended(live["pid"], live["host"], live["file"])
+                if (not _ended(live["pid"], live["host"], self._resolved(live["file"]))
                         and in_file["status"] in UNFINISHED):
                     rows[live["id"]] = row
             connection.execute("DELETE FROM runs")
@@ -279,6 +306,39 @@ class Catalog:
                 sorted(rows.values(), key=lambda row: row[COLUMN_NAMES.index("started_at")]
                        or "~"))  # a run not started yet: last
         return added, skipped
+
+    def _stored(self, file: str | Path) -> str:
+        """A recording's path as the catalog stores it: relative to its directory."""
+        return os.path.relpath(Path(file).absolute(), self.path.parent.absolute())
+
+    def _resolved(self, stored: str | None) -> str | None:
+        """A stored recording path as a path from the current directory: relative to the
+        catalog's directory (or absolute); an old catalog's path relative to the directory
+        its run was started from if it names a file from here, else the file of that name
+        beside the catalog."""
+        if stored is None:
+            return None
+        beside = self.path.parent / stored
+        if not beside.exists():
+            for old in (Path(stored), self.path.parent / Path(stored).name):
+                if old.exists():
+                    return str(old)
+        return str(beside)
+
+    def _row(self, row: tuple[Any, ...]) -> RunRow:
+        """A catalog row as a `RunRow`, its file resolved (`_resolved`); a row whose JSON
+        columns cannot be read is `damaged`, the reason names the column and why."""
+        values = dict(zip(COLUMN_NAMES, row))
+        values["file"] = self._resolved(values["file"])
+        problems = []
+        for name, empty in JSON_COLUMNS.items():
+            values[name], problem = _json_column(name, values[name], empty)
+            if problem:
+                problems.append(problem)
+        if problems:
+            values.update(status=DAMAGED, reason=f"catalog row damaged: {'; '.join(problems)} "
+                          "(feedbench catalog rebuild recreates it from its file)")
+        return RunRow(**values)
 
     def _settle(self, run_id: str, status: str, reason: str, n_samples: int,
                 stopped_at: str | None, timing: Mapping[str, Any] | None = None) -> None:
@@ -304,10 +364,18 @@ class Catalog:
             raise CatalogError(f"{self.path}: cannot use the run catalog ({exc})") from exc
 
 
-def _run_row(row: tuple[Any, ...]) -> RunRow:
-    *fields, params, pid, host, timing = row
-    return RunRow(*fields, params=json.loads(params), pid=pid, host=host,
-                  timing=json.loads(timing) if timing else None)
+def _json_column(name: str, text: str | None, empty: Any) -> tuple[Any, str]:
+    """The value of JSON column `name` (`empty` for none) and '' or why it cannot be read
+    (not JSON, or not a JSON object)."""
+    if not text:
+        return empty, ""
+    try:
+        value = json.loads(text)
+    except (TypeError, ValueError) as exc:
+        return empty, f"{name} is not JSON ({exc})"
+    if not isinstance(value, dict):
+        return empty, f"{name} is not a JSON object (got {type(value).__name__})"
+    return value, ""
 
 
 def _timing_json(timing: Mapping[str, Any] | None) -> str | None:
@@ -351,15 +419,15 @@ def _ended(pid: int | None, host: str | None, file: str | None) -> bool:
     return False
 
 
-def _rebuilt_row(summary: RecordingSummary) -> tuple[Any, ...]:
-    """The catalog row of a recording found on disk (see `Catalog.rebuild`)."""
+def _rebuilt_row(summary: RecordingSummary, file: str) -> tuple[Any, ...]:
+    """The catalog row of a recording found on disk as `file` (see `Catalog.rebuild`)."""
     status, pid, host = summary.status, None, None
     if status in UNFINISHED:
         pid = _writing_process(summary.path)
         status, host = ("running", socket.gethostname()) if pid else ("crashed", None)
     reason = summary.reason or ("no process writes it any more" if status == "crashed" else "")
     return (summary.run_id, summary.experiment, summary.started_at, summary.stopped_at or None,
-            status, reason, str(summary.path), summary.n_samples,
+            status, reason, file, summary.n_samples,
             to_json(summary.config.get("experiment", {})), pid, host,
             _timing_json(summary.timing))
 

@@ -17,15 +17,17 @@ a file whose walk would stall or leave its collection. A candidate is every "GCO
 with version 1 whose collection fits the file's address space (libhdf5 refuses to read one
 that does not), so recorded samples that happen to spell the signature are passed over: to
 be taken for a collection they would also need a size below the file's, i.e. a neighbouring
-float64 below 1e-290. The scan reads the file once through mmap (1.7 GB/s from the page
-cache: 0.11 s for a 200 MB recording). A child process with a time limit would bound any
-hang, but costs an interpreter with h5py (0.6-0.7 s) on every open and cannot tell a slow
-disk from a loop; the walk costs 0.2 ms on a small recording and says where the damage is.
+float64 below 1e-290. The scan reads the file once by `os.pread` in blocks of `BLOCK_BYTES`,
+not through mmap: a writer's HDF5 truncates its file when it closes it (the disk reserve
+given back), and a mapped page past the new end kills the reader with SIGBUS. A child
+process with a time limit would bound any hang, but costs an interpreter with h5py
+(0.6-0.7 s) on every open and cannot tell a slow disk from a loop; the walk costs 0.2 ms
+on a small recording and says where the damage is.
 """
 
 from __future__ import annotations
 
-import mmap
+import os
 from pathlib import Path
 
 SIGNATURE = b"\x89HDF\r\n\x1a\n"
@@ -40,6 +42,34 @@ ALIGNMENT = 8
 WORD = 1 << 64
 """libhdf5 adds sizes in 64-bit words (size_t): sums wrap modulo this."""
 
+BLOCK_BYTES = 1 << 22
+"""The signature scan reads this many bytes (4 MiB) at a time."""
+
+
+class _FileBytes:
+    """The bytes of an open file read on demand by `os.pread`: slices, `find` and the size
+    at opening; bytes past the file's end (it may shrink meanwhile) read as absent."""
+
+    def __init__(self, fd: int) -> None:
+        self._fd = fd
+        self._size = os.fstat(fd).st_size
+
+    def __len__(self) -> int:
+        return self._size
+
+    def __getitem__(self, span: slice) -> bytes:
+        start, stop = span.start, min(span.stop, self._size)
+        return os.pread(self._fd, stop - start, start) if stop > start else b""
+
+    def find(self, needle: bytes, start: int = 0) -> int:
+        """The offset of the first `needle` at or after `start`, -1 if there is none."""
+        while start < self._size:
+            block = self[start:start + BLOCK_BYTES + len(needle) - 1]
+            if (found := block.find(needle)) >= 0:
+                return start + found
+            start += BLOCK_BYTES
+        return -1
+
 
 class DamagedHdf5(OSError):
     """A file libhdf5 would loop on or read outside its structures; the message says where."""
@@ -50,20 +80,18 @@ def check_global_heaps(path: Path) -> None:
     libhdf5's object walk stall or leave the collection; a file that is not HDF5 (no
     superblock) or is empty passes (h5py rejects it itself)."""
     with path.open("rb") as file:
-        if file.seek(0, 2) == 0:
+        data = _FileBytes(file.fileno())
+        superblock = _superblock(data)
+        if superblock is None:
             return
-        with mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ) as data:
-            superblock = _superblock(data)
-            if superblock is None:
-                return
-            lengths, end = superblock
-            start = data.find(GLOBAL_HEAP)
-            while start >= 0:
-                _walk(data, start, lengths, end)
-                start = data.find(GLOBAL_HEAP, start + 1)
+        lengths, end = superblock
+        start = data.find(GLOBAL_HEAP)
+        while start >= 0:
+            _walk(data, start, lengths, end)
+            start = data.find(GLOBAL_HEAP, start + 1)
 
 
-def _superblock(data: mmap.mmap) -> tuple[int, int] | None:
+def _superblock(data: _FileBytes) -> tuple[int, int] | None:
     """(bytes per length, file offset up to which libhdf5 may read: the end-of-file address
     counted from the signature, so at least that before a userblock too) of the first
     superblock, or None (no signature, an unknown version or field size)."""
@@ -72,18 +100,18 @@ def _superblock(data: mmap.mmap) -> tuple[int, int] | None:
         start = 512 if start == 0 else 2 * start
     if start + 16 > len(data):
         return None
-    version = data[start + 8]
+    head = data[start + 8:start + 15].ljust(7, b"\0")  # version, sizes at 1-2 (v0/1: 5-6)
+    version = head[0]
     if version > 3:
         return None
-    offsets, lengths = (data[start + 9], data[start + 10]) if version >= 2 else \
-        (data[start + 13], data[start + 14])
+    offsets, lengths = (head[1], head[2]) if version >= 2 else (head[5], head[6])
     if offsets not in (2, 4, 8, 16, 32) or lengths not in (2, 4, 8, 16, 32):
         return None
     eoa_at = {0: 24, 1: 28}.get(version, 12) + 2 * offsets  # after base and one address
     return lengths, start + _number(data, start + eoa_at, offsets)
 
 
-def _walk(data: mmap.mmap, start: int, lengths: int, end: int) -> None:
+def _walk(data: _FileBytes, start: int, lengths: int, end: int) -> None:
     """Walk the collection at byte `start` as `H5HG__cache_heap_deserialize` does (bytes past
     the file's end read as zeros, as libhdf5's sec2 driver reads them)."""
     size = _number(data, start + 8, lengths)
@@ -111,7 +139,7 @@ def _aligned(size: int) -> int:
     return (size + ALIGNMENT - 1) % WORD // ALIGNMENT * ALIGNMENT
 
 
-def _number(data: mmap.mmap, at: int, width: int) -> int:
+def _number(data: _FileBytes, at: int, width: int) -> int:
     """The little-endian unsigned number of `width` bytes at `at` (modulo 2⁶⁴, as libhdf5
     decodes it), bytes past the end of `data` read as zeros."""
     return int.from_bytes(data[at:at + width], "little") % WORD

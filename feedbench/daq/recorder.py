@@ -13,13 +13,20 @@ marked `aborted` with the reason. The reserve still holds the block that found t
 and what comes after it (the rows in memory, the safe stop's rows and events): they are
 written while they fit, and what no longer fits is dropped without an error, so no sample
 given before the failure is lost and the safe stop of the drive never waits on the file.
+
+The final status is written in a second opening of the file, which needs its lock: feedbench's
+readers take none (`recording`), but another program may hold one (h5py and HDFView lock by
+default). The recorder then retries for up to `STATUS_LOCK_WAIT_S` and says so: a warning
+line and the attribute `status_wait` (attempts, waited_s) in the file.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import platform
+import time
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from importlib import metadata as importlib_metadata
@@ -55,6 +62,14 @@ STREAM_CHUNK_BYTES = RESERVE_BYTES // 8
 of the reserve for the rows and events after it."""
 WRITE_OVERHEAD_BYTES = 4096
 """Metadata HDF5 may add per write (chunk index, dataset extents), counted generously."""
+STATUS_LOCK_WAIT_S = 10.0
+"""How long (s) the opening that writes the final status is retried while another process
+holds a lock on the file."""
+STATUS_RETRY_FIRST_S = 0.01
+"""The first pause (s) before that opening is tried again; each next pause doubles."""
+STATUS_RETRY_MAX_S = 0.5
+"""The longest pause (s) between two tries."""
+LOGGER = logging.getLogger(__name__)
 
 
 class RecordingError(RuntimeError):
@@ -242,8 +257,10 @@ class Recorder:
         last rows could not be written is not complete). A second call does nothing.
 
         The status is written in a second opening of the file (outside SWMR mode: SWMR
-        writers must not modify attributes), after HDF5 has given back the reserve; if that
-        fails too, `RecordingError` says so and the file keeps status `running`."""
+        writers must not modify attributes), after HDF5 has given back the reserve, retried
+        while another process holds a lock on the file (`STATUS_LOCK_WAIT_S`, said in a
+        warning and the file's `status_wait`); if that fails too, `RecordingError` says so
+        and the file keeps status `running`."""
         if self._closed:
             return status, reason
         with suppress(RecordingError):  # kept in `failure`
@@ -260,13 +277,19 @@ class Recorder:
             status, reason = "aborted", reason or self.failure
             if self.failure not in reason:
                 reason = f"{reason}; {self.failure}"
+        attrs = {key: to_json(value) for key, value in (attrs or {}).items()}
         try:
-            with h5py.File(self.path, "r+") as file:
+            file, waited = _open_to_finish(self.path)
+            with file:
                 file.attrs.update(status=status, reason=reason, stopped_at=utc_now_iso(),
-                                  n_samples=self._written, n_gaps=self.gaps,
-                                  **{key: to_json(value) for key, value in (attrs or {}).items()})
+                                  n_samples=self._written, n_gaps=self.gaps, **attrs,
+                                  **({"status_wait": to_json(waited)} if waited else {}))
         except (OSError, RuntimeError) as exc:
             raise RecordingError(f"{self.path}: status {status} not written ({exc})") from None
+        if waited:
+            LOGGER.warning("%s: status %s written after %d attempts in %.2f s (another process "
+                           "held a lock on the file)", self.path, status, waited["attempts"],
+                           waited["waited_s"])
         return status, reason
 
     def __enter__(self) -> Recorder:
@@ -452,6 +475,27 @@ def _create_streams(group: h5py.Group, streams: Mapping[str, StreamSpec]) -> Non
         for channel in spec.channels:
             dataset = data.create_dataset(channel, dtype=np.float64, fillvalue=np.nan, **extendable)
             dataset.attrs["units"] = spec.units.get(channel, "")
+
+
+def _open_to_finish(path: Path) -> tuple[h5py.File, dict[str, float]]:
+    """`path` opened to write its final status, tried again with growing pauses while
+    another process holds a lock on it, for up to `STATUS_LOCK_WAIT_S`; returns the file
+    and, if it had to wait, the attempts and the wait (s)."""
+    started, pause, attempts = time.monotonic(), STATUS_RETRY_FIRST_S, 1
+    while True:
+        try:
+            file = h5py.File(path, "r+")
+            break
+        except BlockingIOError as exc:
+            waited = time.monotonic() - started
+            if waited + pause > STATUS_LOCK_WAIT_S:
+                raise BlockingIOError(exc.errno, f"{exc.strerror}; locked by another process "
+                                      f"through {attempts} attempts in {waited:.1f} s") from None
+            time.sleep(pause)
+            pause, attempts = min(2 * pause, STATUS_RETRY_MAX_S), attempts + 1
+    if attempts == 1:
+        return file, {}
+    return file, {"attempts": attempts, "waited_s": round(time.monotonic() - started, 3)}
 
 
 def _write_rows(dataset: h5py.Dataset, start: int, rows: np.ndarray) -> None:

@@ -15,7 +15,7 @@ Layout written by `feedbench.daq.recorder.Recorder`:
 
 The reader opens files in SWMR read mode, so it reads a file that is still being written
 (live replay) and a file whose writer crashed (status stays `running`, data up to the last
-flushed chunk).
+flushed chunk); it takes no file lock, so no reader ever blocks the writer.
 """
 
 from __future__ import annotations
@@ -223,14 +223,29 @@ def _open(path: Path) -> h5py.File:
     """The file read-only, by SWMR only while a writer has it open (or died with it open):
     HDF5 retries a SWMR reader's failed metadata reads with growing sleeps, so a damaged
     file opened by SWMR can block for minutes instead of failing. A file whose global heap
-    would make libhdf5 loop is rejected before it reads it (`hdf5_check`)."""
+    would make libhdf5 loop is rejected before it reads it (`hdf5_check`).
+
+    A reader takes no file lock (``locking=False``): HDF5's shared lock of a reader would
+    make the writer's last opening, which writes the final status, fail with "unable to
+    lock file" (a run lost to a `feedbench runs` or a live view reading it at that moment)."""
     check_global_heaps(path)
     try:
-        return h5py.File(path, "r", libver="latest")
+        return _unlocked(path, swmr=False)
     except OSError as exc:
         if "already open for write" not in str(exc):
             raise
-    return h5py.File(path, "r", libver="latest", swmr=True)
+    return _unlocked(path, swmr=True)
+
+
+def _unlocked(path: Path, swmr: bool) -> h5py.File:
+    """The file opened read-only without a lock; a file this process writes itself (a live
+    view beside its recorder) with the writer's lock setting, which HDF5 requires to match."""
+    try:
+        return h5py.File(path, "r", libver="latest", swmr=swmr, locking=False)
+    except OSError as exc:
+        if "locking flag values don't match" not in str(exc):
+            raise
+    return h5py.File(path, "r", libver="latest", swmr=swmr)
 
 
 def _read_summary(path: Path) -> RecordingSummary:

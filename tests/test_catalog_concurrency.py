@@ -1,0 +1,114 @@
+"""Concurrent processes never fail a run (issue 26, item 5): four writer processes record 50
+short runs each into one directory, with the catalog and recorder calls `Bench.run` makes,
+while `feedbench runs` lists the directory in a loop and a reader opens every recording in
+it (as the live window, `catalog rebuild` and the campaign's collector do). Real processes,
+real HDF5 files, one real SQLite catalog: 0 aborted, 200 complete, catalog equal to the files.
+
+A whole simulated run (`run_config`) costs ≈ 0.4 s of CPU, 200 of them more than this test's
+budget on two cores; the writer records 300 cycles in three chunks, the shortest run that
+still writes chunks, an event, the close and the status, as a bench run does."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+from feedbench.daq.catalog import Catalog
+from feedbench.daq.recording import read_summary
+
+WRITERS = 4
+RUNS_PER_WRITER = 50
+CYCLES_PER_RUN = 300
+WRITER = textwrap.dedent("""
+    import sys
+    import numpy as np
+    from feedbench.daq.catalog import Catalog
+    from feedbench.daq.recorder import Recorder
+    from feedbench.experiments.runner import CHANNELS, UNITS
+
+    directory, runs, cycles = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+    for _ in range(runs):  # as bench.run_config and Bench.run
+        catalog = Catalog(f"{directory}/catalog.sqlite")
+        catalog.reconcile()
+        run_id = catalog.new_run_id("friction_sweep")
+        path = f"{directory}/{run_id}.h5"
+        catalog.add(run_id, "friction_sweep", path, {"feeds": 5})
+        recorder = Recorder(path, CHANNELS, UNITS, {"experiment": "friction_sweep",
+                            "run_id": run_id, "config": {"experiment": {}}}, chunk_rows=100)
+        recorder.event(0, "segment", "feed 100 mm/min")
+        recorder.append_block(np.arange(cycles), np.zeros((cycles, len(CHANNELS))))
+        try:
+            status, reason = recorder.close("complete", "", {"timing": None})
+        except Exception as exc:
+            status, reason = "aborted", str(exc)
+        catalog.finish(run_id, status, reason, recorder.n_samples)
+        print(run_id, status, reason, flush=True)
+""")
+LISTER = textwrap.dedent("""
+    import contextlib, io, pathlib, sys
+    from feedbench.cli import main
+
+    directory, stop = sys.argv[1], pathlib.Path(sys.argv[2])
+    listed = 0
+    while not stop.exists():
+        with contextlib.redirect_stdout(io.StringIO()):
+            if main(["runs", "--dir", directory]) != 0:
+                sys.exit("feedbench runs failed")
+        listed += 1
+    print(listed)
+""")
+READER = textwrap.dedent("""
+    import pathlib, sys
+    from feedbench.config import ConfigError
+    from feedbench.daq.recording import open_recording
+
+    directory, stop = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2])
+    opened = 0
+    while not stop.exists():
+        for path in sorted(directory.glob("*.h5")):
+            try:
+                open_recording(path)
+                opened += 1
+            except ConfigError:  # a file not written far enough yet
+                pass
+    print(opened)
+""")
+
+
+def python(script: str, *args: object) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", script, *map(str, args)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_writers_listers_and_readers_at_once_lose_no_run(tmp_path: Path) -> None:
+    directory, stop = tmp_path / "runs", tmp_path / "stop"
+    Catalog(directory / "catalog.sqlite")
+    watchers = [python(LISTER, directory, stop), python(READER, directory, stop)]
+    started = time.monotonic()
+    writers = [python(WRITER, directory, RUNS_PER_WRITER, CYCLES_PER_RUN)
+               for _ in range(WRITERS)]
+    written = [writer.communicate(timeout=120) for writer in writers]
+    stop.touch()
+    watched = [watcher.communicate(timeout=60) for watcher in watchers]
+    elapsed = time.monotonic() - started
+
+    assert [(writer.returncode, err) for writer, (_, err) in zip(writers, written)] == [
+        (0, "")] * WRITERS
+    outcomes = [line.split(" ", 2) for out, _ in written for line in out.splitlines()]
+    assert [line for line in outcomes if line[1] != "complete"] == [], "0 aborted"
+    assert len(outcomes) == WRITERS * RUNS_PER_WRITER
+    assert [(watcher.returncode, err) for watcher, (_, err) in zip(watchers, watched)] == [
+        (0, "")] * 2
+    assert min(int(out) for out, _ in watched) > 0, "listed and read while the runs went on"
+    rows = {row.id: (row.status, row.n_samples) for row in Catalog(directory /
+                                                                    "catalog.sqlite").list()}
+    files = {summary.run_id: (summary.status, summary.n_samples)
+             for summary in map(read_summary, directory.glob("*.h5"))}
+    assert rows == files, "the catalog equals the files"
+    assert set(rows.values()) == {("complete", CYCLES_PER_RUN)}
+    assert len(rows) == WRITERS * RUNS_PER_WRITER
+    print(f"{len(rows)} runs by {WRITERS} writers, listed {watched[0][0].strip()} times, "
+          f"{watched[1][0].strip()} files read, in {elapsed:.1f} s")
