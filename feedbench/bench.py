@@ -22,7 +22,7 @@ from feedbench.daq.recorder import Recorder, expected_size
 from feedbench.daq.recording import open_recording
 from feedbench.protocols.address import split_address
 from feedbench.protocols.canbus import disconnect, open_network
-from feedbench.drivers.cia402 import Cia402Drive
+from feedbench.drivers.cia402 import Cia402Drive, StopSettings
 from feedbench.experiments.devices import DeviceLinks, open_cycle_devices
 from feedbench.experiments.family import Experiment, families, family, judged_analysis
 from feedbench.experiments.limits import Limits
@@ -72,6 +72,8 @@ BENCH_SCHEMA = {
     "eds": Field(str, "", "EDS file of the drive (empty: the packaged simulated drive's)"),
     "output_dir": Field(str, "runs", "where recordings and the catalog go"),
     "gains": Field(dict, {}, "servo gains written to the drive by SDO before the run"),
+    "stop": Field(dict, {}, "what the safe stop needs from the drives and how it is confirmed "
+                  "(drivers.cia402.STOP_SCHEMA)"),
     "world": Field(dict, {}, "simulated world (simulated = true only); never read by the host"),
     "socketcand": Field(str, "127.0.0.1:29536", "host:port of the socketcand server "
                         "(interface = socketcand; `feedbench sim` listens there)"),
@@ -187,6 +189,14 @@ def _drive_gains(drive) -> dict[str, float] | None:
     """The cascade gains the drive runs with (SDO), for analyses such as Eq. (4.20); None
     for an axis of several drives."""
     return drive.read_gains()._asdict() if isinstance(drive, Cia402Drive) else None
+
+
+def _drive_stop(drive) -> dict[str, Any]:
+    """What each drive's stop depends on, as read at configure (`StopParameters.as_metadata`);
+    several drives by name."""
+    if isinstance(drive, Cia402Drive):
+        return drive.stop_parameters.as_metadata()
+    return {name: d.stop_parameters.as_metadata() for name, d in drive.items()}
 
 
 def gains_si(table: Mapping[str, Any]) -> dict[str, float]:
@@ -329,11 +339,12 @@ class Bench:
         """The axis's drives, each configured by SDO with the bench's gains."""
         eds = self.config["eds"] or axis.packaged_eds()
         gains = gains_si(self.config["gains"]) or None
+        stop = StopSettings.from_config(self.config["stop"])
         drives = {name: Cia402Drive(self.network, node_id, eds, axis.pdo_config)
                   for name, node_id in axis.nodes().items()}
         for drive in drives.values():
             drive.configure(gains=gains, cycle_s=self.config["cycle_ms"] * 1e-3,
-                            sync_loss_cycles=sync_loss_cycles(self.config))
+                            sync_loss_cycles=sync_loss_cycles(self.config), stop=stop)
         return drives
 
     def __exit__(self, *exc) -> None:
@@ -358,7 +369,8 @@ class Bench:
         path = output_dir / f"{run_id}.h5"
         metadata = {"experiment": config.plan.experiment, "run_id": run_id,
                     "config": host_config(config.raw),
-                    "cycle_s": config.plan.cycle_s, "drive_gains": _drive_gains(self.drive)}
+                    "cycle_s": config.plan.cycle_s, "drive_gains": _drive_gains(self.drive),
+                    "drive_stop": _drive_stop(self.drive)}
         catalog.add(run_id, config.plan.experiment, str(path), config.plan.params)
         streams = {name: spec for d in self.devices for name, spec in d.streams.items()}
         recorder = Recorder(path, runner.channels, runner.units, metadata, streams=streams)

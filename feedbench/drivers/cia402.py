@@ -27,24 +27,27 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Any, Callable, Mapping, NamedTuple
 
 import canopen
 from canopen.emcy import EmcyError
 from canopen.pdo import PdoMap
 from canopen.profiles.p402 import State402
 
-from feedbench.config import ConfigError
+from feedbench.config import ConfigError, Field, positive, validate_table
 from feedbench.protocols import cia301
 from feedbench.protocols.canbus import pdo_codec, remote_node
 from feedbench.protocols.cia402 import (
     COMMANDS, CONTROLWORD, CW_FAULT_RESET, CYCLE_COUNTER, DEFAULT_RPDO_MAPS, DEFAULT_TPDO_MAPS,
-    FAULT, FORCE_ACTUAL, FORCE_OFFSET_FINE, GAIN_OBJECTS, MODES_OF_OPERATION, NOT_READY,
-    OPERATION_ENABLED, POSITION_ACTUAL, QUICK_STOP_ACTIVE, RATED_TORQUE, STATUSWORD,
-    SUPPORTED_DRIVE_MODES, SWITCH_ON_DISABLED, SW_FAULT, SW_TARGET_REACHED, TARGET_POSITION,
-    TARGET_TORQUE, TARGET_VELOCITY, TORQUE_ACTUAL, TORQUE_OFFSET, VELOCITY_ACTUAL, VELOCITY_OFFSET,
-    mode_bit,
+    FAULT, FAULT_REACTION_OPTION_CODE, FOLLOWING_ERROR_OFF, FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL,
+    FORCE_OFFSET_FINE, GAIN_OBJECTS, MODES_OF_OPERATION, NOT_READY, OPERATION_ENABLED,
+    POSITION_ACTUAL, PROFILE_DECELERATION, QUICK_STOP_ACTIVE, QUICK_STOP_DECELERATION,
+    QUICK_STOP_OPTION_CODE, RATED_TORQUE, STATUSWORD, STOP_COAST, STOP_QUICK_RAMP,
+    STOP_SLOW_DOWN_RAMP, SUPPORTED_DRIVE_MODES, SWITCH_ON_DISABLED, SW_FAULT, SW_TARGET_REACHED,
+    TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY, TORQUE_ACTUAL, TORQUE_OFFSET,
+    VELOCITY_ACTUAL, VELOCITY_OFFSET, mode_bit, quick_stop_ramp,
 )
+from feedbench.units import MM_PER_MIN
 
 Entry = int | tuple[int, int]
 """A mapped object: index (sub-index 0) or (index, sub-index)."""
@@ -66,7 +69,116 @@ SET_QUEUE = 64
 """Complete TPDO sets held for the host (real time: a host behind by more loses the oldest,
 seen as missed cycles)."""
 SAFE_STATES = (*DISABLED_STATES, QUICK_STOP_ACTIVE)
-"""States that command no motion: de-energised, or ramping down by the drive's own quick stop."""
+"""States that command no motion: de-energised, or ramping down by the drive's own quick stop
+(not a stop: the runner confirms one by measured standstill)."""
+
+STOP_SCHEMA = {
+    "deceleration_m_s2": Field(float, 0.5, "least deceleration a drive's stop may ramp at (m/s²):"
+                               " 0x6085, and 0x6084 where 0x605A or 0x605E ramps on it",
+                               positive),
+    "following_error_mm": Field(float, 10.0, "largest following-error window 0x6065 (mm)",
+                                positive),
+    "write": Field(bool, False, "write safe values (ramps of deceleration_m_s2, option codes 2, "
+                   "the window following_error_mm) where the drive's are not, instead of "
+                   "refusing"),
+    "standstill_mm_min": Field(float, 1.0, "|velocity actual| below which the axis stands "
+                               "(mm/min)", positive),
+    "standstill_cycles": Field(int, 10, "bus cycles the axis must stand before the stop is "
+                               "confirmed", positive),
+    "margin_s": Field(float, 0.1, "time a stop may take beyond v_max / deceleration (s)",
+                      positive),
+}
+"""``[bench.stop]``: what the safe stop relies on in the drives and how it is confirmed."""
+
+
+@dataclass(frozen=True)
+class StopSettings:
+    """``[bench.stop]`` in SI: deceleration (m/s²), following error (m), standstill velocity
+    (m/s) and cycles, margin (s); `write` safe values instead of refusing."""
+
+    deceleration: float = 0.5
+    following_error: float = 0.01
+    write: bool = False
+    standstill_velocity: float = 1.0 * MM_PER_MIN
+    standstill_cycles: int = 10
+    margin: float = 0.1
+
+    @classmethod
+    def from_config(cls, table: Mapping[str, Any]) -> StopSettings:
+        """From a ``[bench.stop]`` table (engineering units); `ConfigError` names a bad key."""
+        t = validate_table(table, STOP_SCHEMA, "bench.stop")
+        return cls(t["deceleration_m_s2"], t["following_error_mm"] * 1e-3, t["write"],
+                   t["standstill_mm_min"] * MM_PER_MIN, t["standstill_cycles"], t["margin_s"])
+
+
+STOP_OBJECTS = (QUICK_STOP_DECELERATION, PROFILE_DECELERATION, QUICK_STOP_OPTION_CODE,
+                FAULT_REACTION_OPTION_CODE, FOLLOWING_ERROR_WINDOW)
+"""The drive objects a stop depends on, read (and checked) at configure."""
+
+
+class StopParameters(NamedTuple):
+    """What a drive's stop depends on, as read at configure (raw values; None: the drive has
+    no such object): 0x6085 / 0x6084 (nm/s²), 0x605A, 0x605E, 0x6065 (nm), and the host
+    heartbeat's consumer time in 0x1016 (ms)."""
+
+    raw: dict[int, int | None]
+    consumer_ms: int | None
+
+    def ramp(self, option: int | None) -> int | None:
+        """The deceleration object (0x6084 / 0x6085) a stop with `STOP_*` ramp `option`
+        ramps on (None: no ramp object: at the force limit, or no option code)."""
+        return {STOP_SLOW_DOWN_RAMP: PROFILE_DECELERATION,
+                STOP_QUICK_RAMP: QUICK_STOP_DECELERATION}.get(option)
+
+    def stop_ramps(self) -> set[int]:
+        """The deceleration objects the quick stop and the fault reaction ramp on."""
+        option, reaction = self.raw[QUICK_STOP_OPTION_CODE], self.raw[FAULT_REACTION_OPTION_CODE]
+        ramps = {self.ramp(None if option is None else quick_stop_ramp(option)),
+                 self.ramp(reaction)}
+        return {index for index in ramps if index is not None}
+
+    def deceleration(self, least: float) -> float:
+        """m/s² the quick stop ramps at: its ramp object's value (at the force limit, or
+        without 0x605A: `least`, the least the bench accepts)."""
+        option = self.raw[QUICK_STOP_OPTION_CODE]
+        index = self.ramp(quick_stop_ramp(option if option is not None else STOP_QUICK_RAMP))
+        value = self.raw.get(index) if index is not None else None
+        return least if value is None else value * 1e-9
+
+    def problems(self, settings: StopSettings) -> dict[int, str]:
+        """Object → the line saying why its value cannot stop the axis as `settings` require."""
+        raw = self.raw
+        out = {index: f"0x{index:04X} = {raw[index]} nm/s² is below the "
+                      f"{settings.deceleration:g} m/s² a stop needs"
+               for index in sorted(self.stop_ramps())
+               if raw[index] is not None and raw[index] * 1e-9 < settings.deceleration}
+        for index, name in ((QUICK_STOP_OPTION_CODE, "quick stop"),
+                            (FAULT_REACTION_OPTION_CODE, "fault reaction")):
+            if raw[index] is not None and quick_stop_ramp(raw[index]) == STOP_COAST:
+                out[index] = f"0x{index:04X} = 0: the {name} lets the axis coast"
+        window = raw[FOLLOWING_ERROR_WINDOW]
+        if window is not None and window * 1e-9 > settings.following_error:
+            out[FOLLOWING_ERROR_WINDOW] = (
+                f"0x{FOLLOWING_ERROR_WINDOW:04X} = {window} nm is above the "
+                f"{settings.following_error * 1e3:g} mm allowed (0x{FOLLOWING_ERROR_OFF:X}: off)")
+        if self.consumer_ms == 0:
+            out[cia301.CONSUMER_HEARTBEAT_TIME] = (
+                f"0x{cia301.CONSUMER_HEARTBEAT_TIME:04X} does not watch the host's heartbeat")
+        return out
+
+    def as_metadata(self) -> dict[str, int | None]:
+        """The values by object ("0x6085": raw, …, "0x1016": consumer time in ms)."""
+        return {**{f"0x{index:04X}": value for index, value in self.raw.items()},
+                f"0x{cia301.CONSUMER_HEARTBEAT_TIME:04X}": self.consumer_ms}
+
+
+def safe_values(settings: StopSettings) -> dict[int, int]:
+    """What `StopSettings.write` writes where a drive's value is refused (raw: nm/s², codes,
+    nm)."""
+    return {QUICK_STOP_DECELERATION: math.ceil(settings.deceleration * 1e9),
+            PROFILE_DECELERATION: math.ceil(settings.deceleration * 1e9),
+            QUICK_STOP_OPTION_CODE: STOP_QUICK_RAMP, FAULT_REACTION_OPTION_CODE: STOP_QUICK_RAMP,
+            FOLLOWING_ERROR_WINDOW: math.floor(settings.following_error * 1e9)}
 
 
 @dataclass(frozen=True)
@@ -182,12 +294,15 @@ class Cia402Drive:
         self._heartbeat_at: float | None = None
         self._heartbeat_lost_s = math.inf
         self.node.nmt.add_heartbeat_callback(self._on_heartbeat)
+        self.stop_settings = StopSettings()
+        self.stop_parameters = StopParameters(dict.fromkeys(STOP_OBJECTS), None)
 
     # -- configuration (SDO) -------------------------------------------------------------
 
     def configure(self, heartbeat_ms: int = 100, timeout_s: float = 2.0,
                   gains: dict[str, float] | None = None, consumer_ms: int = HOST_CONSUMER_MS,
-                  sync_loss_cycles: int = 0, cycle_s: float | None = None) -> None:
+                  sync_loss_cycles: int = 0, cycle_s: float | None = None,
+                  stop: StopSettings = StopSettings()) -> None:
         """NMT pre-operational, heartbeat on, watchdogs, PDO maps by SDO, gains, NMT
         operational.
 
@@ -198,6 +313,7 @@ class Cia402Drive:
         where its EDS has the objects (0x1016, 0x2021). With `cycle_s` (s) the drive is told
         the bus cycle (0x1006, µs, where writable): the period it counts missed SYNCs in; a
         drive that runs another cycle refuses it, a `ConfigError` naming ``bench.cycle_ms``.
+        What the drive's stop depends on is read and checked against `stop` (`check_stop`).
         """
         node = self.node
         node.nmt.state = "PRE-OPERATIONAL"
@@ -207,6 +323,7 @@ class Cia402Drive:
         if cycle_s is not None:
             self._write_cycle_period(round(cycle_s * 1e6))
         self._configure_watchdogs(consumer_ms, sync_loss_cycles)
+        self.check_stop(stop)
         self._newton_per_mille = node.sdo[RATED_TORQUE].raw * 1e-6
         self._supported_modes = node.sdo[SUPPORTED_DRIVE_MODES].raw
         self._map_pdos()
@@ -249,6 +366,39 @@ class Cia402Drive:
                 cia301.HOST_NODE_ID, consumer_ms)
         if cia301.SYNC_LOSS_LIMIT in od:
             self.node.sdo[cia301.SYNC_LOSS_LIMIT].raw = sync_loss_cycles
+
+    def check_stop(self, settings: StopSettings) -> None:
+        """Read what the drive's stop depends on (`StopParameters`) into `stop_parameters`;
+        with `settings.write` write `safe_values` over the refused ones and read again. A
+        value still refused is a `ConfigError`, one line naming each object and its value."""
+        self.stop_settings = settings
+        self.stop_parameters = self._read_stop_parameters()
+        problems = self.stop_parameters.problems(settings)
+        if settings.write and problems:
+            safe = safe_values(settings)
+            for index in problems.keys() & safe.keys():
+                self.node.sdo[index].raw = safe[index]
+            self.stop_parameters = self._read_stop_parameters()
+            problems = self.stop_parameters.problems(settings)
+        if problems:
+            raise ConfigError(f"bench.stop: drive node {self.node.id} cannot stop the axis: "
+                              + "; ".join(problems.values()))
+
+    def _read_stop_parameters(self) -> StopParameters:
+        od = self.node.object_dictionary
+        raw = {index: self.node.sdo[index].raw if index in od else None
+               for index in STOP_OBJECTS}
+        consumer_ms = None
+        if cia301.CONSUMER_HEARTBEAT_TIME in od:
+            node_id, time_ms = cia301.consumer_of(
+                self.node.sdo[cia301.CONSUMER_HEARTBEAT_TIME][1].raw)
+            consumer_ms = time_ms if node_id == cia301.HOST_NODE_ID else 0
+        return StopParameters(raw, consumer_ms)
+
+    @property
+    def stop_deceleration(self) -> float:
+        """m/s² the drive's quick stop ramps at (`StopParameters.deceleration`)."""
+        return self.stop_parameters.deceleration(self.stop_settings.deceleration)
 
     def _on_heartbeat(self, state: int) -> None:
         self._heartbeat_at = time.monotonic()
@@ -402,14 +552,15 @@ class Cia402Drive:
         self._write_controlword(controlword_towards(state, OPERATION_ENABLED))
         return False
 
-    def disable_step(self, at_standstill: bool = False) -> bool:
+    def disable_step(self, at_standstill: bool = False, stopped: bool = False) -> bool:
         """Write the next controlword towards a de-energised drive; True once it is reached.
 
         Operation enabled → quick stop 0x02 (the drive ramps down); in quick stop active the
-        drive either switches off itself or, once the stop is complete (bit 10), is sent
-        disable voltage 0x00; any other powered state gets 0x00 directly. With
-        `at_standstill` (the host has already ramped its setpoint down) operation enabled
-        gets disable operation 0x07 (transition 5) instead of a quick stop.
+        drive either switches off itself or, once the stop is complete (bit 10) or the host
+        measured the axis `stopped`, is sent disable voltage 0x00; any other powered state
+        gets 0x00 directly. With `at_standstill` (the host has already ramped its setpoint
+        down) operation enabled gets disable operation 0x07 (transition 5) instead of a
+        quick stop.
         """
         state = self.state
         if state in DISABLED_STATES:
@@ -419,7 +570,8 @@ class Cia402Drive:
             self._write_controlword(CW_DISABLE_OPERATION)
             return False
         stopping = state == OPERATION_ENABLED or (
-            state == QUICK_STOP_ACTIVE and not self._raw[STATUSWORD] & SW_TARGET_REACHED)
+            state == QUICK_STOP_ACTIVE and not stopped
+            and not self._raw[STATUSWORD] & SW_TARGET_REACHED)
         self._write_controlword(CW_QUICK_STOP if stopping else CW_DISABLE_VOLTAGE)
         return False
 
@@ -427,18 +579,42 @@ class Cia402Drive:
         """Controlword quick stop (0x02) from the next transmit on."""
         self._write_controlword(CW_QUICK_STOP)
 
-    def quick_stop_by_sdo(self, timeout_s: float) -> str:
-        """Quick stop (0x02) by SDO and in the RPDO payload, then the state from the
-        statusword read by SDO: for when the cycle's PDOs fail. Raises canopen's or the
-        bus's error if the drive does not answer within `timeout_s` (s) per request."""
-        self.quick_stop()
+    def disable_voltage(self) -> None:
+        """Controlword disable voltage (0x00) from the next transmit on: the power stage off
+        from any state, the axis left to coast."""
+        self._write_controlword(CW_DISABLE_VOLTAGE)
+
+    def stop_by_sdo(self, timeout_s: float, standstill: float,
+                    escalate: bool = False) -> tuple[str, float]:
+        """One step of a stop by SDO, for when the cycle's PDOs fail: the state (0x6041) and
+        velocity actual (0x606C, m/s) read by SDO; then quick stop (0x02) while the drive is
+        enabled or in quick stop with |v| ≥ `standstill` (m/s), else (or with `escalate`)
+        disable voltage (0x00), by SDO and in the RPDO payload. Returns (state, velocity) as
+        read. Raises canopen's or the bus's error if the drive does not answer within
+        `timeout_s` (s) per request."""
         sdo = self.node.sdo
         waited, sdo.RESPONSE_TIMEOUT = sdo.RESPONSE_TIMEOUT, timeout_s
         try:
-            sdo[CONTROLWORD].raw = CW_QUICK_STOP
-            return decode_state(sdo[STATUSWORD].raw)
+            state = decode_state(sdo[STATUSWORD].raw)
+            velocity = sdo[VELOCITY_ACTUAL].raw * 1e-9
+            moving = abs(velocity) >= standstill
+            quick = not escalate and (state == OPERATION_ENABLED
+                                      or (state == QUICK_STOP_ACTIVE and moving))
+            self._write_controlword(CW_QUICK_STOP if quick else CW_DISABLE_VOLTAGE)
+            sdo[CONTROLWORD].raw = self._controlword
+            return state, velocity
         finally:
             sdo.RESPONSE_TIMEOUT = waited
+
+    def state_by_sdo(self, timeout_s: float) -> tuple[int, str]:
+        """The statusword 0x6041 read by SDO (waiting up to `timeout_s`, s) and its state."""
+        sdo = self.node.sdo
+        waited, sdo.RESPONSE_TIMEOUT = sdo.RESPONSE_TIMEOUT, timeout_s
+        try:
+            word = sdo[STATUSWORD].raw
+        finally:
+            sdo.RESPONSE_TIMEOUT = waited
+        return word, decode_state(word)
 
     def nmt_stop(self) -> None:
         """NMT stop to the node (unconfirmed: NMT has no answer)."""

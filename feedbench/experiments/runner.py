@@ -9,10 +9,17 @@ of operation enabled at once, the drive ramps down at its own quick-stop deceler
 switches off), holds the setpoint and closes the recording as aborted with the reason.
 Every sample up to the stop stays on disk.
 
+Safe means stopped: a stop is confirmed by motion, every drive's velocity actual below the
+standstill velocity for `StopSettings.standstill_cycles` and its power stage off (the
+statusword of the TPDOs, then 0x6041 read by SDO), within a bound computed from the limits
+(`_stop_bound`: v_max / the drives' quick-stop deceleration + margin). An axis not stopped
+within it is escalated: disable voltage (the power stage off), then safe torque off by a
+device that has it; each step is an event in the file and a part of the run's reason.
+
 The safe stop depends on nothing but the bus: a recording that fails (full disk) aborts the
 run like any fault, and the stop goes on without it; the file is finalized after the drives
 are stopped. If the bus fails during the stop, the host keeps trying for `STOP_RETRY_S`
-(quick stop by SDO and a bus cycle, then NMT stop) and, if no drive state is confirmed,
+(stop by SDO and a bus cycle, then NMT stop) and, if no safe state is confirmed,
 says so in the run's reason: "drive state unknown".
 """
 
@@ -26,15 +33,16 @@ import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Iterator, Mapping, Protocol, Sequence
+from typing import Any, Callable, Iterator, Mapping, Protocol, Sequence
 
 import numpy as np
 
 from feedbench.daq.clock import HostStalled, NodeLost
 from feedbench.daq.recorder import RecordingError
-from feedbench.drivers.cia402 import SAFE_STATES, Actual
+from feedbench.drivers.cia402 import DISABLED_STATES, Actual
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan, Segment
+from feedbench.units import MM_PER_MIN
 
 CHANNELS = ("x_ref", "position", "velocity", "force", "force_offset", "velocity_offset",
             "statusword")
@@ -50,7 +58,6 @@ ENABLE_TIMEOUT_S = 2.0
 """At short cycles the enable may take this long (s) rather than ENABLE_TIMEOUT_CYCLES: a
 real drive releasing its brake takes a few hundred ms, and a real-time host behind the
 drive's TPDO sets sees each state change some cycles late."""
-DISABLE_TIMEOUT_CYCLES = 50
 BLOCK_CYCLES = 50
 """Cycles per block handed to observers (live plot, progress); the recorder gets every row."""
 STOP_RETRY_S = 5.0
@@ -73,6 +80,29 @@ class StopRequest:
         """Ask the runner to ramp down and stop at its next cycle."""
         if self.reason is None:
             self.reason = reason
+
+
+class Standstill:
+    """Counts the bus cycles in a row in which every drive's |velocity actual| stayed below
+    `velocity` (m/s); the axis stands after `cycles` of them."""
+
+    def __init__(self, velocity: float, cycles: int) -> None:
+        self.velocity = velocity
+        self.cycles = cycles
+        self.count = 0
+
+    def update(self, velocities: Sequence[float]) -> None:
+        """One bus cycle's measured velocities (m/s; NaN never stands)."""
+        still = all(abs(v) < self.velocity for v in velocities)
+        self.count = self.count + 1 if still else 0
+
+    @property
+    def stopped(self) -> bool:
+        return self.count >= self.cycles
+
+    def describe(self) -> str:
+        """The rule, for a line: "|v| < 1 mm/min for 10 cycles"."""
+        return f"|v| < {self.velocity / MM_PER_MIN:g} mm/min for {self.cycles} cycles"
 
 
 class RunAborted(RuntimeError):
@@ -180,8 +210,9 @@ class Runner:
     master and slave of a rack-and-pinion axis): then each drive follows the plan from
     where it stood at `read_position`, every drive is enabled, watched and disabled, and
     the channels are named per drive (`drive_channels`). `clock` is a `LockstepClock` or
-    `RealtimeClock` from `feedbench.daq.clock`; `stop_accel` (m/s²) is the deceleration the
-    safe stop waits for (the drives' quick stop ramps at their own 0x6085). `devices` are
+    `RealtimeClock` from `feedbench.daq.clock`; the safe stop waits for the drives' own
+    quick stop as long as `Cia402Drive.stop_deceleration` takes from the velocity limit
+    (`_stop_bound`). `devices` are
     served every cycle: `before_sync(plan index)` before the SYNC (None outside the plan:
     enable, disable, stop), `after_sync` after it (a device that raises there: its
     channels NaN in that cycle's row, which is recorded), their
@@ -189,14 +220,13 @@ class Runner:
     every run (complete or aborted), after the drive is disabled.
     """
 
-    def __init__(self, drive, clock, limits: Limits, stop_accel: float = 2.0,
+    def __init__(self, drive, clock, limits: Limits,
                  observers: Sequence[Observer] = (), stop: StopRequest | None = None,
                  devices: Sequence[CycleDevice] = ()) -> None:
         self.drives = dict(drive) if isinstance(drive, Mapping) else {"": drive}
         self.drive = next(iter(self.drives.values()))
         self.clock = clock
         self.limits = limits
-        self.stop_accel = stop_accel
         self.observers = list(observers)
         self.stop = stop or StopRequest()
         self.devices = list(devices)
@@ -270,14 +300,12 @@ class Runner:
                 status, reason = "aborted", str(exc)
             except Exception as exc:  # bus timeout, driver error, full disk: still stop safely
                 status, reason = "aborted", f"{type(exc).__name__}: {exc}"
-            velocity = 0.0
             quick = status == "aborted"
             if quick:
                 self._note(recorder, "abort", reason)
-                velocity = (targets[i] - targets[i - 1]) / plan.cycle_s if 0 < i < len(targets) else 0.0
-            unknown = self._safe_stop(recorder, last_target, velocity, plan.cycle_s, quick)
-            if unknown:
-                status, reason = "aborted", f"{reason}; {unknown}" if reason else unknown
+            escalated = self._safe_stop(recorder, last_target, plan.cycle_s, quick)
+            if escalated:
+                status, reason = "aborted", f"{reason}; {escalated}" if reason else escalated
             self._stop_devices(device_recorder)
         self._flush_block()
         timing = self.clock.timing()
@@ -361,38 +389,116 @@ class Runner:
         states = ", ".join(drive.state for drive in self.drives.values())
         raise RunAborted(f"drive did not reach operation enabled (state {states})")
 
-    def _safe_stop(self, recorder, x: float, velocity: float, dt: float, quick: bool) -> str:
-        """Disable the drives with the setpoint held at `x` (m) and the excitation off: after
-        an abort (`quick`) by their own quick stop, controlword 0x02 from the next cycle on
-        (out of operation enabled at once; each drive ramps down at its 0x6085 and switches
-        off), waited for as long as a ramp from `velocity` (m/s) at `stop_accel` takes; after
-        a complete plan, at standstill, by disable operation. If that fails, `_stop_by_sdo`.
-        Returns "" once the drives are stopped, else the one line saying the drive state is
-        unknown."""
+    def _safe_stop(self, recorder, x: float, dt: float, quick: bool) -> str:
+        """Stop the drives with the setpoint held at `x` (m) and the excitation off, the stop
+        confirmed by motion (`_stop_by_motion`); if the controlword sequence fails,
+        `_stop_by_sdo`. Returns "" for a stop as planned, else the line the run's reason
+        gets: how the stop was escalated, or that the drive state is unknown."""
+        bound = self._stop_bound(dt)
         try:
-            ramp = int(np.ceil(abs(velocity) / (self.stop_accel * dt)))
-            if self._disable(recorder, x, quick, DISABLE_TIMEOUT_CYCLES + ramp):
-                return ""
-            why = "not disabled by the controlword sequence"
-        except Exception as exc:  # the bus may be gone: record why the ramp ended early
+            return self._stop_by_motion(recorder, x, bound, dt, quick)
+        except Exception as exc:  # the bus may be gone: record why the stop ended early
             why = f"{type(exc).__name__}: {exc}"
         self._note(recorder, "fault", f"safe stop incomplete: {why}")
-        unknown = self._stop_by_sdo(why)
-        self._note(recorder, "fault", unknown or "drives in a safe state by SDO quick stop")
+        unknown = self._stop_by_sdo(why, bound * dt)
+        self._note(recorder, "fault", unknown or "drives in a safe state by SDO quick stop "
+                   "(stopped, power stage off)")
         return unknown
 
-    def _stop_by_sdo(self, why: str) -> str:
-        """Quick stop by SDO to every drive and a bus cycle, again until each reports a safe
-        state (`SAFE_STATES`), for at most `STOP_RETRY_S`; else NMT stop. Returns "" once
-        confirmed, else "drive state unknown (…)" with the last answer or error."""
-        deadline = time.monotonic() + STOP_RETRY_S
+    def _stop_bound(self, dt: float) -> int:
+        """Bus cycles (of `dt` s) a stop may take: from the velocity limit at the slowest
+        drive's quick-stop deceleration, plus `StopSettings.margin` and the standstill cycles."""
+        settings = self.drive.stop_settings
+        deceleration = min(drive.stop_deceleration for drive in self.drives.values())
+        return (math.ceil((self.limits.velocity / deceleration + settings.margin) / dt)
+                + settings.standstill_cycles)
+
+    def _stop_by_motion(self, recorder, hold: float, bound: int, dt: float, quick: bool) -> str:
+        """The controlword sequence (`_run_stop`) until every drive is de-energised and the
+        axis stood still for `StopSettings.standstill_cycles`, within `bound` cycles of `dt`
+        (s); then 0x6041 read by SDO. Not stopped within the bound: escalate (`_escalate`)."""
+        settings = self.drive.stop_settings
+        standstill = Standstill(settings.standstill_velocity, settings.standstill_cycles)
+        self._note(recorder, "segment", segment_text(None, "disable"))
+        cycles = self._run_stop(recorder, hold, bound, standstill,
+                                lambda drive: drive.disable_step(not quick, standstill.stopped))
+        if cycles is None:
+            return self._escalate(recorder, hold, bound, dt, standstill)
+        self._note(recorder, "stop", f"axis stopped, power stage off after {cycles} cycles "
+                   f"({standstill.describe()}; {self._confirm_off()})")
+        return ""
+
+    def _escalate(self, recorder, hold: float, bound: int, dt: float,
+                  standstill: Standstill) -> str:
+        """The stop did not end within `bound` cycles of `dt` (s): disable voltage, then safe
+        torque off by every device that has it, and `bound` cycles more for the axis to
+        stand; each step an event and a part of the returned line."""
+        steps = [f"not stopped within {bound * dt:.3g} s ({self._motion()}): disable voltage"]
+        self._note(recorder, "fault", f"safe stop: {steps[0]}")
+        for drive in self.drives.values():
+            drive.disable_voltage()
+        for device in self.devices:
+            if hasattr(device, "safe_torque_off"):
+                steps.append(f"safe torque off by {device.safe_torque_off()}")
+                self._note(recorder, "fault", f"safe stop: {steps[-1]}")
+        cycles = self._run_stop(recorder, hold, bound, standstill,
+                                lambda drive: drive.disable_step(stopped=True))
+        if not all(drive.state in DISABLED_STATES for drive in self.drives.values()):
+            raise RuntimeError(f"not disabled by the controlword sequence ({self._motion()})")
+        if cycles is None:
+            steps.append(f"axis still moving ({self._motion()})")
+        else:
+            steps.append(f"axis stopped after {cycles} more cycles ({self._confirm_off()})")
+        self._note(recorder, "fault", f"safe stop: {steps[-1]}")
+        return "; ".join(steps)
+
+    def _run_stop(self, recorder, hold: float, cycles: int, standstill: Standstill,
+                  step: Callable[[Any], bool]) -> int | None:
+        """Up to `cycles` bus cycles of `step(drive)` (True: de-energised) with the setpoint
+        held at `hold`; the cycles it took until every drive was de-energised and
+        `standstill` confirmed, else None."""
+        drives = self.drives.values()
+        for n in range(cycles):
+            if all([step(drive) for drive in drives]) and standstill.stopped:
+                return n
+            self._stop_cycle(recorder, hold)
+            standstill.update([drive.actual.velocity for drive in drives])
+        return None
+
+    def _motion(self) -> str:
+        """Each drive's state and |velocity actual| (mm/min), for a line."""
+        return ", ".join(f"{_where(name)}{drive.state} at "
+                         f"{abs(drive.actual.velocity) / MM_PER_MIN:.3g} mm/min"
+                         for name, drive in self.drives.items())
+
+    def _confirm_off(self) -> str:
+        """Each drive's statusword read by SDO: "0x6041 = 0x0250 SWITCH ON DISABLED"; raises
+        if one is not de-energised."""
+        words = []
+        for name, drive in self.drives.items():
+            word, state = drive.state_by_sdo(SDO_STOP_TIMEOUT_S)
+            if state not in DISABLED_STATES:
+                raise RuntimeError(f"{_where(name)}0x6041 = 0x{word:04X}: {state}")
+            words.append(f"{_where(name)}0x6041 = 0x{word:04X} {state}")
+        return ", ".join(words)
+
+    def _stop_by_sdo(self, why: str, bound_s: float) -> str:
+        """A stop by SDO to every drive (`Cia402Drive.stop_by_sdo`; after `bound_s` (s)
+        disable voltage, escalated) and a bus cycle, again until each is de-energised and
+        below the standstill velocity, for at most `STOP_RETRY_S`; else NMT stop. Returns
+        "" once confirmed, else "drive state unknown (…)" with the last answer or error."""
+        start = time.monotonic()
         last = why
-        while time.monotonic() < deadline:
+        standstill = self.drive.stop_settings.standstill_velocity
+        while time.monotonic() < start + STOP_RETRY_S:
+            escalate = time.monotonic() > start + bound_s
             try:
-                states = [d.quick_stop_by_sdo(SDO_STOP_TIMEOUT_S) for d in self.drives.values()]
-                if all(state in SAFE_STATES for state in states):
+                reads = [d.stop_by_sdo(SDO_STOP_TIMEOUT_S, standstill, escalate)
+                         for d in self.drives.values()]
+                if all(state in DISABLED_STATES and abs(v) < standstill for state, v in reads):
                     return ""
-                last = f"state {', '.join(states)}"
+                last = ", ".join(f"state {state} at {abs(v) / MM_PER_MIN:.3g} mm/min"
+                                 for state, v in reads)
                 self.clock.tick()  # a drive that acts on the SYNC (lockstep) acts now
             except Exception as exc:  # no answer (yet): a hung peer may come back
                 last = f"{type(exc).__name__}: {exc}"
@@ -419,22 +525,6 @@ class Runner:
             recorder.event(self._next_cycle(), kind, text)
         except RecordingError:  # kept in the recorder's `failure`
             pass
-
-    def _disable(self, recorder, hold: float, quick: bool = False,
-                 cycles: int = DISABLE_TIMEOUT_CYCLES) -> bool:
-        """Controlword sequence back to switch-on-disabled, one step per cycle, for at most
-        `cycles`: with `quick` through the drive's own quick stop (0x02, then 0x00 once it
-        stopped); else, the setpoint at standstill, operation disabled directly (0x07, then
-        0x00)."""
-        self._note(recorder, "segment", segment_text(None, "disable"))
-        for _ in range(cycles):
-            if all([drive.disable_step(at_standstill=not quick)
-                    for drive in self.drives.values()]):
-                return True
-            self._stop_cycle(recorder, hold)
-        states = ", ".join(drive.state for drive in self.drives.values())
-        self._note(recorder, "fault", f"drive still {states} after {cycles} cycles")
-        return False
 
     def _stop_devices(self, recorder) -> None:
         """Every device's `stop` (spindle off, stream drained); a failure is recorded."""
