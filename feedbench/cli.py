@@ -4,7 +4,9 @@ tune.
 Errors the user can fix (a config key, a limit, an unknown run, a file that is not what it
 should be) print one line ``feedbench: error: <file or field>: <reason>`` and exit with
 status 2, before anything moves; any other failure prints one line naming its type (status 2),
-Ctrl-C outside a run one line (status 130). ``--debug`` shows the traceback instead.
+Ctrl-C outside a run one line (status 130). ``--debug`` shows the traceback instead. Output
+piped into a reader that stops early (``feedbench runs | head``) ends quietly, as Unix tools
+do (status 141).
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import os
+import select
 import signal
 import socket
 import sys
@@ -28,6 +32,9 @@ from feedbench.protocols.address import split_address
 USER_ERRORS = (ConfigError, LimitError, FileNotFoundError, DisplayError)
 INTERRUPTED = 130
 """Exit status after Ctrl-C outside a run (128 + SIGINT, as a shell reports it)."""
+STDOUT_CLOSED = 128 + signal.SIGPIPE
+"""Exit status when the reader of the output went away (141, as a shell reports a tool that
+SIGPIPE ended)."""
 
 
 class Parser(argparse.ArgumentParser):
@@ -394,10 +401,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with _noting_interrupts():
             status = args.func(args)
+            sys.stdout.flush()  # a reader gone is found here, not in Python's flush at exit
         if _SIGINT_SEEN.is_set():  # dropped where it landed: the command still is interrupted
             raise KeyboardInterrupt
         return status
     except Exception as exc:
+        if isinstance(exc, BrokenPipeError) and _stdout_closed():
+            return STDOUT_CLOSED
         if args.debug:
             raise
         if _SIGINT_SEEN.is_set():
@@ -446,6 +456,20 @@ def _noting_interrupts():
     finally:
         signal.signal(signal.SIGINT, previous)
         sys.unraisablehook = previous_hook
+
+
+def _stdout_closed() -> bool:
+    """Whether the reader of stdout has gone (a pipe closed early): then stdout is pointed at
+    /dev/null, so that Python's last flush at exit does not fail again."""
+    poller = select.poll()
+    try:
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+    except (OSError, ValueError):  # no real file behind stdout (a test's capture)
+        return False
+    if not any(events & select.POLLERR for _, events in poller.poll(0)):
+        return False
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    return True
 
 
 def _user_message(exc: Exception) -> str:

@@ -19,8 +19,11 @@ import sys
 import tempfile
 import textwrap
 import time
+from contextlib import closing
 from importlib import resources
 from pathlib import Path
+
+import pytest
 
 import feedbench
 from feedbench.bench import parse_run_config, run_config
@@ -342,3 +345,80 @@ def test_a_run_whose_process_is_alive_is_left_alone(tmp_path):
     catalog.add(closed, "friction_sweep", tmp_path / f"{closed}.h5", {})
     assert catalog.reconcile() == []
     assert [(row.id, row.status) for row in catalog.list()] == [(closed, "running")]
+
+
+def two_recordings(directory: Path) -> list[str]:
+    """Two recordings of finished runs in `directory`, with no catalog row: their ids."""
+    ids = ["20261125-101010-friction_sweep-1", "20261125-101011-friction_sweep-1"]
+    for run_id in ids:
+        record(directory / f"{run_id}.h5", "friction_sweep", friction_steps())
+    return ids
+
+
+def feedbench_runs(directory: Path, stdout: int = subprocess.PIPE) -> subprocess.CompletedProcess:
+    """`feedbench runs --dir DIRECTORY` in a process of its own, its output into `stdout`."""
+    return subprocess.run([sys.executable, "-m", "feedbench.cli", "runs", "--dir",
+                           str(directory)], stdout=stdout, stderr=subprocess.PIPE, text=True,
+                          timeout=60)
+
+
+def empty_file(path: Path) -> None:
+    path.write_bytes(b"")
+
+
+def sqlite_without_runs(path: Path) -> None:
+    with closing(sqlite3.connect(path)) as connection, connection:
+        connection.execute("CREATE TABLE notes (text TEXT)")
+
+
+@pytest.mark.parametrize("make_catalog", [empty_file, sqlite_without_runs])
+def test_a_catalog_without_runs_table_beside_recordings_is_rebuilt_in_one_line(
+        tmp_path, make_catalog):
+    ids = two_recordings(tmp_path)
+    make_catalog(tmp_path / "catalog.sqlite")
+    listed = feedbench_runs(tmp_path)
+    assert (listed.returncode, listed.stderr) == (0, (
+        f"{tmp_path / 'catalog.sqlite'}: run catalog had no runs table (empty or new file) "
+        "with recordings beside it; rebuilt from 2 recording(s)\n"))
+    assert [line.split()[:4] for line in listed.stdout.splitlines()] == [
+        [run_id, "complete", "4940", str(tmp_path / f"{run_id}.h5")] for run_id in ids[::-1]]
+    assert feedbench_runs(tmp_path).stderr == "", "said once"
+
+
+@pytest.mark.parametrize("column, value, problem", [
+    ("timing", "{not json", "timing is not JSON (Expecting property name enclosed in double "
+                            "quotes: line 1 column 2 (char 1))"),
+    ("params", "[1, 2]", "params is not a JSON object (got list)"),
+])
+def test_a_bad_row_is_listed_damaged_with_its_file_and_the_others_as_they_are(
+        tmp_path, capsys, column, value, problem):
+    catalog = Catalog(tmp_path / "catalog.sqlite")
+    ids = two_recordings(tmp_path)
+    for run_id in ids:
+        catalog.add(run_id, "friction_sweep", tmp_path / f"{run_id}.h5", {"feeds": 2})
+        catalog.finish(run_id, "complete", "", 4940)
+    with closing(sqlite3.connect(tmp_path / "catalog.sqlite")) as connection, connection:
+        connection.execute(f"UPDATE runs SET {column} = ? WHERE id = ?", (value, ids[0]))
+
+    rows = {row["id"]: row for row in runs_json(tmp_path, capsys)}
+    assert (rows[ids[0]]["status"], rows[ids[0]]["file"], rows[ids[0]]["reason"]) == (
+        "damaged", str(tmp_path / f"{ids[0]}.h5"), f"catalog row damaged: {problem} "
+        "(feedbench catalog rebuild recreates it from its file)")
+    assert (rows[ids[1]]["status"], rows[ids[1]]["params"]) == ("complete", {"feeds": 2})
+    assert main(["runs", "--dir", str(tmp_path)]) == 0
+    assert [line.split()[1] for line in capsys.readouterr().out.splitlines()] == [
+        "complete", "damaged"]
+    assert main(["catalog", "rebuild", "--dir", str(tmp_path)]) == 0
+    assert {row.id: row.status for row in catalog.list()} == dict.fromkeys(ids, "complete")
+
+
+def test_runs_into_a_pipe_closed_early_ends_quietly(tmp_path):
+    """`feedbench runs | head`: the reader goes before the listing is written."""
+    catalog = Catalog(tmp_path / "catalog.sqlite")
+    two_recordings(tmp_path)
+    assert catalog.rebuild() == (2, [])
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    listed = feedbench_runs(tmp_path, stdout=write_end)
+    os.close(write_end)
+    assert (listed.returncode, listed.stderr) == (141, "")
