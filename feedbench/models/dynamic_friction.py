@@ -1,0 +1,266 @@
+"""Dynamic friction: pre-sliding hysteresis laws integrated over a measured motion record.
+
+The static law of the thesis, Eq. (5.2), makes friction a function of velocity. At a
+motion reversal the contact first deforms elastically over a few µm ("pre-sliding", Ch. 2.3,
+Fig. 2.9) before it slips, so the force follows the displacement since the reversal, not
+the velocity: a hysteresis loop in the force–displacement plane. The thesis names the
+dynamic models that capture it (§2.3, §5.2: LuGre and GMS, its refs. [105], [106], which
+are entries [106], [107] of its reference list: the list is shifted by one) and leaves them
+out of its own model. Three laws, each from its paper, SI units (m, s, N):
+
+- Dahl (P. R. Dahl, "A solid friction model", Aerospace Corp. TOR-0158(3107-18)-1, 1968;
+  "Solid friction damping of mechanical vibrations", AIAA J. 14 (1976) 1675–1682):
+      dF/dx = σ0 |1 − (F/F_c) sgn ẋ|^α sgn(1 − (F/F_c) sgn ẋ)
+  rate independent: F depends on the path of x only (`dahl_force`, exact per sample).
+- LuGre (C. Canudas de Wit, H. Olsson, K. J. Åström, P. Lischinsky, "A new model for
+  control of systems with friction", IEEE Trans. Autom. Control 40 (1995) 419–425):
+      dz/dt = v − σ0 |v| z / g(v),   g(v) = F_c + (F_s − F_c) e^{−(v/v_s)²},
+      F = σ0 z + σ1 dz/dt + σ2 v
+  (`LuGre.force`, the z-equation solved exactly over each substep at constant v).
+- Elasto-plastic (P. Dupont, V. Hayward, B. Armstrong, F. Altpeter, "Single state
+  elastoplastic friction models", IEEE Trans. Autom. Control 47 (2002) 787–792):
+      dz/dt = v (1 − α(z, v) z / z_ss(v)),  z_ss(v) = g(v) sgn(v) / σ0,
+      F = σ0 z + σ1 dz/dt + σ2 v,
+  α = 0 for |z| ≤ z_ba or sgn z ≠ sgn v (purely elastic: no drift under a force below
+  breakaway, which LuGre and Dahl show), α = 1 for |z| ≥ |z_ss|, between them
+  ½ sin(π (|z| − (|z_ss| + z_ba)/2) / (|z_ss| − z_ba)) + ½ (`ElastoPlastic.force`, RK4).
+
+With F_s = F_c and σ1 = σ2 = 0, LuGre is Dahl with α = 1: F_c w(x) where w follows
+dw/dx = (1 − w sgn ẋ)/x_p, x_p = F_c/σ0 the pre-sliding displacement; its steady state is
+the static Stribeck curve g(v) sgn v + σ2 v.
+
+Hand-written (numba) because the laws are sequential in time and no maintained library
+integrates them over a sampled record.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+_JIT = {"cache": True, "error_model": "numpy"}
+
+MAX_DECAY_PER_SUBSTEP = 0.2
+"""Largest σ0 |v| h / g(v) of one substep (the bristle's relaxation over the substep); the
+exact exponential is stable at any size, the substeps resolve v changing within a sample."""
+
+MAX_SUBSTEPS = 512
+"""Cap on the substeps of one sample interval."""
+
+
+@njit(**_JIT)
+def _dahl_path(x: np.ndarray, x_p: float, alpha: float, w0: float) -> np.ndarray:
+    """Normalised Dahl force w = F/F_c along the positions x (m): exact per interval.
+
+    With u = 1 − w s (s = sgn Δx, constant over a linear interval) the law reads
+    du/dξ = −u^α along the path ξ = |Δx|/x_p, so u^{1−α} = u0^{1−α} − (1 − α) ξ (α ≠ 1)
+    and u = u0 e^{−ξ} (α = 1); u stays in [0, 2] because w does in [−1, 1].
+    """
+    out = np.empty(x.size)
+    w = w0
+    if x.size:
+        out[0] = w
+    for i in range(1, x.size):
+        dx = x[i] - x[i - 1]
+        if dx != 0.0:
+            s = 1.0 if dx > 0.0 else -1.0
+            u = 1.0 - w * s
+            xi = abs(dx) / x_p
+            if alpha == 1.0:
+                u = u * math.exp(-xi)
+            elif u > 0.0:
+                base = u ** (1.0 - alpha) - (1.0 - alpha) * xi
+                u = base ** (1.0 / (1.0 - alpha)) if base > 0.0 else 0.0
+            w = s * (1.0 - u)
+        out[i] = w
+    return out
+
+
+def dahl_normalised(x: np.ndarray, presliding: float, alpha: float = 1.0,
+                    w0: float = 0.0) -> np.ndarray:
+    """Dahl's force over its level, w = F/F_c ∈ [−1, 1], along positions x (m).
+
+    presliding: x_p = F_c/σ0 (m), the pre-sliding displacement (the Dahl force reaches
+    1 − 1/e of F_c after x_p of travel from w = 0 when α = 1); alpha: Dahl's exponent
+    (> 0); w0: w at x[0]. Exact for x linear between samples (the law is rate
+    independent, so only the path counts).
+    """
+    if not (presliding > 0.0 and alpha > 0.0 and -1.0 <= w0 <= 1.0):
+        raise ValueError(f"need presliding > 0, alpha > 0, |w0| <= 1; got {presliding}, "
+                         f"{alpha}, {w0}")
+    return _dahl_path(np.ascontiguousarray(x, dtype=float), float(presliding), float(alpha),
+                      float(w0))
+
+
+def dahl_force(x: np.ndarray, F_c: float, sigma0: float, alpha: float = 1.0,
+               F0: float = 0.0) -> np.ndarray:
+    """Dahl friction force (N) along positions x (m): F_c (N), σ0 (N/m) the rest stiffness,
+    α (–) the exponent, F0 (N) the force at x[0]. See the module docstring."""
+    if not (F_c > 0.0 and sigma0 > 0.0):
+        raise ValueError(f"need F_c > 0 and sigma0 > 0, got {F_c}, {sigma0}")
+    return F_c * dahl_normalised(x, F_c / sigma0, alpha, F0 / F_c)
+
+
+@njit(**_JIT)
+def _stribeck(v: float, F_c: float, F_s: float, v_s: float) -> float:
+    """g(v) = F_c + (F_s − F_c) e^{−(v/v_s)²} (N), LuGre's steady-state level."""
+    return F_c + (F_s - F_c) * math.exp(-(v / v_s) ** 2)
+
+
+@njit(**_JIT)
+def _substeps(v0: float, v1: float, dt: float, rate: float) -> int:
+    """Substeps of one interval so that rate · max|v| · h ≤ MAX_DECAY_PER_SUBSTEP."""
+    decay = rate * max(abs(v0), abs(v1)) * dt
+    return min(MAX_SUBSTEPS, max(1, int(math.ceil(decay / MAX_DECAY_PER_SUBSTEP))))
+
+
+@njit(**_JIT)
+def _lugre(v: np.ndarray, dt: float, p: np.ndarray, z0: float) -> tuple:
+    """Bristle deflection z (m) and its rate (m/s) at the samples of v (m/s): v linear
+    between samples; on each substep v is held at its midpoint value and the z-equation
+    solved exactly, z → z_ss + (z − z_ss) e^{−σ0|v|h/g(v)}, z_ss = v g(v) / (σ0 |v|)."""
+    sigma0, F_c, F_s, v_s = p[0], p[1], p[2], p[3]
+    z = np.empty(v.size)
+    rate = np.empty(v.size)
+    zi = z0
+    for i in range(v.size):
+        if i > 0:
+            m = _substeps(v[i - 1], v[i], dt, sigma0 / min(F_c, F_s))
+            h = dt / m
+            for j in range(m):
+                vm = v[i - 1] + (v[i] - v[i - 1]) * (j + 0.5) / m
+                if vm != 0.0:
+                    g = _stribeck(vm, F_c, F_s, v_s)
+                    z_ss = math.copysign(g / sigma0, vm)
+                    zi = z_ss + (zi - z_ss) * math.exp(-sigma0 * abs(vm) * h / g)
+        z[i] = zi
+        rate[i] = v[i] - sigma0 * abs(v[i]) * zi / _stribeck(v[i], F_c, F_s, v_s)
+    return z, rate
+
+
+@dataclass(frozen=True)
+class LuGre:
+    """The LuGre law (Canudas de Wit et al. 1995), SI: sigma0 (N/m) bristle stiffness,
+    sigma1 (N·s/m) bristle damping, sigma2 (N·s/m) viscous coefficient, F_c, F_s (N) Coulomb
+    and static levels, v_s (m/s) Stribeck velocity."""
+
+    sigma0: float
+    F_c: float
+    F_s: float
+    v_s: float
+    sigma1: float = 0.0
+    sigma2: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("sigma0", "F_c", "F_s", "v_s"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("sigma1", "sigma2"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+
+    def steady(self, v: np.ndarray | float) -> np.ndarray:
+        """Steady-state force (N) at constant v (m/s): g(v) sgn v + σ2 v, the static
+        Stribeck curve."""
+        v = np.asarray(v, dtype=float)
+        g = self.F_c + (self.F_s - self.F_c) * np.exp(-(v / self.v_s) ** 2)
+        return g * np.sign(v) + self.sigma2 * v
+
+    def deflection(self, v: np.ndarray, dt: float, z0: float = 0.0
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Bristle deflection z (m) and dz/dt (m/s) at each sample of v (m/s, every dt s)."""
+        params = np.array([self.sigma0, self.F_c, self.F_s, self.v_s])
+        return _lugre(np.ascontiguousarray(v, dtype=float), float(dt), params, float(z0))
+
+    def force(self, v: np.ndarray, dt: float, z0: float = 0.0) -> np.ndarray:
+        """Friction force (N) σ0 z + σ1 dz/dt + σ2 v at each sample of v (m/s, every dt s),
+        starting from deflection z0 (m)."""
+        z, rate = self.deflection(v, dt, z0)
+        return self.sigma0 * z + self.sigma1 * rate + self.sigma2 * np.asarray(v, dtype=float)
+
+
+@njit(**_JIT)
+def _attachment(z: float, v: float, z_ss: float, z_ba: float) -> float:
+    """Dupont's α(z, v): 0 in the elastic range or against the motion, 1 at steady
+    sliding, the sine blend between (z_ss the steady deflection magnitude, z_ba < z_ss)."""
+    if v == 0.0 or (z > 0.0) != (v > 0.0):
+        return 0.0
+    a = abs(z)
+    if a <= z_ba:
+        return 0.0
+    if a >= z_ss:
+        return 1.0
+    return 0.5 * math.sin(math.pi * (a - 0.5 * (z_ss + z_ba)) / (z_ss - z_ba)) + 0.5
+
+
+@njit(**_JIT)
+def _ep_rate(z: float, v: float, p: np.ndarray) -> float:
+    """dz/dt (m/s) of the elasto-plastic law at deflection z (m), velocity v (m/s)."""
+    sigma0, F_c, F_s, v_s, z_ba = p[0], p[1], p[2], p[3], p[4]
+    z_ss = _stribeck(v, F_c, F_s, v_s) / sigma0
+    return v * (1.0 - _attachment(z, v, z_ss, z_ba) * abs(z) / z_ss)
+
+
+@njit(**_JIT)
+def _elastoplastic(v: np.ndarray, dt: float, p: np.ndarray, z0: float) -> tuple:
+    """z (m) and dz/dt (m/s) at the samples of v (m/s), RK4 on v linear between samples;
+    substeps keep |v| h (1/z_ss + π / (2 (z_ss − z_ba))) ≤ MAX_DECAY_PER_SUBSTEP (the
+    law's largest slope in z)."""
+    sigma0, F_c, F_s, z_ba = p[0], p[1], p[2], p[4]
+    z_min = min(F_c, F_s) / sigma0
+    stiffness = 1.0 / z_min + 0.5 * math.pi / (z_min - z_ba)
+    z = np.empty(v.size)
+    rate = np.empty(v.size)
+    zi = z0
+    for i in range(v.size):
+        if i > 0:
+            m = _substeps(v[i - 1], v[i], dt, stiffness)
+            h = dt / m
+            dv = (v[i] - v[i - 1]) / m
+            for j in range(m):
+                va = v[i - 1] + j * dv
+                k1 = _ep_rate(zi, va, p)
+                k2 = _ep_rate(zi + 0.5 * h * k1, va + 0.5 * dv, p)
+                k3 = _ep_rate(zi + 0.5 * h * k2, va + 0.5 * dv, p)
+                k4 = _ep_rate(zi + h * k3, va + dv, p)
+                zi += h * (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0
+        z[i] = zi
+        rate[i] = _ep_rate(zi, v[i], p)
+    return z, rate
+
+
+@dataclass(frozen=True)
+class ElastoPlastic:
+    """The elasto-plastic law (Dupont et al. 2002), SI: LuGre's parameters and `z_ba` (m),
+    the breakaway deflection below which the contact is purely elastic, 0 ≤ z_ba <
+    min(F_c, F_s)/σ0."""
+
+    sigma0: float
+    F_c: float
+    F_s: float
+    v_s: float
+    z_ba: float
+    sigma1: float = 0.0
+    sigma2: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("sigma0", "F_c", "F_s", "v_s"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0.0 <= self.z_ba < min(self.F_c, self.F_s) / self.sigma0:
+            raise ValueError(f"z_ba must lie in [0, min(F_c, F_s)/sigma0), got {self.z_ba}")
+
+    def deflection(self, v: np.ndarray, dt: float, z0: float = 0.0
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Deflection z (m) and dz/dt (m/s) at each sample of v (m/s, every dt s)."""
+        params = np.array([self.sigma0, self.F_c, self.F_s, self.v_s, self.z_ba])
+        return _elastoplastic(np.ascontiguousarray(v, dtype=float), float(dt), params,
+                              float(z0))
+
+    def force(self, v: np.ndarray, dt: float, z0: float = 0.0) -> np.ndarray:
+        """Friction force (N) σ0 z + σ1 dz/dt + σ2 v at each sample of v (m/s, every dt s)."""
+        z, rate = self.deflection(v, dt, z0)
+        return self.sigma0 * z + self.sigma1 * rate + self.sigma2 * np.asarray(v, dtype=float)
