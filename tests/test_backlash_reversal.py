@@ -62,7 +62,10 @@ def test_summary_and_text_against_the_truth(run):
     summary = family.summary(result, truth)
     assert abs(summary["motors"]["master"]["error_pct"]) < 100 * TOLERANCE_M / 314e-6
     assert summary["headline"].startswith("backlash master 313.9 ± ")
-    assert family.describe(result)[1].startswith("  backlash slave 362.9 ± ")
+    lines = family.describe(result)
+    assert lines[0].startswith("  master 313.9 ± ")
+    assert lines[2].startswith("  backlash slave 362.9 ± ")
+    assert "  ✔ reversals agree: master ± " in [line[:31] for line in lines]
 
 
 def test_report_draws_the_loop_and_the_backlash_table(run):

@@ -21,10 +21,6 @@ EDGE_BINS = 2
 """A peak within this many frequency lines of its band's edge is taken to be the edge
 (the maximum of a falling or rising slope), not a mode."""
 
-NOISE_FACTOR = 10.0
-"""An excitation or response counts as above the noise floor when its RMS is this many
-times the noise's (20 dB)."""
-
 SLID_SHARE = 0.99
 """An in-motion measurement needs the axis sliding (no sticking, no reversal) in at least
 this share of its samples: only then does friction act only by its viscous part (Ch. 5.3.2)."""
@@ -55,34 +51,41 @@ def verdict_line(result: Mapping[str, Any]) -> str:
     return f"all {len(result.get('checks', ()))} checks passed"
 
 
-def peak_checks(label: str, f_peak: float, f: np.ndarray, coherence: np.ndarray,
-                gate: float) -> list[dict[str, Any]]:
-    """A peak (or anti-resonance) at `f_peak` Hz of an FRF on lines `f` (Hz): not on an edge
-    of the band `f` spans (`EDGE_BINS`), and its coherence γ² at least `gate` there."""
-    f = np.asarray(f, dtype=float)
-    k = int(np.argmin(np.abs(f - f_peak)))
-    on_edge = k < EDGE_BINS or k > len(f) - 1 - EDGE_BINS
-    gamma = float(np.asarray(coherence, dtype=float)[k])
+def peak_checks(peaks: Sequence[tuple[str, float, np.ndarray, np.ndarray]],
+                gate: float, quality: str = "coherence") -> list[dict[str, Any]]:
+    """Identified peaks (or anti-resonances) ``(label, f_peak Hz, f Hz, γ²)`` of FRFs on
+    lines `f` with coherence γ² (or another `quality` per line, e.g. R²): none on an edge
+    of the band its `f` spans (`EDGE_BINS`), and the quality at each at least `gate`."""
+    edge, low, places, gammas = [], [], [], []
+    for label, f_peak, f, coherence in peaks:
+        f = np.asarray(f, dtype=float)
+        k = int(np.argmin(np.abs(f - f_peak)))
+        gamma = float(np.asarray(coherence, dtype=float)[k])
+        places.append(f"{label} {f_peak:.2f} Hz")
+        gammas.append(f"{label} {gamma:.3f}")
+        if k < EDGE_BINS or k > len(f) - 1 - EDGE_BINS:
+            edge.append(f"{label} {f_peak:.2f} Hz is the edge of {f[0]:.4g}–{f[-1]:.4g} Hz")
+        if not gamma >= gate:
+            low.append(f"{label} {quality} {gamma:.3f} at {f_peak:.2f} Hz")
     return [
-        check(f"{label} inside the band", f"{f_peak:.2f} Hz in {f[0]:.4g}–{f[-1]:.4g} Hz",
-              not on_edge, f"{f_peak:.2f} Hz is the band edge, not a mode: widen the band or "
-              "check that the excitation reached the structure"),
-        check(f"coherence at the {label}", f"{gamma:.3f}", gamma >= gate,
-              f"γ² {gamma:.3f} below {gate:g} at {f_peak:.2f} Hz: the response there is "
-              "noise or another input, not this excitation"),
+        check("peaks inside the band", ", ".join(places), not edge,
+              "; ".join(edge) + ": a slope's end, not a mode (did the excitation reach the "
+              "structure? is the band wide enough?)"),
+        check(f"{quality} at the peaks", ", ".join(gammas), not low,
+              "; ".join(low) + f" below {gate:g}: the response there is noise or another "
+              "input, not this excitation"),
     ]
 
 
-def above_noise(name: str, signal: np.ndarray, noise_rms: float, unit: str) -> dict[str, Any]:
-    """`signal`'s RMS about its mean against `NOISE_FACTOR` × `noise_rms` (same unit): a
-    channel unplugged (all zeros or constant) or an excitation too small fails."""
+def above_floor(name: str, signal: np.ndarray, floor: float, unit: str,
+                why: str) -> dict[str, Any]:
+    """`signal`'s RMS about its mean above `floor` (same unit): a channel unplugged (all
+    zeros or constant) or an excitation too small fails, `why` saying what the floor is."""
     signal = np.asarray(signal, dtype=float)
     rms = float(np.sqrt(np.mean((signal - signal.mean()) ** 2))) if signal.size else 0.0
-    floor = NOISE_FACTOR * noise_rms
     reason = ("constant: channel unplugged or sensor not powered?" if rms == 0.0 else
-              f"{rms:.3g} {unit} RMS is below {NOISE_FACTOR:g} × the noise floor "
-              f"{noise_rms:.3g} {unit}: excitation too small or wrong channel")
-    return check(f"{name} above the noise floor", f"{rms:.3g} {unit} RMS", rms > floor, reason)
+              f"{rms:.3g} {unit} RMS is not above {floor:.3g} {unit}: {why}")
+    return check(f"{name} reached", f"{rms:.3g} {unit} RMS", rms > floor, reason)
 
 
 def slid(velocity: np.ndarray, feed: float, band: float) -> dict[str, Any]:

@@ -127,6 +127,12 @@ class HitCheck:
     def ok(self) -> bool:
         return not (self.double_hit or self.overload)
 
+    @property
+    def reason(self) -> str:
+        """Why the hit is flagged: ``double hit``, ``force overload``, both, or ""."""
+        flags = (("double hit", self.double_hit), ("force overload", self.overload))
+        return " and ".join(name for name, flag in flags if flag)
+
 
 @dataclass(frozen=True)
 class HammerFrf:
@@ -363,10 +369,8 @@ def _exponential_window(t, trigger_time, tau) -> np.ndarray:
 
 
 def _hit_warning(check: HitCheck, rejected: bool) -> str:
-    flags = (("double hit", check.double_hit), ("force overload", check.overload))
-    reasons = " and ".join(name for name, flag in flags if flag)
     fate = "left out of the average" if rejected else "kept (reject_flagged=False)"
-    return f"hit {check.index} at {check.trigger_time:.3f} s: {reasons}; {fate}"
+    return f"hit {check.index} at {check.trigger_time:.3f} s: {check.reason}; {fate}"
 
 
 def _squeezer(y: np.ndarray):

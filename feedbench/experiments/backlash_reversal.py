@@ -19,6 +19,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from feedbench.analysis.checks import check, positive_parameters
 from feedbench.analysis.stiffness import backlash_from_reversals
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
 from feedbench.experiments.family import Experiment, headline, percent_error
@@ -87,6 +88,25 @@ def _motor_text(motor: str, b: Mapping[str, Any]) -> str:
             + ("" if b["corrected"] else ", friction wind-up included") + ")")
 
 
+AGREEMENT = 0.1
+"""The reversals of a motor agree when their spread is at most this share of their mean."""
+
+
+def backlash_checks(motors: Mapping[str, Mapping[str, Any]]) -> list[dict]:
+    """Each motor's backlash > 0 (a flipped or unplugged scale fails) and its reversals
+    agreeing within `AGREEMENT`."""
+    if not motors:
+        return []
+    spread = [f"{m} ± {b['std_m'] * 1e6:.2f} µm on {b['value_m'] * 1e6:.1f} µm"
+              for m, b in motors.items() if not b["std_m"] <= AGREEMENT * abs(b["value_m"])]
+    return [positive_parameters("backlash", {m: b["value_m"] for m, b in motors.items()},
+                                {m: "m" for m in motors}),
+            check("reversals agree", ", ".join(f"{m} ± {b['std_m'] * 1e6:.2f} µm"
+                                               for m, b in motors.items()), not spread,
+                  "; ".join(spread) + f": more than {100 * AGREEMENT:g} % apart (a slipping "
+                  "scale, or the stroke too short to take the backlash up)")]
+
+
 class BacklashReversal(Experiment):
     """Equivalent backlash L_z of each motor's drive train from reversals without load
     (Ch. 3.4.2, Fig. 3.9): mean and spread of the lost motion (m)."""
@@ -148,10 +168,10 @@ class BacklashReversal(Experiment):
         windows = recorded_windows(recording, "measure", at_least=1 if final else 0)
         motors = {motor: [w for w in windows if w.info["motor"] == motor]
                   for motor in p["motors"]}
-        return {"experiment": NAME, "motors": {
-            motor: _result_of_motor(recording, found, motor, p[f"k_{motor}_N_um"] * N_PER_UM,
-                                    final)
-            for motor, found in motors.items() if found}}
+        result = {motor: _result_of_motor(recording, found, motor,
+                                          p[f"k_{motor}_N_um"] * N_PER_UM, final)
+                  for motor, found in motors.items() if found}
+        return {"experiment": NAME, "motors": result, "checks": backlash_checks(result)}
 
     @classmethod
     def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
@@ -170,7 +190,11 @@ class BacklashReversal(Experiment):
         section.tables.append(Table("equivalent backlash L_z (Ch. 3.4.2)", (
             "motor", "mean (µm)", "spread (µm)", "per reversal (µm)", "friction wind-up"),
             tuple(cls._table_row(motor, b) for motor, b in result["motors"].items())))
-        section.headline = ", ".join(_motor_text(m, b) for m, b in result["motors"].items())
+
+    @classmethod
+    def headline(cls, result: Mapping[str, Any]) -> str:
+        """Each motor's backlash, mean ± spread of its reversals."""
+        return ", ".join(_motor_text(m, b) for m, b in result["motors"].items())
 
     @staticmethod
     def _table_row(motor: str, b: Mapping[str, Any]) -> tuple[str, ...]:
@@ -204,5 +228,6 @@ class BacklashReversal(Experiment):
             for motor, m in motors.items()))}
 
     @classmethod
-    def describe(cls, result: Mapping[str, Any]) -> list[str]:
+    def details(cls, result: Mapping[str, Any]) -> list[str]:
+        """A line per motor: its backlash."""
         return [f"  backlash {_motor_text(m, b)}" for m, b in result["motors"].items()]

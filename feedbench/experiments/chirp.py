@@ -12,12 +12,12 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
-from feedbench.analysis.checks import above_noise, measurable_velocity, peak_checks, slid
+from feedbench.analysis.checks import above_floor, measurable_velocity, peak_checks, slid
 from feedbench.analysis.frf import estimate_frf, findings_in_band
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
 from feedbench.experiments.family import TRUTH_TITLE, Experiment, percent_error
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
-from feedbench.experiments.preflight import check_feed
+from feedbench.experiments.preflight import check_amplitude_below_feed, check_feed
 from feedbench.experiments.signals import chirp, integrate_velocity, move_to, ramp_to_feed
 from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN
@@ -74,11 +74,9 @@ def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
     mobility_band(p)
     check_feed("experiment.feed_mm_min", p["feed_mm_min"], cycle_s)
     check_sweep_resolves(p)
-    if p["inject"] == "velocity" and p["feed_mm_min"] and p["amplitude_mm_min"] >= p["feed_mm_min"]:
-        raise ConfigError(
-            f"experiment.amplitude_mm_min = {p['amplitude_mm_min']:g} reaches the feed "
-            f"{p['feed_mm_min']:g} mm/min: the axis would reverse and stick every period "
-            "(Ch. 5.3.2); keep it below the feed, or hold position (feed_mm_min = 0)")
+    if p["inject"] == "velocity":
+        check_amplitude_below_feed("experiment.amplitude_mm_min", p["amplitude_mm_min"],
+                                   p["feed_mm_min"])
     return p
 
 
@@ -201,10 +199,8 @@ def analyze_recording(recording) -> dict:
     inside = (est.f >= band[0]) & (est.f <= band[1])
     warnings, details = findings_in_band(est, (p["f_start_Hz"], p["f_stop_Hz"]))
     checks = [*sweep_checks(recording, p, windows),
-              *peak_checks("anti-resonance f_t", f_t, est.f[inside], est.coherence[inside],
-                           MIN_COHERENCE),
-              *peak_checks("resonance f_r", f_r, est.f[inside], est.coherence[inside],
-                           MIN_COHERENCE)]
+              *peak_checks([(name, f_x, est.f[inside], est.coherence[inside])
+                            for name, f_x in (("f_t", f_t), ("f_r", f_r))], MIN_COHERENCE)]
     return {
         "experiment": NAME,
         "antiresonance_hz": f_t,
@@ -222,28 +218,19 @@ def analyze_recording(recording) -> dict:
 
 
 def sweep_checks(recording, p: Mapping[str, Any], windows: list[Window]) -> list[dict]:
-    """The excitation reached the axis: the motor force and the motor velocity of the sweeps
-    above their noise floor (their RMS while settling at the feed; for the velocity at least
-    the measurable one), and at a feed the axis slid through every sweep (`slid`)."""
-    settles = recorded_windows(recording, "settle")
-    force, velocity = (recording.channels[c] for c in ("force", "velocity"))
-    cycle_s = float(recording.metadata["cycle_s"])
-
-    def joined(x: np.ndarray, of: list[Window]) -> np.ndarray:
-        return np.concatenate([x[w.start:w.stop] - x[w.start:w.stop].mean() for w in of]
-                              or [np.zeros(0)])
-
-    def rms(x: np.ndarray) -> float:
-        return float(np.sqrt(np.mean(x ** 2))) if x.size else 0.0
-
-    checks = [above_noise("motor force", joined(force, windows), rms(joined(force, settles)), "N"),
-              above_noise("motor velocity", joined(velocity, windows),
-                          max(rms(joined(velocity, settles)), measurable_velocity(cycle_s)),
-                          "m/s")]
+    """The excitation reached the axis: the motor force of the sweeps not constant (a
+    channel read), their motor velocity above the measurable one (the axis moved under the
+    excitation), and at a feed the axis slid through every sweep (`slid`)."""
+    force, velocity = (np.concatenate([recording.channels[c][w.start:w.stop] for w in windows])
+                       for c in ("force", "velocity"))
+    slowest = measurable_velocity(float(recording.metadata["cycle_s"]))
+    checks = [above_floor("motor force", force, 0.0, "N", "no force was recorded"),
+              above_floor("motor velocity", velocity, slowest, "m/s",
+                          "the axis did not move under the excitation (stuck in its stiction "
+                          "band, or the amplitude too small)")]
     if p["feed_mm_min"]:
-        feed = SIGNS[p["direction"]] * p["feed_mm_min"] * MM_PER_MIN
-        sweeps = np.concatenate([velocity[w.start:w.stop] for w in windows])
-        checks.append(slid(sweeps, feed, measurable_velocity(cycle_s)))
+        checks.append(slid(velocity, SIGNS[p["direction"]] * p["feed_mm_min"] * MM_PER_MIN,
+                           slowest))
     return checks
 
 

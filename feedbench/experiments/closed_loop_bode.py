@@ -23,12 +23,14 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from feedbench.analysis.checks import check, peak_checks
 from feedbench.analysis.servo import open_loop_mobility
 from feedbench.analysis.sinefit import stepped_sine_frf
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
 from feedbench.experiments.chirp import SCHEMA as CHIRP_SCHEMA
 from feedbench.experiments.chirp import extrema_text, mobility_band, mobility_extrema
 from feedbench.experiments.family import Experiment, headline
+from feedbench.experiments.preflight import check_amplitude_below_feed, check_feed
 from feedbench.experiments.plan import Plan, Segment, recorded_windows
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
 from feedbench.protocols.cia402 import CSP, CSV
@@ -36,7 +38,7 @@ from feedbench.units import MM_PER_MIN
 from feedbench.views.frfs import MOTOR_FORCE, MOTOR_VELOCITY, Dof, ExchangeFrf, polar
 from feedbench.views.panels import ResultView, point_frf_panels
 from feedbench.views.sections import (
-    FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, png_of,
+    FrfSeries, Plot, RunSection, Table, frf_figure, png_of,
 )
 
 NAME = "closed_loop_bode"
@@ -159,14 +161,69 @@ def measured_loop(recording, p: Mapping[str, Any]) -> dict:
     return {"f": np.array(f), "H": np.array(H), "r_squared": r2, "flagged": flagged}
 
 
+HALF_POWER = 1.0 / np.sqrt(2.0)
+"""|H| at −3 dB."""
+
+
+def bandwidth_and_reason(f: np.ndarray, H: np.ndarray) -> tuple[float, str]:
+    """The −3 dB bandwidth (Hz) of a closed loop, and why it is not defined where it is not.
+
+    The first crossing of |H| = 1/√2 after which |H| stays below it up to the last measured
+    frequency, linearly interpolated; a dip below that |H| climbs out of again (an
+    anti-resonance notch) is not the bandwidth. NaN with the reason when |H| ends above
+    −3 dB or starts below it.
+    """
+    magnitude = np.abs(np.asarray(H))
+    if not magnitude.size:
+        return float("nan"), "no frequency measured"
+    above = np.flatnonzero(magnitude >= HALF_POWER)
+    if not above.size:
+        return float("nan"), f"|H| is below −3 dB from the first frequency {f[0]:g} Hz on"
+    k = int(above[-1]) + 1
+    if k == len(magnitude):
+        dips = np.flatnonzero(magnitude < HALF_POWER)
+        dip = f" (it dips below at {f[dips[0]]:g} Hz and climbs back)" if dips.size else ""
+        return float("nan"), (f"|H| is {magnitude[-1]:.2f} at the last frequency {f[-1]:g} Hz, "
+                              f"above −3 dB{dip}: measure higher frequencies")
+    a, b = magnitude[k - 1], magnitude[k]
+    return float(f[k - 1] + (a - HALF_POWER) / (a - b) * (f[k] - f[k - 1])), ""
+
+
 def bandwidth(f: np.ndarray, H: np.ndarray) -> float:
-    """First frequency (Hz) where |H| falls below 1/√2 (linear interpolation), nan if none."""
-    below = np.flatnonzero(np.abs(H) < 1.0 / np.sqrt(2.0))
-    if not below.size or below[0] == 0:
-        return float("nan")
-    k = below[0]
-    a, b = np.abs(H[k - 1]), np.abs(H[k])
-    return float(f[k - 1] + (a - 1.0 / np.sqrt(2.0)) / (a - b) * (f[k] - f[k - 1]))
+    """The −3 dB bandwidth (Hz) of `bandwidth_and_reason`, NaN where it is not defined."""
+    return bandwidth_and_reason(f, H)[0]
+
+
+def bandwidth_text(result: Mapping[str, Any]) -> str:
+    """``bandwidth 50.1 Hz`` or ``bandwidth not defined: <why>``."""
+    if result["bandwidth_note"]:
+        return f"bandwidth not defined: {result['bandwidth_note']}"
+    return f"bandwidth {result['bandwidth_hz']:.1f} Hz"
+
+
+def loop_checks(result: Mapping[str, Any], p: Mapping[str, Any]) -> list[dict]:
+    """The points' sine fits at least the gate (R², Ch. 5.5.3), none flagged, and the
+    mobility's f_t and f_r inside the band with a good fit at each."""
+    gate, low = p["r_squared_min"], result["min_r_squared"]
+    flagged = result["flagged"]
+    checks = [
+        check("min R² of the points used", "none" if low is None else f"{low:.5f}",
+              low is not None and low >= gate, f"no point passed R² {gate:g}"),
+        check("frequencies flagged", ", ".join(f"{x['frequency_hz']:g} Hz" for x in flagged)
+              or "none", not flagged,
+              "; ".join(f"{x['frequency_hz']:g} Hz: R² {x['r_squared']:.3f} < {gate:g}"
+                        for x in flagged) + " (response in the noise, or the axis stuck)"),
+    ]
+    mobility = result.get("mobility")
+    if mobility:
+        frf, band = result["frf"], mobility["band_hz"]
+        f = np.asarray(frf["f_hz"])
+        inside = (f >= band[0]) & (f <= band[1])
+        r2 = np.asarray(frf["r_squared"])[inside]
+        checks += peak_checks([(name, mobility[key], f[inside], r2) for name, key in
+                               (("f_t", "antiresonance_hz"), ("f_r", "resonance_hz"))],
+                              gate, "R²")
+    return checks
 
 
 def open_loop(f: np.ndarray, H: np.ndarray, gains: Mapping[str, float],
@@ -177,8 +234,8 @@ def open_loop(f: np.ndarray, H: np.ndarray, gains: Mapping[str, float],
     mobility = open_loop_mobility(f, H, gains["K_p"], gains["T_i"])
     inside = (f >= band[0]) & (f <= band[1])
     f_t, f_r = mobility_extrema(f[inside], mobility[inside], band)
-    return {"antiresonance_hz": f_t, "resonance_hz": f_r, "abs": np.abs(mobility).tolist(),
-            "phase_rad": np.angle(mobility).tolist()}
+    return {"antiresonance_hz": f_t, "resonance_hz": f_r, "band_hz": list(band),
+            "abs": np.abs(mobility).tolist(), "phase_rad": np.angle(mobility).tolist()}
 
 
 def _points(result: Mapping[str, Any]) -> list[tuple[float, complex, float]]:
@@ -204,9 +261,13 @@ class ClosedLoopBode(Experiment):
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
-        """Frequencies below a quarter of the bus rate; the velocity loop needs
-        `MIN_BAND_POINTS` of them in the mobility band."""
+        """A measurable feed the excitation stays below (`preflight`), frequencies below a
+        quarter of the bus rate; the velocity loop needs `MIN_BAND_POINTS` of them in the
+        mobility band."""
         p = validate_table(params, SCHEMA, "experiment")
+        check_feed("experiment.feed_mm_min", p["feed_mm_min"], cycle_s)
+        check_amplitude_below_feed("experiment.amplitude_mm_min", p["amplitude_mm_min"],
+                                   p["feed_mm_min"])
         if not p["f_start_Hz"] <= p["f_stop_Hz"] < 0.25 / cycle_s:
             raise ConfigError(f"experiment.f_stop_Hz: must lie at or above f_start_Hz and below "
                               f"{0.25 / cycle_s:g} Hz (4 samples per period at the bus cycle)")
@@ -245,11 +306,12 @@ class ClosedLoopBode(Experiment):
         p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
         loop = measured_loop(recording, p)
         f, H = loop["f"], loop["H"]
+        band_hz, why = bandwidth_and_reason(f, H)
         result = {"experiment": NAME, "loop": p["loop"], "feed_mm_min": p["feed_mm_min"],
                   "frequencies_planned": len(frequencies(p)),
                   "r_squared_min": p["r_squared_min"], "flagged": loop["flagged"],
                   "min_r_squared": min(loop["r_squared"], default=None),
-                  "bandwidth_hz": bandwidth(f, H),
+                  "bandwidth_hz": band_hz, "bandwidth_note": why,
                   "frf": {"f_hz": f.tolist(), "abs": np.abs(H).tolist(),
                           "phase_rad": np.angle(H).tolist(), "r_squared": loop["r_squared"]}}
         gains = recording.metadata.get("drive_gains")
@@ -259,7 +321,7 @@ class ClosedLoopBode(Experiment):
             except ValueError:
                 if final:
                     raise
-        return result
+        return {**result, "checks": loop_checks(result, p)}
 
     @classmethod
     def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
@@ -274,7 +336,7 @@ class ClosedLoopBode(Experiment):
         section.plots.append(Plot(f"closed {result['loop']} loop: magnitude, phase, R²", png_of(
             frf_figure(series, "|H| closed loop (–)", "R² of the sine fits", gate,
                        points=True))))
-        rows = [("−3 dB bandwidth", f"{result['bandwidth_hz']:.1f} Hz"),
+        rows = [("−3 dB bandwidth", bandwidth_text(result).removeprefix("bandwidth ")),
                 ("frequencies flagged (R²)", str(len(result["flagged"])))]
         mobility = result.get("mobility")
         if mobility:
@@ -288,20 +350,26 @@ class ClosedLoopBode(Experiment):
                                                         marks=marks))))
             rows += [("anti-resonance f_t (Eq. 4.13)", f"{mobility['antiresonance_hz']:.2f} Hz"),
                      ("resonance f_r (Eq. 4.14)", f"{mobility['resonance_hz']:.2f} Hz")]
-            section.headline = (f"f_t {mobility['antiresonance_hz']:.1f} Hz, "
-                                f"f_r {mobility['resonance_hz']:.1f} Hz")
-        else:
-            section.headline = f"bandwidth {result['bandwidth_hz']:.1f} Hz"
         section.tables.append(Table(f"closed {result['loop']} loop", ("quantity", "value"),
                                     tuple(rows)))
+
+    @classmethod
+    def headline(cls, result: Mapping[str, Any]) -> str:
+        """f_t and f_r of the open-loop mobility (velocity loop), else the bandwidth."""
+        mobility = result.get("mobility")
+        if mobility:
+            return (f"f_t {mobility['antiresonance_hz']:.1f} Hz, "
+                    f"f_r {mobility['resonance_hz']:.1f} Hz")
+        return bandwidth_text(result)
+
+    @classmethod
+    def details(cls, result: Mapping[str, Any]) -> list[str]:
+        """The closed loop's bandwidth, frequencies measured and the lowest R² measured."""
         low = result["min_r_squared"]
-        section.quality += [
-            Indicator("min R² of the points used", "none" if low is None else f"{low:.5f}",
-                      low is not None and low >= gate),
-            Indicator("frequencies flagged", ", ".join(f"{x['frequency_hz']:g} Hz"
-                                                       for x in result["flagged"]) or "none",
-                      not result["flagged"]),
-        ]
+        return [f"  closed {result['loop']} loop at {result['feed_mm_min']:g} mm/min: "
+                f"{bandwidth_text(result)}",
+                f"  {len(result['frf']['f_hz'])} of {result['frequencies_planned']} frequencies "
+                f"used, min R² {'none' if low is None else f'{low:.5f}'}"]
 
     @classmethod
     def live_view(cls, result: Mapping[str, Any]) -> ResultView:

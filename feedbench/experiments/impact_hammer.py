@@ -18,20 +18,22 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from feedbench.analysis.checks import check
 from feedbench.analysis.frf import HammerFrf, accelerance_to_receptance, quasi_frf
 from feedbench.config import ConfigError, Field, positive, validate_table
 from feedbench.experiments.family import Experiment, headline
+from feedbench.experiments.preflight import check_feeds
 from feedbench.experiments.plan import Plan, recorded_windows
 from feedbench.experiments.tool_tip import (
     FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, TIP_ACCELERATION,
     ExcitationWindow, compliance_plot, daq_needs, feed_frf_panels, feed_frf_summary,
-    feed_lobes, feed_quality, feed_text, full_scale, overloaded, plan_over_feeds, tip_force,
+    feed_checks, feed_lobes, feed_text, full_scale, overloaded, plan_over_feeds, tip_force,
     window_samples,
 )
 from feedbench.protocols.cia402 import CSP
 from feedbench.views.frfs import ExchangeFrf, polar
 from feedbench.views.panels import ResultView
-from feedbench.views.sections import Indicator, RunSection, Table
+from feedbench.views.sections import RunSection, Table
 
 NAME = "impact_hammer"
 EXCITER = "hammer"
@@ -115,6 +117,8 @@ def _feed_summary(feed: float, frf: HammerFrf, band: tuple[float, float]) -> dic
         "min_coherence": float(np.min(est.coherence[inside])),
         "hits": len(frf.hits),
         "hits_used": len(frf.used_hits),
+        "left_out": [f"{feed:g} mm/min: hit {h.index} at {h.trigger_time:.3f} s: {h.reason}"
+                     for h in frf.hits if h.index not in frf.used_hits],
         "peak_forces_N": [h.peak_force for h in frf.hits],
         "warnings": list(est.warnings),
         "frf": {"f_hz": est.f[inside].tolist(), "compliance_abs": np.abs(compliance).tolist(),
@@ -140,6 +144,13 @@ def feed_summaries(recording, p: Mapping[str, Any]) -> tuple[list[dict], list[st
             continue
         summaries.append(_feed_summary(feed, frf, band))
     return summaries, notes
+
+
+def hits_check(feeds: list[dict]) -> dict:
+    """The hits left out of the feeds' averages (double hit, force overload), each named
+    with its time in its record and why."""
+    left_out = [hit for x in feeds for hit in x["left_out"]]
+    return check("hits left out", str(len(left_out)), not left_out, "; ".join(left_out))
 
 
 def invariant_from(feeds: list[float], distances: list[float], tolerance: float) -> float | None:
@@ -173,9 +184,10 @@ class ImpactHammer(Experiment):
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
-        """The schema's checks, a pre-trigger inside the record, a feed, and enough
-        frequency lines (1/record_s apart) in the band for a peak."""
+        """The schema's checks, measurable feeds, a pre-trigger inside the record, a feed,
+        and enough frequency lines (1/record_s apart) in the band for a peak."""
         p = validate_table(params, SCHEMA, "experiment")
+        check_feeds("experiment.feeds_mm_min", p["feeds_mm_min"], cycle_s)
         if p["pretrigger_s"] >= p["record_s"]:
             raise ConfigError("experiment.pretrigger_s: must be shorter than record_s")
         if not p["feeds_mm_min"]:
@@ -225,6 +237,7 @@ class ImpactHammer(Experiment):
             "invariant_from_mm_min": invariant_from(
                 feeds, [x["distance_to_highest_feed"] for x in summaries], tolerance),
             "notes": notes,
+            "checks": feed_checks(summaries, notes, hits_check(summaries)),
         }
 
     @classmethod
@@ -241,12 +254,21 @@ class ImpactHammer(Experiment):
              f"{x['min_coherence']:.4f}", f"{100 * x['distance_to_highest_feed']:.0f} %")
             for x in feeds)))
         feed_lobes(feeds, _compliance, section)
-        section.quality += feed_quality(feeds, result["notes"], Indicator(
-            "hits left out", str(sum(x["hits"] - x["hits_used"] for x in feeds)),
-            all(x["hits"] == x["hits_used"] for x in feeds)))
+
+    @classmethod
+    def headline(cls, result: Mapping[str, Any]) -> str:
+        """The feed from which the FRF is invariant."""
         invariant = result["invariant_from_mm_min"]
-        section.headline = (f"invariant from {invariant:g} mm/min" if invariant is not None
-                            else "no feed range invariant")
+        return (f"invariant from {invariant:g} mm/min" if invariant is not None
+                else "no feed range invariant")
+
+    @classmethod
+    def details(cls, result: Mapping[str, Any]) -> list[str]:
+        """Per feed: the compliance peak, the hits used and the distance to the highest feed."""
+        return [f"  {x['feed_mm_min']:g} mm/min: peak {x['peak_hz']:.2f} Hz, "
+                f"{x['peak_compliance_m_N'] * 1e6:.3f} µm/N, {x['hits_used']} of {x['hits']} hits, "
+                f"{100 * x['distance_to_highest_feed']:.0f} % from the highest feed"
+                for x in result["feeds"]]
 
     @classmethod
     def live_view(cls, result: Mapping[str, Any]) -> ResultView:

@@ -42,3 +42,13 @@ def check_feeds(field: str, feeds_mm_min: Sequence[float], cycle_s: float) -> No
     """`check_feed` on every feed of a list, the field named with the index."""
     for i, feed in enumerate(feeds_mm_min):
         check_feed(f"{field}[{i}]", feed, cycle_s)
+
+
+def check_amplitude_below_feed(field: str, amplitude_mm_min: float, feed_mm_min: float) -> None:
+    """A velocity excitation of `amplitude_mm_min` on a feed of `feed_mm_min` (> 0) must stay
+    below the feed, else the axis reverses and sticks every period (Ch. 5.3.2): a
+    `ConfigError` naming `field`."""
+    if feed_mm_min and amplitude_mm_min >= feed_mm_min:
+        raise ConfigError(
+            f"{field} = {amplitude_mm_min:g} reaches the feed {feed_mm_min:g} mm/min: the axis "
+            "would reverse and stick every period (Ch. 5.3.2); keep it below the feed")

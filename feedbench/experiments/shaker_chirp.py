@@ -18,13 +18,14 @@ import numpy as np
 from feedbench.analysis.frf import accelerance_to_receptance, estimate_frf, findings_in_band
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
 from feedbench.experiments.family import Experiment, headline
+from feedbench.experiments.preflight import check_feeds
 from feedbench.experiments.plan import Plan, recorded_windows
 from feedbench.experiments.signals import chirp
 from feedbench.experiments.tool_tip import (
     FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, TIP_ACCELERATION,
     ExcitationWindow, exciter_channel, tip_force,
     compliance_plot, daq_needs, feed_frf_panels, feed_frf_summary, feed_lobes,
-    feed_quality, feed_text, overloaded, plan_over_feeds, window_samples,
+    feed_checks, feed_text, overloaded, plan_over_feeds, window_samples,
 )
 from feedbench.protocols.cia402 import CSP
 from feedbench.views.frfs import ExchangeFrf, polar
@@ -119,8 +120,10 @@ class ShakerChirp(Experiment):
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
-        """The schema's checks and a sweep of at least 4 commands per period."""
+        """The schema's checks, measurable feeds and a sweep of at least 4 commands per
+        period."""
         p = validate_table(params, SCHEMA, "experiment")
+        check_feeds("experiment.feeds_mm_min", p["feeds_mm_min"], cycle_s)
         if not p["f_start_Hz"] < p["f_stop_Hz"] < 0.25 / cycle_s:
             raise ConfigError(f"experiment.f_stop_Hz: must lie above f_start_Hz and below "
                               f"{0.25 / cycle_s:g} Hz (4 commands per period at the bus cycle)")
@@ -152,7 +155,8 @@ class ShakerChirp(Experiment):
         fs = recording.streams["daq"].rate_hz
         records, notes = sweep_records(recording, FORCE_CHANNELS[p["exciter"]])
         feeds = [feed_frf(feed, sweeps, fs, band) for feed, sweeps in sorted(records.items())]
-        return {"experiment": NAME, "feeds": feeds, "notes": notes}
+        checks = feed_checks(feeds, notes) if feeds else []
+        return {"experiment": NAME, "feeds": feeds, "notes": notes, "checks": checks}
 
     @classmethod
     def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
@@ -164,11 +168,14 @@ class ShakerChirp(Experiment):
             (f"{x['feed_mm_min']:g}", str(x["n_averages"]), f"{x['peak_hz']:.2f}",
              f"{x['min_coherence']:.4f}", "; ".join(x["warnings"]) or "none") for x in feeds)))
         feed_lobes(feeds, _compliance, section)
-        section.quality += feed_quality(feeds, result["notes"], frf_warnings(
-            [w for x in feeds for w in x["warnings"]],
-            [d for x in feeds for d in x["warning_details"]]))
-        section.headline = ", ".join(f"{x['feed_mm_min']:g} mm/min: peak {x['peak_hz']:.1f} Hz"
-                                     for x in feeds)
+        section.quality.append(frf_warnings([w for x in feeds for w in x["warnings"]],
+                                            [d for x in feeds for d in x["warning_details"]]))
+
+    @classmethod
+    def headline(cls, result: Mapping[str, Any]) -> str:
+        """The compliance peak of each feed."""
+        return ", ".join(f"{x['feed_mm_min']:g} mm/min: peak {x['peak_hz']:.1f} Hz"
+                         for x in result["feeds"])
 
     @classmethod
     def live_view(cls, result: Mapping[str, Any]) -> ResultView:

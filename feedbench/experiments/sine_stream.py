@@ -21,10 +21,12 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from feedbench.analysis.checks import check, peak_checks
 from feedbench.analysis.frf import accelerance_to_receptance
 from feedbench.analysis.sinefit import stepped_sine_frf
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
 from feedbench.experiments.family import Experiment, headline
+from feedbench.experiments.preflight import check_feeds
 from feedbench.experiments.plan import Plan, Window, recorded_windows
 from feedbench.experiments.tool_tip import (
     COMPLIANCE_LABEL, FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL,
@@ -226,6 +228,23 @@ def _hz_list(values: list[float]) -> str:
     return ", ".join(f"{v:g}" for v in values) or "none"
 
 
+def stream_checks(streams: list[dict], gate: float) -> list[dict]:
+    """No step below the quality gate (each flagged one named with why), the lowest R² of the
+    steps used at least `gate`, and every stream's compliance peak a mode inside the swept
+    band with a good fit there (`analysis.checks.peak_checks`)."""
+    flagged = [f"{x['frequency_hz']:g} Hz ({stream_label(s)}): {', '.join(x['reasons'])}"
+               for s in streams for x in s["flagged"]]
+    low = min((s["min_r_squared"] for s in streams), default=float("nan"))
+    used = [s for s in streams if s["steps_used"]]
+    return [check("steps flagged (quality gate)", str(len(flagged)), not flagged,
+                  "; ".join(flagged)),
+            check("min R² of the steps used", f"{low:.5f}", low >= gate,
+                  f"below {gate:g}: the response is not a sine at the excitation's frequency "
+                  "(noise, a loose sensor, too small a force)"),
+            *(peak_checks([(stream_label(s), s["peak_hz"], s["frf"]["f_hz"],
+                            s["frf"]["r_squared"]) for s in used], gate, "R²") if used else [])]
+
+
 class SineStream(Experiment):
     """Sine-stream at the tool tip (Ch. 5.5.3, Figs. 5.20–5.22): per step the sine fits of
     force and tool-tip acceleration give one FRF point with its R² (`analysis.sinefit`);
@@ -240,9 +259,10 @@ class SineStream(Experiment):
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
-        """The schema's checks, a stop not below the start, 4 commands per period at the
-        bus cycle and a quality gate below 1."""
+        """The schema's checks, measurable feeds, a stop not below the start, 4 commands per
+        period at the bus cycle and a quality gate below 1."""
         p = validate_table(params, SCHEMA, "experiment")
+        check_feeds("experiment.feeds_mm_min", p["feeds_mm_min"], cycle_s)
         if p["f_stop_Hz"] < p["f_start_Hz"]:
             raise ConfigError("experiment.f_stop_Hz: must not be below f_start_Hz")
         if p["f_stop_Hz"] >= 0.25 / cycle_s:
@@ -298,6 +318,8 @@ class SineStream(Experiment):
             "steps_planned": (len(frequencies(p)) * len(p["amplitudes_N"])
                               * len(p["feeds_mm_min"])),
             "r_squared_min": p["r_squared_min"],
+            "min_r_squared": min((s["min_r_squared"] for s in summaries), default=float("nan")),
+            "checks": stream_checks(summaries, p["r_squared_min"]),
         }
 
     @classmethod
@@ -322,15 +344,22 @@ class SineStream(Experiment):
              f"{x['steps_used']} of {x['steps']}", f"{x['peak_hz']:.2f}",
              f"{x['min_r_squared']:.4f}", _hz_list(x["limited_hz"]), _hz_list(x["not_held_hz"]))
             for x in streams)))
-        low = min((x["min_r_squared"] for x in streams), default=float("nan"))
-        section.quality += [
-            Indicator("steps flagged (quality gate)", str(result["steps_flagged"]),
-                      result["steps_flagged"] == 0),
-            Indicator("min R² of the steps used", f"{low:.5f}", low >= gate),
-            Indicator("spread between amplitudes (of the peak)", spread_text(result)),
-        ]
-        section.headline = "; ".join(f"{s.label}: peak {x['peak_hz']:.2f} Hz"
-                                     for s, x in zip(series, streams))
+        section.quality.append(Indicator("spread between amplitudes (of the peak)",
+                                         spread_text(result)))
+
+    @classmethod
+    def headline(cls, result: Mapping[str, Any]) -> str:
+        """The compliance peak of every stream (feed, force amplitude)."""
+        return "; ".join(f"{stream_label(x)}: peak {x['peak_hz']:.2f} Hz"
+                         for x in result["streams"])
+
+    @classmethod
+    def details(cls, result: Mapping[str, Any]) -> list[str]:
+        """The steps used and flagged, the lowest R² measured, the spread between amplitudes."""
+        used = sum(x["steps_used"] for x in result["streams"])
+        return [f"  {used} steps used, {result['steps_flagged']} flagged, min R² measured "
+                f"{result['min_r_squared']:.4f}",
+                f"  spread between amplitudes (Fig. 5.22): {spread_text(result)}"]
 
     @classmethod
     def live_view(cls, result: Mapping[str, Any]) -> ResultView:

@@ -33,6 +33,7 @@ import numpy as np
 import scipy.signal
 from matplotlib.figure import Figure as MplFigure
 
+from feedbench.analysis.checks import check, peak_checks
 from feedbench.analysis.smfe import (
     OVERLAP,
     SmfeResult,
@@ -56,7 +57,7 @@ from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN, RPM
 from feedbench.views.panels import Curve, Image, Panel, ResultView, phase_panel
 from feedbench.views.sections import (
-    MIN_COHERENCE, FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, new_figure, png_of,
+    MIN_COHERENCE, FrfSeries, Plot, RunSection, Table, frf_figure, new_figure, png_of,
 )
 
 NAME = "smfe"
@@ -512,6 +513,24 @@ def _side_text(side: str, peaks: Mapping[str, dict]) -> str:
             + f": |Φ| within {worst:.1f} % of the truth")
 
 
+def receptance_checks(result: Mapping[str, Any]) -> list[dict]:
+    """The cuts' force spectra independent enough (median condition number, Eq. 6.14, at
+    most the planned C_th), every direct peak a mode inside the band with its coherence
+    (Eq. 6.15) at least `MIN_COHERENCE`, and no warning."""
+    cond = result["condition_number"]
+    peaks = [(f"{side} {axis}{axis}", p["f_hz"], result["f_hz"],
+              result[side]["coherence_min"][axis])
+             for side in SIDES for axis, p in result[side]["peaks"].items()]
+    return [check("condition number (median / max / planned C_th)",
+                  f"{cond['median']:.1f} / {cond['max']:.1f} / {cond['planned_C_th']:.1f}",
+                  cond["median"] <= cond["planned_C_th"],
+                  "the cuts' force spectra are nearly dependent: choose engagements that load "
+                  "the directions differently (Eq. 6.16)"),
+            *peak_checks(peaks, MIN_COHERENCE),
+            check("warnings", "; ".join(result["warnings"]) or "none", not result["warnings"],
+                  "see the warnings")]
+
+
 class Smfe(Experiment):
     """SMFE spindle ramp (Ch. 6.2.3, 6.4.1, Fig. 6.12): the direct receptances at the tool
     and the workpiece from the cutting forces of 2 or 3 cuts (Eqs. 6.12–6.13), the condition
@@ -574,7 +593,8 @@ class Smfe(Experiment):
                  "spectrogram": force_spectrogram(recording, p)}
         if not final and cuts < len(p["cuts"]):
             return sweep
-        return {**sweep, **receptances(recording, p)}
+        result = {**sweep, **receptances(recording, p)}
+        return {**result, "checks": receptance_checks(result)}
 
     @classmethod
     def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
@@ -595,19 +615,11 @@ class Smfe(Experiment):
                                            f"{p['abs_m_N']:.3g}", f"{p['coherence_min']:.3f}")
                                           for side in SIDES
                                           for axis, p in result[side]["peaks"].items())))
-        cond = result["condition_number"]
-        coherence = min(p["coherence_min"] for side in SIDES
-                        for p in result[side]["peaks"].values())
-        section.quality += [
-            Indicator("condition number (median / max / planned C_th)",
-                      f"{cond['median']:.1f} / {cond['max']:.1f} / {cond['planned_C_th']:.1f}",
-                      cond["median"] <= cond["planned_C_th"]),
-            Indicator("min coherence at the peaks", f"{coherence:.3f}",
-                      coherence >= MIN_COHERENCE),
-            Indicator("warnings", "; ".join(result["warnings"]) or "none",
-                      not result["warnings"]),
-        ]
-        section.headline = peaks_text(result)
+
+    @classmethod
+    def headline(cls, result: Mapping[str, Any]) -> str:
+        """The direct receptance peaks of both sides."""
+        return peaks_text(result)
 
     @classmethod
     def live_view(cls, result: Mapping[str, Any]) -> ResultView:
@@ -638,7 +650,7 @@ class Smfe(Experiment):
                     f"{cond['max']:.1f} (planned C_th {cond['planned_C_th']:.2f})")}
 
     @classmethod
-    def describe(cls, result: Mapping[str, Any]) -> list[str]:
+    def details(cls, result: Mapping[str, Any]) -> list[str]:
         """Peaks, condition number and warnings of an SMFE analysis."""
         lines = [f"  cuts {', '.join(result['cuts'])} at a_e "
                  f"{', '.join(f'{a:.1f}' for a in result['a_e_mm'])} mm, band "

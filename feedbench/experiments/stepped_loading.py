@@ -25,6 +25,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from feedbench.analysis.checks import check, positive_parameters
 from feedbench.analysis.stiffness import (
     backlash_from_reversals, equivalent_stiffness, preload_loss_force, stiffness_while_lost,
     torque_sharing,
@@ -37,7 +38,7 @@ from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN, N_PER_UM
 from feedbench.views.panels import Curve, Panel, ResultView
 from feedbench.views.sections import (
-    MIN_R_SQUARED, Indicator, Plot, RunSection, Table, new_figure, png_of,
+    MIN_R_SQUARED, Plot, RunSection, Table, new_figure, png_of,
 )
 
 NAME = "stepped_loading"
@@ -396,6 +397,28 @@ def _loss_text(level: Mapping[str, Any]) -> str:
             + (f"(thesis ≈ {thesis:.0f})" if thesis else "(thesis: –)"))
 
 
+def loading_checks(result: Mapping[str, Any]) -> list[dict]:
+    """The stiffness fits' R² at least `MIN_R_SQUARED`, the stiffnesses and backlashes > 0
+    (a flipped load-cell or encoder sign fails), every preload level analysed."""
+    r2 = {motor: x["r_squared"] for motor, x in result["stiffness"].items()}
+    low = [f"{motor} R² {v:.4f}" for motor, v in r2.items() if not v >= MIN_R_SQUARED]
+    failed = [t for t in result["preload"] if "error" in t]
+    checks = [
+        check("min R² of the stiffness fits", f"{min(r2.values(), default=float('nan')):.5f}",
+              not low, ", ".join(low) + f" below {MIN_R_SQUARED:g}: load and δ are not on a "
+              "line (no contact with the bumper, or a sensor not reading)"),
+        check("preload levels analysed", f"{len(result['preload']) - len(failed)} of "
+              f"{len(result['preload'])}", not failed,
+              "; ".join(f"{t['preload_pct']:g} %: {t['error']}" for t in failed)),
+    ]
+    values = {**{f"k_{m[0]}": x["k_N_m"] for m, x in result["stiffness"].items()},
+              **{f"backlash {m}": b["value_m"] for m, b in result["backlash"].items()}}
+    if values:
+        checks.append(positive_parameters("stiffness and backlash", values, {
+            k: "N/m" if k.startswith("k_") else "m" for k in values}))
+    return checks
+
+
 class SteppedLoading(Experiment):
     """Stepped loading and backlash of the rack-and-pinion axis (Ch. 3.4): k_m, k_s by
     Eq. (3.26), backlash from reversals (Fig. 3.9), per preload level the loss of contact,
@@ -454,8 +477,9 @@ class SteppedLoading(Experiment):
         preload = [_coupled(_test_samples(recording, tests[f"coupled {level:g} %"], toward),
                             level)
                    for level in params["preload_pct"] if f"coupled {level:g} %" in tests]
-        return {"experiment": NAME, "stiffness": stiffness, "backlash": backlash,
-                "preload": preload, "steps": steps}
+        result = {"experiment": NAME, "stiffness": stiffness, "backlash": backlash,
+                  "preload": preload, "steps": steps}
+        return {**result, "checks": loading_checks(result)}
 
     @classmethod
     def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
@@ -473,17 +497,11 @@ class SteppedLoading(Experiment):
                                       "against load",
                                       png_of(_coupled_figure(recording, result, tests, toward))))
         section.tables += _tables(result)
-        r2 = [x["r_squared"] for x in result["stiffness"].values()]
-        failed = [t for t in result["preload"] if "error" in t]
-        section.quality += [
-            Indicator("min R² of the stiffness fits", f"{min(r2, default=float('nan')):.5f}",
-                      all(v >= MIN_R_SQUARED for v in r2)),
-            Indicator("preload levels analysed", f"{len(result['preload']) - len(failed)} of "
-                      f"{len(result['preload'])}" + "".join(
-                          f"; {t['preload_pct']:g} %: {t['error']}" for t in failed),
-                      not failed),
-        ]
-        section.headline = _stiffness_text(result)
+
+    @classmethod
+    def headline(cls, result: Mapping[str, Any]) -> str:
+        """k_m, k_s (Eq. 3.26) and the backlash per motor."""
+        return _stiffness_text(result)
 
     @classmethod
     def live_view(cls, result: Mapping[str, Any]) -> ResultView:
@@ -523,7 +541,7 @@ class SteppedLoading(Experiment):
                     ", ".join(_loss_text(level) for level in levels))}
 
     @classmethod
-    def describe(cls, result: Mapping[str, Any]) -> list[str]:
+    def details(cls, result: Mapping[str, Any]) -> list[str]:
         """Lines of a human-readable summary of the result (µm, N/µm, N)."""
         lines = [f"  k_{motor[0]} {fit['k_N_m'] / 1e6:7.2f} N/µm (Eq. 3.26, "
                  f"R² {fit['r_squared']:.6f})" for motor, fit in result["stiffness"].items()]

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from feedbench.analysis.checks import check, peak_checks
 from feedbench.analysis.stability import Lobes, zoa_lobes
 from feedbench.config import Field, non_negative, positive, validate_table
 from feedbench.daq.recorder import StreamSpec
@@ -30,7 +31,7 @@ from feedbench.units import MM_PER_MIN
 from feedbench.views.frfs import Dof
 from feedbench.views.panels import Curve, Panel, phase_panel
 from feedbench.views.sections import (
-    MIN_COHERENCE, FrfSeries, Indicator, Plot, RunSection, Table, frf_figure, new_figure, png_of,
+    MIN_COHERENCE, FrfSeries, Plot, RunSection, Table, frf_figure, new_figure, png_of,
 )
 
 DAQ_STREAM = "daq"
@@ -241,13 +242,25 @@ def feed_lobes(feeds: Sequence[Mapping[str, Any]],
                                  for x in feeds}), section)
 
 
-def feed_quality(feeds: Sequence[Mapping[str, Any]], notes: Sequence[str],
-                 *more: Indicator) -> list[Indicator]:
-    """Report indicators: the lowest coherence of the feeds (gate `MIN_COHERENCE`), `more`,
-    and the analysis's notes (records left out)."""
+def feed_checks(feeds: Sequence[Mapping[str, Any]], notes: Sequence[str],
+                *more: dict) -> list[dict]:
+    """A tool-tip result's checks: the lowest coherence of the feeds in the band (gate
+    `MIN_COHERENCE`), each feed's compliance peak a mode inside the band with a high
+    coherence (`analysis.checks.peak_checks`), `more`, and the records left out (notes)."""
     low = min((x["min_coherence"] for x in feeds), default=float("nan"))
-    return [Indicator("min coherence in the band", f"{low:.4f}", low >= MIN_COHERENCE), *more,
-            Indicator("notes", "; ".join(notes) or "none", not notes)]
+    worst = min(feeds, key=lambda x: x["min_coherence"] if np.isfinite(x["min_coherence"])
+                else -1.0)
+    where = feed_label(worst["feed_mm_min"])
+    reason = (f"no coherence at {where}: a channel is constant (unplugged?)"
+              if not np.isfinite(low) else
+              f"γ² {low:.3f} at {where}, below {MIN_COHERENCE:g}: the response is not all "
+              "from this excitation (noise, a loose sensor, nonlinearity)")
+    peaks = [(feed_label(x["feed_mm_min"]), x["peak_hz"], x["frf"]["f_hz"],
+              x["frf"]["coherence"]) for x in feeds]
+    return [check("min coherence in the band", f"{low:.4f}", low >= MIN_COHERENCE, reason),
+            *peak_checks(peaks, MIN_COHERENCE), *more,
+            check("notes", "; ".join(notes) or "none", not notes,
+                  "records were left out: the averages hold fewer of them")]
 
 
 class ExciterOutputs:
