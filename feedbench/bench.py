@@ -227,6 +227,9 @@ class LabAxis:
     (`sim_backends.process.SimulatedBench`, the workpiece prepared as planned)."""
 
     pdo_config = None
+    stop_margin_s = 0.1
+    """Default ``[bench.stop] margin_s`` (s): a linear drive stands within a few cycles of
+    its ramp's end."""
 
     def __init__(self, cfg: Mapping[str, Any], plan: Plan | None,
                  needs: Mapping[str, dict]) -> None:
@@ -339,7 +342,7 @@ class Bench:
         """The axis's drives, each configured by SDO with the bench's gains."""
         eds = self.config["eds"] or axis.packaged_eds()
         gains = gains_si(self.config["gains"]) or None
-        stop = StopSettings.from_config(self.config["stop"])
+        stop = StopSettings.from_config(self.config["stop"], axis.stop_margin_s)
         drives = {name: Cia402Drive(self.network, node_id, eds, axis.pdo_config)
                   for name, node_id in axis.nodes().items()}
         for drive in drives.values():

@@ -85,8 +85,8 @@ STOP_SCHEMA = {
                                "(mm/min)", positive),
     "standstill_cycles": Field(int, 10, "bus cycles the axis must stand before the stop is "
                                "confirmed", positive),
-    "margin_s": Field(float, 0.1, "time a stop may take beyond v_max / deceleration (s)",
-                      positive),
+    "margin_s": Field(float, None, "time a stop may take beyond v_max / deceleration (s; "
+                      "default: the axis kind's, the time it takes to settle)", positive),
 }
 """``[bench.stop]``: what the safe stop relies on in the drives and how it is confirmed."""
 
@@ -104,11 +104,13 @@ class StopSettings:
     margin: float = 0.1
 
     @classmethod
-    def from_config(cls, table: Mapping[str, Any]) -> StopSettings:
-        """From a ``[bench.stop]`` table (engineering units); `ConfigError` names a bad key."""
+    def from_config(cls, table: Mapping[str, Any], margin_s: float) -> StopSettings:
+        """From a ``[bench.stop]`` table (engineering units), `margin_s` (s) where it gives
+        none; `ConfigError` names a bad key."""
         t = validate_table(table, STOP_SCHEMA, "bench.stop")
+        margin = margin_s if t["margin_s"] is None else t["margin_s"]
         return cls(t["deceleration_m_s2"], t["following_error_mm"] * 1e-3, t["write"],
-                   t["standstill_mm_min"] * MM_PER_MIN, t["standstill_cycles"], t["margin_s"])
+                   t["standstill_mm_min"] * MM_PER_MIN, t["standstill_cycles"], margin)
 
 
 STOP_OBJECTS = (QUICK_STOP_DECELERATION, PROFILE_DECELERATION, QUICK_STOP_OPTION_CODE,
@@ -552,26 +554,27 @@ class Cia402Drive:
         self._write_controlword(controlword_towards(state, OPERATION_ENABLED))
         return False
 
-    def disable_step(self, at_standstill: bool = False, stopped: bool = False) -> bool:
+    def disable_step(self, at_standstill: bool = False, stopped: bool | None = None) -> bool:
         """Write the next controlword towards a de-energised drive; True once it is reached.
 
         Operation enabled → quick stop 0x02 (the drive ramps down); in quick stop active the
-        drive either switches off itself or, once the stop is complete (bit 10) or the host
-        measured the axis `stopped`, is sent disable voltage 0x00; any other powered state
-        gets 0x00 directly. With `at_standstill` (the host has already ramped its setpoint
-        down) operation enabled gets disable operation 0x07 (transition 5) instead of a
-        quick stop.
+        drive either switches off itself or, once the axis is `stopped`, is sent disable
+        voltage 0x00 (`stopped`: the host's measurement; None: the drive's own, bit 10 stop
+        complete); any other powered state gets 0x00 directly. With `at_standstill` (the
+        host has already ramped its setpoint down) operation enabled holds the setpoint
+        (0x0F) until the axis is `stopped`, then gets disable operation 0x07 (transition 5)
+        instead of a quick stop.
         """
         state = self.state
+        if stopped is None:
+            stopped = bool(self._raw[STATUSWORD] & SW_TARGET_REACHED)
         if state in DISABLED_STATES:
             self._write_controlword(CW_DISABLE_VOLTAGE)
             return True
         if state == OPERATION_ENABLED and at_standstill:
-            self._write_controlword(CW_DISABLE_OPERATION)
+            self._write_controlword(CW_DISABLE_OPERATION if stopped else CW_ENABLE_OPERATION)
             return False
-        stopping = state == OPERATION_ENABLED or (
-            state == QUICK_STOP_ACTIVE and not stopped
-            and not self._raw[STATUSWORD] & SW_TARGET_REACHED)
+        stopping = state == OPERATION_ENABLED or (state == QUICK_STOP_ACTIVE and not stopped)
         self._write_controlword(CW_QUICK_STOP if stopping else CW_DISABLE_VOLTAGE)
         return False
 
