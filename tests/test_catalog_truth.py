@@ -378,7 +378,7 @@ def test_a_catalog_without_runs_table_beside_recordings_is_rebuilt_in_one_line(
     make_catalog(tmp_path / "catalog.sqlite")
     listed = feedbench_runs(tmp_path)
     assert (listed.returncode, listed.stderr) == (0, (
-        f"{tmp_path / 'catalog.sqlite'}: run catalog had no runs table (empty or new file) "
+        f"{tmp_path / 'catalog.sqlite'}: run catalog had no runs table (an empty file?) "
         "with recordings beside it; rebuilt from 2 recording(s)\n"))
     assert [line.split()[:4] for line in listed.stdout.splitlines()] == [
         [run_id, "complete", "4940", str(tmp_path / f"{run_id}.h5")] for run_id in ids[::-1]]
@@ -414,8 +414,9 @@ def test_a_bad_row_is_listed_damaged_with_its_file_and_the_others_as_they_are(
 
 def test_runs_into_a_pipe_closed_early_ends_quietly(tmp_path):
     """`feedbench runs | head`: the reader goes before the listing is written."""
-    catalog = Catalog(tmp_path / "catalog.sqlite")
     two_recordings(tmp_path)
+    catalog = Catalog(tmp_path / "catalog.sqlite")
+    assert catalog.list() == [], "a new catalog file is not rebuilt by itself"
     assert catalog.rebuild() == (2, [])
     read_end, write_end = os.pipe()
     os.close(read_end)

@@ -9,8 +9,8 @@ The recordings are the source of truth, the catalog an index of them: `reconcile
 `crashed` a run whose process ended without finishing it (samples counted from its file),
 `rebuild` recreates the rows from the recordings in the catalog's directory, and a catalog
 file that SQLite finds corrupt is moved aside (``catalog.sqlite.corrupt-<UTC time>``) and
-rebuilt when it is opened, with one warning line; so is an empty file or one without the
-runs table when recordings sit beside it. A row that cannot be read (a JSON column that is
+rebuilt when it is opened, with one warning line; so is an existing empty file or one
+without the runs table when recordings sit beside it. A row that cannot be read (a JSON column that is
 not JSON) is listed with status `damaged`, its file and why; the other rows as they are. A
 catalog that cannot be read or written (read-only or full disk) raises `CatalogError`, one
 line.
@@ -106,19 +106,21 @@ class RunRow:
 
 class Catalog:
     """The run catalog stored in the SQLite file `path` (created if missing; a corrupt one
-    is moved aside and rebuilt from the recordings beside it, an empty one or one without
-    the runs table rebuilt from them unless `rebuild_empty` is False)."""
+    is moved aside and rebuilt from the recordings beside it, an existing empty file or one
+    without the runs table rebuilt from them unless `rebuild_empty` is False; a new file is
+    not: `rebuild` makes it list recordings made before it)."""
 
     def __init__(self, path: str | Path, *, rebuild_empty: bool = True) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._made_table = False
+        existed, self._made_table = self.path.exists(), False
         if self._problems():
             with open(f"{self.path}.lock", "w") as lock:
                 fcntl.flock(lock, fcntl.LOCK_EX)  # one process replaces it, the others wait
                 if problems := self._problems():  # and then find the new one sound
                     self._replace_corrupt("; ".join(problems[:3]))
-        elif self._made_table and rebuild_empty and any(self.path.parent.glob("*.h5")):
+        elif existed and self._made_table and rebuild_empty and any(
+                self.path.parent.glob("*.h5")):
             self._rebuild_empty()
 
     def _problems(self) -> list[str]:
@@ -167,10 +169,10 @@ class Catalog:
                        f", {len(skipped)} file(s) skipped" if skipped else "")
 
     def _rebuild_empty(self) -> None:
-        """Rebuild a catalog that had no runs table (a new or empty file, or another SQLite
+        """Rebuild a catalog file that had no runs table (an empty file, or another SQLite
         file) from the recordings beside it; say so in one line."""
         added, skipped = self.rebuild()
-        LOGGER.warning("%s: run catalog had no runs table (empty or new file) with recordings "
+        LOGGER.warning("%s: run catalog had no runs table (an empty file?) with recordings "
                        "beside it; rebuilt from %d recording(s)%s", self.path, added,
                        f", {len(skipped)} file(s) skipped" if skipped else "")
 
