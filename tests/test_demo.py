@@ -141,7 +141,20 @@ def test_rack_pinion_friction_is_the_guideway_plus_the_motor_drag(demo):
         assert fit["sigma"] == pytest.approx(0.1 * 60e3 + 2 * 2000.0, rel=0.02)
 
 
-def test_analyze_text_of_a_family_without_its_own_describe(demo):
-    """`feedbench analyze` prints the scalar results (it used to expect a chirp's keys)."""
-    text = describe_analysis(demo["experiments"]["impact_hammer"]["analysis"])
-    assert "  invariant_from_mm_min: 500.0" in text.splitlines()
+def test_analyze_text_is_the_headline_details_and_checks_with_their_reasons(demo):
+    """`feedbench analyze` prints what the run measured (the report's headline), the family's
+    details and every check, a failed one with its reason; no configuration value and no
+    numpy repr (issue 25)."""
+    analysis = demo["experiments"]["impact_hammer"]["analysis"]
+    lines = describe_analysis(analysis).splitlines()
+    assert lines[1] == "  invariant from 500 mm/min"
+    assert any(line.startswith("  0 mm/min: peak ") for line in lines)
+    failed = [c for c in analysis["checks"] if not c["ok"]]
+    for c in failed:
+        assert f"  ✘ {c['name']}: {c['value']} — {c['reason']}" in lines and c["reason"]
+    assert lines[-1] == ("  NOT VALID: " + "; ".join(analysis["not_valid_because"])
+                         if failed else f"  all {len(analysis['checks'])} checks passed")
+    for name, entry in demo["experiments"].items():
+        text = describe_analysis(entry["analysis"])
+        assert "np.float" not in text and "invariance_tolerance" not in text, name
+        assert "r_squared_min" not in text, name

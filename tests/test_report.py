@@ -100,8 +100,9 @@ def two_mass_mobility(fs: float):
 
 
 def chirp_steps():
-    """Three sweeps as the chirp experiment records them: a 10–200 Hz chirp, then a tail
-    with no excitation in which the response rings down (each sweep starts at rest)."""
+    """Three sweeps as the chirp experiment records them at its default feed (500 mm/min):
+    a 10–200 Hz chirp, then a tail with no excitation in which the response rings down
+    (each sweep starts at rest)."""
     fs = 1.0 / CYCLE_S
     b, a = two_mass_mobility(fs)
     t = np.arange(6000) / fs
@@ -113,8 +114,8 @@ def chirp_steps():
         noise = 1e-3 * rng.normal(size=force.size)
         steps += [(f"settle {rep}", "settle", {}, rows_of(300)),
                   (f"sweep {rep}", "excite", {"repetition": rep},
-                   rows_of(force.size, force=force + noise, velocity=velocity,
-                           force_offset=force))]
+                   rows_of(force.size, force=force + noise,
+                           velocity=500 * MM_PER_MIN + velocity, force_offset=force))]
     return steps
 
 
