@@ -5,7 +5,8 @@ against closed-form physics; then a fast subset of its cases asserts, per case, 
 `benchmarks/bench_closure_independent.py` counts over all of them: the injected effect (or the
 wrongly declared parameter) is the first and only finding and the held-out error is fixed
 (at least halved, or within 1.5× the noise floor); a clean case is left untouched; nothing
-crashes. A case the closure fails is marked xfail(strict) naming what goes wrong (none today).
+crashes. A case the closure fails is marked xfail(strict) naming what goes wrong: today issue
+24's backlash in the drive train and second mode.
 """
 
 from __future__ import annotations
@@ -15,14 +16,15 @@ import math
 import numpy as np
 import pytest
 import scipy.optimize
-import scipy.signal
 
 from feedbench.analysis.closure import report_dict
 from feedbench.closure_command import closure_report
 from independent_sim import CASES, write_case
 from independent_sim.cases import FIT_PROGRAM, STRUCTURES, record, world
 from independent_sim.judge import AT_THE_FLOOR, judge
-from independent_sim.plant import FRICTION_SMOOTHING, tip_acceleration
+from independent_sim.plant import (
+    FRICTION_SMOOTHING, PHYSICS_HZ, RECORD_STEPS, natural_modes, tip_acceleration,
+)
 
 
 def _transmissibility(f: np.ndarray, f_n: float, zeta: float) -> np.ndarray:
@@ -32,27 +34,73 @@ def _transmissibility(f: np.ndarray, f_n: float, zeta: float) -> np.ndarray:
     return (2 * zeta * w * s + w ** 2) / (s ** 2 + 2 * zeta * w * s + w ** 2)
 
 
-@pytest.mark.parametrize("structure", ["2mass", "2mass_stiff", "2mass_soft"])
-def test_simulated_mode_matches_closed_form(structure):
-    """The tip/motor FRF of a simulated closed-loop chirp recording, fitted by the closed
-    form, gives the declared f_n within 1 % and ζ within 10 %."""
-    run = record(CASES[f"clean_{structure}"], FIT_PROGRAM, seed=3)
+_SECOND = CASES["second_mode"].truth
+MODES = [pytest.param(f"clean_{s}", 1, STRUCTURES[s].f_n_Hz, STRUCTURES[s].zeta, id=s)
+         for s in ("2mass", "2mass_stiff", "2mass_soft")]
+MODES.append(pytest.param("second_mode", 2, _SECOND["f2_Hz"], _SECOND["zeta2"],
+                          id="second_mode"))
+
+
+@pytest.mark.parametrize("name, mass, f_n, zeta", MODES)
+def test_simulated_mode_matches_closed_form(name, mass, f_n, zeta):
+    """The FRF mass/motor of a simulated closed-loop chirp recording, fitted by the closed
+    form, gives the mode's f_n (Hz) within 0.5 % and ζ within 5 % (the tip's mode; a second
+    mode's mass on its own spring from the motor, whatever else the motor carries). The
+    recording starts and ends at rest, so the ratio of its whole DFTs is the FRF: no window,
+    no leakage (Welch's Hann segments put a 130 Hz ζ of 0.02 at 0.023)."""
+    run = record(CASES[name], FIT_PROGRAM, seed=3)
     n = run.states.shape[1] // 2
-    v_motor, v_tip = run.states[:, n], run.states[:, n + 1]
-    f, p_mm = scipy.signal.welch(v_motor, 1000.0, nperseg=4096)
-    _, p_mt = scipy.signal.csd(v_motor, v_tip, 1000.0, nperseg=4096)
-    _, coherence = scipy.signal.coherence(v_motor, v_tip, 1000.0, nperseg=4096)
-    declared = STRUCTURES[structure]
-    band = (f > 0.4 * declared.f_n_Hz) & (f < 2.0 * declared.f_n_Hz) & (coherence > 0.9)
-    measured = p_mt[band] / p_mm[band]
+    v_motor, v_mass = np.fft.rfft(run.states[:, n]), np.fft.rfft(run.states[:, n + mass])
+    f = np.fft.rfftfreq(run.time.size, 1e-3)
+    near = (f > 0.5 * f_n) & (f < 1.5 * f_n)
+    band = near & (np.abs(v_motor) > 0.1 * np.abs(v_motor[near]).max())
+    measured = v_mass[band] / v_motor[band]
 
     def residual(p: np.ndarray) -> np.ndarray:
         error = measured - _transmissibility(f[band], p[0], p[1])
         return np.concatenate([error.real, error.imag])
 
-    f_n, zeta = scipy.optimize.least_squares(residual, [declared.f_n_Hz * 1.1, 0.03]).x
-    assert f_n == pytest.approx(declared.f_n_Hz, rel=0.01)
-    assert zeta == pytest.approx(declared.zeta, rel=0.10)
+    fitted_f_n, fitted_zeta = scipy.optimize.least_squares(residual, [f_n * 1.1, 0.03]).x
+    assert fitted_f_n == pytest.approx(f_n, rel=0.005)
+    assert fitted_zeta == pytest.approx(zeta, rel=0.05)
+
+
+def test_second_mode_adds_a_pole_pair_and_keeps_the_total_mass():
+    """second_mode: the world's masses sum to the declared 40 kg (the second mode's 3 kg
+    carved out of the motor) and the free plant has two oscillating pole pairs."""
+    plant, _ = world(CASES["second_mode"])
+    assert sum(plant.masses) == pytest.approx(STRUCTURES["2mass"].total_kg)
+    assert len(natural_modes(plant)) == 2
+
+
+@pytest.mark.parametrize("name", ["backlash_drivetrain_small", "backlash_drivetrain_large"])
+def test_simulated_drivetrain_play_is_a_dead_zone(name):
+    """Well inside the play (|x_motor − x_tip| < 0.9 L/2 at both ends of a cycle) nothing
+    acts on the tip: its velocity does not change (to 1e-9 m/s); the gap spans more than
+    the play."""
+    case = CASES[name]
+    run = record(case, FIT_PROGRAM, seed=6)
+    n = run.states.shape[1] // 2
+    gap = run.states[:, 0] - run.states[:, 1]
+    half = 0.5e-6 * case.truth["play_um"]
+    inside = (np.abs(gap[1:]) < 0.9 * half) & (np.abs(gap[:-1]) < 0.9 * half)
+    assert inside.sum() > 1000
+    assert np.abs(np.diff(run.states[:, n + 1])[inside]).max() < 1e-9
+    assert np.ptp(gap) > 2 * half
+
+
+def test_simulated_channel_skew_latches_the_position_early():
+    """channel_skew: at the 16 m/min cruise the recorded position trails the motor's
+    position at the time stamp by V × skew (V 0.267 m/s, skew 3/8 of a 1 ms cycle: 100 µm)
+    within 0.5 %."""
+    case = CASES["channel_skew"]
+    run = record(case, FIT_PROGRAM, seed=7)
+    speed = np.gradient(run.reference, run.time)
+    V = FIT_PROGRAM.feeds[-1] / 60.0
+    cruise = np.flatnonzero(np.abs(speed - V) < 1e-6 * V)
+    skew_s = case.truth["skew_cycles"] * RECORD_STEPS / PHYSICS_HZ
+    trail = run.states[cruise, 0] - run.position[cruise]
+    assert trail.mean() == pytest.approx(V * skew_s, rel=0.005)
 
 
 def test_simulated_cruise_force_is_viscous_plus_coulomb():
@@ -74,7 +122,8 @@ def test_simulated_cruise_force_is_viscous_plus_coulomb():
     assert checked == 2 * len(FIT_PROGRAM.feeds)
 
 
-@pytest.mark.parametrize("name", ["clean_2mass", "cubic_stiffening_large"])
+@pytest.mark.parametrize("name", ["clean_2mass", "cubic_stiffening_large",
+                                  "backlash_drivetrain_large", "second_mode"])
 def test_simulated_tip_acceleration_integrates_to_tip_velocity(name):
     """The tip channel's noiseless acceleration, integrated by the trapezoid over each 1 ms
     cycle, gives the simulated tip velocity change within 3 % RMS (the trapezoid's own error
@@ -105,6 +154,17 @@ SUBSET = [
     pytest.param("recal_mass", False, id="recal_mass"),
     pytest.param("coulomb_small", True, id="coulomb_small-free"),
     pytest.param("offset_small", True, id="offset_small-free"),
+    pytest.param("ripple_long_pitch", False, id="ripple_long_pitch"),
+    pytest.param("channel_skew", False, id="channel_skew"),
+    pytest.param("backlash_drivetrain_large", False, id="backlash_drivetrain_large",
+                 marks=pytest.mark.xfail(strict=True, reason=(
+                     "issue 24: the declared mode's zeta and f_n are recalibrated for a play "
+                     "in its spring (112-116 % -> 16-22 %); no backlash term composes with "
+                     "the declared structural mode"))),
+    pytest.param("second_mode", False, id="second_mode",
+                 marks=pytest.mark.xfail(strict=True, reason=(
+                     "issue 24: nothing found for a second mode at 130 Hz beside the declared "
+                     "61 Hz one (17.2 % held out, floor 3.0 %)"))),
 ]
 
 
