@@ -384,9 +384,11 @@ CASES: dict[str, tuple[Callable[[Path], list[str]], str]] = {
 
 
 def snapshot(directory: Path) -> tuple[bytes, list]:
-    """The good recording's bytes and the catalog's rows."""
+    """The good recording's bytes and the catalog's rows (files relative to `directory`:
+    the catalog resolves them against itself)."""
     return ((directory / GOOD).read_bytes(),
-            [vars(r) for r in Catalog(directory / "catalog.sqlite").list()])
+            [{**vars(r), "file": Path(r.file).relative_to(directory)}
+             for r in Catalog(directory / "catalog.sqlite").list()])
 
 
 def written(directory: Path) -> set[Path]:
