@@ -42,8 +42,9 @@ ALIGNMENT = 8
 WORD = 1 << 64
 """libhdf5 adds sizes in 64-bit words (size_t): sums wrap modulo this."""
 
-BLOCK_BYTES = 1 << 22
-"""The signature scan reads this many bytes (4 MiB) at a time."""
+BLOCK_BYTES = 1 << 20
+"""The signature scan reads this many bytes (1 MiB) at a time: as fast as mmap was here
+(0.25 vs 0.30 s for 208 MB from the page cache, loaded 2-core VM), 4 MiB and more slower."""
 
 
 class _FileBytes:
