@@ -29,8 +29,9 @@ from numba import njit
 
 from feedbench.analysis.closure.trace import Kinematics, lowpass, lowpass_derivatives
 from feedbench.models import effects as laws
+from feedbench.models.dynamic_friction import dahl_normalised
 from feedbench.models.friction import AnderssonFriction, DirectionalFriction
-from feedbench.units import MIN_PER_MM, MM_PER_MIN
+from feedbench.units import MIN_PER_MM, MM_PER_MIN, N_PER_UM
 
 K_TANH_DEFAULT_MIN_MM = 0.25
 """tanh constant of Eq. (5.2) (min/mm), the thesis's value (Fig. 5.11)."""
@@ -646,6 +647,94 @@ def _nonlinear(key: str, unit: str, to_si: float, doc: str, default: float, lowe
                      upper=upper, tolerance=tolerance)
 
 
+PRESLIDING_RESOLVED_PERIODS = 1.0
+"""A pre-sliding shows on the data when the travel of 2 x_p after a reversal takes at least
+this many periods of the filter's cut-off (median over the reversals)."""
+
+PRESLIDING_DECADE_STARTS = 8
+"""Pre-sliding displacements screened per decade (the Dahl column changes smoothly with x_p;
+eight per decade put a start within 15 % of any x_p)."""
+
+
+@dataclass(frozen=True)
+class Presliding(Effect):
+    """Pre-sliding hysteresis (Ch. 2.3, Fig. 2.9; §5.2's dynamic friction): after a reversal
+    the contact first deforms elastically, and the friction force follows the displacement
+    since the reversal, not the velocity. Dahl's law with exponent α (Dahl 1968/1976; LuGre,
+    Canudas de Wit et al. 1995, with F_s = F_c and σ1 = 0 is its α = 1), normalised:
+    dw/dx = (1/x_p) |1 − w sgn ẋ|^α sgn(1 − w sgn ẋ), x_p = F_p/σ0
+    (`models.dynamic_friction.dahl_normalised`, exact over each sample interval). The term
+    adds F_p (w(x) − tanh(k_tanh v)) on the filtered motion, as the Coulomb column is: the
+    bristle force less the declared Coulomb tanh that it replaces at the same level, so the
+    Coulomb level stays the sliding friction (marginality: offered on top of `coulomb`,
+    whose k_tanh it takes). Linear: F_p (N); nonlinear: x_p; σ0 = F_p/x_p (N/µm) the
+    bristle stiffness (the initial slope of the force–displacement loop from w = 0)."""
+
+    def columns(self, kin, values):
+        k_tanh = values["k_tanh_min_mm"]
+        w = dahl_normalised(kin.x, values["x_p_um"], values["alpha"],
+                            math.tanh(k_tanh * kin.v[0]) if kin.n else 0.0)
+        return (w - np.tanh(k_tanh * kin.v))[:, None]
+
+    def starts(self, kin, context):
+        """The declared Coulomb's k_tanh; x_p on a grid from 0.1 µm to the smaller of a
+        twentieth of the stroke and the bound, `PRESLIDING_DECADE_STARTS` per decade (the
+        screening picks the start whose column explains the residual best)."""
+        k_tanh = context.terms.get("coulomb", {}).get("k_tanh_min_mm",
+                                                       self.defaults()["k_tanh_min_mm"])
+        low, top = 1e-7, self.parameter("x_p_um").upper
+        high = max(min(float(np.ptp(kin.x)) / 20.0, top), 2.0 * low)
+        count = max(2, int(np.ceil(PRESLIDING_DECADE_STARTS * np.log10(high / low))) + 1)
+        return [{"x_p_um": float(x_p), "k_tanh_min_mm": k_tanh}
+                for x_p in np.geomspace(low, high, count)]
+
+    def invariants(self, term, std):
+        """The bristle stiffness σ0 = F_p/x_p (N/µm) and the level F_p (N): what the contact
+        is, on every recording (σ from the two fits' deviations, correlation left out)."""
+        values, level, x_p = term.values, self.parameter("F_p_N"), self.parameter("x_p_um")
+        sigma0 = values["F_p_N"] / values["x_p_um"]
+        relative = math.hypot(std.get((self.name, "F_p_N"), math.nan) / values["F_p_N"],
+                              std.get((self.name, "x_p_um"), math.nan) / values["x_p_um"])
+        return {"F_p_N": ("N", values["F_p_N"], std.get((self.name, "F_p_N"), math.nan),
+                          level.tolerance),
+                "sigma0_N_um": ("N/µm", sigma0 / N_PER_UM, abs(sigma0) * relative / N_PER_UM,
+                                x_p.tolerance)}
+
+    def implausible(self, values, total_mass, kin):
+        """A level that is not positive, or a pre-sliding the band cannot resolve: when the
+        axis crosses 2 x_p after a reversal (w from −1 to 0.73) within less than one filter
+        period 1/B, the term is a Coulomb transition read through the filter, not
+        hysteresis this data can show."""
+        if not values["F_p_N"] > 0.0:
+            return f"pre-sliding level {values['F_p_N']:.3g} N not positive"
+        crossing = presliding_time(kin, 2.0 * values["x_p_um"])
+        if crossing < PRESLIDING_RESOLVED_PERIODS / kin.bandwidth:
+            return (f"pre-sliding over {values['x_p_um'] * 1e6:.3g} µm lasts "
+                    f"{crossing * 1e3:.3g} ms after a reversal (median), shorter than the "
+                    f"filter period {1e3 / kin.bandwidth:.3g} ms: not resolved on this data")
+        return None
+
+    def describe(self, values):
+        return (f"pre-sliding hysteresis: bristle stiffness "
+                f"{values['F_p_N'] / values['x_p_um'] / N_PER_UM:.3g} N/µm, level "
+                f"{values['F_p_N']:.3g} N, pre-sliding displacement "
+                f"{values['x_p_um'] * 1e6:.3g} µm")
+
+
+def presliding_time(kin: Kinematics, travel: float) -> float:
+    """Median time (s) the axis takes after a reversal (a sign change of the filtered
+    velocity) to move `travel` (m) from the reversal point, over the reversals that get that
+    far before the next one; inf when none does (every reversal stays within `travel`)."""
+    reversals = np.flatnonzero(np.signbit(kin.v[1:]) != np.signbit(kin.v[:-1])) + 1
+    ends = np.append(reversals[1:], kin.n)
+    times = []
+    for start, end in zip(reversals, ends):
+        moved = np.abs(kin.x[start:end] - kin.x[start]) >= travel
+        if moved.any():
+            times.append(int(np.argmax(moved)) * kin.dt)
+    return float(np.median(times)) if times else math.inf
+
+
 LIBRARY: tuple[Effect, ...] = (
     Inertia("inertia", "rigid-body inertia M a", "declared (base term)",
             (Parameter("M_kg", "kg", 1.0, "moving mass (kg; kg·m² for a rotary axis)",
@@ -718,6 +807,18 @@ LIBRARY: tuple[Effect, ...] = (
     SensorGain("sensor_gain", "force reading scaled by g", "residual ∝ F",
                (_nonlinear("gain", "-", 1.0, "force-reading gain g", 1.0, 0.2, 5.0),),
                kind="output"),
+    Presliding("presliding",
+               "pre-sliding hysteresis: Dahl / LuGre bristle friction F_p w(x) in place of "
+               "F_p tanh(k_tanh v)",
+               "residual after each reversal, following the displacement since it "
+               "(hysteresis in force vs displacement)",
+               (Parameter("F_p_N", "N", 1.0, "level of the bristle friction F_p", lower=0.0),
+                _nonlinear("x_p_um", "µm", 1e-6, "pre-sliding displacement x_p = F_p/σ0",
+                           5e-6, 1e-8, 1e-3),
+                Parameter("alpha", "-", 1.0, "Dahl's exponent α", linear=False, setting=True,
+                          default=1.0),
+                _k_tanh_setting()),
+               requires=("coulomb",)),
 )
 """Every term, base terms first; the order breaks ties between equally good candidates."""
 
