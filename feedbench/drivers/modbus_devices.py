@@ -68,13 +68,18 @@ class InverterFaultError(DeviceError):
         self.fault_code = fault_code
 
 
-def connect_tcp(host: str, port: int, timeout_s: float = 1.0) -> ModbusTcpClient:
+MODBUS_TIMEOUT_S = 1.0
+"""How long a Modbus connect and each request wait for the server (s); no retries."""
+
+
+def connect_tcp(host: str, port: int, timeout_s: float = MODBUS_TIMEOUT_S) -> ModbusTcpClient:
     """A connected Modbus TCP client (e.g. ``127.0.0.1``, 502)."""
     return _connected(ModbusTcpClient(host, port=port, timeout=timeout_s, retries=0),
                       f"{host}:{port}")
 
 
-def connect_rtu(port: str, baudrate: int = 115200, timeout_s: float = 1.0) -> ModbusSerialClient:
+def connect_rtu(port: str, baudrate: int = 115200,
+                timeout_s: float = MODBUS_TIMEOUT_S) -> ModbusSerialClient:
     """A connected Modbus RTU client on a serial device (``/dev/ttyUSB0``, 8N1)."""
     return _connected(ModbusSerialClient(port, framer=FramerType.RTU, baudrate=baudrate,
                                          timeout=timeout_s, retries=0), port)

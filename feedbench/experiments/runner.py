@@ -42,6 +42,7 @@ from feedbench.daq.recorder import RecordingError
 from feedbench.drivers.cia402 import DISABLED_STATES, Actual
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan, Segment
+from feedbench.protocols.canbus import StackLog
 from feedbench.units import MM_PER_MIN
 
 CHANNELS = ("x_ref", "position", "velocity", "force", "force_offset", "velocity_offset",
@@ -240,6 +241,8 @@ class Runner:
         self._block = np.zeros((BLOCK_CYCLES, len(self.channels)))
         self._block_cycles = np.zeros(BLOCK_CYCLES, dtype=np.int64)
         self._block_fill = 0
+        self.stack_log = StackLog()
+        """python-can's and canopen's log lines during a run, recorded as ``log`` events."""
 
     def read_position(self) -> float:
         """Run one cycle with the drives as they are; the first one's measured position (m).
@@ -280,7 +283,7 @@ class Runner:
         self.clock.reset_timing()
         last_target = start
         i = 0
-        with self._interrupts_request_stop():
+        with self._interrupts_request_stop(), self.stack_log.capture():
             try:
                 for device in self.devices:
                     device.start(plan, device_recorder)
@@ -307,6 +310,7 @@ class Runner:
             if escalated:
                 status, reason = "aborted", f"{reason}; {escalated}" if reason else escalated
             self._stop_devices(device_recorder)
+            self._record_stack_log(recorder)
         self._flush_block()
         timing = self.clock.timing()
         status, reason = _finalize(recorder, status, reason, {"timing": timing} if timing else {})
@@ -343,6 +347,8 @@ class Runner:
             recorder.append(cycle, row + [math.nan] * (len(self.channels) - len(row)))
             raise
         recorder.append(cycle, row)
+        if self.stack_log.lines:
+            self._record_stack_log(recorder)
         if self.observers:
             self._to_block(cycle, row)
         if not watch:
@@ -518,6 +524,11 @@ class Runner:
             self._cycle(recorder, x, 0.0, 0.0, watch=False, velocity=velocity)
         except RecordingError:  # kept in the recorder's `failure`
             pass
+
+    def _record_stack_log(self, recorder) -> None:
+        """python-can's and canopen's log lines since the last call as ``log`` events."""
+        for line in self.stack_log.take():
+            self._note(recorder, "log", line)
 
     def _note(self, recorder, kind: str, text: str) -> None:
         """An event at the next cycle; a recording failure does not stop the caller."""

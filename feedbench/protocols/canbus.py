@@ -19,6 +19,7 @@ from typing import Any, Callable, Iterable, Iterator, NamedTuple
 
 import can
 import canopen
+from can.interfaces.socketcand import SocketCanDaemonBus
 from canopen.nmt import NMT_STATES
 from canopen.objectdictionary import NUMBER_TYPES, ODVariable
 from canopen.pdo import PdoMap
@@ -36,6 +37,11 @@ NOTIFIER_POLL_S = 0.05
 CONNECT_TIMEOUT_S = 2.0
 """How long a socketcand server may take to accept the connection (s); python-can itself
 retries for 10 s, then raises `TimeoutError`."""
+
+HANDSHAKE_TIMEOUT_S = 1.0
+"""How long a socketcand server may take to say each line of its handshake (s): ``< hi >``
+on connecting, ``< ok >`` to ``< open channel >`` and to ``< rawmode >``
+(`BoundedSocketcandBus`)."""
 
 SDO_BYTES, EMCY_BYTES, NMT_BYTES, HEARTBEAT_BYTES = 8, 8, 2, 1
 """Data bytes of an SDO, EMCY, NMT command and heartbeat frame (CiA 301)."""
@@ -75,6 +81,49 @@ class ReceiveErrors(can.Listener):
         self.last = exc
         self.notifier.exception = None
         time.sleep(NOTIFIER_POLL_S)
+
+
+STACK_LOGGERS = ("can", "canopen")
+"""The loggers of python-can and canopen (their modules log below these)."""
+STACK_LOG_LINES = 1000
+"""Lines a `StackLog` keeps until they are taken (older ones are counted, not kept)."""
+
+
+class StackLog(logging.Handler):
+    """python-can's and canopen's own log lines (WARNING and above), kept for the run's
+    file instead of going bare to stderr (`capture`); any thread may log, the cycle loop
+    takes them (`take`)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.lines: collections.deque[str] = collections.deque(maxlen=STACK_LOG_LINES)
+        self.dropped = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if len(self.lines) == STACK_LOG_LINES:
+            self.dropped += 1
+        self.lines.append(f"{record.name}: {record.levelname.lower()}: {record.getMessage()}")
+
+    def take(self) -> list[str]:
+        """The lines logged since the last call, oldest first."""
+        out = []
+        while self.lines:
+            out.append(self.lines.popleft())
+        return out
+
+    @contextmanager
+    def capture(self) -> Iterator[StackLog]:
+        """While inside, the stack's loggers log here only (not to stderr)."""
+        loggers = [logging.getLogger(name) for name in STACK_LOGGERS]
+        for logger in loggers:
+            logger.addHandler(self)
+            logger.propagate = False
+        try:
+            yield self
+        finally:
+            for logger in loggers:
+                logger.removeHandler(self)
+                logger.propagate = True
 
 
 def connect(network: canopen.Network) -> canopen.Network:
@@ -118,9 +167,31 @@ def frozen_heap() -> Iterator[None]:
                 gc.unfreeze()
 
 
+class BoundedSocketcandBus(SocketCanDaemonBus):
+    """python-can's socketcand bus whose handshake waits at most `HANDSHAKE_TIMEOUT_S` for
+    each line of the server. Wrapped here: python-can 4.6.1's `_expect_msg` calls a blocking
+    ``recv`` without a timeout, so a peer that accepts the connection and never speaks holds
+    the host for as long as one waits (no upstream python-can issue found for it on
+    28 Nov 2026; searched hardbyte/python-can issues for socketcand handshake timeouts)."""
+
+    def _expect_msg(self, msg: str) -> None:
+        """python-can's check of the server's line `msg`, bounded in time: a silent server
+        raises `can.CanInitializationError` and the socket is closed."""
+        sock = self._SocketCanDaemonBus__socket  # python-can's own socket (name-mangled)
+        sock.settimeout(HANDSHAKE_TIMEOUT_S)
+        try:
+            super()._expect_msg(msg)
+        except TimeoutError:
+            sock.close()
+            raise can.CanInitializationError(
+                f"the server did not say {msg!r} within {HANDSHAKE_TIMEOUT_S:g} s") from None
+        sock.settimeout(None)
+
+
 def open_bus(interface: str, channel: str, bitrate: int = 1_000_000, **options: Any) -> can.BusABC:
-    """A python-can bus; for ``socketcand`` the TCP tuning is on and its log off (a warning
-    per frame; a receive error per poll once the peer is gone: `ReceiveErrors`).
+    """A python-can bus; for ``socketcand`` the TCP tuning is on, its handshake bounded in
+    time (`BoundedSocketcandBus`) and its log off (a warning per frame; a receive error per
+    poll once the peer is gone: `ReceiveErrors`).
 
     An unknown interface, or a channel or server that cannot be opened, raises `ConfigError`
     naming the [bench] key.
@@ -130,6 +201,7 @@ def open_bus(interface: str, channel: str, bitrate: int = 1_000_000, **options: 
             logging.getLogger("can.interfaces.socketcand").setLevel(logging.CRITICAL)
             options.setdefault("tcp_tune", True)
             reach(options["host"], options["port"])
+            return BoundedSocketcandBus(channel=channel, bitrate=bitrate, **options)
         return can.Bus(interface=interface, channel=channel, bitrate=bitrate, **options)
     except can.CanInterfaceNotImplementedError as exc:
         raise ConfigError(f"bench.interface: {exc}") from None
