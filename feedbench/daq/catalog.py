@@ -10,10 +10,10 @@ The recordings are the source of truth, the catalog an index of them: `reconcile
 `rebuild` recreates the rows from the recordings in the catalog's directory, and a catalog
 file that SQLite finds corrupt is moved aside (``catalog.sqlite.corrupt-<UTC time>``) and
 rebuilt when it is opened, with one warning line; so is an existing empty file or one
-without the runs table when recordings sit beside it. A row that cannot be read (a JSON column that is
-not JSON) is listed with status `damaged`, its file and why; the other rows as they are. A
-catalog that cannot be read or written (read-only or full disk) raises `CatalogError`, one
-line.
+without the runs table when recordings sit beside it. A row that cannot be read (a JSON
+column that is not a JSON object) is listed with status `damaged`, its file and why; the
+other rows as they are. A catalog that cannot be read or written (read-only or full disk)
+raises `CatalogError`, one line.
 
 Recording paths are stored relative to the catalog's directory and given back as paths from
 the current directory, so every command finds them from anywhere; a catalog made before
