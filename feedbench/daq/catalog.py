@@ -197,7 +197,8 @@ class Catalog:
             )
         return run_id
 
-    def add(self, run_id: str, experiment: str, file: str | Path, params: Mapping[str, Any]) -> None:
+    def add(self, run_id: str, experiment: str, file: str | Path,
+            params: Mapping[str, Any]) -> None:
         """Register the start of run `run_id` (status `running`, started now, recorded by
         this process on this host)."""
         with self._transaction() as connection:
