@@ -667,14 +667,17 @@ class Presliding(Effect):
     adds F_p (w(x) − tanh(k_tanh v)) on the filtered motion, as the Coulomb column is: the
     bristle force less the declared Coulomb tanh that it replaces at the same level, so the
     Coulomb level stays the sliding friction (marginality: offered on top of `coulomb`,
-    whose k_tanh it takes). Linear: F_p (N); nonlinear: x_p; σ0 = F_p/x_p (N/µm) the
-    bristle stiffness (the initial slope of the force–displacement loop from w = 0)."""
+    whose k_tanh it takes); and LuGre's bristle damping σ1 dz/dt, dz/dt = x_p dw/dt =
+    v |1 − w sgn v|^α (v − |v| w for α = 1), zero while sliding. Linear: F_p (N), σ1
+    (N·s/m); nonlinear: x_p; σ0 = F_p/x_p (N/µm) the bristle stiffness (the initial slope
+    of the force–displacement loop from w = 0)."""
 
     def columns(self, kin, values):
         k_tanh = values["k_tanh_min_mm"]
         w = dahl_normalised(kin.x, values["x_p_um"], values["alpha"],
                             math.tanh(k_tanh * kin.v[0]) if kin.n else 0.0)
-        return (w - np.tanh(k_tanh * kin.v))[:, None]
+        bristle_rate = kin.v * np.abs(1.0 - w * np.sign(kin.v)) ** values["alpha"]
+        return np.column_stack([w - np.tanh(k_tanh * kin.v), bristle_rate])
 
     def starts(self, kin, context):
         """The declared Coulomb's k_tanh; x_p on a grid from 0.1 µm to the smaller of a
@@ -690,7 +693,8 @@ class Presliding(Effect):
 
     def invariants(self, term, std):
         """The bristle stiffness σ0 = F_p/x_p (N/µm) and the level F_p (N): what the contact
-        is, on every recording (σ from the two fits' deviations, correlation left out)."""
+        is, on every recording (σ from the two fits' deviations, correlation left out); σ1,
+        often at the noise, is an effective value, not compared."""
         values, level, x_p = term.values, self.parameter("F_p_N"), self.parameter("x_p_um")
         sigma0 = values["F_p_N"] / values["x_p_um"]
         relative = math.hypot(std.get((self.name, "F_p_N"), math.nan) / values["F_p_N"],
@@ -718,7 +722,8 @@ class Presliding(Effect):
         return (f"pre-sliding hysteresis: bristle stiffness "
                 f"{values['F_p_N'] / values['x_p_um'] / N_PER_UM:.3g} N/µm, level "
                 f"{values['F_p_N']:.3g} N, pre-sliding displacement "
-                f"{values['x_p_um'] * 1e6:.3g} µm")
+                f"{values['x_p_um'] * 1e6:.3g} µm, bristle damping "
+                f"{values['sigma1_Ns_m']:.3g} N·s/m")
 
 
 def presliding_time(kin: Kinematics, travel: float) -> float:
@@ -813,6 +818,7 @@ LIBRARY: tuple[Effect, ...] = (
                "residual after each reversal, following the displacement since it "
                "(hysteresis in force vs displacement)",
                (Parameter("F_p_N", "N", 1.0, "level of the bristle friction F_p", lower=0.0),
+                Parameter("sigma1_Ns_m", "N·s/m", 1.0, "bristle damping σ1 (LuGre)", lower=0.0),
                 _nonlinear("x_p_um", "µm", 1e-6, "pre-sliding displacement x_p = F_p/σ0",
                            5e-6, 1e-8, 1e-3),
                 Parameter("alpha", "-", 1.0, "Dahl's exponent α", linear=False, setting=True,
