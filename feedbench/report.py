@@ -251,9 +251,9 @@ def run_section(recording: Recording, truth: Mapping[str, Any] | None = None) ->
     else:
         try:
             result = judged_analysis(experiment, recording)
-            experiment.report(recording, result, section)
             section.headline = experiment.headline(result)
-            section.quality += check_indicators(result["checks"], section.quality)
+            section.quality = with_checks(section.quality, result["checks"])
+            experiment.report(recording, result, section)
             if truth is not None:
                 section.tables.insert(0, experiment.truth_table(result, truth))
         except Exception as exc:  # an aborted run may be too short to analyse: say so
@@ -263,13 +263,16 @@ def run_section(recording: Recording, truth: Mapping[str, Any] | None = None) ->
     return section
 
 
-def check_indicators(checks: Sequence[Mapping[str, Any]],
-                     shown: Sequence[Indicator]) -> list[Indicator]:
-    """A result's checks (`analysis.checks`) as quality rows, a failed one's reason beside its
-    value; rows the section already `shown` (the run's status, gaps) are not repeated."""
+def with_checks(shown: Sequence[Indicator], checks: Sequence[Mapping[str, Any]]
+                ) -> list[Indicator]:
+    """The quality rows `shown` with a result's checks (`analysis.checks`), a failed one's
+    reason beside its value: a check of a row already shown (the run's status, gaps) takes
+    its place, the others follow."""
+    rows = {c["name"]: Indicator(c["name"], c["value"] + (f" — {c['reason']}" if c["reason"]
+                                                           else ""), c["ok"]) for c in checks}
     names = {ind.name for ind in shown}
-    return [Indicator(c["name"], c["value"] + (f" — {c['reason']}" if c["reason"] else ""),
-                      c["ok"]) for c in checks if c["name"] not in names]
+    return ([rows.get(ind.name, ind) for ind in shown]
+            + [row for name, row in rows.items() if name not in names])
 
 
 def closure_section(report: Any) -> RunSection:

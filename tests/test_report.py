@@ -227,7 +227,7 @@ def test_friction_text_and_summary_give_the_law_in_the_units_of_fig_5_11(runs):
     assert lines[7:11] == ["    F_c       38.70 N", "    F_s       88.00 N",
                            "    v_s       421.0 mm/min", "    sigma   0.00250 N·min/mm"]
     assert lines[11] == "  ✔ R² of the positive fit: 1.00000 (rms 0.00 N) over its 13 points"
-    assert lines[-1] == "  all 7 checks passed"
+    assert lines[-1] == "  all 8 checks passed"
     truth = {"friction": {d: vars(LAW[sign]) for d, sign in (("positive", 1), ("negative", -1))}}
     summary = FrictionSweep.summary(result, truth)
     assert summary["max_abs_error_pct"] < 1e-6

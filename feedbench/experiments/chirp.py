@@ -154,12 +154,16 @@ def sweep_records(recording, windows: list[Window]) -> tuple[np.ndarray, np.ndar
 
 
 def _refined_extremum(f: np.ndarray, magnitude_db: np.ndarray, k: int) -> float:
-    """Frequency of the extremum at bin k, refined by a parabola through three bins (Hz)."""
+    """Frequency of the extremum at bin k, refined by a parabola through three bins (Hz).
+
+    Only a local extremum is refined (its parabola's vertex lies within half a bin); a bin
+    that is the band's end of a slope stays where it is, so the band-edge check sees it.
+    """
     if k <= 0 or k >= len(f) - 1:
         return float(f[k])
     a, b, c = magnitude_db[k - 1 : k + 2]
     shift = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) != 0 else 0.0
-    return float(f[k] + shift * (f[1] - f[0]))
+    return float(f[k] + shift * (f[1] - f[0])) if abs(shift) <= 0.5 else float(f[k])
 
 
 def mobility_extrema(f: np.ndarray, H: np.ndarray, band: tuple[float, float]) -> tuple[float, float]:
@@ -168,13 +172,15 @@ def mobility_extrema(f: np.ndarray, H: np.ndarray, band: tuple[float, float]) ->
     The resonance f_r is the largest |H| in the band (Eq. 4.14); the anti-resonance f_t is
     the smallest |H| below it (the motor-locked tip mode, Eq. 4.13). A bin with |H| = 0 (a
     live estimate from the first, still silent samples) counts as the smallest magnitude
-    there is, not as a log10(0) warning.
+    there is, not as a log10(0) warning; an undefined |H| (NaN: no force recorded) as zero.
+    A resonance on the band's first line leaves f_t there too (`analysis.checks.peak_checks`
+    then fails the band-edge check).
     """
-    db = 20 * np.log10(np.maximum(np.abs(H), np.finfo(float).tiny))
+    db = 20 * np.log10(np.maximum(np.nan_to_num(np.abs(H)), np.finfo(float).tiny))
     inside = np.flatnonzero((f >= band[0]) & (f <= band[1]))
     k_r = inside[np.argmax(db[inside])]
     below = inside[inside < k_r]
-    k_t = below[np.argmin(db[below])]
+    k_t = below[np.argmin(db[below])] if below.size else inside[0]
     return _refined_extremum(f, db, k_t), _refined_extremum(f, db, k_r)
 
 

@@ -127,8 +127,8 @@ def _fit_summary(fit: FrictionFit) -> dict:
 
 def fit_checks(result: Mapping[str, Any]) -> list[dict]:
     """Per fitted direction: R² of Eq. (5.2) over its points at least `MIN_R_SQUARED`, and
-    F_c, F_s, v_s > 0 (a flipped force sign or a sweep that never left stiction fails); the
-    windows not at steady state (left out of the fit)."""
+    F_c, F_s, v_s > 0; every point's force along its velocity (friction opposes the motion,
+    so a flipped force sign fails); the windows not at steady state (left out of the fit)."""
     checks = []
     for direction in (d for d in SIGNS if d in result):
         fit = result[direction]
@@ -142,6 +142,13 @@ def fit_checks(result: Mapping[str, Any]) -> list[dict]:
                                 {"F_c": "N", "F_s": "N", "v_s": "m/s"}),
         ]
     points = result["points"]
+    v, f = np.asarray(points["velocity_m_s"]), np.asarray(points["force_N"])
+    against = [f"{x / MM_PER_MIN:g}" for x in v[np.sign(f) != np.sign(v)]]
+    checks.append(check("motor force along the motion", f"{len(v) - len(against)} of {len(v)} "
+                        "points", not against,
+                        f"at {', '.join(against)} mm/min the drive pulled against the motion: "
+                        "the force's sign is flipped (sensor or drive polarity), friction only "
+                        "ever needs a push along it"))
     left_out = [f"{x / MM_PER_MIN:g}" for x, ok in zip(points["velocity_m_s"], points["steady"])
                 if not ok]
     checks.append(check("windows not at steady state (left out of the fit)",
