@@ -7,15 +7,17 @@ holding a failed check is not valid (`verdict`). These are pure functions of arr
 numbers; `experiments.family.judged_analysis` puts them into every family's result, and
 the terminal, ``--json``, the report and the live view read them from there.
 
-Display convention (docs/units.md): SI with engineering prefixes (Hz, N, µm/N, kg),
+Display convention (docs/results.md): SI with engineering prefixes (Hz, N, µm/N, kg),
 feeds in mm/min, as the thesis writes them.
 """
 
 from __future__ import annotations
 
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
+
+from feedbench.units import MM_PER_MIN
 
 EDGE_BINS = 2
 """A peak within this many frequency lines of its band's edge is taken to be the edge
@@ -95,7 +97,7 @@ def slid(velocity: np.ndarray, feed: float, band: float) -> dict[str, Any]:
     velocity = np.asarray(velocity, dtype=float)
     share = float(np.mean(np.sign(feed) * velocity > band)) if velocity.size else 0.0
     return check("the axis slid", f"{100 * share:.1f} % of the samples above the stiction band "
-                 f"{band * 6e4:.3g} mm/min", share >= SLID_SHARE,
+                 f"{band / MM_PER_MIN:.3g} mm/min", share >= SLID_SHARE,
                  f"the axis stuck or reversed in {100 * (1 - share):.1f} % of the samples: "
                  "raise the feed or lower the excitation amplitude")
 
@@ -108,24 +110,6 @@ def positive_parameters(label: str, values: Mapping[str, float], units: Mapping[
     text = ", ".join(f"{k} {v:.4g} {units.get(k, '')}".rstrip() for k, v in values.items())
     return check(f"{label} parameters > 0", text, not bad,
                  f"{', '.join(bad)} not > 0: the model does not describe the data")
-
-
-def damping_ratio(zeta: Iterable[float]) -> dict[str, Any]:
-    """Identified damping ratios ζ in (0, 1): an under-damped mode."""
-    zeta = [float(z) for z in zeta]
-    ok = all(0.0 < z < 1.0 for z in zeta)
-    return check("damping ratio 0 < ζ < 1", ", ".join(f"{100 * z:.2f} %" for z in zeta), ok,
-                 "a damping ratio outside (0, 1) is not an under-damped mode: no resonance "
-                 "was identified")
-
-
-def fit_within_noise(name: str, rms_residual: float, noise: float, unit: str) -> dict[str, Any]:
-    """A fitted curve within the noise of its points: residual RMS ≤ 3 × `noise`."""
-    return check(f"{name} within the noise of its points",
-                 f"rms {rms_residual:.3g} {unit} (noise {noise:.3g} {unit})",
-                 rms_residual <= 3.0 * noise,
-                 f"residual {rms_residual:.3g} {unit} RMS is more than 3 × the points' noise: "
-                 "the law does not describe these points")
 
 
 POSITION_RESOLUTION_M = 1e-9
