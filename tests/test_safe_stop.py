@@ -88,19 +88,22 @@ class StopAfter:
     def on_stop(self, status: str, reason: str) -> None: ...
 
 
-def _chirp_stopped(tmp_path: Path, channel: str, quick_stop_deceleration: int | None) -> dict:
-    """A chirp at 500 mm/min stopped after 1 s; with `quick_stop_deceleration` (nm/s²) written
-    to the drive after the configure check (a drive whose parameter changed since)."""
-    raw = example_config("chirp")
+def _chirp_stopped(tmp_path: Path, channel: str, quick_stop_deceleration: int | None,
+                   example: str = "chirp") -> tuple[dict, object]:
+    """The `example` (a chirp at 500 mm/min) stopped after 1 s; with `quick_stop_deceleration`
+    (nm/s²) written to the drive after the configure check (a drive whose parameter changed
+    since). The run's record and the simulated bench (closed)."""
+    raw = example_config(example)
     raw["bench"].update(output_dir=str(tmp_path), channel=channel)
     config = parse_run_config(raw)
     stop = StopRequest()
     with Bench(config.bench, config.plan, config.experiment.devices()) as bench:
         if quick_stop_deceleration is not None:
             bench.drive.node.sdo[QUICK_STOP_DECELERATION].raw = quick_stop_deceleration
-        return bench.run(config, Catalog(tmp_path / "catalog.sqlite"), tmp_path,
-                         observers=[StopAfter(stop, STOP_AFTER_BLOCKS)], progress=False,
-                         stop=stop)
+        row = bench.run(config, Catalog(tmp_path / "catalog.sqlite"), tmp_path,
+                        observers=[StopAfter(stop, STOP_AFTER_BLOCKS)], progress=False,
+                        stop=stop)
+    return row, bench.simulated
 
 
 def _stopped_at_the_end(recording) -> None:
@@ -110,7 +113,7 @@ def _stopped_at_the_end(recording) -> None:
 
 
 def test_a_stop_is_confirmed_by_standstill_and_the_statusword(tmp_path, can_channel):
-    row = _chirp_stopped(tmp_path, can_channel, None)
+    row, _ = _chirp_stopped(tmp_path, can_channel, None)
     assert row["status"] == "aborted" and row["reason"] == "stop requested by the test"
     recording = open_recording(row["file"])
     _stopped_at_the_end(recording)
@@ -121,7 +124,7 @@ def test_a_stop_is_confirmed_by_standstill_and_the_statusword(tmp_path, can_chan
 
 
 def test_a_quick_stop_that_does_not_stop_is_escalated(tmp_path, can_channel):
-    row = _chirp_stopped(tmp_path, can_channel, 0)
+    row, _ = _chirp_stopped(tmp_path, can_channel, 0)
     reason = row["reason"]
     assert row["status"] == "aborted" and reason.startswith("stop requested by the test; ")
     steps = reason.split("; ")[1:]
@@ -140,3 +143,16 @@ def test_a_quick_stop_that_does_not_stop_is_escalated(tmp_path, can_channel):
                         f"{abs(held[-1]) / MM_PER_MIN:.3g} mm/min): disable voltage")
     assert steps[1].startswith("axis stopped after ")
     assert steps[1].endswith(" more cycles (0x6041 = 0x0240 SWITCH ON DISABLED)")
+
+
+def test_the_escalation_ends_with_safe_torque_off_where_an_io_module_has_it(tmp_path,
+                                                                           can_channel):
+    """A shaker chirp (the bench has the exciters' I/O module): after disable voltage the
+    module's safe-torque-off output, wired to the simulated drive, is set."""
+    row, simulated = _chirp_stopped(tmp_path, can_channel, 0, "shaker_chirp")
+    steps = row["reason"].split("; ")
+    assert steps[1].startswith("not stopped within ") and steps[1].endswith(": disable voltage")
+    assert steps[2] == "safe torque off by I/O module node 10 (digital output 0x80)"
+    assert steps[3].startswith("axis stopped after ")
+    assert simulated.peers["exciter"].structure.io.digital & 0x80
+    _stopped_at_the_end(open_recording(row["file"]))

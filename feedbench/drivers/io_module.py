@@ -26,6 +26,7 @@ class IoModule:
         self.node = remote_node(network, node_id, canopen.ObjectDictionary())
         self._analog = [0] * cia401.ANALOG_CHANNELS
         self._digital = 0
+        self._torque_off = 0
         self._sent: dict[int, bytes] = {}
 
     def configure(self) -> None:
@@ -59,12 +60,20 @@ class IoModule:
         """Send the RPDOs whose content changed since they were last sent (`every`: all),
         applied by the module at the next SYNC."""
         node_id = self.node.id
-        frames = {cia401.RPDO_DIGITAL + node_id: cia401.DIGITAL_LAYOUT.pack(self._digital),
+        digital = self._digital | self._torque_off
+        frames = {cia401.RPDO_DIGITAL + node_id: cia401.DIGITAL_LAYOUT.pack(digital),
                   cia401.RPDO_ANALOG + node_id: cia401.ANALOG_LAYOUT.pack(*self._analog)}
         for cob_id, data in frames.items():
             if every or self._sent.get(cob_id) != data:
                 self.network.send_message(cob_id, data)
                 self._sent[cob_id] = data
+
+    def safe_torque_off(self) -> str:
+        """Set the drives' safe-torque-off output (`cia401.SAFE_TORQUE_OFF`) at once, held
+        whatever the other outputs do from now on; what was set, for a line."""
+        self._torque_off = cia401.SAFE_TORQUE_OFF
+        self.transmit(every=True)
+        return f"I/O module node {self.node.id} (digital output 0x{cia401.SAFE_TORQUE_OFF:02X})"
 
     def zero(self) -> None:
         """All outputs off, sent at once."""

@@ -301,6 +301,10 @@ class ExciterOutputs:
         """All outputs off."""
         self.io.zero()
 
+    def safe_torque_off(self) -> str:
+        """The drives' safe torque off through the module (`IoModule.safe_torque_off`)."""
+        return self.io.safe_torque_off()
+
 
 # stability lobes from a measured tool-tip FRF (drawn in the hammer's and the shaker chirp's
 # report sections)

@@ -5,7 +5,7 @@ an output received by RPDO is applied at the next SYNC, in the same bus cycle as
 setpoints. Wiring of the bench:
 
 - RPDO1 (0x200 + node): 0x6200 sub 1, UNSIGNED8, the digital outputs; bit 0 fires the
-  impact hammer (rising edge).
+  impact hammer (rising edge), bit 7 is the drives' safe torque off (set: torque off).
 - RPDO2 (0x300 + node): 0x6411 sub 1–4, INTEGER16, the analog outputs (±10 V = ±32767):
   1 shaker amplifier, 2 inertial-actuator amplifier, 3 hammer level, 4 spare.
 
@@ -31,6 +31,9 @@ ANALOG_CHANNELS = 4
 ANALOG_MAX = 32767
 HAMMER_FIRE = 0x01
 """Digital output bit that fires the impact hammer (rising edge)."""
+SAFE_TORQUE_OFF = 0x80
+"""Digital output bit wired to the drives' safe-torque-off input: while set, their power
+stage is off whatever their controlword (the last step of an escalated safe stop)."""
 
 SHAKER, ACTUATOR, HAMMER_LEVEL = 0, 1, 2
 """Analog output channels (0-based; object sub-index = channel + 1)."""

@@ -544,6 +544,13 @@ class SimulatedCia402Drive:
         if self.simulator.enabled != powered:
             self.simulator.enabled = powered
 
+    def torque_off(self) -> None:
+        """Safe torque off (the STO input, wired to an I/O module's output): a powered drive
+        switches its power stage off at once (switch on disabled; in a fault reaction,
+        FAULT), the axis coasting. A drive function beside CiA 402's state machine."""
+        if self.state in POWERED:
+            self._enter(FAULT if self.state == FAULT_REACTION else SWITCH_ON_DISABLED)
+
     def _fault(self, code: int, reaction: bool = False) -> None:
         """Fault with EMCY `code`: straight to FAULT, or with `reaction` through the fault
         reaction (the ramp of 0x605E, FAULT once stopped; straight to FAULT for code 0)."""

@@ -201,8 +201,11 @@ class StructureWorld:
         return self
 
     def before_physics(self) -> None:
-        """Step the exciters under the latched outputs; their sum acts on the tool tip."""
+        """Step the exciters under the latched outputs; their sum acts on the tool tip. The
+        safe-torque-off output wired to the drive turns its power stage off."""
         io = self.io
+        if io.digital & cia401.SAFE_TORQUE_OFF:
+            self.drive.torque_off()
         forces = {
             "shaker": self.shaker.step(io.analog_force(cia401.SHAKER)),
             "actuator": self.actuator.step(io.analog_force(cia401.ACTUATOR)),
