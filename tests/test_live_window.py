@@ -13,6 +13,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -30,7 +31,8 @@ from feedbench.daq.live import LiveStream
 from feedbench.experiments.sine_stream import SineStream
 from feedbench.experiments.runner import StopRequest
 from feedbench.gui.live_window import (
-    STOP_REASON, LiveWindow, Worker, bench_session, qt_app, replay_session, sticky_range,
+    CLOSED_REASON, SIGINT_REASON, STOP_REASON, LiveWindow, Worker, bench_session, qt_app,
+    replay_session, sticky_range,
 )
 from feedbench.experiments.family import families
 from feedbench.report import run_section
@@ -232,7 +234,9 @@ def test_stop_button_leaves_the_drive_switched_off(stopped_run):
     assert decode_state(int(statusword)) == "SWITCH ON DISABLED"
 
 
-def test_closing_the_window_does_not_stop_the_run(app, tmp_path):
+def test_closing_the_window_stops_the_run_safely(app, tmp_path):
+    """Closing the window while the run goes on asks for the safe stop: the file is marked
+    aborted with the reason, every sample kept, the drive switched off."""
     session = bench_session(config("chirp", tmp_path, repetitions=1, duration_s=1.0, settle_s=0.3),
                             progress=False)
     session.start()
@@ -241,8 +245,52 @@ def test_closing_the_window_does_not_stop_the_run(app, tmp_path):
     session.window.close()
     row = finish(app, session)
     recording = open_recording(row["file"])
-    assert row["status"] == "complete" and recording.status == "complete"
+    assert (row["status"], row["reason"]) == ("aborted", CLOSED_REASON)
+    assert (recording.status, recording.reason) == ("aborted", CLOSED_REASON)
     assert recording.n_gaps == 0 and recording.n_samples == session.window.stream.n_received
+    assert decode_state(int(recording.channels["statusword"][-1])) == "SWITCH ON DISABLED"
+
+
+RECORD_LINE = re.compile(r"^(\S+)  (\w+)  (\S+\.h5)(  \((.*)\))?$")
+"""The record line `feedbench run` prints: id, status, file, (reason)."""
+
+
+def test_ctrl_c_during_run_live_ends_the_process_after_the_safe_stop(tmp_path):
+    """``feedbench run CONFIG --live`` in its own process (Qt offscreen), SIGINT once the run
+    has started: the run stops safely, the window closes, the process ends by itself with
+    status 1 and prints the record line `feedbench run` prints (issue 25: it stayed alive
+    with the window open and a second Ctrl-C was ignored)."""
+    path = chirp_toml(tmp_path)
+    command = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "run", path, "--live"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "QT_QPA_PLATFORM": "offscreen"})
+    for line in command.stderr:  # the progress lines: the run is going
+        if "%" in line:
+            command.send_signal(signal.SIGINT)
+            break
+    out, _ = command.communicate(timeout=60)
+    assert command.returncode == 1, out
+    match = RECORD_LINE.match(out.strip().splitlines()[-1])
+    assert match and match.group(2, 5) == ("aborted", SIGINT_REASON), out
+    recording = open_recording(match.group(3))
+    assert (recording.status, recording.reason) == ("aborted", SIGINT_REASON)
+    assert decode_state(int(recording.channels["statusword"][-1])) == "SWITCH ON DISABLED"
+
+
+def chirp_toml(directory, **replace: str) -> str:
+    """The example chirp config written to `directory` (its output there, a bus channel of
+    its own, `replace`: text → text); its path."""
+    from importlib import resources
+
+    text = (resources.files("feedbench") / "examples" / "chirp.toml").read_text()
+    for old, new in {'output_dir = "runs"': f'output_dir = "{directory}"',
+                     'channel = "feedbench-demo"': f'channel = "fb-cli-{uuid.uuid4().hex[:8]}"',
+                     **replace}.items():
+        assert old in text
+        text = text.replace(old, new)
+    path = directory / "chirp.toml"
+    path.write_text(text, encoding="utf-8")
+    return str(path)
 
 
 def test_replay_shows_the_recording_in_the_same_window(app, stream_run):
@@ -264,18 +312,12 @@ def test_replay_shows_the_recording_in_the_same_window(app, stream_run):
 def test_run_live_from_the_command_line(app, tmp_path, capsys):
     """``feedbench run CONFIG --live``: the window opens, the run completes, closing the
     window returns the run's record (a timer closes it once the run is over)."""
-    from importlib import resources
-
     from PySide6.QtCore import QTimer
 
     from feedbench.cli import main
 
-    text = (resources.files("feedbench") / "examples" / "chirp.toml").read_text()
-    text = (text.replace("repetitions = 4", "repetitions = 1")
-            .replace("duration_s = 4.0", "duration_s = 1.0")
-            .replace('output_dir = "runs"', f'output_dir = "{tmp_path}"')
-            .replace('channel = "feedbench-demo"', f'channel = "fb-cli-{uuid.uuid4().hex[:8]}"'))
-    (tmp_path / "chirp.toml").write_text(text)
+    path = chirp_toml(tmp_path, **{"repetitions = 4": "repetitions = 1",
+                                   "duration_s = 4.0": "duration_s = 1.0"})
     seen = []
 
     def close_when_done() -> None:
@@ -288,7 +330,7 @@ def test_run_live_from_the_command_line(app, tmp_path, capsys):
     timer = QTimer()
     timer.timeout.connect(close_when_done)
     timer.start(50)
-    assert main(["run", str(tmp_path / "chirp.toml"), "--live", "--json"]) == 0
+    assert main(["run", path, "--live", "--json"]) == 0
     timer.stop()
     row = json.loads(capsys.readouterr().out)
     assert row["status"] == "complete" and seen[0] in ("idle", "running")
@@ -445,7 +487,8 @@ def test_the_load_cell_read_every_tenth_cycle_is_drawn_over_its_readings(replays
 def test_distinct_colour_blind_safe_hues_and_legends_with_a_background(replays):
     """Within every plot each trace has its own Okabe–Ito colour (velocity and velocity
     offset, master and slave differ); legends are drawn on a background: on every trace
-    plot, on a result panel once it has two series (one is named in the summary)."""
+    plot, on a result panel once it has two series (one is named in the summary) unless a
+    legend over an earlier panel names them (the magnitude's, for phase and coherence)."""
     from feedbench.views.panels import PALETTE
 
     for name, (_, _, _, window) in replays.items():
@@ -457,12 +500,133 @@ def test_distinct_colour_blind_safe_hues_and_legends_with_a_background(replays):
             assert len(set(colours)) == len(colours), (name, plot.titleLabel.text, colours)
             assert set(colours) <= {c.upper() for c in PALETTE} | {FLAGGED.upper()}
             traces = plot in window.traces.plots
-            assert (plot.legend is not None) == (traces or len(colours) > 1), name
+            panel = None if traces else window.result.view().panels[
+                window.result_plots.plots.index(plot)]
+            named = traces or plot.legend is not None or window.result_plots.named_above(
+                window.result_plots.plots.index(plot), panel)
+            assert named == (traces or len(colours) > 1), name
             assert plot.legend is None or plot.legend.opts["brush"].color().alpha() > 0
     curves = replays["friction_sweep_rack_pinion"][3].traces.curves
     for a, b in (("master.velocity", "velocity_offset"), ("master.force", "slave.force"),
                  ("master.position", "slave.position")):
         assert curves[a].opts["pen"].color() != curves[b].opts["pen"].color()
+
+
+def result_plots(window) -> list:
+    """The window's result plots (panels with data)."""
+    return [p for p in window.result_plots.plots if p]
+
+
+def scene_points(plot) -> np.ndarray:
+    """Every finite data point of the plot's curves in scene coordinates (n × 2)."""
+    t = plot.vb.childGroup.sceneTransform()
+    points = []
+    for item in plot.listDataItems():
+        x, y = item.getData()
+        if x is None or not len(x):
+            continue
+        x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        keep = np.isfinite(x) & np.isfinite(y)
+        x, y = x[keep], y[keep]
+        points.append(np.column_stack([t.m11() * x + t.m21() * y + t.dx(),
+                                       t.m12() * x + t.m22() * y + t.dy()]))
+    return np.concatenate(points) if points else np.zeros((0, 2))
+
+
+def test_legends_are_beside_the_data_never_over_it(replays):
+    """Every legend of every family's window (traces and result) lies outside its plot's view
+    box, inside the window, and no data point of the plot's curves falls within it in scene
+    coordinates (issue 25: legends covered the hammer's 46 Hz peaks and the SMFE curves)."""
+    legends = points = 0
+    for name, (_, _, _, window) in replays.items():
+        for view, plots in ((window.trace_view, window.traces.plots),
+                            (window.result_view, result_plots(window))):
+            for plot in (p for p in plots if p.legend is not None):
+                box = plot.legend.sceneBoundingRect()
+                where = (name, plot.titleLabel.text)
+                assert box.width() > 20 and box.height() > 10, where
+                assert not box.intersects(plot.vb.sceneBoundingRect()), where
+                assert 0 <= box.left() and box.right() <= view.width(), where
+                x, y = scene_points(plot).T
+                inside = ((x >= box.left()) & (x <= box.right()) & (y >= box.top())
+                          & (y <= box.bottom()))
+                assert not inside.any(), where
+                legends += 1
+                points += len(x)
+    assert legends >= 3 * len(replays) and points > 10_000
+
+
+def test_panels_share_aligned_frequency_axes(replays):
+    """In each pane the view boxes start at the same x (left axes of one width); result
+    panels over the same x (magnitude, phase, coherence) have the same width, one linked x
+    range and so line up frequency for frequency."""
+    for name, (_, _, _, window) in replays.items():
+        for plots in (window.traces.plots, result_plots(window)):
+            lefts = {round(p.vb.sceneBoundingRect().left(), 1) for p in plots}
+            assert len(lefts) <= 1, (name, lefts)
+        groups: dict[str, list] = {}
+        for plot in result_plots(window):
+            groups.setdefault(axis_text(plot, "bottom"), []).append(plot)
+        for label, plots in groups.items():
+            widths = {round(p.vb.sceneBoundingRect().width(), 1) for p in plots}
+            ranges = {tuple(np.round(p.vb.viewRange()[0], 9)) for p in plots}
+            assert len(widths) == 1 and len(ranges) == 1, (name, label, widths, ranges)
+            assert all(p.vb.linkedView(pg.ViewBox.XAxis) is plots[0].vb for p in plots[1:])
+    bode = [p for p in result_plots(replays["chirp"][3])
+            if axis_text(p, "bottom") == "frequency (Hz)"]
+    assert len(bode) == 3
+
+
+def tick_label_boxes(axis) -> list:
+    """The rectangles of the tick labels the axis draws (axis coordinates)."""
+    from PySide6.QtGui import QImage, QPainter
+
+    image = QImage(8, 8, QImage.Format_ARGB32)
+    painter = QPainter(image)
+    try:
+        specs = axis.generateDrawSpecs(painter)
+    finally:
+        painter.end()
+    return [rect for rect, _, text in (specs[2] if specs else ()) if text]
+
+
+def test_tick_labels_never_overlap_and_log_axes_are_labelled(replays):
+    """No two tick labels of any axis overlap (issue 25: pyqtgraph labelled 2× … 9× of each
+    decade of a log axis, one over another); a log axis shows at least two labels."""
+    logs = 0
+    for name, (_, _, _, window) in replays.items():
+        for plot in [*window.traces.plots, *result_plots(window)]:
+            for side in ("left", "bottom"):
+                axis = plot.getAxis(side)
+                boxes = tick_label_boxes(axis)
+                for i, a in enumerate(boxes):
+                    assert not any(a.intersects(b) for b in boxes[i + 1:]), (
+                        name, plot.titleLabel.text, side)
+                if axis.logMode:
+                    logs += 1
+                    assert len(boxes) >= 2, (name, plot.titleLabel.text, side)
+    assert logs >= 6
+
+
+def test_the_live_phase_is_unwrapped_as_the_report_draws_it(replays):
+    """Every live phase is the report's (`unwrapped_degrees`): no jump of 180° or more
+    between neighbouring points; a phase through −180° stays continuous in the point panels."""
+    from feedbench.views.panels import point_frf_panels, unwrapped_degrees
+
+    for name, (_, _, _, window) in replays.items():
+        for plot in result_plots(window):
+            if axis_text(plot, "left") != "phase (°)":
+                continue
+            for item in plot.listDataItems():
+                _, y = item.getData()
+                y = y[np.isfinite(y)]
+                assert np.all(np.abs(np.diff(y)) < 180.0), (name, item.name())
+    f = np.linspace(40.0, 80.0, 9)
+    H = np.exp(-1j * np.radians(np.linspace(-150.0, -210.0, 9)))
+    _, phase, _ = point_frf_panels({"s": list(zip(f[::-1], H[::-1], np.ones(9)))}, "|H|", 0.5)
+    assert phase.curves[0].y == pytest.approx(np.linspace(150.0, 210.0, 9))
+    assert unwrapped_degrees([np.nan, 3.0, -3.0]) == pytest.approx([np.nan, 171.887, 188.113],
+                                                                   nan_ok=True, rel=1e-4)
 
 
 def test_stop_is_disabled_and_grey_once_the_replay_has_ended(replays):

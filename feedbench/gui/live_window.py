@@ -3,8 +3,9 @@
 The bench (or a replay) runs in a worker thread and feeds a `LiveStream` plus the
 experiment family's `LiveAnalysis`; the window reads them on a Qt timer in the GUI thread. The cycle
 loop never waits for the window: a slow window draws fewer frames, the recording keeps
-every sample. Closing the window leaves the run going; only the Stop button (or Ctrl-C)
-asks the runner for its safe stop (ramp down, disable, file marked aborted).
+every sample. The Stop button, Ctrl-C and closing the window ask the runner for its safe
+stop (ramp down, disable, file marked aborted); after Ctrl-C or closing, the command ends
+once the run has stopped, with the record line `feedbench run` prints.
 
 ``feedbench run CONFIG --live`` → `bench_session`; ``feedbench live RUN`` → `replay_session`.
 """
@@ -39,6 +40,12 @@ SPANS_S = (1.0, 2.0, 5.0, 10.0, 20.0, 60.0)
 """Window lengths offered (s of bench time); the stream holds the longest."""
 
 STOP_REASON = "stop button in the live window"
+CLOSED_REASON = "live window closed"
+SIGINT_REASON = "interrupted by SIGINT"
+
+LEFT_AXIS_PX = 80
+"""Width of every plot's left axis (tick labels and the label), so that the view boxes of
+a pane start at the same x and panels over the same frequency line up."""
 
 STOP_STYLE = ("QPushButton{background:#c0392b;color:white;font-weight:bold;}"
               "QPushButton:disabled{background:#9a9a9a;color:#e0e0e0;}")
@@ -116,12 +123,49 @@ def headroom_text(channels: Mapping[str, np.ndarray], names: Sequence[str],
     return text + (f"; no data: {', '.join(silent)}" if silent else "")
 
 
-def add_legend(plot: pg.PlotItem, entries: int = 0) -> None:
-    """A legend on a dark, half-transparent background with a grey frame (readable over
-    the traces); `entries` known in advance are laid out in rows of at most three."""
-    legend = plot.addLegend(offset=(5, 5), brush=pg.mkBrush(0, 0, 0, 200),
-                            pen=pg.mkPen("#808080"))
-    legend.setColumnCount(max(1, -(-entries // 3)))
+def add_legend(layout: pg.GraphicsLayoutWidget, plot: pg.PlotItem, row: int, col: int,
+               columns: int = 1) -> pg.LegendItem:
+    """The plot's legend in a layout cell of its own (`row`, `col`: beside or above the
+    plot), never over the data; its entries in `columns` columns. Dark background, grey
+    frame; the plot's named items are listed in it."""
+    legend = pg.LegendItem(brush=pg.mkBrush(0, 0, 0, 200), pen=pg.mkPen("#808080"))
+    legend.setSizePolicy(QtWidgets.QSizePolicy.Fixed, QtWidgets.QSizePolicy.Fixed)
+    legend.setColumnCount(columns)
+    layout.addItem(legend, row=row, col=col)
+    layout.ci.layout.setAlignment(legend, QtCore.Qt.AlignTop | QtCore.Qt.AlignLeft)
+    plot.legend = legend
+    for item in plot.listDataItems():
+        if item.name():
+            legend.addItem(item, item.name())
+    return legend
+
+
+class LogAxis(pg.AxisItem):
+    """pyqtgraph's axis with log labels that do not overlap (pyqtgraph labels 2× … 9× of
+    every decade, one over another): the mantissas of `LABELLED` for the span shown, the
+    other ticks drawn without a label."""
+
+    LABELLED = ((0.5, tuple(range(1, 10))), (2.0, (1, 2, 5)), (np.inf, (1,)))
+    """(shown span below this many decades, mantissas labelled), the first that applies."""
+
+    def tickStrings(self, values: list[float], scale: float, spacing: float) -> list[str]:
+        """Labels of one tick level; in log mode the minor level (`spacing` None) keeps
+        only the labels of the `LABELLED` mantissas."""
+        strings = super().tickStrings(values, scale, spacing)
+        if not self.logMode or spacing is not None:
+            return strings
+        span = abs(self.range[1] - self.range[0])
+        labelled = next(mantissas for below, mantissas in self.LABELLED if span < below)
+        return [text if round(10 ** (v % 1.0)) in labelled else ""
+                for v, text in zip(values, strings)]
+
+
+def new_plot(layout: pg.GraphicsLayoutWidget, row: int, title: str | None = None) -> pg.PlotItem:
+    """A plot in column 0 of `row` with `LogAxis` axes and a left axis `LEFT_AXIS_PX` wide."""
+    plot = layout.addPlot(row=row, col=0, title=title, axisItems={
+        side: LogAxis(side) for side in ("left", "bottom")})
+    plot.getAxis("left").setWidth(LEFT_AXIS_PX)
+    return plot
 
 
 def label_axes(plot: pg.PlotItem, x_label: str, y_label: str) -> None:
@@ -183,7 +227,7 @@ class Worker:
             try:
                 self.join(0.2)
             except KeyboardInterrupt:
-                stop.request("interrupted by SIGINT")
+                stop.request(SIGINT_REASON)
         if self.error is not None:
             raise self.error
         return self.result
@@ -232,10 +276,10 @@ class TracePlots:
         self.groups = group_channels(units, streamed)
         self.plots, self.curves, self.lines = [], {}, []
         for row, (group, names) in enumerate(self.groups):
-            plot = self.layout.addPlot(row=row, col=0)
+            plot = new_plot(self.layout, row)
             label_axes(plot, "time before now (s)", f"{group.title} ({group.display_unit})")
             plot.showGrid(x=True, y=True, alpha=0.3)
-            add_legend(plot, len(names))
+            add_legend(self.layout, plot, row, col=1)
             plot.setMouseEnabled(x=False, y=True)
             if row < len(self.groups) - 1:
                 plot.hideAxis("bottom")
@@ -301,11 +345,14 @@ class ResultPlots:
     once a panel has two series."""
 
     NO_RESULT = "the result is drawn here once a step has completed"
+    LEGEND_COLUMNS = 3
+    """Entries per row of a panel's legend (over the panel: the pane is narrow)."""
 
     def __init__(self, layout: pg.GraphicsLayoutWidget, summary: QtWidgets.QLabel) -> None:
         self.layout = layout
         self.summary = summary
         self.plots: list[pg.PlotItem | None] = []
+        self.rows: list[int] = []
         self.placeholders: list[str] = []
         self.curves: list[dict[str, pg.PlotDataItem]] = []
         self.images: list[pg.ImageItem | None] = []
@@ -321,15 +368,21 @@ class ResultPlots:
                 continue
             if panel.image is not None:
                 self._draw_image(i, plot, panel.image)
-            if plot.legend is None and len(panel.curves) > 1:
-                add_legend(plot, len(panel.curves))  # one series: named in the summary
-                for item in curves.values():
-                    plot.legend.addItem(item, item.name())
+            if plot.legend is None and len(panel.curves) > 1 and not self.named_above(i, panel):
+                # one series is named in the summary; more: a legend in the row above
+                add_legend(self.layout, plot, self.rows[i] - 1, 0, self.LEGEND_COLUMNS)
             for curve in panel.curves:
                 if curve.name not in curves:
                     curves[curve.name] = self._new_curve(plot, curve, len(curves))
                 curves[curve.name].setData(curve.x, curve.y)
         self.summary.setText(f"<b>{view.title}</b>: {view.summary}")
+
+    def named_above(self, i: int, panel: Panel) -> bool:
+        """True when a legend over an earlier panel lists every curve of panel `i` (the
+        magnitude's legend names the phase's and the coherence's curves too)."""
+        names = {curve.name for curve in panel.curves}
+        return any(names <= {label.text for _, label in plot.legend.items}
+                   for plot in self.plots[:i] if plot is not None and plot.legend is not None)
 
     def _draw_image(self, i: int, plot: pg.PlotItem, image: Image) -> None:
         """The colour map behind the panel's curves; unknown cells at the lowest level."""
@@ -348,10 +401,11 @@ class ResultPlots:
         self.layout.clear()
         self._shown = tuple(shown)
         self.plots, self.curves, self.images = [], [], [None] * len(panels)
+        self.rows = [2 * i + 1 for i in range(len(panels))]  # 2 i: the panel's legend
         self.placeholders = [] if panels else [self.NO_RESULT]
         if not panels:
             self.layout.addLabel(self.NO_RESULT, row=0, col=0, color="#A0A0A0")
-        for row, (panel, data) in enumerate(zip(panels, shown)):
+        for row, panel, data in zip(self.rows, panels, shown):
             self.curves.append({})
             if not data:
                 text = f"{panel.title}: no data yet"
@@ -359,13 +413,22 @@ class ResultPlots:
                 self.placeholders.append(text)
                 self.plots.append(None)
                 continue
-            plot = self.layout.addPlot(row=row, col=0, title=panel.title)
+            plot = new_plot(self.layout, row, panel.title)
             label_axes(plot, panel.x_label, panel.y_label)
             plot.setLogMode(x=panel.log_x, y=panel.log_y)
             if panel.y_range is not None:
                 plot.setYRange(*panel.y_range, padding=0)
             plot.showGrid(x=True, y=True, alpha=0.3)
+            self._link_x(plot, panel, panels)
             self.plots.append(plot)
+
+    def _link_x(self, plot: pg.PlotItem, panel: Panel, panels: Sequence[Panel]) -> None:
+        """Share the x axis with the first plot drawn over the same x (label and log mode):
+        magnitude, phase and coherence zoom and pan together."""
+        same = next((other for other, p in zip(self.plots, panels) if other is not None
+                     and (p.x_label, p.log_x) == (panel.x_label, panel.log_x)), None)
+        if same is not None:
+            plot.setXLink(same)
 
     @staticmethod
     def _new_curve(plot: pg.PlotItem, curve: Curve, index: int) -> pg.PlotDataItem:
@@ -520,6 +583,12 @@ class LiveWindow(QtWidgets.QMainWindow):
         if over or state.status not in ("idle", "running"):
             self.stop_button.setEnabled(False)
 
+    def closeEvent(self, event: QtCore.QEvent) -> None:
+        """Closing the window asks a run still going for its safe stop."""
+        if self.stop is not None and self.worker is not None and self.worker.alive:
+            self.stop.request(CLOSED_REASON)
+        super().closeEvent(event)
+
     def eventFilter(self, watched: QtCore.QObject, event: QtCore.QEvent) -> bool:
         """Count the trace view's repaints (what the frame rate is measured on)."""
         if event.type() == QtCore.QEvent.Paint:
@@ -538,21 +607,41 @@ class LiveSession:
         self.window.show()
         self.worker.start()
 
-    def exec(self) -> Any:
-        """Start, run Qt until the window closes, then wait for the run to end.
+    WATCH_MS = 100
+    """How often Qt hands control back to Python: a Ctrl-C is seen within this time, and the
+    window closes this long at most after the run it interrupted has stopped."""
 
-        Closing the window does not stop the run; Ctrl-C asks for the safe stop.
+    def exec(self) -> Any:
+        """Start, run Qt until the window closes, then wait for the run to end; what the
+        run returned (a `feedbench run` record).
+
+        Ctrl-C asks for the safe stop and closes the window once the run has stopped;
+        closing the window asks for the safe stop (`LiveWindow.closeEvent`).
         """
         app = qt_app()
         self.start()
-        previous = signal.signal(signal.SIGINT, lambda *_: self.stop.request("interrupted by SIGINT"))
+        interrupted = threading.Event()
+
+        def on_sigint(*_: Any) -> None:
+            self.stop.request(SIGINT_REASON)
+            interrupted.set()
+
+        def close_once_stopped() -> None:
+            if interrupted.is_set() and self.worker.done:
+                self.window.close()
+                app.quit()
+
+        watch = QtCore.QTimer()
+        watch.timeout.connect(close_once_stopped)
+        watch.start(self.WATCH_MS)
+        previous = signal.signal(signal.SIGINT, on_sigint)
         try:
             app.exec()
         finally:
+            watch.stop()
             signal.signal(signal.SIGINT, previous)
         if self.worker.alive:
-            print("feedbench: live window closed, the run goes on (Ctrl-C stops it safely)",
-                  file=sys.stderr)
+            print("feedbench: live window closed, the run stops safely", file=sys.stderr)
         return self.worker.wait(self.stop)
 
 

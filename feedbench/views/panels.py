@@ -84,29 +84,51 @@ class ResultView:
     summary: str
 
 
+def unwrapped_degrees(phase_rad: Sequence[float]) -> np.ndarray:
+    """A phase (rad, in frequency order) in degrees, unwrapped over its finite values (NaN
+    stays NaN and does not cut the unwrapping): how the report and the live window draw
+    every phase."""
+    phase = np.asarray(phase_rad, dtype=float)
+    out = np.full(phase.shape, np.nan)
+    finite = np.isfinite(phase)
+    out[finite] = np.degrees(np.unwrap(phase[finite]))
+    return out
+
+
 def phase_panel(series: Mapping[str, tuple[Sequence[float], Sequence[float]]]) -> Panel:
-    """The phase (°, as estimated: within ±180°) of named FRFs, name → (f Hz, phase rad):
-    the panel under a magnitude panel, so every live FRF is a Bode plot."""
+    """The phase (°, `unwrapped_degrees`) of named FRFs, name → (f Hz, phase rad): the panel
+    under a magnitude panel, so every live FRF is a Bode plot."""
     return Panel("phase", "frequency (Hz)", "phase (°)", tuple(
-        Curve(name, np.asarray(f, dtype=float), np.degrees(np.asarray(phase, dtype=float)))
+        Curve(name, np.asarray(f, dtype=float), unwrapped_degrees(phase))
         for name, (f, phase) in series.items()))
 
 
 def point_frf_panels(series: Mapping[str, Sequence[tuple[float, complex, float]]],
                      magnitude_label: str, r_squared_min: float) -> tuple[Panel, ...]:
-    """|H|, phase and R² of FRF points (f Hz, H, R²) per named series; points below the
-    R² gate, if any, are drawn again in the `FLAGGED` colour as their own series."""
+    """|H|, phase (unwrapped along each series' frequencies, `unwrapped_degrees`) and R² of
+    FRF points (f Hz, H, R²) per named series; points below the R² gate, if any, are drawn
+    again in the `FLAGGED` colour as their own series, at their series' phase."""
     magnitude, phase, quality = [], [], []
-    below = [point for points in series.values() for point in points if point[2] < r_squared_min]
-    named = [(name, points, None) for name, points in series.items()]
-    flagged = [(f"R² below {r_squared_min:g}", below, FLAGGED)] if below else []
-    for name, points, color in [*named, *flagged]:
-        f, H, r2 = (np.array(v) for v in zip(*points)) if points else (np.zeros(0),) * 3
-        H = H.astype(complex)
+    rows = {name: _point_rows(points) for name, points in series.items()}
+    below = [row for f, H, r2, deg in rows.values() for row in zip(f, H, r2, deg)
+             if row[2] < r_squared_min]
+    named = [(name, rows[name], None) for name in series]
+    flagged = [(f"R² below {r_squared_min:g}", tuple(np.array(v) for v in zip(*below)),
+                FLAGGED)] if below else []
+    for name, (f, H, r2, degrees), color in [*named, *flagged]:
         magnitude.append(Curve(name, f, np.abs(H), True, color))
-        phase.append(Curve(name, f, np.degrees(np.angle(H)), True, color))
-        quality.append(Curve(name, f, r2.astype(float), True, color))
+        phase.append(Curve(name, f, degrees, True, color))
+        quality.append(Curve(name, f, r2, True, color))
     return (Panel("magnitude", "frequency (Hz)", magnitude_label, tuple(magnitude), log_y=True),
             Panel("phase", "frequency (Hz)", "phase (°)", tuple(phase)),
             Panel("R² of the sine fits", "frequency (Hz)", "R²", tuple(quality),
                   y_range=(0.0, 1.05)))
+
+
+def _point_rows(points: Sequence[tuple[float, complex, float]]
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """FRF points (f Hz, H, R²) in frequency order as f, H, R² and the unwrapped phase (°)."""
+    ordered = sorted(points, key=lambda point: point[0])
+    f, H, r2 = (np.array(v) for v in zip(*ordered)) if ordered else (np.zeros(0),) * 3
+    H = H.astype(complex)
+    return f.astype(float), H, r2.astype(float), unwrapped_degrees(np.angle(H))

@@ -14,6 +14,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure as MplFigure
 
+from feedbench.views.panels import unwrapped_degrees
+
 MIN_COHERENCE = 0.9
 """Coherence below this in the analysed band is flagged (Ch. 3.5.1)."""
 
@@ -108,7 +110,7 @@ def frf_figure(series: Sequence[FrfSeries], y_label: str, quality_label: str = "
     style = dict(marker="o", ms=3, lw=0.6) if points else dict(lw=1.2)
     for s in series:
         magnitude.semilogy(s.f, s.magnitude, label=s.label, **style)
-        phase.plot(s.f, np.degrees(np.unwrap(s.phase)), **style)
+        phase.plot(s.f, unwrapped_degrees(s.phase), **style)
         quality.plot(s.f, s.quality, **style)
     quality.axhline(gate, color="r", ls=":", lw=0.8)
     magnitude.set_ylabel(y_label)
