@@ -27,11 +27,16 @@ run on the drive's own wall clock when SYNC is gone. Modes: profile velocity (0x
 0x6084 ramps, run as CSV) and CSP, CSV, CST.
 The host sees the simulated world only through these frames and SDO.
 
-Drive behaviour (CiA 402): quick-stop option code 2 (ramp down at 0x6085 in velocity
-control, then switch on disabled once |v| < 0x606D); following-error fault in CSP
-(|0x607A − 0x6064| > 0x6065) with EMCY 0x8611; any EMCY code written to 0x2030 faults the
-drive at the next SYNC; fault reset on the rising edge of controlword bit 7. Faults go
-straight to FAULT (the reaction, "disable drive", takes no time). An exception inside the
+Drive behaviour (CiA 402): the quick stop as its option code 0x605A says (0: power stage
+off at once; 1–4: ramp down on 0x6084 / 0x6085 / at the force limit in velocity control,
+then switch on disabled once |v| < 0x606D; 5–8: the same ramps, then stay in quick stop
+active, stop complete, transition 16 back allowed); a lost heartbeat or SYNC and bus-off
+stop as the fault reaction option code 0x605E says (0: straight to FAULT; 1–4: the ramps),
+then FAULT; following-error fault in CSP (|0x607A − 0x6064| > 0x6065) with EMCY 0x8611;
+any EMCY code written to 0x2030 (write-only) faults the drive at the next SYNC; fault reset
+on the rising edge of controlword bit 7. These drive faults go straight to FAULT (their
+reaction, "disable drive", takes no time). The STO input (`torque_off`, wired to an I/O
+module output) switches the power stage off at once. An exception inside the
 simulated world during a SYNC (`world_fault`) faults the drive with EMCY 0x6100 (internal
 software), is logged as one line, and the cycle's TPDOs still go out: the host sees the
 fault as from a real drive, never a missing cycle.
@@ -87,7 +92,7 @@ SETTLE_CYCLES = 200
 """Cycles a fault reaction waits at a zero ramp for |v| < 0x606D before it disables."""
 STOP_SETTLE_CYCLES = 20
 """Cycles a quick stop waits at a zero ramp for |v| < 0x606D before it reports the stop
-complete (target reached) to a host that waits at most `runner.DISABLE_TIMEOUT_CYCLES`."""
+complete (target reached) all the same (a coupled axis may never settle inside it)."""
 ASYNCHRONOUS = 254
 """PDO transmission types from here on are event-driven (254 manufacturer, 255 profile)."""
 INT16_MAX = 0x7FFF
