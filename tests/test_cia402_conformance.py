@@ -147,7 +147,7 @@ def test_segmented_transfers_toggle_and_stray_segments(can_channel):
         assert device.state == "READY TO SWITCH ON", "the aborted transfer wrote nothing"
         assert abort_code(client.request(0xA4, lo, hi, 0, 16), CONTROLWORD, 0) == 0x05040001
         assert abort_code(client.request(0xC6, lo, hi, 0, 2), CONTROLWORD, 0) == 0x05040001
-        assert abort_code(client.request(0xE0, lo, hi, 0), CONTROLWORD, 0) == 0x05040001
+        assert abort_code(client.request(0xE0, 0x41, 0x60, 0), STATUSWORD, 0) == 0x05040001
 
 
 def test_basenode402_walks_the_state_machine_and_modes_pdo_driven(can_channel):

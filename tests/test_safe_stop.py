@@ -108,7 +108,7 @@ def _chirp_stopped(tmp_path: Path, channel: str, quick_stop_deceleration: int | 
 
 def _stopped_at_the_end(recording) -> None:
     velocity = recording.channels["velocity"]
-    assert np.all(np.abs(velocity[-10:]) < 1.0 * MM_PER_MIN)
+    assert np.all(np.abs(velocity[-10:]) < 5.0 * MM_PER_MIN)
     assert decode_state(int(recording.channels["statusword"][-1])) == "SWITCH ON DISABLED"
 
 
@@ -119,7 +119,7 @@ def test_a_stop_is_confirmed_by_standstill_and_the_statusword(tmp_path, can_chan
     _stopped_at_the_end(recording)
     [stop] = [e for e in recording.events if e.kind == "stop"]
     assert stop.text.startswith("axis stopped, power stage off after ")
-    assert stop.text.endswith("(|v| < 1 mm/min for 10 cycles; 0x6041 = 0x0240 SWITCH ON DISABLED)")
+    assert stop.text.endswith("(|v| < 5 mm/min for 10 cycles; 0x6041 = 0x0240 SWITCH ON DISABLED)")
     assert recording.metadata["drive_stop"]["0x6085"] == 2_000_000_000
 
 
@@ -137,9 +137,9 @@ def test_a_quick_stop_that_does_not_stop_is_escalated(tmp_path, can_channel):
     held = velocity[(recording.cycle >= faults[0].cycle - 50) & (recording.cycle < faults[0].cycle)]
     assert np.ptp(held) < 0.01 * abs(held[-1]) and abs(held[-1]) > 300 * MM_PER_MIN, \
         "the quick stop held the speed it had"
-    # bound: 3000 mm/min / 2 m/s² (0x6085 read at configure) + 0.1 s + 10 cycles = 0.135 s
-    assert faults[0].cycle - abort.cycle == 135
-    assert steps[0] == (f"not stopped within 0.135 s (QUICK STOP ACTIVE at "
+    # bound: 3000 mm/min / 2 m/s² (0x6085 read at configure) + 0.25 s + 10 cycles = 0.285 s
+    assert faults[0].cycle - abort.cycle == 285
+    assert steps[0] == (f"not stopped within 0.285 s (QUICK STOP ACTIVE at "
                         f"{abs(held[-1]) / MM_PER_MIN:.3g} mm/min): disable voltage")
     assert steps[1].startswith("axis stopped after ")
     assert steps[1].endswith(" more cycles (0x6041 = 0x0240 SWITCH ON DISABLED)")

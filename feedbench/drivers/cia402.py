@@ -81,7 +81,7 @@ STOP_SCHEMA = {
     "write": Field(bool, False, "write safe values (ramps of deceleration_m_s2, option codes 2, "
                    "the window following_error_mm) where the drive's are not, instead of "
                    "refusing"),
-    "standstill_mm_min": Field(float, 1.0, "|velocity actual| below which the axis stands "
+    "standstill_mm_min": Field(float, 5.0, "|velocity actual| below which the axis stands "
                                "(mm/min)", positive),
     "standstill_cycles": Field(int, 10, "bus cycles the axis must stand before the stop is "
                                "confirmed", positive),
@@ -99,7 +99,7 @@ class StopSettings:
     deceleration: float = 0.5
     following_error: float = 0.01
     write: bool = False
-    standstill_velocity: float = 1.0 * MM_PER_MIN
+    standstill_velocity: float = 5.0 * MM_PER_MIN
     standstill_cycles: int = 10
     margin: float = 0.1
 

@@ -51,9 +51,9 @@ SDO_COMMAND_MASK = 0xE0
 SDO_DOWNLOAD_SEGMENT, SDO_INITIATE_DOWNLOAD, SDO_INITIATE_UPLOAD, SDO_UPLOAD_SEGMENT = (
     0x00, 0x20, 0x40, 0x60)
 SDO_SEGMENT_REQUESTS = (SDO_DOWNLOAD_SEGMENT, SDO_UPLOAD_SEGMENT)
-SDO_BLOCK_REQUESTS = (0xA0, 0xC0)
-"""Client command specifiers (CiA 301, bits 5–7 of the first byte): segments, initiates,
-block upload and block download."""
+SDO_REFUSED_REQUESTS = (0xA0, 0xC0, 0xE0)
+"""Client command specifiers (CiA 301, bits 5–7 of the first byte): segments, initiates;
+block upload, block download and the undefined 7, which the simulated nodes refuse."""
 SDO_LAST_SEGMENT = 0x01
 """Download segment request: no more segments."""
 SDO_INDEX = struct.Struct("<HB")
@@ -309,7 +309,8 @@ class GuardedSdoServer:
     side): a segment request that does not continue the open transfer (none open, an upload
     segment during a download or the reverse) and a block transfer (none offered) are
     aborted with 0x05040001 (canopen's server answers a stale segment from its old buffer
-    and a block upload as an ordinary upload); a download of more or fewer bytes than the
+    and a block upload as an ordinary upload), as is an undefined command specifier, each
+    abort naming the request's own index and sub-index; a download of more or fewer bytes than the
     object's data type is aborted with 0x06070012 / 0x06070013 (canopen: 0x06070010 for
     both). A request shorter than 8 bytes is dropped and counted in `rejected`."""
 
@@ -328,7 +329,7 @@ class GuardedSdoServer:
     def on_request(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Serve one request, or abort it with 0x05040001."""
         ccs = data[0] & SDO_COMMAND_MASK
-        if ccs in SDO_BLOCK_REQUESTS or (ccs in SDO_SEGMENT_REQUESTS and ccs != self.expected):
+        if ccs in SDO_REFUSED_REQUESTS or (ccs in SDO_SEGMENT_REQUESTS and ccs != self.expected):
             self._refuse(can_id, ccs, data)
             return
         if ccs not in SDO_SEGMENT_REQUESTS:  # a new request ends any open transfer
@@ -338,7 +339,7 @@ class GuardedSdoServer:
 
     def _refuse(self, can_id: int, ccs: int, data: bytearray) -> None:
         server = self.server
-        if ccs in SDO_BLOCK_REQUESTS:
+        if ccs in SDO_REFUSED_REQUESTS:
             server._index, server._subindex = SDO_INDEX.unpack_from(data, 1)
         else:
             self.rejected[f"COB-ID 0x{can_id:03X}: SDO segment without a transfer"] += 1
