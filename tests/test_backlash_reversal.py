@@ -63,9 +63,9 @@ def test_summary_and_text_against_the_truth(run):
     assert abs(summary["motors"]["master"]["error_pct"]) < 100 * TOLERANCE_M / 314e-6
     assert summary["headline"].startswith("backlash master 313.9 ± ")
     lines = family.describe(result)
-    assert lines[0].startswith("  master 313.9 ± ")
-    assert lines[2].startswith("  backlash slave 362.9 ± ")
-    assert "  ✔ reversals agree: master ± " in [line[:31] for line in lines]
+    assert lines[0].startswith("  master 313.9 ± ") and ", slave 362.9 ± " in lines[0]
+    assert lines[1].startswith("  ✔ backlash parameters > 0: master 313.9 µm, slave 362.9 µm")
+    assert lines[2].startswith("  ✔ reversals agree: master ± ")
 
 
 def test_report_draws_the_loop_and_the_backlash_table(run):

@@ -165,7 +165,9 @@ def test_smfe_reports_the_condition_number(smfe_run):
     assert cond["planned_C_th"] == pytest.approx(9.06, abs=0.05)
     assert result["n_averages"] == 6 and result["warnings"] == []
     lines = Smfe.describe(result)
-    assert lines[1].startswith("  Φ_tt peaks: xx ") and "median" in lines[3]
+    assert lines[0].startswith("  Φ_tt peaks xx ") and lines[2].startswith("  Φ_tt peaks: xx ")
+    assert "median" in lines[4]
+    assert any(line.startswith("  ✔ coherence at the peaks: tool xx ") for line in lines)
 
 
 def test_spindle_feed_and_daq_stream_are_locked_to_the_bench_clock(smfe_run):

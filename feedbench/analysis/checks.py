@@ -102,12 +102,12 @@ def slid(velocity: np.ndarray, feed: float, band: float) -> dict[str, Any]:
                  "raise the feed or lower the excitation amplitude")
 
 
-def positive_parameters(label: str, values: Mapping[str, float], units: Mapping[str, str]
+def positive_parameters(label: str, values: Mapping[str, tuple[float, str]]
                         ) -> dict[str, Any]:
-    """Identified masses, stiffnesses, dampings, friction forces (SI, `units` per name) of
-    `label` all > 0 and finite."""
-    bad = [k for k, v in values.items() if not (np.isfinite(v) and v > 0.0)]
-    text = ", ".join(f"{k} {v:.4g} {units.get(k, '')}".rstrip() for k, v in values.items())
+    """Identified masses, stiffnesses, dampings, friction forces of `label`, name → (value,
+    its display unit: docs/results.md), all > 0 and finite."""
+    bad = [k for k, (v, _) in values.items() if not (np.isfinite(v) and v > 0.0)]
+    text = ", ".join(f"{k} {v:.4g} {unit}" for k, (v, unit) in values.items())
     return check(f"{label} parameters > 0", text, not bad,
                  f"{', '.join(bad)} not > 0: the model does not describe the data")
 

@@ -99,8 +99,8 @@ def backlash_checks(motors: Mapping[str, Mapping[str, Any]]) -> list[dict]:
         return []
     spread = [f"{m} ± {b['std_m'] * 1e6:.2f} µm on {b['value_m'] * 1e6:.1f} µm"
               for m, b in motors.items() if not b["std_m"] <= AGREEMENT * abs(b["value_m"])]
-    return [positive_parameters("backlash", {m: b["value_m"] for m, b in motors.items()},
-                                {m: "m" for m in motors}),
+    return [positive_parameters("backlash", {m: (b["value_m"] * 1e6, "µm")
+                                             for m, b in motors.items()}),
             check("reversals agree", ", ".join(f"{m} ± {b['std_m'] * 1e6:.2f} µm"
                                                for m, b in motors.items()), not spread,
                   "; ".join(spread) + f": more than {100 * AGREEMENT:g} % apart (a slipping "
@@ -226,8 +226,3 @@ class BacklashReversal(Experiment):
             f"backlash {motor} {m['value_m'] * 1e6:.1f} ± {m['std_m'] * 1e6:.2f} µm "
             f"(truth {m['truth_m'] * 1e6:g}, {m['error_pct']:+.2f} %)"
             for motor, m in motors.items()))}
-
-    @classmethod
-    def details(cls, result: Mapping[str, Any]) -> list[str]:
-        """A line per motor: its backlash."""
-        return [f"  backlash {_motor_text(m, b)}" for m, b in result["motors"].items()]

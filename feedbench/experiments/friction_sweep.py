@@ -137,9 +137,9 @@ def fit_checks(result: Mapping[str, Any]) -> list[dict]:
                   f"{fit['r_squared']:.5f} (rms {fit['rms_N']:.2f} N) over its "
                   f"{fit['n_points']} points", fit["r_squared"] >= MIN_R_SQUARED,
                   f"below {MIN_R_SQUARED:g}: Eq. (5.2) does not describe the {direction} points"),
-            positive_parameters(f"{direction} fit", {k: fit["identified"][k]
-                                                     for k in ("F_c", "F_s", "v_s")},
-                                {"F_c": "N", "F_s": "N", "v_s": "m/s"}),
+            positive_parameters(f"{direction} fit", {
+                k: (fit["identified"][k] / UNITS[k][1], UNITS[k][0])
+                for k in ("F_c", "F_s", "v_s")}),
         ]
     points = result["points"]
     v, f = np.asarray(points["velocity_m_s"]), np.asarray(points["force_N"])

@@ -266,8 +266,8 @@ class ImpactHammer(Experiment):
     def details(cls, result: Mapping[str, Any]) -> list[str]:
         """Per feed: the compliance peak, the hits used and the distance to the highest feed."""
         return [f"  {x['feed_mm_min']:g} mm/min: peak {x['peak_hz']:.2f} Hz, "
-                f"{x['peak_compliance_m_N'] * 1e6:.3f} µm/N, {x['hits_used']} of {x['hits']} hits, "
-                f"{100 * x['distance_to_highest_feed']:.0f} % from the highest feed"
+                f"{x['peak_compliance_m_N'] * 1e6:.3f} µm/N, {x['hits_used']} of {x['hits']} "
+                f"hits, {100 * x['distance_to_highest_feed']:.0f} % from the highest feed"
                 for x in result["feeds"]]
 
     @classmethod

@@ -411,11 +411,12 @@ def loading_checks(result: Mapping[str, Any]) -> list[dict]:
               f"{len(result['preload'])}", not failed,
               "; ".join(f"{t['preload_pct']:g} %: {t['error']}" for t in failed)),
     ]
-    values = {**{f"k_{m[0]}": x["k_N_m"] for m, x in result["stiffness"].items()},
-              **{f"backlash {m}": b["value_m"] for m, b in result["backlash"].items()}}
+    values = {**{f"k_{m[0]}": (x["k_N_m"] / N_PER_UM, "N/µm")
+                 for m, x in result["stiffness"].items()},
+              **{f"backlash {m}": (b["value_m"] * 1e6, "µm")
+                 for m, b in result["backlash"].items()}}
     if values:
-        checks.append(positive_parameters("stiffness and backlash", values, {
-            k: "N/m" if k.startswith("k_") else "m" for k in values}))
+        checks.append(positive_parameters("stiffness and backlash", values))
     return checks
 
 
