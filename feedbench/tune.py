@@ -640,7 +640,6 @@ def bode_plots(result: Mapping[str, Any], fit: PoleZeroFit) -> list[Plot]:
         for ax in figure.axes:
             for line in ax.get_lines()[:1]:
                 line.set(marker="o", ms=3, lw=0)
-        figure.axes[0].legend(fontsize=8, loc="lower left")
         plots.append(Plot(title, png_of(figure)))
     return plots
 

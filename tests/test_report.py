@@ -715,6 +715,96 @@ def test_every_family_renders_in_headless_chromium(campaign, tmp_path):
         "x".join(map(str, png_size(plot.png))) for s in sections for plot in s.plots]
 
 
+def drawn_figures(monkeypatch, paths) -> list[tuple[str, object]]:
+    """(experiment, matplotlib figure) of every plot the report draws for the recordings."""
+    from matplotlib.figure import Figure
+
+    drawn, savefig = [], Figure.savefig
+
+    def recorded(figure, *args, **kwargs):
+        drawn.append(figure)
+        return savefig(figure, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", recorded)
+    out = []
+    for path in paths:
+        recording = open_recording(path)
+        run_section(recording)
+        out += [(recording.experiment, figure) for figure in drawn]
+        drawn.clear()
+    return out
+
+
+def points_in(box, ax) -> int:
+    """How many finite points of the axes' lines and scatter markers lie in the display box."""
+    count = 0
+    for artist in [*ax.get_lines(), *ax.collections]:
+        if hasattr(artist, "get_xydata"):
+            xy, transform = np.asarray(artist.get_xydata(), float), artist.get_transform()
+        else:
+            xy, transform = (np.asarray(artist.get_offsets(), float).reshape(-1, 2),
+                             artist.get_offset_transform())
+        xy = transform.transform(xy[np.isfinite(xy).all(axis=1)])
+        count += int(np.sum((xy[:, 0] >= box.x0) & (xy[:, 0] <= box.x1)
+                            & (xy[:, 1] >= box.y0) & (xy[:, 1] <= box.y1)))
+    return count
+
+
+def test_every_familys_report_plots_keep_legends_off_the_data_and_axes_aligned(
+        runs, family_runs, stepped_loading_run, monkeypatch):
+    """Every plot of every family's report section (issue 25): no data point under an axes
+    legend and no figure legend over an axes (display coordinates), and the axes of one
+    column start and end at the same x (magnitude, phase and coherence line up)."""
+    figures = drawn_figures(monkeypatch, [*runs[:2], *family_runs.values(),
+                                          stepped_loading_run[0]])
+    assert {name for name, _ in figures} == {
+        "friction_sweep", "chirp", "impact_hammer", "sine_stream", "shaker_chirp",
+        "closed_loop_bode", "smfe", "stepped_loading"}
+    legends = 0
+    for name, figure in figures:
+        renderer = figure.canvas.get_renderer()
+        for legend in figure.legends:
+            box = legend.get_window_extent(renderer)
+            assert not any(box.overlaps(ax.get_window_extent(renderer)) for ax in figure.axes)
+            legends += 1
+        columns: dict[tuple[int, int], list] = {}
+        for ax in figure.axes:
+            if ax.get_legend() is not None:
+                assert points_in(ax.get_legend().get_window_extent(renderer), ax) == 0, name
+                legends += 1
+            spec = ax.get_subplotspec()  # None: a colour bar
+            if spec is not None:
+                columns.setdefault((spec.colspan.start, spec.colspan.stop), []).append(ax)
+        for axes in columns.values():
+            edges = {(round(ax.get_position().x0, 4), round(ax.get_position().x1, 4))
+                     for ax in axes}
+            assert len(edges) == 1, (name, edges)
+    assert legends >= 10
+
+
+def test_a_legend_over_the_data_moves_out_of_the_axes():
+    """`png_of` moves an axes legend that lies over a data point right of the axes (one that
+    covers nothing stays); the plot beside it in its column keeps the same x extent."""
+    from feedbench.views.sections import new_figure, png_of
+
+    figure = new_figure(6.0, 4.0)
+    top, bottom = figure.subplots(2, 1)
+    x = np.linspace(0.0, 1.0, 200)
+    top.plot(x, 0.5 + 0.0 * x, label="through the middle")
+    top.legend(loc="center")
+    bottom.plot(x, x, label="rising")
+    bottom.legend(loc="upper left")
+    renderer = figure.canvas.get_renderer()
+    figure.draw_without_rendering()
+    assert points_in(top.get_legend().get_window_extent(renderer), top) > 0
+    png_of(figure)
+    moved = top.get_legend().get_window_extent(renderer)
+    assert points_in(moved, top) == 0 and moved.x0 >= top.get_window_extent(renderer).x1
+    assert bottom.get_legend().get_window_extent(renderer).x1 < bottom.get_window_extent(
+        renderer).x1  # covered nothing: stays inside
+    assert top.get_position().x1 == pytest.approx(bottom.get_position().x1)
+
+
 FRF_PLOT = re.compile(r"compliance|mobility|receptance|loop:")
 """Titles of the plots that draw an FRF (each must have a phase panel)."""
 

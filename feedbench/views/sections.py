@@ -82,10 +82,47 @@ def new_figure(width_in: float = 10.0, height_in: float = 4.0) -> MplFigure:
 
 
 def png_of(figure: MplFigure) -> bytes:
-    """The figure rendered as PNG bytes."""
+    """The figure rendered as PNG bytes, no legend over its data (`legends_off_the_data`)."""
+    legends_off_the_data(figure)
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png")
     return buffer.getvalue()
+
+
+def data_points(ax) -> np.ndarray:
+    """Display coordinates (px, n × 2) of the finite points of an axes' lines and markers."""
+    points = [np.zeros((0, 2))]
+    for line in ax.get_lines():
+        xy = np.column_stack([np.asarray(line.get_xdata(), dtype=float),
+                              np.asarray(line.get_ydata(), dtype=float)])
+        points.append(line.get_transform().transform(xy[np.isfinite(xy).all(axis=1)]))
+    for collection in ax.collections:
+        offsets = np.asarray(collection.get_offsets(), dtype=float).reshape(-1, 2)
+        if len(offsets) > 1:  # a scatter's markers (a filled area has one offset)
+            points.append(collection.get_offset_transform().transform(offsets))
+    return np.concatenate(points)
+
+
+def covers_data(ax, box) -> bool:
+    """True when the display box (a legend's) lies over a data point, a colour map or a
+    filled area of the axes."""
+    if ax.images or any(len(np.asarray(c.get_offsets()).reshape(-1, 2)) <= 1
+                        and c.get_window_extent().overlaps(box) for c in ax.collections):
+        return True
+    x, y = data_points(ax).T
+    return bool(np.any((x >= box.x0) & (x <= box.x1) & (y >= box.y0) & (y <= box.y1)))
+
+
+def legends_off_the_data(figure: MplFigure) -> None:
+    """Every axes legend that lies over the axes' data moves out, right of the axes (top
+    aligned); constrained layout makes room and keeps the axes of a column aligned."""
+    figure.draw_without_rendering()
+    renderer = figure.canvas.get_renderer()
+    for ax in figure.axes:
+        legend = ax.get_legend()
+        if legend is not None and covers_data(ax, legend.get_window_extent(renderer)):
+            legend.set_loc("upper left")
+            legend.set_bbox_to_anchor((1.01, 1.0), transform=ax.transAxes)
 
 
 @dataclass(frozen=True)
@@ -115,7 +152,7 @@ def frf_figure(series: Sequence[FrfSeries], y_label: str, quality_label: str = "
     quality.axhline(gate, color="r", ls=":", lw=0.8)
     magnitude.set_ylabel(y_label)
     magnitude.grid(alpha=0.3, which="both")
-    magnitude.legend(fontsize=8, loc="lower left")
+    figure.legend(loc="outside upper center", ncols=min(len(series), 3), fontsize=8)
     phase.set_ylabel("phase (°)")
     phase.grid(alpha=0.3)
     quality.set_ylim(min(0.0, float(np.nanmin([s.quality.min(initial=1.0) for s in series]))),
