@@ -92,9 +92,10 @@ AGREEMENT = 0.1
 """The reversals of a motor agree when their spread is at most this share of their mean."""
 
 
-def backlash_checks(motors: Mapping[str, Mapping[str, Any]]) -> list[dict]:
+def backlash_checks(found: Mapping[str, Mapping[str, Any]]) -> list[dict]:
     """Each motor's backlash > 0 (a flipped or unplugged scale fails) and its reversals
-    agreeing within `AGREEMENT`."""
+    agreeing within `AGREEMENT`; live, of the motors with a reversal so far."""
+    motors = {m: b for m, b in found.items() if b["n_reversals"]}
     if not motors:
         return []
     spread = [f"{m} ± {b['std_m'] * 1e6:.2f} µm on {b['value_m'] * 1e6:.1f} µm"
