@@ -22,6 +22,18 @@ rate; the sidecar (TOML, same stem) says which column is which channel and its u
     position = "mm"
     force = "N"
     [controller]                 # optional: the drive's controller, keys as in a model config
+    [sampling]                   # optional: how the channels were sampled (declared, never
+    cycle_ms = 1.0               #   found): the drive's cycle (default: the sample period)
+    force = "cycle_mean"         # "instantaneous" (default) or the mean over the cycle that
+                                 #   ends at the time stamp (lags half a cycle)
+    force_is = "command"         # "actual" (default) or the current command, which leads the
+    current_loop_delay_ms = 0.25 #   actual force by the current loop's delay
+    position = "cycle_start"     # "cycle_end" (default: at the time stamp) or latched one
+    position_latch_cycles = 0.0  #   cycle earlier; or latched this many cycles early
+
+The sampling conventions add up to one lag of the force behind the position (with
+`force_lag_ms`), which the base model applies exactly: a sub-cycle skew that is declared is
+not a finding; one that is not is found as a timing finding (`delay`), never as a gain.
 """
 
 from __future__ import annotations
@@ -39,7 +51,9 @@ import scipy.io
 import scipy.signal
 
 from feedbench.analysis.closure.trace import SIGNALS, Trace, lowpass
-from feedbench.config import ConfigError, Field, read_toml, validate_table
+from feedbench.config import (
+    ConfigError, Field, non_negative, one_of, read_toml, validate_table,
+)
 
 UNITS_TO_SI = {
     "s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6,
@@ -58,7 +72,38 @@ SIDECAR_SCHEMA = {
     "columns": Field(dict, None, "channel → CSV column"),
     "units": Field(dict, {}, "channel → unit of its column"),
     "controller": Field(dict, {}, "the drive's controller, as in a model config"),
+    "sampling": Field(dict, {}, "how each channel was sampled (cycle, mean, latch)"),
 }
+
+
+SAMPLING_SCHEMA = {
+    "cycle_ms": Field(float, 0.0, "the drive's cycle (ms); 0: the sample period",
+                      non_negative),
+    "force": Field(str, "instantaneous", "instantaneous, or cycle_mean (the mean over the "
+                   "cycle ending at the time stamp)", one_of("instantaneous", "cycle_mean")),
+    "force_is": Field(str, "actual", "actual force, or the command (leads it by the current "
+                      "loop's delay)", one_of("actual", "command")),
+    "current_loop_delay_ms": Field(float, 0.0, "how long the actual force follows the "
+                                   "command (ms)", non_negative),
+    "position": Field(str, "cycle_end", "cycle_end (at the time stamp) or cycle_start (one "
+                      "cycle earlier)", one_of("cycle_end", "cycle_start")),
+    "position_latch_cycles": Field(float, 0.0, "the position is latched this many cycles "
+                                   "before its time stamp (besides cycle_start)"),
+}
+
+
+def declared_force_lag(sampling: Mapping[str, Any], sample_period: float) -> float:
+    """Lag (s) of the force samples behind the position samples that the sidecar's
+    [sampling] conventions declare: + half a cycle for a cycle mean, − the current loop's
+    delay for a command, − the position's latch (a cycle for cycle_start, plus
+    position_latch_cycles): a position latched early is older than its time stamp, so the
+    force leads it."""
+    side = validate_table(sampling, SAMPLING_SCHEMA, "sidecar.sampling")
+    cycle = side["cycle_ms"] * 1e-3 or sample_period
+    latch = side["position_latch_cycles"] + (1.0 if side["position"] == "cycle_start" else 0.0)
+    mean = 0.5 if side["force"] == "cycle_mean" else 0.0
+    command = side["current_loop_delay_ms"] * 1e-3 if side["force_is"] == "command" else 0.0
+    return (mean - latch) * cycle - command
 
 T = TypeVar("T")
 
@@ -115,7 +160,9 @@ def read_csv_trace(path: str | Path, sidecar: Mapping[str, Any] | None = None
         time = np.arange(data.shape[0]) / side["sample_rate_Hz"]
     trace = _trace(path, time, signals["position"], signals["force"], signals.get("reference"),
                    signals.get("excitation"), side["name"] or path.name,
-                   side["force_lag_ms"] * 1e-3, signals.get("external_force"),
+                   side["force_lag_ms"] * 1e-3
+                   + declared_force_lag(side["sampling"], float(np.median(np.diff(time)))),
+                   signals.get("external_force"),
                    signals.get("tip_acceleration"))
     return trace, side["controller"]
 

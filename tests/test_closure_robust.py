@@ -252,7 +252,8 @@ def test_a_declared_mass_that_is_off_is_one_recalibration():
 
 def test_backlash_load_on_a_contact_spring_is_identified_from_reversals():
     """A load behind a 200 µm play on a 30 Hz contact (ζ 0.3), braked by 0.5 N/kg, on
-    reversal moves (the model's own term, 0.3 N noise): the candidate, from its screened
+    reversal moves (the model's own term, its force band-limited at 400 Hz, above the fit's
+    100 Hz; 0.3 N noise): the candidate, from its screened
     grid, gets play, contact and friction within 10 % and the error to the noise."""
     truth = {"m_load_kg": 6.0, "width_um": 200e-6, "f_contact_Hz": 30.0, "zeta_contact": 0.3,
              "friction_N_kg": 0.5}
@@ -260,7 +261,7 @@ def test_backlash_load_on_a_contact_spring_is_identified_from_reversals():
     x = 0.02 * np.sin(2 * np.pi * 0.5 * t) + 0.004 * np.sin(2 * np.pi * 1.7 * t + 1.0)
     v = np.gradient(x, t)
     motion = Kinematics(x, v, np.gradient(v, t), np.zeros_like(t), np.ones(t.size, bool),
-                        1e-3, 100.0)
+                        1e-3, 400.0)
     world = Model((new_term("inertia", {"M_kg": BASE["M_kg"]}),
                    new_term("viscous", {"F_v_Ns_m": BASE["F_v_Ns_m"]}),
                    new_term("coulomb", {"F_c_N": BASE["F_c_N"], "k_tanh_min_mm": K_TANH}),

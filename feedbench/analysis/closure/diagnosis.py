@@ -435,8 +435,7 @@ def try_effect(effect: Effect, current: Fit, kin: Kinematics, context: Context,
 def _fit_candidate(effect: Effect, current: Fit, kin: Kinematics, start: dict) -> Fit:
     """The current model (its nonlinear parameters held) plus `effect` from `start`."""
     held = _hold_nonlinear(current.model)
-    term = Term(effect, {**effect.defaults(), **start},
-                frozenset(effect.linear_keys + effect.nonlinear_keys))
+    term = Term(effect, {**effect.defaults(), **start}, frozenset(effect.fitted_keys(start)))
     return fit_model(held.with_term(term), kin, with_std=False)
 
 

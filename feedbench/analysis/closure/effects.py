@@ -137,6 +137,10 @@ class Effect:
         """SI start values of every parameter (linear ones 0, settings their value)."""
         return {p.key: p.default for p in self.parameters}
 
+    def fitted_keys(self, start: Mapping[str, float]) -> tuple[str, ...]:
+        """Parameters a candidate started at `start` fits (all but the settings)."""
+        return self.linear_keys + self.nonlinear_keys
+
     def applicable(self, present: frozenset[str], fixed: frozenset[str]) -> bool:
         """Whether the effect can be added to a model holding the terms `present`."""
         return self.name not in present and all(r in present for r in self.requires)
@@ -197,9 +201,11 @@ class Effect:
 def _andersson(kin: Kinematics, values: Mapping[str, float], v: np.ndarray | None = None,
                **law: float) -> np.ndarray:
     """Eq. (5.2) at velocity v (default: the filtered motor velocity) with the given levels
-    and the term's tanh constant."""
+    and the term's tanh constant, band-limited as the force reading is: the measured force
+    is the filtered tanh of the true speed, and near each reversal the tanh of the filtered
+    speed has content above the band that the reading has not (filter both sides alike)."""
     friction = AnderssonFriction(k_tanh=values["k_tanh_min_mm"], **law)
-    return np.asarray(friction.force(kin.v if v is None else v))
+    return lowpass(np.asarray(friction.force(kin.v if v is None else v)), kin.bandwidth, kin.dt)
 
 
 def _k_tanh_setting() -> Parameter:
@@ -363,6 +369,37 @@ def _mode_column(kin: Kinematics, f_n: float, zeta: float) -> np.ndarray:
         return np.polyval(num, s) / np.polyval(den, s) - 1.0
 
     return spectral(kin.a, kin.dt, response)
+
+
+MODE_SEPARATION = 0.2
+"""Relative distance in frequency a second mode keeps from the declared one: closer, the
+two are one mode at a moved f_n (a recalibration), not a mode the model lacks."""
+
+
+@dataclass(frozen=True)
+class SecondMode(StructuralMode):
+    """A second mass on a spring-damper, beside the declared structural mode: the motor's
+    reaction to a structure with several modes is a sum of modal terms m_i (T_i − 1) a
+    (Eq. 4.25 per mode), so a missing mode is a term of its own, not a moved first mode."""
+
+    def starts(self, kin, context):
+        declared = context.terms["structural_mode"]["f_n_Hz"]
+        return [s for s in super().starts(kin, context)
+                if abs(s["f_n_Hz"] / declared - 1.0) > MODE_SEPARATION]
+
+    def implausible(self, values, total_mass, kin):
+        return super().implausible(values, total_mass, kin) or _out_of_band(values, kin)
+
+    def describe(self, values):
+        return "second mode: " + super().describe(values)
+
+
+def _out_of_band(values: Mapping[str, float], kin: Kinematics) -> str | None:
+    """Why a mode's f_n cannot be told on this data (above the filter band), or None."""
+    if values["f_n_Hz"] > kin.bandwidth:
+        return (f"f_n {values['f_n_Hz']:.4g} Hz above the {kin.bandwidth:.4g} Hz band: "
+                f"not resolved on this data")
+    return None
 
 
 def spectral(columns: np.ndarray, dt: float, response) -> np.ndarray:
@@ -574,7 +611,10 @@ class SensorGain(Effect):
 
 @dataclass(frozen=True)
 class Backlash(Effect):
-    """Backlash: a load behind a play of width b, pushed through a contact spring-damper
+    """Backlash. With a structural mode declared, a dead zone of width b inside the mode's
+    spring (motor ↔ play ↔ drive-train spring ↔ mode mass, the thesis's picture, Ch. 3.4):
+    the mode's mass followed through the spring with the play, less the linear mode.
+    Without one: a load behind a play of width b, pushed through a contact spring-damper
     (the dead zone with stiffness of Ch. 3.4, Moradi) and braked by its own Coulomb
     friction. The load is simulated from the measured motor motion (`follower_force`: contact
     at f_c = √(k_c/m_L)/2π with ζ_c, friction μ = F_L/m_L per kg); the declared model carries
@@ -583,6 +623,8 @@ class Backlash(Effect):
     the force reading is."""
 
     def columns(self, kin, values):
+        if values["mode_f_n_Hz"] > 0.0:
+            return self._in_the_mode_spring(kin, values)
         k_tanh, mu = values["k_tanh_min_mm"], values["friction_N_kg"]
         contact = follower_force(kin.x, kin.v, kin.dt, 2.0 * math.pi * values["f_contact_Hz"],
                                  values["zeta_contact"], 0.0, 0.5 * values["width_um"], mu,
@@ -590,12 +632,46 @@ class Backlash(Effect):
         rigid = kin.a + mu * np.tanh(k_tanh * kin.v)
         return (lowpass(contact, kin.bandwidth, kin.dt) - rigid)[:, None]
 
+    @staticmethod
+    def _in_the_mode_spring(kin: Kinematics, values: Mapping[str, float]) -> np.ndarray:
+        """m (g(play, μ) − a_tip − μ tanh(k v)): the declared mode's mass followed through
+        its spring with a dead zone of the play (motor ↔ play ↔ drive-train spring ↔ mass,
+        Ch. 3.4) and braked by its own share μ of the friction (guides behind the play),
+        g the spring force per kg on the motor; less the linear mode a_tip and the friction
+        the model already puts at the motor. Band-limited as the reading is."""
+        omega, zeta = 2.0 * math.pi * values["mode_f_n_Hz"], values["mode_zeta"]
+        k_tanh, mu = values["k_tanh_min_mm"], values["friction_N_kg"]
+        played = follower_force(kin.x, kin.v, kin.dt, omega, zeta, 0.0,
+                                0.5 * values["width_um"], mu, k_tanh)
+        linear = follower_force(kin.x, kin.v, kin.dt, omega, zeta)
+        rigid = mu * np.tanh(k_tanh * kin.v)
+        return (lowpass(played, kin.bandwidth, kin.dt) - linear - rigid)[:, None]
+
+    def fitted_keys(self, start):
+        """In the mode's spring: the mass, the play and its friction (the spring is the
+        mode's)."""
+        if start.get("mode_f_n_Hz", 0.0) > 0.0:
+            return ("m_load_kg", "width_um", "friction_N_kg")
+        return super().fitted_keys(start)
+
     def implausible(self, values, total_mass, kin):
         if not 0.0 < values["m_load_kg"] < total_mass:
             return f"load mass {values['m_load_kg']:.3g} kg outside (0, {total_mass:.3g}) kg"
         return None
 
     def starts(self, kin, context):
+        """A load on a contact behind the play (below); with a structural mode declared,
+        also a play in its spring (the thesis's picture, the mode's f_n and ζ as settings)
+        at widths from 1 µm to a twentieth of the stroke, eight per decade. The screening
+        picks the form and the start."""
+        mode = context.terms.get("structural_mode")
+        in_the_mode = [] if mode is None else [
+            {"width_um": w, "mode_f_n_Hz": mode["f_n_Hz"], "mode_zeta": mode["zeta"],
+             "friction_N_kg": share * _declared_friction(context) / max(mode["m_kg"], 1e-9)}
+            for w in _play_widths(kin) for share in (0.0, 0.3, 1.0)]
+        return in_the_mode + self._load_starts(kin, context)
+
+    def _load_starts(self, kin: Kinematics, context: Context) -> list[dict[str, float]]:
         """Around the rigid play that explains the residual best: the fit's SSR is rugged
         in every parameter at fine scale (the load rattling in the play), smooth at coarse
         scale, and the screening of a start is already its exact fit in m_L. The rigid
@@ -604,11 +680,10 @@ class Backlash(Effect):
         moves with the width); its load mass and friction give μ = F_L/m_L. Around that
         width and μ (× ½, 1, 2): the contact from half the band's edge to twice it (beyond,
         the band cannot tell it from rigid), ζ_c 0.3 and 1."""
-        low, high = 1e-6, max(float(np.ptp(kin.x)) / 20.0, 2e-6)
-        count = max(2, int(np.ceil(8 * np.log10(high / low))) + 1)
         k_tanh, rows = self.defaults()["k_tanh_min_mm"], kin.rows
-        best = (-math.inf, low, 0.0)
-        for width in np.geomspace(low, high, count):
+        widths = _play_widths(kin)
+        best = (-math.inf, widths[0], 0.0)
+        for width in widths:
             columns = _rigid_play(kin, width, k_tanh)[rows]
             with np.errstate(all="ignore"):
                 theta = np.linalg.lstsq(columns, context.residual, rcond=None)[0]
@@ -622,9 +697,24 @@ class Backlash(Effect):
                 for f in (0.5, 1.0, 2.0) for z in (0.3, 1.0) for r in (0.5, 1.0, 2.0)]
 
     def describe(self, values):
+        if values["mode_f_n_Hz"] > 0.0:
+            return (f"play {values['width_um'] * 1e6:.3g} µm in the spring of the "
+                    f"{values['mode_f_n_Hz']:.4g} Hz mode, mass {values['m_load_kg']:.3g} kg, "
+                    f"friction behind it {values['m_load_kg'] * values['friction_N_kg']:.3g} N")
         return (f"play {values['width_um'] * 1e6:.3g} µm, load {values['m_load_kg']:.3g} kg "
                 f"on a {values['f_contact_Hz']:.3g} Hz contact (ζ {values['zeta_contact']:.2g}), "
                 f"load friction {values['m_load_kg'] * values['friction_N_kg']:.3g} N")
+
+
+def _declared_friction(context: Context) -> float:
+    """The model's Coulomb level (N), the most friction a part of the axis can carry."""
+    return context.terms.get("coulomb", {}).get("F_c_N", 0.0)
+
+
+def _play_widths(kin: Kinematics) -> np.ndarray:
+    """Plays (m) to screen: 1 µm to a twentieth of the stroke, eight per decade."""
+    low, high = 1e-6, max(float(np.ptp(kin.x)) / 20.0, 2e-6)
+    return np.geomspace(low, high, max(2, int(np.ceil(8 * np.log10(high / low))) + 1))
 
 
 def _rigid_play(kin: Kinematics, width: float, k_tanh: float) -> np.ndarray:
@@ -664,7 +754,7 @@ class Presliding(Effect):
     Canudas de Wit et al. 1995, with F_s = F_c and σ1 = 0 is its α = 1), normalised:
     dw/dx = (1/x_p) |1 − w sgn ẋ|^α sgn(1 − w sgn ẋ), x_p = F_p/σ0
     (`models.dynamic_friction.dahl_normalised`, exact over each sample interval). The term
-    adds F_p (w(x) − tanh(k_tanh v)) on the filtered motion, as the Coulomb column is: the
+    adds F_p (w(x) − tanh(k_tanh v)), band-limited as the force reading is: the
     bristle force less the declared Coulomb tanh that it replaces at the same level, so the
     Coulomb level stays the sliding friction (marginality: offered on top of `coulomb`,
     whose k_tanh it takes); and LuGre's bristle damping σ1 dz/dt, dz/dt = x_p dw/dt =
@@ -677,7 +767,8 @@ class Presliding(Effect):
         w = dahl_normalised(kin.x, values["x_p_um"], values["alpha"],
                             math.tanh(k_tanh * kin.v[0]) if kin.n else 0.0)
         bristle_rate = kin.v * np.abs(1.0 - w * np.sign(kin.v)) ** values["alpha"]
-        return np.column_stack([w - np.tanh(k_tanh * kin.v), bristle_rate])
+        return lowpass_columns(np.column_stack([w - np.tanh(k_tanh * kin.v), bristle_rate]),
+                               kin)
 
     def starts(self, kin, context):
         """The declared Coulomb's k_tanh; x_p on a grid from 0.1 µm to the smaller of a
@@ -726,6 +817,11 @@ class Presliding(Effect):
                 f"{values['sigma1_Ns_m']:.3g} N·s/m")
 
 
+def lowpass_columns(columns: np.ndarray, kin: Kinematics) -> np.ndarray:
+    """Each column (n × p) through the kinematics' zero-phase filter, as the force is."""
+    return np.column_stack([lowpass(column, kin.bandwidth, kin.dt) for column in columns.T])
+
+
 def presliding_time(kin: Kinematics, travel: float) -> float:
     """Median time (s) the axis takes after a reversal (a sign change of the filtered
     velocity) to move `travel` (m) from the reversal point, over the reversals that get that
@@ -766,7 +862,8 @@ LIBRARY: tuple[Effect, ...] = (
     Offset("offset", "constant force offset (gravity, counterweight, force-reading offset)",
            "residual has a non-zero mean",
            (Parameter("offset_N", "N", 1.0, "constant force"),)),
-    Backlash("backlash", "a load behind a play, on a contact spring (dead zone, Ch. 3.4)",
+    Backlash("backlash", "a play in the declared mode's spring, or a load behind a play on a "
+             "contact spring (dead zone, Ch. 3.4)",
              "residual after each reversal, while the motor crosses the play",
              (Parameter("m_load_kg", "kg", 1.0, "mass behind the play", lower=0.0),
               _nonlinear("width_um", "µm", 1e-6, "total play L_z", 20e-6, 0.0, 0.05),
@@ -776,7 +873,10 @@ LIBRARY: tuple[Effect, ...] = (
                          tolerance=math.inf),
               _nonlinear("friction_N_kg", "N/kg", 1.0, "load's Coulomb friction per kg F_L/m_L",
                          1.0, 0.0, 100.0),
-              _k_tanh_setting()),
+              _k_tanh_setting(),
+              Parameter("mode_f_n_Hz", "Hz", 1.0, "the structural mode whose spring holds "
+                        "the play (0: a load on a contact)", linear=False, setting=True),
+              Parameter("mode_zeta", "-", 1.0, "that mode's ζ", linear=False, setting=True)),
              difference_step=RUGGED_STEP),
     Ripple("ripple", "force ripple periodic in position (cogging, screw, pinion)",
            "residual periodic in position (Lomb–Scargle peak)",
@@ -790,6 +890,13 @@ LIBRARY: tuple[Effect, ...] = (
                     _nonlinear("f_n_Hz", "Hz", 1.0, "motor-locked frequency √(k/m)/2π",
                                50.0, 0.5, 1e4),
                     _nonlinear("zeta", "-", 1.0, "damping ratio", 0.05, 1e-3, 1.0))),
+    SecondMode("second_mode", "a second mass on a spring-damper behind the motor (Eq. 4.25)",
+               "residual ∝ (T₂(s) − 1)·a: resonant away from the declared mode",
+               (Parameter("m_kg", "kg", 1.0, "mass on the spring", lower=0.0),
+                _nonlinear("f_n_Hz", "Hz", 1.0, "motor-locked frequency √(k/m)/2π",
+                           50.0, 0.5, 1e4),
+                _nonlinear("zeta", "-", 1.0, "damping ratio", 0.05, 1e-3, 1.0)),
+               requires=("structural_mode",)),
     CubicStiffening("cubic_stiffening",
                     "the structural spring stiffens with deflection k d (1 + κ d²)",
                     "residual at the mode, growing with the deflection's cube",
@@ -821,8 +928,7 @@ LIBRARY: tuple[Effect, ...] = (
                 Parameter("sigma1_Ns_m", "N·s/m", 1.0, "bristle damping σ1 (LuGre)", lower=0.0),
                 _nonlinear("x_p_um", "µm", 1e-6, "pre-sliding displacement x_p = F_p/σ0",
                            5e-6, 1e-8, 1e-3),
-                Parameter("alpha", "-", 1.0, "Dahl's exponent α", linear=False, setting=True,
-                          default=1.0),
+                _nonlinear("alpha", "-", 1.0, "Dahl's exponent α", 1.0, 0.2, 5.0),
                 _k_tanh_setting()),
                requires=("coulomb",)),
 )
