@@ -257,16 +257,20 @@ class Motion:
 def recording(friction: str, motion: Motion, seed: int, seconds: float = 12.0,
               sigma1: float = 0.0) -> Trace:
     """M a + σ v + friction + noise on `motion`: "lugre", the LuGre law (F_s = F_c, σ0 =
-    `SIGMA0_RECORDED`, bristle damping σ1) solved by LSODA on the analytic velocity (the
-    second implementation: no code shared with the closure's column); "coulomb",
-    F_c tanh(k v) at the thesis's k_tanh (no hysteresis)."""
+    `SIGMA0_RECORDED`, bristle damping σ1), or "elastoplastic", Dupont's law (the same and
+    z_ba half the steady deflection), solved by LSODA on the analytic velocity (the second
+    implementation: no code shared with the closure's column); "coulomb", F_c tanh(k v) at
+    the thesis's k_tanh (no hysteresis)."""
     t = np.arange(int(seconds * RECORD_FS)) / RECORD_FS
     v = motion.derivative(t, 1)
-    if friction == "lugre":
-        law = LuGre(sigma0=SIGMA0_RECORDED, F_c=F_C, F_s=F_C, v_s=1.0)
-        z = reference_deflection(lugre_rate(law), t, lambda time: motion.derivative(time, 1),
+    if friction in ("lugre", "elastoplastic"):
+        rate = (lugre_rate(LuGre(sigma0=SIGMA0_RECORDED, F_c=F_C, F_s=F_C, v_s=1.0))
+                if friction == "lugre" else
+                ep_rate(ElastoPlastic(sigma0=SIGMA0_RECORDED, F_c=F_C, F_s=F_C, v_s=1.0,
+                                      z_ba=0.5 * F_C / SIGMA0_RECORDED)))
+        z = reference_deflection(rate, t, lambda time: motion.derivative(time, 1),
                                  method="LSODA", rtol=1e-8)
-        force = law.sigma0 * z + sigma1 * lugre_rate(law)(z, v)
+        force = SIGMA0_RECORDED * z + sigma1 * np.array([rate(*zv) for zv in zip(z, v)])
     else:
         force = F_C * np.tanh(K_TANH_DEFAULT_MIN_MM * MIN_PER_MM * v)
     force = (force + AXIS["M_kg"] * motion.derivative(t, 2) + AXIS["F_v_Ns_m"] * v
@@ -292,28 +296,39 @@ def closure_on(friction: str, sigma1: float = 0.0):
         return close_the_loop(model, fit, validation)
 
 
-@pytest.mark.parametrize("sigma1", [0.0, 3000.0])
-def test_closure_names_presliding_and_recovers_the_bristle_stiffness(sigma1):
-    """LuGre friction undeclared: `presliding` is the one finding; σ0 within 2 % (measured
-    2.998 / 3.002 N/µm for 3 without / with σ1), x_p within 2 % (10.00 / 9.99 µm), the level
-    within 1 % (30.00 / 29.99 N), σ1 within 5 % (0 on its bound / 2943 N·s/m for 3000), the
-    Coulomb level stays the sliding one; held-out NRMSE 30.5 → 0.44 % / 29.4 → 0.44 %."""
-    result = closure_on("lugre", sigma1)
+CLOSURE_CASES = [
+    # recorded law, σ1 (N·s/m), relative tolerance of σ0, x_p and F_p, largest error after
+    pytest.param("lugre", 0.0, 0.02, 0.01, id="lugre"),
+    pytest.param("lugre", 3000.0, 0.02, 0.01, id="lugre-sigma1"),
+    pytest.param("elastoplastic", 0.0, 0.03, 0.02, id="elastoplastic"),
+]
+
+
+@pytest.mark.parametrize("friction, sigma1, tolerance, largest_error", CLOSURE_CASES)
+def test_closure_names_presliding_and_recovers_the_bristle_stiffness(friction, sigma1,
+                                                                     tolerance, largest_error):
+    """Dynamic friction undeclared: `presliding` is the one finding. Measured (LuGre /
+    LuGre with σ1 / elasto-plastic): σ0 3.001 / 3.002 / 3.003 N/µm for 3, x_p 10.00 / 9.99 /
+    10.10 µm for 10, level 30.0 / 30.0 / 30.3 N, σ1 0 (on its bound) / 2961 / 0 N·s/m, α
+    1.00 / 1.00 / 0.2 (on its bound: the elastic range and the sine blend saturate sooner
+    than Dahl's exponential); the Coulomb level stays the sliding one (30.0 / 30.0 / 29.8 N);
+    held-out NRMSE 29.5 → 0.44 % / 28.6 → 0.44 % / 32.8 → 1.49 % (the noise leaves 0.4 %)."""
+    result = closure_on(friction, sigma1)
     assert result.effects == ("presliding",) and result.recalibrated == ()
     term = result.final.model.term("presliding").values
     assert term["sigma1_Ns_m"] == pytest.approx(sigma1, rel=0.05, abs=50.0)
-    assert term["F_p_N"] / term["x_p_um"] == pytest.approx(SIGMA0_RECORDED, rel=0.02)
-    assert term["x_p_um"] == pytest.approx(F_C / SIGMA0_RECORDED, rel=0.02)
-    assert term["F_p_N"] == pytest.approx(F_C, rel=0.01)
+    assert term["F_p_N"] / term["x_p_um"] == pytest.approx(SIGMA0_RECORDED, rel=tolerance)
+    assert term["x_p_um"] == pytest.approx(F_C / SIGMA0_RECORDED, rel=tolerance)
+    assert term["F_p_N"] == pytest.approx(F_C, rel=tolerance)
     assert result.final.model.term("coulomb").values["F_c_N"] == pytest.approx(F_C, rel=0.01)
     assert result.error_before > 0.2
-    assert result.error_after < 0.02
+    assert result.error_after < largest_error
 
 
 def test_closure_does_not_add_presliding_to_a_clean_coulomb_recording():
-    """The same motion with F_c tanh(k v) and no hysteresis: no `presliding` (its best fit,
-    a sub-µm x_p that reads the sharp Coulomb turn through the filter, is rejected as not
-    resolved in the band)."""
+    """The same motion with F_c tanh(k v) and no hysteresis: no `presliding` (measured: not
+    significant, ΔBIC +20, 0.5 % of the residual; a sub-µm x_p that would read a sharp
+    Coulomb turn through the filter is refused as not resolved in the band)."""
     result = closure_on("coulomb")
     assert "presliding" not in result.effects
     presliding = [c for c in result.final_ranking if c.name == "presliding"]
