@@ -36,7 +36,7 @@ integrates them over a sampled record.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -142,10 +142,10 @@ def _lugre(v: np.ndarray, dt: float, p: np.ndarray, z0: float) -> tuple:
 
 
 @dataclass(frozen=True)
-class LuGre:
-    """The LuGre law (Canudas de Wit et al. 1995), SI: sigma0 (N/m) bristle stiffness,
-    sigma1 (N·s/m) bristle damping, sigma2 (N·s/m) viscous coefficient, F_c, F_s (N) Coulomb
-    and static levels, v_s (m/s) Stribeck velocity."""
+class BristleLaw:
+    """What LuGre and the elasto-plastic law share, SI: sigma0 (N/m) bristle stiffness,
+    F_c, F_s (N) Coulomb and static levels, v_s (m/s) Stribeck velocity, sigma1 (N·s/m)
+    bristle damping, sigma2 (N·s/m) viscous coefficient; F = σ0 z + σ1 dz/dt + σ2 v."""
 
     sigma0: float
     F_c: float
@@ -172,14 +172,22 @@ class LuGre:
     def deflection(self, v: np.ndarray, dt: float, z0: float = 0.0
                    ) -> tuple[np.ndarray, np.ndarray]:
         """Bristle deflection z (m) and dz/dt (m/s) at each sample of v (m/s, every dt s)."""
-        params = np.array([self.sigma0, self.F_c, self.F_s, self.v_s])
-        return _lugre(np.ascontiguousarray(v, dtype=float), float(dt), params, float(z0))
+        raise NotImplementedError
 
     def force(self, v: np.ndarray, dt: float, z0: float = 0.0) -> np.ndarray:
         """Friction force (N) σ0 z + σ1 dz/dt + σ2 v at each sample of v (m/s, every dt s),
         starting from deflection z0 (m)."""
         z, rate = self.deflection(v, dt, z0)
         return self.sigma0 * z + self.sigma1 * rate + self.sigma2 * np.asarray(v, dtype=float)
+
+
+@dataclass(frozen=True)
+class LuGre(BristleLaw):
+    """The LuGre law (Canudas de Wit et al. 1995), `BristleLaw`'s parameters."""
+
+    def deflection(self, v, dt, z0=0.0):
+        params = np.array([self.sigma0, self.F_c, self.F_s, self.v_s])
+        return _lugre(np.ascontiguousarray(v, dtype=float), float(dt), params, float(z0))
 
 
 @njit(**_JIT)
@@ -233,34 +241,19 @@ def _elastoplastic(v: np.ndarray, dt: float, p: np.ndarray, z0: float) -> tuple:
 
 
 @dataclass(frozen=True)
-class ElastoPlastic:
-    """The elasto-plastic law (Dupont et al. 2002), SI: LuGre's parameters and `z_ba` (m),
-    the breakaway deflection below which the contact is purely elastic, 0 ≤ z_ba <
-    min(F_c, F_s)/σ0."""
+class ElastoPlastic(BristleLaw):
+    """The elasto-plastic law (Dupont et al. 2002): `BristleLaw`'s parameters and `z_ba`
+    (m, keyword), the breakaway deflection below which the contact is purely elastic,
+    0 ≤ z_ba < min(F_c, F_s)/σ0."""
 
-    sigma0: float
-    F_c: float
-    F_s: float
-    v_s: float
-    z_ba: float
-    sigma1: float = 0.0
-    sigma2: float = 0.0
+    z_ba: float = field(kw_only=True)
 
     def __post_init__(self) -> None:
-        for name in ("sigma0", "F_c", "F_s", "v_s"):
-            if not getattr(self, name) > 0.0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        super().__post_init__()
         if not 0.0 <= self.z_ba < min(self.F_c, self.F_s) / self.sigma0:
             raise ValueError(f"z_ba must lie in [0, min(F_c, F_s)/sigma0), got {self.z_ba}")
 
-    def deflection(self, v: np.ndarray, dt: float, z0: float = 0.0
-                   ) -> tuple[np.ndarray, np.ndarray]:
-        """Deflection z (m) and dz/dt (m/s) at each sample of v (m/s, every dt s)."""
+    def deflection(self, v, dt, z0=0.0):
         params = np.array([self.sigma0, self.F_c, self.F_s, self.v_s, self.z_ba])
         return _elastoplastic(np.ascontiguousarray(v, dtype=float), float(dt), params,
                               float(z0))
-
-    def force(self, v: np.ndarray, dt: float, z0: float = 0.0) -> np.ndarray:
-        """Friction force (N) σ0 z + σ1 dz/dt + σ2 v at each sample of v (m/s, every dt s)."""
-        z, rate = self.deflection(v, dt, z0)
-        return self.sigma0 * z + self.sigma1 * rate + self.sigma2 * np.asarray(v, dtype=float)
