@@ -1,5 +1,5 @@
-"""The `feedbench` command: run, runs, analyze, live, report, demo, campaign, sim, export, closure,
-tune.
+"""The `feedbench` command and its sub-commands (`build_parser`; ``feedbench --help`` names
+every one).
 
 Errors the user can fix (a config key, a limit, an unknown run, a file that is not what it
 should be) print one line ``feedbench: error: <file or field>: <reason>`` and exit with
@@ -296,7 +296,7 @@ def positive(text: str) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every sub-command."""
-    parser = Parser(prog="feedbench", description=__doc__.splitlines()[0])
+    parser = Parser(prog="feedbench")
     parser.add_argument("--debug", action="store_true",
                         help="show the traceback of an error instead of its one line")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -392,6 +392,7 @@ def build_parser() -> argparse.ArgumentParser:
     for command in [*sub.choices.values(), *catalog_sub.choices.values()]:  # and after it
         command.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                              help=argparse.SUPPRESS)
+    parser.description = f"The feedbench command: {', '.join(sub.choices)}."
     return parser
 
 
