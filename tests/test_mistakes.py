@@ -116,6 +116,18 @@ def test_the_friction_sweep_in_m_min_is_refused_by_feedbench_run(tmp_path, capsy
     assert not (tmp_path / "runs").exists()
 
 
+def test_a_bus_cycle_the_simulated_drive_cannot_run_is_refused_before_anything_moves(
+        tmp_path, can_channel):
+    """0.5 ms is a cycle a drive may run, not the simulated one (a 1 ms position loop): the
+    bench refuses it while it starts, naming the field, before a recording exists."""
+    raw = mistaken("chirp", {"bench": {"cycle_ms": 0.5, "output_dir": str(tmp_path),
+                                       "channel": can_channel}})
+    with pytest.raises(ConfigError, match=r"^bench\.cycle_ms = 0\.5 is not a whole number of "
+                                          r"the simulated position loop's 1 ms periods"):
+        run_config(parse_run_config(raw), progress=False)
+    assert not list(tmp_path.glob("*.h5"))
+
+
 def toml_text(raw: dict) -> str:
     """A config dict of tables of numbers, strings, booleans and lists as TOML."""
     def value(v) -> str:

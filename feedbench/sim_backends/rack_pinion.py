@@ -34,7 +34,7 @@ from feedbench.sim_backends import eds
 from feedbench.sim_backends.drive_bus import SimulatedDriveBus
 from feedbench.sim_backends.faults import NO_FAULTS, Faults
 from feedbench.sim_backends.modbus_devices import SimulatedLoadCell, SimulatedModbusTcpServer
-from feedbench.sim_backends.world import FRICTION_SCHEMA
+from feedbench.sim_backends.world import FRICTION_SCHEMA, servo_timing
 from feedbench.units import MIN_PER_MM, MM_PER_MIN, N_MIN_PER_MM, N_PER_UM
 
 EDS_FILE = "rack_pinion.eds"
@@ -145,13 +145,13 @@ def _axis(w: Mapping[str, Any]) -> RackPinionAxis:
 def build_simulator(table: Mapping[str, Any], cycle_s: float) -> RackPinionSimulator:
     """The simulated rack-and-pinion axis from a ``[bench.world]`` table (engineering units)."""
     w = validate_table(table, WORLD_SCHEMA, "bench.world")
+    timing = servo_timing(w, cycle_s)
     try:
         gains = CascadeGains(w["K_p_Ns_m"], w["T_i_ms"] * 1e-3, w["K_v_per_s"])
         simulator = RackPinionSimulator(
             _axis(w), gains, gains,
             TorqueEqualisation(w["preload_K_p_m_s_N"], w["preload_T_i_ms"] * 1e-3),
-            Preload(w["preload_pct"] / 100.0, w["K_Tm"], w["K_Ts"]),
-            ServoTiming(w["f_velocity_Hz"], w["f_position_Hz"], w["delay_ms"] * 1e-3, cycle_s),
+            Preload(w["preload_pct"] / 100.0, w["K_Tm"], w["K_Ts"]), timing,
             torque_limit=w["torque_limit"])
     except ValueError as exc:
         raise ConfigError(f"bench.world: {exc}") from None

@@ -77,10 +77,24 @@ def build_axis(table: Mapping[str, Any], cycle_s: float) -> AxisSimulator:
                                    _friction(w["friction"], "negative"))
     axis = TwoMassAxis(m_mot=w["m_mot_kg"], m_tip=w["m_tip_kg"], k=w["k_N_um"] * N_PER_UM,
                        c=w["c_Ns_m"], friction=friction)
-    timing = ServoTiming(f_velocity=w["f_velocity_Hz"], f_position=w["f_position_Hz"],
-                         delay=w["delay_ms"] * 1e-3, cycle=cycle_s)
+    timing = servo_timing(w, cycle_s)
     gains = CascadeGains.standard(axis.m_mot + axis.m_tip, w["bandwidth_Hz"])
     return AxisSimulator(axis, gains, timing, force_limit=w["force_limit_N"])
+
+
+def servo_timing(w: Mapping[str, Any], cycle_s: float) -> ServoTiming:
+    """The servo loops of a validated world table (``f_velocity_Hz``, ``f_position_Hz``,
+    ``delay_ms``) at a bus cycle of `cycle_s` s; a cycle that is no whole number of position-
+    loop periods is a `ConfigError` naming ``bench.cycle_ms``, other misfits ``bench.world``."""
+    if abs(w["f_position_Hz"] * cycle_s - round(w["f_position_Hz"] * cycle_s)) > 1e-9 or \
+            round(w["f_position_Hz"] * cycle_s) < 1:
+        raise ConfigError(f"bench.cycle_ms = {cycle_s * 1e3:g} is not a whole number of the "
+                          f"simulated position loop's {1e3 / w['f_position_Hz']:g} ms periods "
+                          "(bench.world.f_position_Hz)")
+    try:
+        return ServoTiming(w["f_velocity_Hz"], w["f_position_Hz"], w["delay_ms"] * 1e-3, cycle_s)
+    except ValueError as exc:
+        raise ConfigError(f"bench.world: {exc}") from None
 
 
 def world_truth(table: Mapping[str, Any]) -> dict:
