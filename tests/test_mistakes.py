@@ -23,6 +23,7 @@ from feedbench.daq.recording import open_recording, printable_json
 from feedbench.demo import describe_analysis, example_config
 from feedbench.report import run_section, verdict
 from feedbench.units import MM_PER_MIN
+from test_live_offline import live_replay
 from test_report import (
     COLUMN, DAQ_RATE, K_P, T_I, bode_steps, chirp_steps, friction_steps, hammer_steps, record,
     record_with_daq, shaker_chirp_steps, sine_stream_steps,
@@ -309,6 +310,16 @@ def assert_not_valid_everywhere(path, name: str, fragment: str) -> None:
 def test_result_marked_not_valid_with_its_reason_in_terminal_json_and_report(mistake, analysed):
     _, name, fragment = NOT_VALID[mistake]
     assert_not_valid_everywhere(analysed[mistake], name, fragment)
+
+
+@pytest.mark.parametrize("mistake", ["hammer: double hit", "chirp: velocity channel unplugged"])
+def test_the_live_view_says_not_valid_and_why(mistake, analysed):
+    """Replayed as a run feeds the live window: the summary starts with the verdict and the
+    failed check's reason, before the family's own summary."""
+    _, name, fragment = NOT_VALID[mistake]
+    summary = live_replay(analysed[mistake]).view().summary
+    assert summary.startswith(f"NOT VALID: {name}: ") and fragment in summary.split(" | ")[0]
+    assert len(summary.split(" | ")) == 2
 
 
 def test_chirp_too_weak_to_break_stiction_on_the_simulated_bench(tmp_path, can_channel):
