@@ -759,7 +759,8 @@ class Presliding(Effect):
     Coulomb level stays the sliding friction (marginality: offered on top of `coulomb`,
     whose k_tanh it takes); and LuGre's bristle damping σ1 dz/dt, dz/dt = x_p dw/dt =
     v |1 − w sgn v|^α (v − |v| w for α = 1), zero while sliding. Linear: F_p (N), σ1
-    (N·s/m); nonlinear: x_p; σ0 = F_p/x_p (N/µm) the bristle stiffness (the initial slope
+    (N·s/m); nonlinear: x_p and α (α < 1 saturates sooner, as the elasto-plastic law of
+    Dupont et al. 2002 does); σ0 = F_p/x_p (N/µm) the bristle stiffness (the initial slope
     of the force–displacement loop from w = 0)."""
 
     def columns(self, kin, values):
