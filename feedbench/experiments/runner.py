@@ -406,9 +406,9 @@ class Runner:
         except Exception as exc:  # the bus may be gone: record why the stop ended early
             why = f"{type(exc).__name__}: {exc}"
         self._note(recorder, "fault", f"safe stop incomplete: {why}")
-        unknown = self._stop_by_sdo(why, bound * dt)
+        unknown, motion = self._stop_by_sdo(why, bound * dt)
         self._note(recorder, "fault", unknown or "drives in a safe state by SDO quick stop "
-                   "(stopped, power stage off)")
+                   f"(power stage off; {motion} when last read)")
         return unknown
 
     def _stop_bound(self, dt: float) -> int:
@@ -488,11 +488,13 @@ class Runner:
             words.append(f"{_where(name)}0x6041 = 0x{word:04X} {state}")
         return ", ".join(words)
 
-    def _stop_by_sdo(self, why: str, bound_s: float) -> str:
-        """A stop by SDO to every drive (`Cia402Drive.stop_by_sdo`; after `bound_s` (s)
-        disable voltage, escalated) and a bus cycle, again until each is de-energised and
-        below the standstill velocity, for at most `STOP_RETRY_S`; else NMT stop. Returns
-        "" once confirmed, else "drive state unknown (…)" with the last answer or error."""
+    def _stop_by_sdo(self, why: str, bound_s: float) -> tuple[str, str]:
+        """A stop by SDO to every drive (`Cia402Drive.stop_by_sdo`: quick stop while it
+        moves, disable voltage once it stands or after `bound_s` (s), escalated) and a bus
+        cycle, again until each is de-energised, for at most `STOP_RETRY_S`; else NMT stop.
+        Returns ("", the states and velocities last read) once confirmed, else ("drive state
+        unknown (…)" with the last answer or error, ""). A bus that fails the PDOs may lose
+        the SYNCs too: standstill over cycles is the PDO stop's to confirm."""
         start = time.monotonic()
         last = why
         standstill = self.drive.stop_settings.standstill_velocity
@@ -501,10 +503,10 @@ class Runner:
             try:
                 reads = [d.stop_by_sdo(SDO_STOP_TIMEOUT_S, standstill, escalate)
                          for d in self.drives.values()]
-                if all(state in DISABLED_STATES and abs(v) < standstill for state, v in reads):
-                    return ""
-                last = ", ".join(f"state {state} at {abs(v) / MM_PER_MIN:.3g} mm/min"
-                                 for state, v in reads)
+                last = ", ".join(f"{_where(name)}{state} at {abs(v) / MM_PER_MIN:.3g} mm/min"
+                                 for name, (state, v) in zip(self.drives, reads))
+                if all(state in DISABLED_STATES for state, _ in reads):
+                    return "", last
                 self.clock.tick()  # a drive that acts on the SYNC (lockstep) acts now
             except Exception as exc:  # no answer (yet): a hung peer may come back
                 last = f"{type(exc).__name__}: {exc}"
@@ -515,7 +517,7 @@ class Runner:
             except Exception as exc:  # the bus is gone: nothing more the host can send
                 last = f"{last}; NMT stop not sent: {type(exc).__name__}"
         return (f"drive state unknown: no safe state confirmed within {STOP_RETRY_S:g} s "
-                f"({' '.join(last.split())})")
+                f"({' '.join(last.split())})"), ""
 
     def _stop_cycle(self, recorder, x: float, velocity: float = 0.0) -> None:
         """One cycle of the stop (setpoint `x` m, `velocity` m/s, no excitation): a
