@@ -142,5 +142,6 @@ def _fit_step(force, response, fs, f, start, stop, settle_cycles) -> tuple[SineF
         fit_sine(response[a:b], fs, f).phasor / fit_sine(force[a:b], fs, f).phasor
         for a, b in ((first, middle), (middle, stop))
     ]
-    drift = abs(halves[1] - halves[0]) / abs(0.5 * (halves[0] + halves[1]))
+    mean = abs(0.5 * (halves[0] + halves[1]))
+    drift = abs(halves[1] - halves[0]) / mean if mean > 0.0 else float("nan")
     return fit_sine(force[first:stop], fs, f), fit_sine(response[first:stop], fs, f), float(drift)

@@ -100,9 +100,11 @@ def feed_records(recording) -> tuple[dict[float, tuple[np.ndarray, np.ndarray]],
 
 def frf_distance(reference: np.ndarray, other: np.ndarray) -> float:
     """Largest magnitude difference between two FRFs over a band, relative to the peak of
-    `reference`: max ||H_other| − |H_ref|| / max |H_ref|."""
+    `reference`: max ||H_other| − |H_ref|| / max |H_ref|; NaN when the reference is zero
+    (its accelerometer read nothing)."""
     reference, other = np.abs(reference), np.abs(other)
-    return float(np.max(np.abs(other - reference)) / np.max(reference))
+    peak = float(np.max(reference))
+    return float(np.max(np.abs(other - reference)) / peak) if peak > 0.0 else float("nan")
 
 
 def _feed_summary(feed: float, frf: HammerFrf, band: tuple[float, float]) -> dict:
