@@ -18,9 +18,9 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from feedbench.analysis.checks import verdict_line
 from feedbench.config import ConfigError
 from feedbench.daq.recording import Event, Recording, Stream, missing_cycles
-from feedbench.analysis.checks import verdict_line
 from feedbench.experiments.family import Experiment, judged_analysis
 from feedbench.experiments.plan import Plan, Segment
 from feedbench.experiments.runner import segment_text

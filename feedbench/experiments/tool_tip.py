@@ -247,10 +247,9 @@ def feed_checks(feeds: Sequence[Mapping[str, Any]], notes: Sequence[str],
     """A tool-tip result's checks: the lowest coherence of the feeds in the band (gate
     `MIN_COHERENCE`), each feed's compliance peak a mode inside the band with a high
     coherence (`analysis.checks.peak_checks`), `more`, and the records left out (notes)."""
-    low = min((x["min_coherence"] for x in feeds), default=float("nan"))
     worst = min(feeds, key=lambda x: x["min_coherence"] if np.isfinite(x["min_coherence"])
-                else -1.0)
-    where = feed_label(worst["feed_mm_min"])
+                else -1.0)  # an undefined coherence (a constant channel) is the worst
+    low, where = worst["min_coherence"], feed_label(worst["feed_mm_min"])
     reason = (f"no coherence at {where}: a channel is constant (unplugged?)"
               if not np.isfinite(low) else
               f"γ² {low:.3f} at {where}, below {MIN_COHERENCE:g}: the response is not all "
