@@ -165,7 +165,7 @@ def test_basenode402_walks_the_state_machine_and_modes_pdo_driven(can_channel):
         network.add_node(node)
         node.nmt.state = "PRE-OPERATIONAL"
         node.sdo[QUICK_STOP_OPTION_CODE].raw = 6
-        _map_event_driven(node)
+        map_event_driven(node)
         node.setup_402_state_machine(read_pdos=False)
         node.nmt.state = "OPERATIONAL"
         walked = []
@@ -181,15 +181,7 @@ def test_basenode402_walks_the_state_machine_and_modes_pdo_driven(can_channel):
             # TPDOs for a periodic one and waits for a third: the display read by SDO
         with pytest.raises(TypeError, match="not suppported"):
             node.op_mode = "PROFILED POSITION"
-        node.sdo[TARGET_VELOCITY].raw = 5_000_000  # nm/s: 5 mm/s
-        network.sync.start(1e-3)
-        try:
-            deadline = time.monotonic() + 10.0
-            while device.values[0x2020] < 300 and time.monotonic() < deadline:
-                node.tpdo[2].wait_for_reception(1.0)
-            velocity = node.tpdo[2]["Velocity actual value"].raw
-        finally:
-            network.sync.stop()
+        velocity = velocity_on_sync(node, device, network, 5_000_000)  # nm/s: 5 mm/s
         node.state = "SWITCH ON DISABLED"
         walked.append(node.state)
     finally:
@@ -201,7 +193,22 @@ def test_basenode402_walks_the_state_machine_and_modes_pdo_driven(can_channel):
     assert velocity == pytest.approx(5_000_000, rel=1e-3)
 
 
-def _map_event_driven(node: BaseNode402) -> None:
+def velocity_on_sync(node: BaseNode402, device: SimulatedCia402Drive, network,
+                     target: int) -> int:
+    """Profile velocity 0x60FF = `target` (nm/s) by SDO, then canopen's SYNC producer at
+    1 ms until the drive ran 300 cycles; the velocity actual of TPDO 2 (nm/s) then."""
+    node.sdo[TARGET_VELOCITY].raw = target
+    network.sync.start(1e-3)
+    try:
+        deadline = time.monotonic() + 10.0
+        while device.values[0x2020] < 300 and time.monotonic() < deadline:
+            node.tpdo[2].wait_for_reception(1.0)
+        return node.tpdo[2]["Velocity actual value"].raw
+    finally:
+        network.sync.stop()
+
+
+def map_event_driven(node: BaseNode402) -> None:
     """TPDO 1 statusword + mode display and RPDO 1 controlword + mode, event-driven (255);
     TPDO 2 velocity actual on SYNC; the other RPDOs off."""
     for pdo_map, entries, trans_type in (

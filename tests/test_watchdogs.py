@@ -33,12 +33,12 @@ from feedbench.protocols.canbus import open_bus, open_network
 from feedbench.protocols.cia402 import (
     CONTROLWORD, CSV, FAULT, FAULT_REACTION, MODES_OF_OPERATION, MODES_OF_OPERATION_DISPLAY,
     OPERATION_ENABLED, PV, QUICK_STOP_DECELERATION, READY, STATUSWORD, SWITCH_ON_DISABLED,
-    TARGET_VELOCITY, VELOCITY_ACTUAL,
 )
 from feedbench.sim_backends import eds
 from feedbench.sim_backends.bench import start_simulated_axis
 from feedbench.sim_backends.io_module import SimulatedIoModule
 from sim_peer import start_sim
+from test_cia402_conformance import map_event_driven, velocity_on_sync
 
 NODE = 1
 IO_NODE = 10
@@ -283,21 +283,7 @@ def test_canopens_basenode402_drives_the_simulated_drive(can_channel):
         node = BaseNode402(NODE, str(eds.packaged_eds_path()))
         network.add_node(node)
         node.nmt.state = "PRE-OPERATIONAL"
-        node.tpdo.read()
-        node.rpdo.read()
-        for pdo_map, entries, trans_type in ((node.tpdo[1], (STATUSWORD,), 255),
-                                             (node.tpdo[2], (VELOCITY_ACTUAL,), 1),
-                                             (node.rpdo[1], (CONTROLWORD, MODES_OF_OPERATION),
-                                              255)):
-            pdo_map.clear()
-            for index in entries:
-                pdo_map.add_variable(index)
-            pdo_map.trans_type = trans_type
-            pdo_map.enabled = True
-            pdo_map.save()
-        for number in (2, 3):
-            node.rpdo[number].enabled = False
-            node.rpdo[number].save()
+        map_event_driven(node)
         node.setup_402_state_machine(read_pdos=False)
         node.nmt.state = "OPERATIONAL"
         node.state = "SWITCHED ON"
@@ -305,15 +291,7 @@ def test_canopens_basenode402_drives_the_simulated_drive(can_channel):
         node.state = "OPERATION ENABLED"
         assert device.values[0x2020] == 0, "no SYNC so far"
         assert node.op_mode == "PROFILED VELOCITY" and node.state == OPERATION_ENABLED
-        node.sdo[TARGET_VELOCITY].raw = 10_000_000  # nm/s: 10 mm/s
-        network.sync.start(1e-3)
-        try:
-            deadline = time.monotonic() + 10.0
-            while device.values[0x2020] < 300 and time.monotonic() < deadline:
-                node.tpdo[2].wait_for_reception(1.0)
-            velocity = node.tpdo[2]["Velocity actual value"].raw
-        finally:
-            network.sync.stop()
+        velocity = velocity_on_sync(node, device, network, 10_000_000)  # nm/s: 10 mm/s
         node.state = "SWITCH ON DISABLED"
         assert node.state == SWITCH_ON_DISABLED
     finally:

@@ -53,7 +53,6 @@ import math
 import operator
 import struct
 import threading
-import time
 from pathlib import Path
 from typing import Callable, Protocol
 
