@@ -290,7 +290,7 @@ def test_canopens_basenode402_drives_the_simulated_drive(can_channel):
         node.op_mode = "PROFILED VELOCITY"
         node.state = "OPERATION ENABLED"
         assert device.values[0x2020] == 0, "no SYNC so far"
-        assert node.op_mode == "PROFILED VELOCITY" and node.state == OPERATION_ENABLED
+        assert node.sdo[MODES_OF_OPERATION_DISPLAY].raw == PV and node.state == OPERATION_ENABLED
         velocity = velocity_on_sync(node, device, network, 10_000_000)  # nm/s: 10 mm/s
         node.state = "SWITCH ON DISABLED"
         assert node.state == SWITCH_ON_DISABLED
