@@ -551,20 +551,35 @@ def candidate_entry(row: tuning.CandidatePrediction, fit: PoleZeroFit,
 
 # -- the report ----------------------------------------------------------------------------
 
-def tip_mode_text(tip: Mapping[str, Any] | None) -> str:
-    """``peak 2.16 µm/N at 34.4 Hz, f_n 37.4 Hz, ζ 34.7 %`` of a `compliance_mode`, the
-    reason after it where the mode fit does not stand; the terminal's numbers (`--apply`)."""
+def tip_mode_text(tip: Mapping[str, Any] | None, separator: str = ", ") -> str:
+    """``peak 2.16 µm/N at 34.4 Hz, f_n 37.4 Hz, ζ 34.7 %`` of a `compliance_mode` (the
+    peak and the mode joined by `separator`), the reason after it where the mode fit does
+    not stand; the terminal's numbers (`--apply`)."""
     if not tip:
         return "none (no tool-tip measurement)"
-    text = (f"peak {tip['peak_um_per_N']:.2f} µm/N at {tip['peak_hz']:.1f} Hz, f_n "
+    text = (f"peak {tip['peak_um_per_N']:.2f} µm/N at {tip['peak_hz']:.1f} Hz{separator}f_n "
             f"{tip['f_n_hz']:.2f} Hz, ζ {100 * tip['zeta']:.2f} %")
     return text + (f" (not valid: {tip['mode_not_valid']})" if tip["mode_not_valid"] else "")
 
 
+BANDWIDTH_ROW = "velocity-loop bandwidth (predicted)"
+"""The report's quality row that says why a candidate's bandwidth is not defined."""
+
+
 def bandwidth_text(candidate: Mapping[str, Any]) -> str:
-    """A candidate's predicted velocity bandwidth (Hz) or why it is not defined."""
-    note = candidate["velocity_bandwidth_note"]
-    return f"not defined: {note}" if note else f"{candidate['velocity_bandwidth_hz']:.1f}"
+    """A candidate's predicted velocity bandwidth (Hz) for the table, or that it is not
+    defined (the reason: `bandwidth_notes`, in the quality row `BANDWIDTH_ROW`)."""
+    if candidate["velocity_bandwidth_note"]:
+        return "not defined (why: quality, above)"
+    return f"{candidate['velocity_bandwidth_hz']:.1f}"
+
+
+def bandwidth_notes(result: Mapping[str, Any]) -> list[Indicator]:
+    """The quality row giving, per candidate, why its predicted bandwidth is not defined
+    (none when every one is)."""
+    notes = [f"{name}: not defined: {c['velocity_bandwidth_note']}"
+             for name, c in result["candidates"].items() if c["velocity_bandwidth_note"]]
+    return [Indicator(BANDWIDTH_ROW, "\n".join(notes))] if notes else []
 
 
 def _fmt(value: float | None, digits: int = 2) -> str:
@@ -586,7 +601,7 @@ def candidate_table(result: Mapping[str, Any]) -> Table:
         rows.append((name, f"{g['K_p_Ns_m']:.0f}", f"{g['T_i_ms']:.2f}",
                      f"{g['K_v_m_min_mm']:.2f}", f"{crit['frequency_hz']:.1f}",
                      f"{100 * crit['damping']:.2f}" + ("" if crit["stable"] else " unstable"),
-                     tip_mode_text(tip), _fmt(depth, 3), motion, tracking,
+                     tip_mode_text(tip, "\n"), _fmt(depth, 3), motion, tracking,
                      bandwidth_text(c), c["outside_limits"] or "yes"))
     return Table("candidates: critical mode (root locus), predicted tool tip, motion errors",
                  ("candidate", "K_p (N·s/m)", "T_i (ms)", "K_v ((m/min)/mm)",
@@ -680,8 +695,8 @@ def root_locus_plot(result: Mapping[str, Any], mobility: TransferFunction,
 
 def compliance_plot(result: Mapping[str, Any]) -> Plot:
     """Measured tool-tip compliance at each measured setting and the predicted one of each
-    candidate (approach #2, Eqs. 4.26 and 4.23)."""
-    figure = new_figure(9.0, 4.5)
+    candidate (approach #2, Eqs. 4.26 and 4.23); the legend (peak and mode of each) under it."""
+    figure = new_figure(9.0, 6.0)
     ax = figure.subplots()
     for tip in result["tool_tip"]:
         ax.semilogy(tip["f_hz"], tip["compliance"]["abs"], lw=2.5, alpha=0.35,
@@ -693,7 +708,7 @@ def compliance_plot(result: Mapping[str, Any]) -> Plot:
     ax.set_xlabel("frequency (Hz)")
     ax.set_ylabel(COMPLIANCE_LABEL)
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
+    figure.legend(loc="outside lower center", fontsize=8)
     return Plot("tool-tip compliance x_tip/F_tip: measured (wide) and predicted per candidate",
                 png_of(figure))
 
@@ -859,6 +874,7 @@ def tune_section(result: Mapping[str, Any]) -> RunSection:
         Indicator("tool-tip prediction", result["approach"], bool(setup.tip and
                                                                   setup.tip.tip_closed)),
         Indicator("price of damping (Table 4.3)", damping_text(result)),
+        *bandwidth_notes(result),
     ]
     section.tables += [candidate_table(result), table_4_3(result), measurements_table(result)]
     section.plots += bode_plots(result, fit) + [root_locus_plot(result, mobility, setup)]
