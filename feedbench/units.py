@@ -53,9 +53,9 @@ MS_TYPOS = (("s", 1000.0), ("µs", 1e-3))
 
 def typed_in(value: float, unit: str, low: float, high: float,
              typos: tuple[tuple[str, float], ...]) -> str:
-    """``; typed in m/min? 0.5 m/min = 500 mm/min``: the first of `typos` (unit, its size in
-    `unit`) that brings `value` into [`low`, `high`] (in `unit`), or "" when none does."""
-    for name, size in typos:
-        if low <= value * size <= high:
-            return f"; typed in {name}? {value:g} {name} = {value * size:g} {unit}"
-    return ""
+    """``; typed in m/min? 0.5 m/min = 500 mm/min; in mm/s? 0.5 mm/s = 30 mm/min``: each of
+    `typos` (unit, its size in `unit`) that brings `value` into [`low`, `high`] (in `unit`),
+    or "" when none does."""
+    guesses = [f"{name}? {value:g} {name} = {value * size:g} {unit}" for name, size in typos
+               if low <= value * size <= high]
+    return "; typed in " + "; in ".join(guesses) if guesses else ""

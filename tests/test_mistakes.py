@@ -43,7 +43,11 @@ REFUSED = {
     "chirp feed typed in m/min": (
         "chirp", {"experiment": {"feed_mm_min": 0.5}},
         "experiment.feed_mm_min = 0.5 is below the measurable 2.4 mm/min",
-        "typed in m/min? 0.5 m/min = 500 mm/min"),
+        "typed in m/min? 0.5 m/min = 500 mm/min; in mm/s? 0.5 mm/s = 30 mm/min"),
+    "friction feeds typed in mm/s": (
+        "friction_sweep", {"experiment": {"feeds_mm_min": [0.5, 1.0, 2.0, 5.0, 10.0, 25.0]}},
+        "experiment.feeds_mm_min[0] = 0.5 is below the measurable",
+        "in mm/s? 0.5 mm/s = 30 mm/min"),
     "friction feeds typed in m/min": (
         "friction_sweep", {"experiment": {"feeds_mm_min": FRICTION_FEEDS_M_MIN}},
         "experiment.feeds_mm_min[0] = 0.025 is below the measurable 2.4 mm/min",
