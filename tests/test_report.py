@@ -753,14 +753,15 @@ def points_in(box, ax) -> int:
 def test_every_familys_report_plots_keep_legends_off_the_data_and_axes_aligned(
         runs, family_runs, stepped_loading_run, monkeypatch):
     """Every plot of every family's report section (issue 25): no data point under an axes
-    legend and no figure legend over an axes (display coordinates), and the axes of one
-    column start and end at the same x (magnitude, phase and coherence line up)."""
+    legend or a frequency tag and no figure legend over an axes (display coordinates), and
+    the axes of one column start and end at the same x (magnitude, phase and coherence line
+    up)."""
     figures = drawn_figures(monkeypatch, [*runs[:2], *family_runs.values(),
                                           stepped_loading_run[0]])
     assert {name for name, _ in figures} == {
         "friction_sweep", "chirp", "impact_hammer", "sine_stream", "shaker_chirp",
         "closed_loop_bode", "smfe", "stepped_loading"}
-    legends = 0
+    legends = tags = 0
     for name, figure in figures:
         renderer = figure.canvas.get_renderer()
         for legend in figure.legends:
@@ -772,6 +773,9 @@ def test_every_familys_report_plots_keep_legends_off_the_data_and_axes_aligned(
             if ax.get_legend() is not None:
                 assert points_in(ax.get_legend().get_window_extent(renderer), ax) == 0, name
                 legends += 1
+            for tag in ax.texts:  # f_t, f_r, peak marks: above the axes, as the legends
+                assert points_in(tag.get_window_extent(renderer), ax) == 0, (name, tag)
+                tags += 1
             spec = ax.get_subplotspec()  # None: a colour bar
             if spec is not None:
                 columns.setdefault((spec.colspan.start, spec.colspan.stop), []).append(ax)
@@ -779,7 +783,7 @@ def test_every_familys_report_plots_keep_legends_off_the_data_and_axes_aligned(
             edges = {(round(ax.get_position().x0, 4), round(ax.get_position().x1, 4))
                      for ax in axes}
             assert len(edges) == 1, (name, edges)
-    assert legends >= 10
+    assert legends >= 10 and tags >= 8
 
 
 def test_a_legend_over_the_data_moves_out_of_the_axes():

@@ -7,6 +7,7 @@ state, no display). `feedbench.report` assembles the sections; each family's
 from __future__ import annotations
 
 import io
+import textwrap
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -137,6 +138,11 @@ class FrfSeries:
     quality: np.ndarray
 
 
+QUALITY_LABEL_CHARS = 18
+"""Characters per line of the quality panel's y label: a longer one, on the short panel,
+ran over the phase panel's tick labels."""
+
+
 def frf_figure(series: Sequence[FrfSeries], y_label: str, quality_label: str = "coherence γ²",
                gate: float = MIN_COHERENCE, points: bool = False,
                marks: Sequence[tuple[str, float]] = ()) -> MplFigure:
@@ -157,7 +163,7 @@ def frf_figure(series: Sequence[FrfSeries], y_label: str, quality_label: str = "
     phase.grid(alpha=0.3)
     quality.set_ylim(min(0.0, float(np.nanmin([s.quality.min(initial=1.0) for s in series]))),
                      1.05)
-    quality.set_ylabel(quality_label)
+    quality.set_ylabel("\n".join(textwrap.wrap(quality_label, QUALITY_LABEL_CHARS)))
     quality.set_xlabel("frequency (Hz)")
     quality.grid(alpha=0.3)
     mark_frequencies((magnitude, phase, quality), marks)
@@ -165,12 +171,13 @@ def frf_figure(series: Sequence[FrfSeries], y_label: str, quality_label: str = "
 
 
 def mark_frequencies(axes: Sequence, marks: Sequence[tuple[str, float]]) -> None:
-    """Dashed lines at `marks` (label, Hz) through `axes`, labelled in the first one in a
-    boxed tag; tags of neighbouring marks step down so none draws over another."""
+    """Dashed lines at `marks` (label, Hz) through `axes`, labelled above the first one in a
+    boxed tag (outside the data, as the legends); tags of neighbouring marks step up so
+    none draws over another."""
     for i, (label, f_hz) in enumerate(sorted(marks, key=lambda m: m[1])):
         for ax in axes:
             ax.axvline(f_hz, color="k", ls="--", lw=0.8)
-        axes[0].annotate(label, (f_hz, 0.97 - 0.1 * (i % 6)),
-                         xycoords=("data", "axes fraction"), xytext=(3, 0),
-                         textcoords="offset points", ha="left", va="top", fontsize=8,
+        axes[0].annotate(label, (f_hz, 1.0), xycoords=("data", "axes fraction"),
+                         xytext=(0, 3 + 13 * (i % 3)), textcoords="offset points",
+                         ha="center", va="bottom", fontsize=8,
                          bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.6", alpha=0.9))
