@@ -401,7 +401,8 @@ def velocity_bandwidth(fit: PoleZeroFit, gains: CascadeGains, f: np.ndarray
     """−3 dB bandwidth (Hz) of the closed velocity loop the fit predicts, Eq. (4.21), at the
     measured Bode's frequencies `f` (Hz): the measured one's definition on the same grid
     (`closed_loop_bode.bandwidth_and_reason`); NaN with the reason where it is not defined."""
-    return bandwidth_and_reason(f, closed_velocity_loop(f, fit.model.mobility(f), gains.K_p, gains.T_i))
+    closed = closed_velocity_loop(f, fit.model.mobility(f), gains.K_p, gains.T_i)
+    return bandwidth_and_reason(f, closed)
 
 
 MODE_BAND = 0.6
@@ -432,7 +433,7 @@ def _mode_basis(omega: np.ndarray, omega_n: float, zeta: float) -> np.ndarray:
 
 
 def fit_tool_tip_mode(f: np.ndarray, compliance: np.ndarray) -> ToolTipMode:
-    """f_n and ζ of the mode under the compliance peak: H(ω) = A / (ω_n² − ω² + 2jζω_nω) + B
+    """f_n and ζ of the mode under the compliance peak: H(ω) = A/(ω_n² − ω² + 2jζω_nω) + B
     (A, B complex, solved linearly for each ω_n, ζ; those by `scipy.optimize.least_squares`
     on the relative error) over ±`MODE_BAND` of the peak frequency.
 

@@ -341,8 +341,8 @@ class TracePlots:
 
 class ResultPlots:
     """The experiment's building-up result: one plot per panel and a summary line; a
-    placeholder line instead of a panel without data yet (no empty 0–1 axes); a legend
-    once a panel has two series."""
+    placeholder line instead of a panel without data yet (no empty 0–1 axes); a legend in
+    the row above a panel once it has two series, unless one above names them all."""
 
     NO_RESULT = "the result is drawn here once a step has completed"
     LEGEND_COLUMNS = 3
@@ -599,6 +599,10 @@ class LiveWindow(QtWidgets.QMainWindow):
 class LiveSession:
     """A run (or replay) in a worker thread with its live window."""
 
+    WATCH_MS = 100
+    """How often Qt hands control back to Python: a Ctrl-C is seen within this time, and the
+    window closes this long at most after the run it interrupted has stopped."""
+
     def __init__(self, window: LiveWindow, worker: Worker, stop: StopRequest) -> None:
         self.window, self.worker, self.stop = window, worker, stop
 
@@ -606,10 +610,6 @@ class LiveSession:
         """Show the window and start the worker (the caller runs the Qt event loop)."""
         self.window.show()
         self.worker.start()
-
-    WATCH_MS = 100
-    """How often Qt hands control back to Python: a Ctrl-C is seen within this time, and the
-    window closes this long at most after the run it interrupted has stopped."""
 
     def exec(self) -> Any:
         """Start, run Qt until the window closes, then wait for the run to end; what the
