@@ -184,7 +184,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from feedbench.demo import describe_demo, run_demo
 
     t0 = time.monotonic()
-    result = run_demo(output_directory(args.dir), quiet=args.json, quick=args.quick)
+    result = run_demo(output_directory(args.dir), quiet=args.json, quick=args.quick,
+                      distribution=args.distribution)
     result["elapsed_s"] = time.monotonic() - t0
     if args.json:
         _print_json(result)
@@ -345,7 +346,10 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--dir", default="runs/demo")
     demo.add_argument("--json", action="store_true")
     demo.add_argument("--quick", action="store_true",
-                      help="shortened runs (feedbench.demo.QUICK_OVERRIDES): a few minutes")
+                      help="shortened runs (each example's Example.quick): a few minutes")
+    demo.add_argument("--distribution", metavar="NAME",
+                      help="only the families this installed distribution registers "
+                      "(feedbench: feedbench's own; default: every installed family)")
     demo.set_defaults(func=cmd_demo)
 
     campaign = sub.add_parser("campaign", help="a grid or Monte-Carlo set of simulated runs "

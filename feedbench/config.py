@@ -11,10 +11,11 @@ the reason.
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 from dataclasses import dataclass
 from functools import cache
-from importlib.metadata import entry_points
+from importlib.metadata import EntryPoint, entry_points
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -141,14 +142,36 @@ def read_toml(path: str | Path) -> dict:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
 
 
+OWN_DISTRIBUTION = "feedbench"
+"""The distribution that registers feedbench's own families, devices and peers."""
+
+
+def distribution_name(name: str) -> str:
+    """A distribution's name as PEP 503 compares it (``My_Lab.x`` → ``my-lab-x``)."""
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def _installed_by(point: EntryPoint, distribution: str | None) -> bool:
+    """Whether `point` belongs to `distribution` (None: to any)."""
+    if distribution is None:
+        return True
+    return point.dist is not None and \
+        distribution_name(point.dist.name) == distribution_name(distribution)
+
+
 @cache
-def registered(group: str, base: type) -> dict[str, type]:
+def registered(group: str, base: type, distribution: str | None = None) -> dict[str, type]:
     """The classes registered under the entry-point `group`, by entry-point name: each a
     subclass of `base` whose ``name`` is that name (what a config calls it: an
     ``experiment.type``, a device a family needs). A lab's own package adds to a group
-    with one line in its pyproject.toml, as python-can finds its bus interfaces."""
+    with one line in its pyproject.toml, as python-can finds its bus interfaces.
+    `distribution`: only the entry points of that installed distribution (feedbench's own:
+    `OWN_DISTRIBUTION`), so feedbench's tests see feedbench's things whatever else is
+    installed."""
     found: dict[str, type] = {}
     for point in entry_points(group=group):
+        if not _installed_by(point, distribution):
+            continue
         cls = point.load()
         if not (isinstance(cls, type) and issubclass(cls, base)) or cls.name != point.name:
             raise TypeError(f"entry point {point.name} = {point.value}: not a {base.__name__} "

@@ -1,10 +1,12 @@
 """`feedbench demo`: the campaign on the simulated lab bench, every experiment family.
 
-Each packaged example config (`feedbench/examples/`) runs exactly as `feedbench run` runs it:
-through the real drivers over a virtual CAN bus (and Modbus TCP, the serial DAQ) against the
-simulated devices. Each recording is analysed and summarised beside the simulated world's
+Each family's example config (feedbench's own in `feedbench/examples/`) runs exactly as
+`feedbench run` runs it: through the real drivers over a virtual CAN bus (and Modbus TCP, the
+serial DAQ) against the simulated devices. Each recording is analysed and summarised beside the simulated world's
 truth or the thesis's figures; the runs go into one HTML report (`REPORT_AXES`).
-`quick=True` shortens the runs (`QUICK_OVERRIDES`) so the campaign takes a few minutes.
+The campaign is what the registered families declare (`experiments.family.Example`), so an
+installed lab family joins it; `quick=True` shortens each run as its `Example.quick` says, so
+the campaign takes a few minutes.
 """
 
 from __future__ import annotations
@@ -20,8 +22,8 @@ import numpy as np
 from feedbench.bench import analyze_file, parse_run_config, run_config
 from feedbench.config import ConfigError, read_toml
 from feedbench.experiments.chirp import band_text
-from feedbench.experiments.family import HEADLINE_SEPARATOR, family, headline
-from feedbench.experiments import friction_sweep, stepped_loading
+from feedbench.experiments.family import HEADLINE_SEPARATOR, Example, examples, family, headline
+from feedbench.experiments import friction_sweep
 from feedbench.experiments.limits import LimitError
 from feedbench.experiments.tool_tip import feed_text
 from feedbench.report import write_report
@@ -30,45 +32,7 @@ from feedbench.sim_backends.smfe_world import build_process
 from feedbench.sim_backends.world import world_truth
 
 BENCH_CORE = ("friction_sweep", "chirp")
-CAMPAIGN = (*BENCH_CORE, "closed_loop_bode", "impact_hammer", "shaker_chirp", "sine_stream",
-            "smfe", "stepped_loading", "backlash_reversal", "friction_sweep_rack_pinion")
-"""The example configs the demo runs, in this order."""
-
-QUICK_OVERRIDES: dict[str, dict[str, dict[str, Any]]] = {
-    # 13 feeds per direction with shorter plateaus (the drive settles in ≈ 50 ms): the
-    # Eq. (5.2) fit still within 0.3 % of the truth. The chirp runs as configured.
-    "friction_sweep": {"experiment": {"settle_s": 0.4, "measure_s": 0.3}},
-    # 20–120 Hz in 2 Hz steps still brackets f_t and f_r: Eq. (4.20) gives both within 1.5 %.
-    "closed_loop_bode": {"experiment": {"f_start_Hz": 20.0, "f_stop_Hz": 120.0,
-                                        "f_step_Hz": 2.0, "cycles_per_frequency": 8,
-                                        "settle_cycles": 4}},
-    # idle, slow, at and above Fig. 5.12's 500 mm/min, 3 hits each: the FRF still changes
-    # with feed and is invariant from 500 mm/min.
-    "impact_hammer": {"experiment": {"feeds_mm_min": [0.0, 100.0, 500.0, 1000.0],
-                                     "hits_per_feed": 3, "record_s": 1.5}},
-    # 2 sweeps of 4 s over 30–70 Hz cover the resonance's half-power band (≈ 43–60 Hz)
-    # with coherence > 0.99.
-    "shaker_chirp": {"experiment": {"f_start_Hz": 30.0, "f_stop_Hz": 70.0, "duration_s": 4.0,
-                                    "repetitions": 2}},
-    # one feed and amplitude (the shaker chirp's), 40–60 Hz in 0.5 Hz steps: the resonance
-    # for the comparison with the chirp's H1.
-    "sine_stream": {"experiment": {"feeds_mm_min": [1000.0], "amplitudes_N": [20.0],
-                                   "f_start_Hz": 40.0, "f_stop_Hz": 60.0, "f_step_Hz": 0.5}},
-    # 8 s ramps (300 → 1500 rpm) give 6 Welch averages of 4 s: peaks within 5 % of the truth.
-    "smfe": {"experiment": {"ramp_s": 8.0, "spindle_accel_rpm_s": 3000.0, "approach_mm": 0.3,
-                            "return_feed_mm_min": 2500.0}},
-    # the test's short version (the thesis's low and high preload, loading only, coarser
-    # single-motor steps) with 0.1 s measure windows and 1 s set-ups, the load cell read
-    # every 5th cycle (a Modbus read per cycle costs ⅓ of the wall time): k_m, k_s within
-    # 1 %, backlash within 2 µm, both loss forces within 5 % of the thesis's.
-    "stepped_loading": {"bench": {"load_cell_every": 5},
-                        "experiment": {**stepped_loading.QUICK, "setup_s": 1.0,
-                                       "measure_s": 0.1}},
-    # 7 feeds instead of 13, shorter plateaus: the Eq. (5.2) fit within 1–3 %.
-    "friction_sweep_rack_pinion": {"experiment": {
-        "feeds_mm_min": [25, 50, 100, 200, 400, 800, 1500], "settle_s": 0.4, "measure_s": 0.3}},
-}
-"""`--quick`: per example, the keys of its tables that shorten it (and what it still shows)."""
+"""The examples whose summaries head the demo's output (friction law, servo mobility)."""
 
 REPORT_AXES = ("lab", "rack_pinion")
 """Axes whose recordings go into the report: `report.headroom` reads the single drive's
@@ -80,12 +44,13 @@ def example_config(name: str) -> dict:
     return read_toml(resources.files("feedbench") / "examples" / f"{name}.toml")
 
 
-def campaign_config(name: str, directory: Path, quick: bool) -> dict:
-    """The example `name` writing to `directory`, shortened by `QUICK_OVERRIDES` if `quick`."""
-    raw = example_config(name)
+def campaign_config(example: str | Example, directory: Path, quick: bool) -> dict:
+    """A family's `example` (or the one of that name) writing to `directory`, shortened as
+    its `Example.quick` says if `quick`."""
+    if isinstance(example, str):
+        example = examples()[example]
+    raw = example.quick_config() if quick else example.config()
     raw["bench"]["output_dir"] = str(directory)
-    for table, keys in (QUICK_OVERRIDES.get(name, {}) if quick else {}).items():
-        raw[table].update(keys)
     return raw
 
 
@@ -153,16 +118,16 @@ def _add_chirp_comparison(experiments: dict, configs: dict) -> None:
 # -- the campaign ------------------------------------------------------------------------
 
 
-def _run_one(name: str, raw: dict, quiet: bool) -> tuple[dict, dict]:
+def _run_one(example: Example, raw: dict, quiet: bool) -> tuple[dict, dict]:
     """Run one config and analyse it; the run record (with wall times) and the analysis.
 
-    A further experiment whose config or plan is refused before anything moves is recorded
-    as ``refused`` (no file) and the campaign goes on; the bench core's must run."""
+    An example whose config or plan is refused before anything moves is recorded as
+    ``refused`` (no file) and the campaign goes on, unless it is `Example.required`."""
     t0 = time.monotonic()
     try:
         row = run_config(parse_run_config(raw), progress=not quiet)
     except (ConfigError, LimitError) as exc:
-        if name in BENCH_CORE:
+        if example.required:
             raise
         return {"id": "", "file": "", "status": "refused", "reason": str(exc),
                 "elapsed_s": time.monotonic() - t0, "analysis_s": 0.0}, {}
@@ -182,11 +147,16 @@ def _entry(name: str, run: dict, analysis: dict, raw: dict) -> dict:
             "analysis": analysis}
 
 
-def run_demo(directory: Path, quiet: bool = False, quick: bool = False) -> dict:
-    """Run and analyse the campaign (`CAMPAIGN`; `quick`: `QUICK_OVERRIDES`); returns the
-    JSON-able summary: the bench-core keys, then `experiments.<name>` per example."""
-    configs = {name: campaign_config(name, directory, quick) for name in CAMPAIGN}
-    experiments = {name: _entry(name, *_run_one(name, raw, quiet), raw)
+def run_demo(directory: Path, quiet: bool = False, quick: bool = False,
+             distribution: str | None = None) -> dict:
+    """Run and analyse the campaign: every example the families declare (`family.examples`;
+    `distribution`: only that distribution's families; `quick`: each `Example.quick`).
+    Returns the JSON-able summary: the bench-core keys, then `experiments.<name>` per
+    example."""
+    declared = examples(distribution)
+    configs = {name: campaign_config(example, directory, quick)
+               for name, example in declared.items()}
+    experiments = {name: _entry(name, *_run_one(declared[name], raw, quiet), raw)
                    for name, raw in configs.items()}
     _add_chirp_comparison(experiments, configs)
     reported = [name for name, raw in configs.items() if experiments[name]["run"]["file"]

@@ -26,6 +26,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from feedbench.bench import AXES, Bench, parse_run_config
+from feedbench.config import OWN_DISTRIBUTION
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import Recording, open_recording
 from feedbench.demo import campaign_config
@@ -103,7 +104,7 @@ FAULTS = (
           what="SIGKILL to `feedbench run` against `feedbench sim`"),
 )
 FAULT = {fault.name: fault for fault in FAULTS}
-FAMILIES = tuple(sorted(families()))
+FAMILIES = tuple(sorted(families(OWN_DISTRIBUTION)))
 
 
 def family_config(family: str, directory: Path, faults: dict[str, Any] | None = None,

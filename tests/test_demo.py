@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from feedbench.config import OWN_DISTRIBUTION
 from feedbench.demo import describe_analysis
 from feedbench.experiments.family import families
 
@@ -30,8 +31,8 @@ pytestmark = pytest.mark.timeout(DEMO_TIMEOUT_S + 60)
 def demo(tmp_path_factory) -> dict:
     out = tmp_path_factory.mktemp("demo")
     proc = subprocess.run([sys.executable, "-m", "feedbench.cli", "demo", "--json", "--quick",
-                           "--dir", str(out)], capture_output=True, text=True,
-                          timeout=DEMO_TIMEOUT_S)
+                           "--distribution", OWN_DISTRIBUTION, "--dir", str(out)],
+                          capture_output=True, text=True, timeout=DEMO_TIMEOUT_S)
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout)
 
@@ -72,7 +73,8 @@ def summary(demo: dict, name: str) -> dict:
 
 def test_every_family_ran_and_the_lab_bench_runs_are_in_the_report(demo):
     experiments = demo["experiments"]
-    assert {e["analysis"]["experiment"] for e in experiments.values()} == set(families())
+    assert {e["analysis"]["experiment"] for e in experiments.values()} == \
+        set(families(OWN_DISTRIBUTION))
     assert all(e["headline"] for e in experiments.values())
     report = Path(demo["report"]).read_text(encoding="utf-8")
     assert demo["report_left_out"] == []

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from feedbench.bench import analyze_file, parse_run_config, run_config
+from feedbench.config import OWN_DISTRIBUTION
 from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
 from feedbench.experiments.family import families
@@ -93,7 +94,7 @@ def test_live_analysis_of_a_recording_equals_the_offline_analysis(name, tmp_path
 
 def test_every_family_with_a_synthetic_recording_is_covered_here():
     on_the_axis = {"stepped_loading", "backlash_reversal"}
-    assert set(RECORDINGS) | on_the_axis == set(families())
+    assert set(RECORDINGS) | on_the_axis == set(families(OWN_DISTRIBUTION))
 
 
 def test_a_live_chirp_on_the_simulated_bench_ends_with_the_offline_result(tmp_path, can_channel):

@@ -24,6 +24,7 @@ import pyqtgraph as pg
 import pytest
 
 from feedbench.bench import analyze_file, parse_run_config, run_config
+from feedbench.config import OWN_DISTRIBUTION
 from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
 from feedbench.drivers.cia402 import decode_state
@@ -437,7 +438,8 @@ def replays(app, tmp_path_factory):
 
 
 def test_every_family_is_replayed():
-    assert set(RECORDINGS) | set(AXIS_RUNS) - {"friction_sweep_rack_pinion"} == set(families())
+    assert set(RECORDINGS) | set(AXIS_RUNS) - {"friction_sweep_rack_pinion"} == \
+        set(families(OWN_DISTRIBUTION))
 
 
 def test_no_nan_and_no_rescaled_axis_in_any_text(replays):

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 
 from feedbench.cli import build_parser, main
-from feedbench.demo import CAMPAIGN
+from feedbench.config import OWN_DISTRIBUTION
+from feedbench.experiments.family import examples
 
 README = (Path(__file__).parents[1] / "README.md").read_text(encoding="utf-8")
 
@@ -60,11 +61,11 @@ def test_readme_command_table_names_every_subcommand():
 
 
 def test_readme_gives_the_demos_run_count_and_its_time_once():
-    """The demo section says how many runs the demo makes (`demo.CAMPAIGN`: 10; it said
+    """The demo section says how many runs the demo makes (feedbench's own examples: 10; it said
     nine), and the quick demo's time stands in one place only (it was given as ≈ 2 min,
     ≈ 2.5–3 min and 98 s)."""
     demo = section("The demo")
-    assert re.search(rf"\b{NUMBER_WORDS[len(CAMPAIGN)]}\s+runs\b", demo)
+    assert re.search(rf"\b{NUMBER_WORDS[len(examples(OWN_DISTRIBUTION))]}\s+runs\b", demo)
     text = " ".join(README.split())
     sentences = re.split(r"(?<=[.:;])\s+(?=[A-Z`(-])", text)
     timed = [s for s in sentences if "demo" in s and DURATION.search(s)]

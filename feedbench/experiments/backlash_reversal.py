@@ -22,7 +22,7 @@ import numpy as np
 from feedbench.analysis.checks import check, positive_parameters
 from feedbench.analysis.stiffness import backlash_from_reversals
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
-from feedbench.experiments.family import Experiment, headline, percent_error
+from feedbench.experiments.family import Example, Experiment, headline, percent_error
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import constant_feed_move
 from feedbench.protocols.cia402 import CSP
@@ -115,6 +115,7 @@ class BacklashReversal(Experiment):
     name = NAME
     schema = SCHEMA
     title = "backlash: load against motor position"
+    examples = (Example(NAME, rank=90),)  # --quick: runs as configured
     axes = ("rack_pinion",)
     live_kinds = ("measure",)
 

@@ -15,7 +15,7 @@ import numpy as np
 from feedbench.analysis.checks import above_floor, measurable_velocity, peak_checks, slid
 from feedbench.analysis.frf import estimate_frf, findings_in_band
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
-from feedbench.experiments.family import TRUTH_TITLE, Experiment, percent_error
+from feedbench.experiments.family import TRUTH_TITLE, Example, Experiment, percent_error
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.preflight import check_amplitude_below_feed, check_feed
 from feedbench.experiments.signals import chirp, integrate_velocity, move_to, ramp_to_feed
@@ -259,6 +259,7 @@ class Chirp(Experiment):
     schema = SCHEMA
     has_frfs = True
     title = "servo mobility of the sweeps so far"
+    examples = (Example(NAME, rank=20, required=True),)  # --quick: runs as configured
     live_kinds = ("excite",)
 
     @classmethod

@@ -31,17 +31,50 @@ docs/ARCHITECTURE.md walks through adding one (the backlash reversal test).
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 from functools import cache
+from importlib import resources
 from typing import Any, ClassVar, Iterator, Mapping
 
 from feedbench.analysis.checks import check, check_line, verdict, verdict_line
-from feedbench.config import ConfigError, Field, registered, validate_table
+from feedbench.config import ConfigError, Field, read_toml, registered, validate_table
 from feedbench.experiments.plan import Plan
 from feedbench.views.frfs import ExchangeFrf
 from feedbench.views.panels import ResultView
 from feedbench.views.sections import RunSection, Table
 
 ENTRY_POINT_GROUP = "feedbench.experiments"
+
+LAB_RANK = 1000
+"""`Example.rank` by default: a lab's examples run after feedbench's own (ranks 10–100)."""
+
+
+@dataclass(frozen=True)
+class Example:
+    """An example config a family ships, ``<package>/examples/<name>.toml``, which
+    `feedbench demo` runs (by `rank`, lowest first) and `feedbench campaign` can start from.
+
+    `quick`: what ``demo --quick`` changes, table → keys (``{"experiment": {"settle_s":
+    0.4}}``); `package`: whose ``examples/`` holds it ("" as declared: the family's own
+    top-level package, `examples` fills it in); `required`: a refusal of its config or plan
+    stops the demo (else the demo records it as refused and goes on)."""
+
+    name: str
+    quick: Mapping[str, Mapping[str, Any]] = dataclasses.field(default_factory=dict)
+    package: str = ""
+    rank: int = LAB_RANK
+    required: bool = False
+
+    def config(self) -> dict[str, Any]:
+        """The example config as a dict (a fresh copy each call)."""
+        return read_toml(resources.files(self.package) / "examples" / f"{self.name}.toml")
+
+    def quick_config(self) -> dict[str, Any]:
+        """The example config with `quick` applied."""
+        raw = self.config()
+        for table, keys in self.quick.items():
+            raw.setdefault(table, {}).update(keys)
+        return raw
 
 
 class Experiment:
@@ -51,7 +84,8 @@ class Experiment:
     units in the names); `axes`: the bench axes it runs on (empty: any); `live_kinds`: the
     segment kinds whose completion brings something new to analyse (the live result is
     recomputed then); `title`: what the live panel and the report call it; `has_frfs`: its
-    result holds FRFs that `frfs` lists for export.
+    result holds FRFs that `frfs` lists for export; `examples`: the example configs it
+    ships (`Example`), which `feedbench demo` runs.
     """
 
     name: ClassVar[str]
@@ -60,6 +94,7 @@ class Experiment:
     axes: ClassVar[tuple[str, ...]] = ()
     live_kinds: ClassVar[tuple[str, ...]] = ("measure", "excite")
     has_frfs: ClassVar[bool] = False
+    examples: ClassVar[tuple[Example, ...]] = ()
 
     def __init__(self, params: Mapping[str, Any], cycle_s: float) -> None:
         """Check `params` (the config's [experiment] table) for a bus cycle of `cycle_s` s;
@@ -191,9 +226,20 @@ def params_type(family: type[Experiment]) -> type:
                                       [(key, Any) for key in family.schema], frozen=True)
 
 
-def families() -> dict[str, type[Experiment]]:
-    """Every registered family by name (entry points of `ENTRY_POINT_GROUP`)."""
-    return registered(ENTRY_POINT_GROUP, Experiment)
+def families(distribution: str | None = None) -> dict[str, type[Experiment]]:
+    """Every registered family by name (entry points of `ENTRY_POINT_GROUP`); `distribution`:
+    only that installed distribution's (feedbench's own: `config.OWN_DISTRIBUTION`)."""
+    return registered(ENTRY_POINT_GROUP, Experiment, distribution)
+
+
+def examples(distribution: str | None = None) -> dict[str, Example]:
+    """The example configs the families declare (`Experiment.examples`), by name, in the
+    order `feedbench demo` runs them (`Example.rank`, then name); `distribution` as for
+    `families`."""
+    found = [dataclasses.replace(example, package=example.package
+                                 or cls.__module__.partition(".")[0])
+             for cls in families(distribution).values() for example in cls.examples]
+    return {e.name: e for e in sorted(found, key=lambda e: (e.rank, e.name))}
 
 
 def family(name: Any, where: str = "experiment.type") -> type[Experiment]:

@@ -17,7 +17,7 @@ import numpy as np
 from feedbench.analysis.checks import check, positive_parameters
 from feedbench.analysis.friction import FrictionFit, fit_andersson
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
-from feedbench.experiments.family import TRUTH_TITLE, Experiment, headline, percent_error
+from feedbench.experiments.family import TRUTH_TITLE, Example, Experiment, headline, percent_error
 from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.preflight import check_feeds
 from feedbench.experiments.signals import constant_feed_move
@@ -266,6 +266,16 @@ class FrictionSweep(Experiment):
     name = NAME
     schema = SCHEMA
     title = "friction curve, Eq. (5.2)"
+    examples = (
+        # --quick: 13 feeds per direction with shorter plateaus (the drive settles in ≈ 50
+        # ms): the Eq. (5.2) fit still within 0.3 % of the truth.
+        Example(NAME, {"experiment": {"settle_s": 0.4, "measure_s": 0.3}}, rank=10,
+                required=True),
+        # --quick: 7 feeds instead of 13, shorter plateaus: the Eq. (5.2) fit within 1–3 %.
+        Example(f"{NAME}_rack_pinion", {"experiment": {
+            "feeds_mm_min": [25, 50, 100, 200, 400, 800, 1500], "settle_s": 0.4,
+            "measure_s": 0.3}}, rank=100),
+    )
     live_kinds = ("measure",)
 
     @classmethod

@@ -17,7 +17,7 @@ import numpy as np
 
 from feedbench.analysis.frf import accelerance_to_receptance, estimate_frf, findings_in_band
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
-from feedbench.experiments.family import Experiment, headline
+from feedbench.experiments.family import Example, Experiment, headline
 from feedbench.experiments.preflight import check_feeds
 from feedbench.experiments.plan import Plan, recorded_windows
 from feedbench.experiments.signals import chirp
@@ -116,6 +116,12 @@ class ShakerChirp(Experiment):
     schema = SCHEMA
     has_frfs = True
     title = "shaker chirp: tool-tip FRF of the sweeps so far"
+    examples = (
+        # --quick: 2 sweeps of 4 s over 30–70 Hz cover the resonance's half-power band
+        # (≈ 43–60 Hz) with coherence > 0.99.
+        Example(NAME, {"experiment": {"f_start_Hz": 30.0, "f_stop_Hz": 70.0,
+                                      "duration_s": 4.0, "repetitions": 2}}, rank=50),
+    )
     live_kinds = ("excite",)
 
     @classmethod

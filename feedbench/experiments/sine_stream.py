@@ -25,7 +25,7 @@ from feedbench.analysis.checks import check, peak_checks
 from feedbench.analysis.frf import accelerance_to_receptance
 from feedbench.analysis.sinefit import stepped_sine_frf
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
-from feedbench.experiments.family import Experiment, headline
+from feedbench.experiments.family import Example, Experiment, headline
 from feedbench.experiments.preflight import check_feeds
 from feedbench.experiments.plan import Plan, Window, recorded_windows
 from feedbench.experiments.tool_tip import (
@@ -255,6 +255,13 @@ class SineStream(Experiment):
     schema = SCHEMA
     has_frfs = True
     title = "sine-stream FRF point by point"
+    examples = (
+        # --quick: one feed and amplitude (the shaker chirp's), 40–60 Hz in 0.5 Hz steps:
+        # the resonance for the comparison with the chirp's H1.
+        Example(NAME, {"experiment": {"feeds_mm_min": [1000.0], "amplitudes_N": [20.0],
+                                      "f_start_Hz": 40.0, "f_stop_Hz": 60.0,
+                                      "f_step_Hz": 0.5}}, rank=60),
+    )
     live_kinds = ("excite",)
 
     @classmethod
