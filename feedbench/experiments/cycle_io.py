@@ -11,7 +11,7 @@
   lockstep, where the instrument's sample clock is the bench clock).
 
 Either raises on its first failure (the runner aborts the run) and goes silent afterwards,
-so the drive's safe stop never waits on a broken link.
+so the drive's safe stop never waits on a broken link (`devices.PerCycleDevice`).
 
 Their device kinds (`experiments.devices.Device`, entry points ``feedbench.devices``):
 `SpindleDevice` (``spindle``), `DaqDevice` (``daq``) and `ExciterDevice` (``exciter``, the
@@ -25,7 +25,7 @@ import time
 from typing import Any, Mapping
 
 from feedbench.daq.recorder import StreamSpec
-from feedbench.experiments.devices import Device, DeviceLinks
+from feedbench.experiments.devices import Device, DeviceLinks, PerCycleDevice
 from feedbench.experiments.plan import Plan
 from feedbench.experiments.runner import CycleDevice
 from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
@@ -57,39 +57,38 @@ def spindle_commands(plan: Plan) -> dict[int, tuple[float, float | None]]:
             if "spindle_rpm" in found}
 
 
-class SpindleCommands:
-    """The spindle inverter (`drivers.modbus_devices.SpindleInverter`) commanded from the plan."""
+class SpindleCommands(PerCycleDevice):
+    """The spindle inverter (`drivers.modbus_devices.SpindleInverter`) commanded from the
+    plan; its speed read back every `readback_cycles` and held between readings."""
 
     channels = ("spindle_speed",)
     units = {"spindle_speed": "rad/s"}
-    streams: dict[str, StreamSpec] = {}
 
     def __init__(self, inverter, readback_cycles: int = 10) -> None:
+        super().__init__(readback_cycles)
         self.inverter = inverter
-        self.readback_cycles = readback_cycles
         self._commands: dict[int, tuple[float, float | None]] = {}
         self._speed = math.nan
-        self._count = 0
-        self._failed = False
 
     def start(self, plan: Plan, recorder) -> None:
+        super().start(plan, recorder)
         self._commands = spindle_commands(plan)
-        self._guarded(self.inverter.reset_fault)
+        self.guarded(self.inverter.reset_fault)
 
     def before_sync(self, index: int | None) -> None:
         command = self._commands.get(index) if index is not None else None
         if command is not None:
-            self._guarded(lambda: self._apply(*command))
+            self.guarded(lambda: self._apply(*command))
 
     def after_sync(self, cycle: int) -> tuple[float]:
-        if self._count % self.readback_cycles == 0:
-            self._guarded(self._read_speed)
-        self._count += 1
-        return (self._speed,)
+        speed_rpm = self.poll(lambda: self.inverter.actual_speed_rpm)
+        if speed_rpm is not None:
+            self._speed = speed_rpm * RPM
+        return (math.nan if self.failed else self._speed,)
 
     def stop(self, recorder) -> None:
         """Ramp the spindle down (the inverter's ramp limit)."""
-        self._guarded(self.inverter.stop)
+        self.guarded(self.inverter.stop)
 
     def _apply(self, speed_rpm: float, ramp_rpm_s: float | None) -> None:
         if ramp_rpm_s is not None:
@@ -100,28 +99,13 @@ class SpindleCommands:
         else:
             self.inverter.stop()
 
-    def _read_speed(self) -> None:
-        self._speed = self.inverter.actual_speed_rpm * RPM
-
-    def _guarded(self, action) -> None:
-        """Run `action`; its first failure is raised, later calls do nothing (NaN readings)."""
-        if self._failed:
-            return
-        try:
-            action()
-        except Exception:
-            self._failed = True
-            self._speed = math.nan
-            raise
 
 
-class DaqStream:
+class DaqStream(PerCycleDevice):
     """The streaming DAQ (`drivers.serial_daq.SerialDaq`) recorded as stream `name`."""
 
-    channels: tuple[str, ...] = ()
-    units: dict[str, str] = {}
-
     def __init__(self, daq, name: str = "daq") -> None:
+        super().__init__()
         self.daq = daq
         self.name = name
         units = {c: CHANNELS[CHANNEL_INDEX[c]].unit for c in daq.channels}
@@ -133,9 +117,9 @@ class DaqStream:
         self._last_cycle = 0
         self._silent = 0
         self._last_sample = time.monotonic()
-        self._failed = False
 
     def start(self, plan: Plan, recorder) -> None:
+        super().start(plan, recorder)
         self._recorder = recorder
         self._samples_per_cycle = max(1, round(self.daq.rate * plan.cycle_s))
         self.daq.start()
@@ -147,31 +131,33 @@ class DaqStream:
         if self._first_cycle is None:
             self._first_cycle = cycle
         self._last_cycle = cycle
-        if not self._failed:
-            self._silent = 0 if self._drain() else self._silent + 1
-            self._check_lost(cycle)
-            now = time.monotonic()
-            if not self._silent:
-                self._last_sample = now
-            elif self._silent > DAQ_SILENCE_CYCLES and now - self._last_sample > DAQ_SILENCE_S:
-                self._failed = True
-                raise DeviceLinkError(f"DAQ: no sample for {self._silent} bus cycles "
-                                      f"({now - self._last_sample:.1f} s)")
+        self.guarded(lambda: self._watch(cycle))
         return ()
+
+    def _watch(self, cycle: int) -> None:
+        """Record what arrived; a lost frame or a stream silent too long is an error."""
+        self._silent = 0 if self._drain() else self._silent + 1
+        self._check_lost(cycle)
+        now = time.monotonic()
+        if not self._silent:
+            self._last_sample = now
+        elif self._silent > DAQ_SILENCE_CYCLES and now - self._last_sample > DAQ_SILENCE_S:
+            raise DeviceLinkError(f"DAQ: no sample for {self._silent} bus cycles "
+                                  f"({now - self._last_sample:.1f} s)")
 
     def _check_lost(self, cycle: int) -> None:
         """A frame lost on the link (CRC error, a gap in the sample counter) ends the run:
         the stream it leaves has a hole no analysis of it may bridge."""
         crc, dropped = self.daq.crc_errors, self.daq.dropped_frames
         if crc or dropped:
-            self._failed = True
             raise DeviceLinkError(f"DAQ: samples lost on the serial link by bus cycle {cycle} "
                                   f"({crc} CRC errors, {dropped} frames dropped)")
 
     def stop(self, recorder) -> None:
         """STOP the stream, record what was still in flight and the link's loss counters."""
-        if self._failed:
-            return
+        self.guarded(lambda: self._finish(recorder))
+
+    def _finish(self, recorder) -> None:
         self.daq.stop()
         self._drain()
         lost = {"crc_errors": self.daq.crc_errors, "dropped_frames": self.daq.dropped_frames,
@@ -184,7 +170,6 @@ class DaqStream:
         try:
             block = self.daq.read_available()
         except Exception as exc:  # the device went away: the run stops, the link is silent
-            self._failed = True
             raise DeviceLinkError(f"DAQ: {exc}") from None
         n = len(block.sequence)
         if n:

@@ -1,5 +1,6 @@
 """The seam where a device besides the drives plugs in: one `Device` subclass per kind, and
-the one registry of them.
+the one registry of them, and `PerCycleDevice`, the base of the runner's per-cycle devices
+(the failure rule and the every-n-cycles reading).
 
 A device kind is what the host needs to serve one instrument every bus cycle: the
 ``[bench]`` key of its address (`address_key`), and `open`, which connects its driver at
@@ -22,13 +23,15 @@ from __future__ import annotations
 
 from contextlib import ExitStack
 from dataclasses import dataclass
-from typing import Any, ClassVar, Mapping
+from typing import Any, Callable, ClassVar, Mapping, TypeVar
 
 from feedbench.config import ConfigError, registered
 from feedbench.experiments.runner import CycleDevice
 from feedbench.protocols.address import split_address
 
 ENTRY_POINT_GROUP = "feedbench.devices"
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -74,6 +77,59 @@ class Device:
         client = connect_tcp(*split_address(cls.address(links), f"bench.{cls.address_key}"))
         links.stack.callback(client.close)
         return client
+
+
+class PerCycleDevice:
+    """A base for the runner's per-cycle devices (`runner.CycleDevice`) that holds the
+    failure rule and the every-n-cycles reading, written once for every device kind.
+
+    The failure rule: the first failure of an action run through `guarded` is raised (the
+    runner aborts the run); afterwards every action is skipped and every reading is None
+    (the device answers NaN), so the drives' safe stop never waits on a broken link.
+    `poll` reads every `every_cycles` bus cycles, the run's first cycle included.
+    Subclasses set `channels`, `units` (and `streams`) and override the steps they use;
+    one that overrides `start` calls this one.
+    """
+
+    channels: tuple[str, ...] = ()
+    units: dict[str, str] = {}
+    streams: dict = {}
+
+    def __init__(self, every_cycles: int = 1) -> None:
+        self.every_cycles = every_cycles
+        self.failed = False
+        self._count = 0
+
+    def start(self, plan, recorder) -> None:
+        """Count the cycles from the run's first."""
+        self._count = 0
+
+    def before_sync(self, index: int | None) -> None:
+        """Nothing to send."""
+
+    def after_sync(self, cycle: int) -> tuple[float, ...]:
+        """No per-cycle values."""
+        return ()
+
+    def stop(self, recorder) -> None:
+        """Nothing to stop."""
+
+    def guarded(self, action: Callable[[], T]) -> T | None:
+        """`action()`; its first failure is raised, afterwards nothing runs (None)."""
+        if self.failed:
+            return None
+        try:
+            return action()
+        except Exception:
+            self.failed = True
+            raise
+
+    def poll(self, read: Callable[[], T]) -> T | None:
+        """`read()` through `guarded` in every `every_cycles`-th call (one call per bus
+        cycle, the first call reads); None in the cycles between and after a failure."""
+        due = self._count % self.every_cycles == 0
+        self._count += 1
+        return self.guarded(read) if due else None
 
 
 def devices() -> dict[str, type[Device]]:

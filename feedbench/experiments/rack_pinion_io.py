@@ -11,15 +11,16 @@
   beyond the amplifier's range aborts the run (`LoadCellOverload`).
 
 Each raises on its first failure (the runner aborts the run) and goes silent afterwards,
-so the drives' safe stop never waits on a broken link.
+so the drives' safe stop never waits on a broken link (`devices.PerCycleDevice`).
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Mapping
+from typing import Any, Mapping
 
 from feedbench.drivers.rack_pinion import AxisController, load_position, motor_position
+from feedbench.experiments.devices import PerCycleDevice
 from feedbench.experiments.plan import Plan
 
 SETTING_KEYS = ("coupling", "preload_pct", "K_Tm", "K_Ts")
@@ -31,47 +32,23 @@ class LoadCellOverload(RuntimeError):
     """The load on the bumper is beyond the load cell's range."""
 
 
-class _Guard:
-    """Runs actions until the first failure, which is raised; afterwards does nothing."""
-
-    def __init__(self) -> None:
-        self.failed = False
-
-    def __call__(self, action: Callable[[], Any]) -> Any:
-        if self.failed:
-            return None
-        try:
-            return action()
-        except Exception:
-            self.failed = True
-            raise
-
-
-class AxisSettings:
-    """Coupling, preload and weighting factors from the plan, written at segment starts."""
-
-    channels: tuple[str, ...] = ()
-    units: dict[str, str] = {}
-    streams: dict = {}
+class AxisSettings(PerCycleDevice):
+    """Coupling, preload and weighting factors from the plan, written at segment starts
+    (the settings stay as the plan left them)."""
 
     def __init__(self, controller: AxisController) -> None:
+        super().__init__()
         self.controller = controller
         self._settings: dict[int, dict[str, Any]] = {}
-        self._guard = _Guard()
 
     def start(self, plan: Plan, recorder) -> None:
+        super().start(plan, recorder)
         self._settings = plan.commands_at(SETTING_KEYS)
 
     def before_sync(self, index: int | None) -> None:
         found = self._settings.get(index) if index is not None else None
         if found:
-            self._guard(lambda: self._apply(found))
-
-    def after_sync(self, cycle: int) -> tuple[()]:
-        return ()
-
-    def stop(self, recorder) -> None:
-        """The settings stay as the plan left them."""
+            self.guarded(lambda: self._apply(found))
 
     def _apply(self, settings: Mapping[str, Any]) -> None:
         if "coupling" in settings:
@@ -82,60 +59,37 @@ class AxisSettings:
             self.controller.set_weights(settings.get("K_Tm", 0.5), settings.get("K_Ts", 0.5))
 
 
-class AxisEncoders:
-    """Motor encoders and linear scale of the cycle, from the drives' TPDOs."""
+class AxisEncoders(PerCycleDevice):
+    """Motor encoders and linear scale of the cycle, from the drives' TPDOs (nothing to
+    prepare, send or stop: the values come with every cycle's TPDOs)."""
 
     channels = ("master.motor_position", "slave.motor_position", "load_position")
     units = dict.fromkeys(channels, "m")
-    streams: dict = {}
 
     def __init__(self, drives: Mapping[str, Any]) -> None:
+        super().__init__()
         self.master, self.slave = drives["master"], drives["slave"]
-
-    def start(self, plan: Plan, recorder) -> None:
-        """Nothing to prepare: the values come with every cycle's TPDOs."""
-
-    def before_sync(self, index: int | None) -> None:
-        """Nothing to send."""
 
     def after_sync(self, cycle: int) -> tuple[float, float, float]:
         return motor_position(self.master), motor_position(self.slave), load_position(self.master)
 
-    def stop(self, recorder) -> None:
-        """Nothing to stop."""
 
-
-class LoadCellForce:
-    """The load-cell amplifier (`drivers.modbus_devices.LoadCellAmplifier`) read per cycle."""
+class LoadCellForce(PerCycleDevice):
+    """The load-cell amplifier (`drivers.modbus_devices.LoadCellAmplifier`) read every
+    `every_cycles` (nothing to send: the amplifier samples once per bus cycle on its own)."""
 
     channels = ("load_cell.force",)
     units = {"load_cell.force": "N"}
-    streams: dict = {}
 
     def __init__(self, amplifier, every_cycles: int = 1) -> None:
+        super().__init__(every_cycles)
         self.amplifier = amplifier
-        self.every_cycles = every_cycles
-        self._count = 0
-        self._guard = _Guard()
-
-    def start(self, plan: Plan, recorder) -> None:
-        self._count = 0
-
-    def before_sync(self, index: int | None) -> None:
-        """Nothing to send: the amplifier samples once per bus cycle on its own."""
 
     def after_sync(self, cycle: int) -> tuple[float]:
-        due = self._count % self.every_cycles == 0
-        self._count += 1
-        if not due:
-            return (math.nan,)
-        reading = self._guard(self.amplifier.reading)
+        reading = self.poll(self.amplifier.reading)
         if reading is None:
             return (math.nan,)
         if reading.overloaded:
             raise LoadCellOverload(f"load cell: {reading.force_N:.0f} N is beyond its range "
                                    f"±{reading.range_N:.0f} N")
         return (reading.force_N,)
-
-    def stop(self, recorder) -> None:
-        """Nothing to stop."""
