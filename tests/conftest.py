@@ -1,4 +1,5 @@
-"""Shared fixtures: every test gets its own virtual CAN channel and output directory.
+"""Shared fixtures: every test gets its own virtual CAN channel and output directory;
+`simulated_bench` is the testing kit's (`feedbench.testing`).
 
 `make test` runs two pytest-xdist workers, whole files each (`--dist loadfile`), the slowest
 files first (`SLOW_FIRST`). Each worker compiles numba kernels into its own cache directory.
@@ -6,9 +7,7 @@ files first (`SLOW_FIRST`). Each worker compiles numba kernels into its own cach
 
 from __future__ import annotations
 
-import itertools
 import os
-import uuid
 from pathlib import Path
 
 import pytest
@@ -25,6 +24,9 @@ if _WORKER:
     _base = os.environ.get("NUMBA_CACHE_DIR") or Path(__file__).parents[1] / ".pytest_cache"
     os.environ["NUMBA_CACHE_DIR"] = str(Path(_base) / "numba" / _WORKER)
 
+# the testing kit's fixtures (after NUMBA_CACHE_DIR is set: the kit imports the bench)
+from feedbench.testing import simulated_bench, virtual_channel  # noqa: E402, F401
+
 SLOW_FIRST = (
     "test_demo.py", "test_report.py", "test_structure_experiments.py", "test_smfe_bench.py",
     "test_notebook.py", "test_stepped_loading.py", "test_scripts.py", "test_live_window.py",
@@ -36,9 +38,6 @@ SLOW_FIRST = (
 ≈ 85 s, the others 15–60 s each); they start first so the other worker spreads the short
 ones around them. The scripts (four simulated benches at once) start once the demo is
 done: together the two overload the 2 cores and a 1 s bus timeout trips."""
-
-_counter = itertools.count()
-
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """`SLOW_FIRST` files first, the rest in collection order; each file's tests stay together."""
@@ -54,4 +53,4 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
 @pytest.fixture
 def can_channel() -> str:
     """A python-can `virtual` channel name no other test uses."""
-    return f"fb-test-{os.getpid()}-{next(_counter)}-{uuid.uuid4().hex[:6]}"
+    return virtual_channel()

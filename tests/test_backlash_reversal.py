@@ -18,7 +18,7 @@ from feedbench.experiments.family import families
 from feedbench.experiments.incremental import LiveAnalysis
 from feedbench.experiments.replay import replay
 from feedbench.report import run_section
-from test_live_offline import assert_live_equals_offline
+from feedbench.testing import assert_live_equals_offline
 
 TOLERANCE_M = 2e-6
 """Identified backlash against the world's dead zone, friction wind-up taken out (as the

@@ -33,7 +33,7 @@ LAYERS = (
     ("experiments",),
     ("closure_io", "rack_pinion_bench"),  # readers of recordings; the rack-and-pinion wiring
     ("bench", "exchange"),  # the composition root; UFF58 / CSV export of a run
-    ("report", "gui"),
+    ("report", "gui", "testing"),  # testing: the kit over the bench (`feedbench.testing`)
     ("closure_command", "demo", "api"),  # api: the scripting face (issue 17), reports too
     ("campaign", "tune"),  # Dask runs against the demo's truth; the tuning workflow (issue 15)
     ("cli",),

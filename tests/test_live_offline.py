@@ -3,24 +3,23 @@
 Every family's recording (the report tests' recordings, whose truth is known, and a real
 run on the simulated bench) is replayed through `LiveAnalysis` as the runner feeds a live
 window; its result over the completed segments must equal `feedbench analyze`'s on the file,
-value for value, and its live view must draw without a failure.
+value for value, and its live view must draw without a failure (`feedbench.testing`'s
+`assert_live_equals_offline`, the check a lab's family takes too).
 """
 
 from __future__ import annotations
 
 import json
-import math
 
-import numpy as np
 import pytest
 
-from feedbench.bench import analyze_file, parse_run_config, run_config
+from feedbench.bench import analyze_file
 from feedbench.config import OWN_DISTRIBUTION
 from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
 from feedbench.experiments.family import families
 from feedbench.experiments.incremental import LiveAnalysis
-from feedbench.experiments.replay import replay
+from feedbench.testing import assert_live_equals_offline, same
 from test_report import (
     K_P, T_I, bode_steps, chirp_steps, friction_steps, hammer_steps, record,
     record_with_daq, shaker_chirp_steps, sine_stream_steps, smfe_steps,
@@ -49,38 +48,6 @@ RECORDINGS = {
 backlash reversal run on the simulated rack-and-pinion axis in their own tests)."""
 
 
-def same(a, b) -> bool:
-    """Equal JSON-like values, NaN equal to NaN."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        return a.keys() == b.keys() and all(same(a[k], b[k]) for k in a)
-    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
-        return len(a) == len(b) and all(same(x, y) for x, y in zip(a, b))
-    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
-        return True
-    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-        return np.array_equal(a, b, equal_nan=True)
-    return a == b
-
-
-def live_replay(path) -> LiveAnalysis:
-    """The recording at `path` fed to its family's live analysis as a run would feed it."""
-    recording = open_recording(path)
-    live = LiveAnalysis(families()[recording.experiment])
-    assert replay(recording, [live], speed=0.0) == recording.status
-    return live
-
-
-def assert_live_equals_offline(path) -> LiveAnalysis:
-    """The live result after the last segment is `feedbench analyze`'s; the view draws."""
-    live = live_replay(path)
-    offline = analyze_file(path)
-    offline.pop("run")
-    assert same(live.result(final=True), offline)
-    view = live.view()
-    assert not view.summary.startswith("waiting"), view.summary
-    return live
-
-
 @pytest.mark.parametrize("name", sorted(RECORDINGS))
 def test_live_analysis_of_a_recording_equals_the_offline_analysis(name, tmp_path):
     path = tmp_path / f"{name}.h5"
@@ -97,17 +64,15 @@ def test_every_family_with_a_synthetic_recording_is_covered_here():
     assert set(RECORDINGS) | on_the_axis == set(families(OWN_DISTRIBUTION))
 
 
-def test_a_live_chirp_on_the_simulated_bench_ends_with_the_offline_result(tmp_path, can_channel):
+def test_a_live_chirp_on_the_simulated_bench_ends_with_the_offline_result(simulated_bench):
     """The chirp through the real driver and runner: the live analysis the window would show
     after the last sweep is the file's analysis, value for value (metadata, config and
     cycle time handed over by the bench as recorded)."""
     raw = example_config("chirp")
-    raw["bench"].update(output_dir=str(tmp_path), channel=can_channel)
     raw["experiment"].update(repetitions=2, duration_s=1.0, tail_s=0.3, settle_s=0.2,
                              f_start_Hz=20.0, f_stop_Hz=150.0)
-    config = parse_run_config(raw)
     live = LiveAnalysis(families()["chirp"])
-    row = run_config(config, observers=[live], progress=False)
+    row = simulated_bench.run(raw, observers=[live])
     assert row["status"] == "complete", row["reason"]
     assert live.version == 2
     offline = analyze_file(row["file"])

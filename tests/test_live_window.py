@@ -39,7 +39,8 @@ from feedbench.experiments.family import families
 from feedbench.report import run_section
 from feedbench.units import MM_PER_MIN
 from feedbench.views.panels import FLAGGED
-from test_live_offline import RECORDINGS, same
+from feedbench.testing import same
+from test_live_offline import RECORDINGS
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -21,22 +21,21 @@ import scipy.signal
 
 from feedbench.analysis.stability import directional_matrix
 from feedbench.bench import analyze_file
-from feedbench.daq.recorder import Recorder, StreamSpec
 from feedbench.daq.recording import open_recording
 from feedbench.experiments import chirp, smfe
 from feedbench.experiments.impact_hammer import ImpactHammer
 from feedbench.experiments.friction_sweep import FrictionSweep
-from feedbench.experiments.runner import CHANNELS, UNITS
+from feedbench.experiments.runner import CHANNELS
 from feedbench.models.friction import AnderssonFriction
 from feedbench.models.milling import engagement_angles
 from feedbench.models.structure import SMFE_TOOL_STRUCTURE, ModalStructure
 from feedbench.experiments.tool_tip import TABLE_5_1, tool_tip_lobes
 from feedbench.report import closure_section, render_html, run_section, verdict, write_report
+from feedbench.testing import CYCLE_S, synthetic_recording
+from feedbench.testing import cycle_rows as rows_of
 from feedbench.units import MM_PER_MIN
 from prerequisites import CHROMIUM, requires
 
-CYCLE_S = 1e-3
-LIMITS = {"position_mm": [-250.0, 250.0], "velocity_mm_min": 3000.0, "force_N": 1500.0}
 LAW = {1: AnderssonFriction(44.2, 84.0, 387.4 * MM_PER_MIN, 0.0028 * 60e3),
        -1: AnderssonFriction(38.7, 88.0, 421.0 * MM_PER_MIN, 0.0025 * 60e3)}
 COLUMN = {name: i for i, name in enumerate(CHANNELS)}
@@ -46,28 +45,9 @@ def record(path, experiment: str, steps, status: str = "complete", reason: str =
            skip_after: int | None = None, config: dict | None = None,
            metadata: dict | None = None) -> None:
     """A recording of `steps` = [(label, kind, info, rows n × CHANNELS)], as the runner
-    writes it (one JSON segment event per step); `skip_after` drops 5 cycles there."""
-    metadata = {"experiment": experiment, "cycle_s": CYCLE_S, "run_id": path.stem,
-                "config": {"limits": LIMITS, "experiment": config or {"type": experiment}},
-                **(metadata or {})}
-    with Recorder(path, CHANNELS, UNITS, metadata) as recorder:
-        cycle = 1
-        for label, kind, info, rows in steps:
-            recorder.event(cycle, "segment", json.dumps({"label": label, "kind": kind, **info}))
-            cycles = cycle + np.arange(len(rows))
-            if skip_after is not None and cycle <= skip_after < cycles[-1]:
-                cycles[cycles >= skip_after] += 5
-            recorder.append_block(cycles, rows)
-            cycle = int(cycles[-1]) + 1
-        if status != "complete":
-            recorder.close(status, reason)
-
-
-def rows_of(n: int, **columns) -> np.ndarray:
-    rows = np.zeros((n, len(CHANNELS)))
-    for name, values in columns.items():
-        rows[:, COLUMN[name]] = values
-    return rows
+    writes it (`feedbench.testing.synthetic_recording`); `skip_after` drops 5 cycles there."""
+    synthetic_recording(path, config or {"type": experiment}, steps, status=status,
+                        reason=reason, gap_after=skip_after, metadata=metadata)
 
 
 def friction_steps():
@@ -309,19 +289,8 @@ PER_CYCLE = 10
 def record_with_daq(path, experiment: dict, steps, daq_channels: tuple[str, ...],
                     metadata: dict | None = None) -> None:
     """Steps [(label, kind, info, rows n × CHANNELS, daq n·PER_CYCLE × channels)]."""
-    spec = StreamSpec(daq_channels, {c: ("N" if "force" in c or c.startswith("dyn")
-                                         else "m/s^2") for c in daq_channels}, DAQ_RATE)
-    meta = {"experiment": experiment["type"], "cycle_s": CYCLE_S, "run_id": path.stem,
-            "config": {"limits": LIMITS, "experiment": experiment}, **(metadata or {})}
-    with Recorder(path, CHANNELS, UNITS, meta, streams={"daq": spec}) as recorder:
-        cycle, sample = 1, 0
-        for label, kind, info, rows, daq in steps:
-            recorder.event(cycle, "segment", json.dumps({"label": label, "kind": kind, **info}))
-            cycles = cycle + np.arange(len(rows))
-            recorder.append_block(cycles, rows)
-            recorder.append_stream("daq", np.repeat(cycles, PER_CYCLE),
-                                   sample + np.arange(len(daq)), daq)
-            cycle, sample = cycle + len(rows), sample + len(daq)
+    synthetic_recording(path, experiment, steps, metadata=metadata, daq_channels=daq_channels,
+                        daq_rate_hz=DAQ_RATE)
 
 
 def daq_step(label: str, kind: str, info: dict, daq: np.ndarray):

@@ -22,7 +22,7 @@ from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
 from feedbench.experiments import stepped_loading
 from feedbench.experiments.plan import segment_event
-from test_live_offline import assert_live_equals_offline
+from feedbench.testing import assert_live_equals_offline
 
 K_MASTER, K_SLAVE = 81e6, 100e6
 BACKLASH_MASTER, BACKLASH_SLAVE = 314e-6, 363e-6
