@@ -24,7 +24,10 @@ adds one from its own package with one line in its own::
     [project.entry-points."feedbench.experiments"]
     my_test = "my_lab.my_test:MyTest"
 
-`bench`, `report`, `gui`, `demo` and the CLI look families up here and know none by name.
+`bench`, `report`, `gui`, `demo` and the CLI look families up here and know none by name:
+the demo runs the example configs the families declare (`Experiment.examples`, `examples`),
+so a lab's family joins it. `families(distribution)` lists one installed distribution's
+families (feedbench's own tests ask for `config.OWN_DISTRIBUTION`'s).
 docs/ARCHITECTURE.md walks through adding one (the backlash reversal test).
 """
 
