@@ -2,8 +2,9 @@
 
 Each family's example config (feedbench's own in `feedbench/examples/`) runs exactly as
 `feedbench run` runs it: through the real drivers over a virtual CAN bus (and Modbus TCP, the
-serial DAQ) against the simulated devices. Each recording is analysed and summarised beside the simulated world's
-truth or the thesis's figures; the runs go into one HTML report (`REPORT_AXES`).
+serial DAQ) against the simulated devices. Each recording is analysed and summarised beside
+the simulated world's truth or the thesis's figures; the runs go into one HTML report
+(`REPORT_AXES`).
 The campaign is what the registered families declare (`experiments.family.Example`), so an
 installed lab family joins it; `quick=True` shortens each run as its `Example.quick` says, so
 the campaign takes a few minutes.
