@@ -32,9 +32,6 @@ from feedbench.sim_backends import rack_pinion
 from feedbench.sim_backends.smfe_world import build_process
 from feedbench.sim_backends.world import world_truth
 
-BENCH_CORE = ("friction_sweep", "chirp")
-"""The examples whose summaries head the demo's output (friction law, servo mobility)."""
-
 REPORT_AXES = ("lab", "rack_pinion")
 """Axes whose recordings go into the report: `report.headroom` reads the single drive's
 `force` channel, which a rack-and-pinion recording (`master.*`, `slave.*`) lacks (KeyError)."""
@@ -152,8 +149,8 @@ def run_demo(directory: Path, quiet: bool = False, quick: bool = False,
              distribution: str | None = None) -> dict:
     """Run and analyse the campaign: every example the families declare (`family.examples`;
     `distribution`: only that distribution's families; `quick`: each `Example.quick`).
-    Returns the JSON-able summary: the bench-core keys, then `experiments.<name>` per
-    example."""
+    Returns the JSON-able summary: the bench core's keys (friction law, servo mobility;
+    ``runs``: the required examples'), then `experiments.<name>` per example."""
     declared = examples(distribution)
     configs = {name: campaign_config(example, directory, quick)
                for name, example in declared.items()}
@@ -172,7 +169,8 @@ def run_demo(directory: Path, quiet: bool = False, quick: bool = False,
         "friction": {direction: experiments["friction_sweep"]["summary"][direction]
                      for direction in friction_sweep.SIGNS},
         "servo_mobility": experiments["chirp"]["summary"],
-        "runs": [experiments[name]["run"] for name in BENCH_CORE],
+        "runs": [experiments[name]["run"] for name, example in declared.items()
+                 if example.required],
         "report": str(report),
         "report_s": time.monotonic() - t0,
         "report_left_out": [name for name in configs if name not in reported],

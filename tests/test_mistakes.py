@@ -23,7 +23,7 @@ from feedbench.daq.recording import open_recording, printable_json
 from feedbench.demo import describe_analysis, example_config
 from feedbench.report import run_section, verdict
 from feedbench.units import MM_PER_MIN
-from test_live_offline import live_replay
+from feedbench.testing import live_replay
 from test_report import (
     COLUMN, DAQ_RATE, K_P, T_I, bode_steps, chirp_steps, friction_steps, hammer_steps, record,
     record_with_daq, shaker_chirp_steps, sine_stream_steps,
