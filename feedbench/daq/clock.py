@@ -86,6 +86,11 @@ class CycleDrive(Protocol):
 
     def wait_cycle(self, timeout_s: float) -> bool: ...
 
+    @property
+    def sets_waiting(self) -> int: ...
+
+    def drop_waiting(self) -> int: ...
+
     def heartbeat_lost(self, now: float) -> bool: ...
 
 
@@ -125,6 +130,11 @@ class _BenchClock:
 
     def raise_if_stalled(self) -> None:
         """Nothing stalls in lockstep (see `RealtimeClock`)."""
+
+    def catch_up(self) -> tuple[int, float]:
+        """Before a cycle's setpoints: how many drive cycles the host is late, and the wall
+        time (s) since the last tick (lockstep: never late)."""
+        return 0, 0.0
 
     def guarded(self) -> AbstractContextManager[None]:
         """While a run's cycles go: what keeps a hung host from holding the drives enabled
@@ -257,6 +267,20 @@ class RealtimeClock(_BenchClock):
                                  f"(after device cycle {self.cycles[i]})")
             if drive.device_cycle != self._last_raw[i]:
                 return
+
+    def catch_up(self) -> tuple[int, float]:
+        """Before a cycle's setpoints, if the host loop was away for at least half the
+        cycles whose TPDO sets wait (those cycles ran without its setpoints): drop the sets
+        (missed cycles, a gap), so that the next tick answers with the set of the SYNC its
+        setpoints are for. Sets that came in a burst while the host was waiting for them
+        (late on the wire, their cycles ran on its setpoints) are taken one per tick as
+        before. Returns how many drive cycles the host was late (0: none dropped) and the
+        wall time (s) since the last tick."""
+        away_s = time.perf_counter() - self._last_tick
+        waiting = max(drive.sets_waiting for drive in self.drives)
+        if not waiting or away_s < waiting * self.period_s / 2:
+            return 0, away_s
+        return max([drive.drop_waiting() for drive in self.drives]), away_s
 
     def reset_timing(self) -> None:
         """Forget the cycles ticked so far and the TPDO sets queued meanwhile (the host was

@@ -43,6 +43,7 @@ from feedbench.drivers.cia402 import DISABLED_STATES, Actual
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan, Segment
 from feedbench.protocols.canbus import StackLog
+from feedbench.protocols.cia402 import EXTRAPOLATED_CYCLES
 from feedbench.units import MM_PER_MIN
 
 CHANNELS = ("x_ref", "position", "velocity", "force", "force_offset", "velocity_offset",
@@ -289,16 +290,23 @@ class Runner:
                     device.start(plan, device_recorder)
                 self._enable(plan.mode, start, recorder, plan.cycle_s)
                 with self.clock.guarded():
-                    for index, segment in enumerate(plan.segments):
-                        recorder.event(self._next_cycle(), "segment", segment_text(segment))
-                        for obs in self.observers:
-                            obs.on_segment(index, segment, self._next_cycle())
-                        for _ in range(segment.n_cycles):
-                            self._cycle(recorder, targets[i], force_offsets[i],
-                                        velocity_offsets[i], index=i,
-                                        velocity=target_velocities[i])
-                            last_target = targets[i]
-                            i += 1
+                    starts = segment_starts(plan)
+                    segment = 0
+                    while True:
+                        late, since_s = self.clock.catch_up()
+                        if late and i < len(targets):
+                            i = self._resumed(recorder, targets, i, last_target, late, since_s,
+                                              plan.cycle_s)
+                        while segment < len(starts) and starts[segment] <= i:
+                            self._segment_started(recorder, plan, segment)
+                            segment += 1
+                        if i == len(targets):
+                            break
+                        self._cycle(recorder, targets[i], force_offsets[i],
+                                    velocity_offsets[i], index=i,
+                                    velocity=target_velocities[i])
+                        last_target = targets[i]
+                        i += 1
             except (RunAborted, NodeLost, HostStalled) as exc:
                 status, reason = "aborted", str(exc)
             except Exception as exc:  # bus timeout, driver error, full disk: still stop safely
@@ -317,6 +325,33 @@ class Runner:
         for obs in self.observers:
             obs.on_stop(status, reason)
         return RunOutcome(status, reason, i, start, timing)
+
+    def _segment_started(self, recorder, plan: Plan, index: int) -> None:
+        """The event and the observers' call of segment `index` starting at the next cycle."""
+        segment = plan.segments[index]
+        recorder.event(self._next_cycle(), "segment", segment_text(segment))
+        for obs in self.observers:
+            obs.on_segment(index, segment, self._next_cycle())
+
+    def _resumed(self, recorder, targets: list[float], i: int, last: float, late: int,
+                 since_s: float, cycle_s: float) -> int:
+        """The plan index to send next after the host was `late` drive cycles late (real
+        time, `clock.catch_up`; `since_s` s since its last tick): those cycles ran on the
+        drive's extrapolated setpoint (CSP: on from the last two, `EXTRAPOLATED_CYCLES` at
+        most, then held), so the plan resumes `late` cycles on, where the drive is, and the
+        cycles in between are a gap. A resumed setpoint further from where the drive went
+        than the velocity limit allows in one cycle: "host stalled N ms"."""
+        resume = min(i + late, len(targets))
+        step = targets[i - 1] - targets[i - 2] if i >= 2 else 0.0
+        drive_at = last + min(late + 1, EXTRAPOLATED_CYCLES) * step
+        too_far = self.limits.velocity * cycle_s
+        if resume < len(targets) and abs(targets[resume] - drive_at) > too_far:
+            raise HostStalled(f"host stalled {since_s * 1e3:.0f} ms: the drive ran {late} "
+                              "cycles without a setpoint, the plan cannot resume where it is")
+        if late > 1:
+            self._note(recorder, "timing", f"host late by {late} drive cycles "
+                       f"({since_s * 1e3:.0f} ms): the plan resumed where the drive is")
+        return resume
 
     def _next_cycle(self) -> int:
         return self.clock.cycle + 1
@@ -594,6 +629,15 @@ def drive_channels(names: Sequence[str]) -> tuple[tuple[str, ...], dict[str, str
 def _where(name: str) -> str:
     """Prefix naming a drive in an abort reason ("" for the only drive)."""
     return f"{name}: " if name else ""
+
+
+def segment_starts(plan: Plan) -> list[int]:
+    """The plan index each segment starts at."""
+    starts, start = [], 0
+    for segment in plan.segments:
+        starts.append(start)
+        start += segment.n_cycles
+    return starts
 
 
 def segment_text(segment: Segment | None, label: str = "") -> str:

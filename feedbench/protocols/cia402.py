@@ -192,6 +192,11 @@ def command_of(controlword: int) -> str:
     return "ENABLE OPERATION" if controlword & CW_ENABLE_OPERATION_BIT else "SWITCH ON"
 
 
+EXTRAPOLATED_CYCLES = 50
+"""Cyclic synchronous position: a cycle whose setpoint (0x607A in a synchronous RPDO) did not
+come before its SYNC runs on the target extrapolated from the last two (the cyclic modes'
+rule for a missing setpoint), for at most this many cycles in a row; then the drive holds
+it. A host further behind than this stops the run ("host stalled")."""
 FOLLOWING_ERROR_OFF = 0xFFFFFFFF
 """0x6065 value that switches the following-error check off."""
 

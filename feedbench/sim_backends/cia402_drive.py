@@ -66,7 +66,7 @@ from feedbench.protocols import cia301
 from feedbench.protocols.canbus import (
     NMT_BYTES, GuardedSdoServer, connect, length_checked, pdo_codec)
 from feedbench.protocols.cia402 import (
-    CONTROLWORD, CSP, CSV, CW_FAULT_RESET, CYCLE_COUNTER, EMCY_FOLLOWING_ERROR,
+    CONTROLWORD, CSP, CSV, CW_FAULT_RESET, CYCLE_COUNTER, EMCY_FOLLOWING_ERROR, EXTRAPOLATED_CYCLES,
     DRIVE_MODES, EMCY_INTERNAL_SOFTWARE, EMCY_PDO_LENGTH, ERROR_CODE, FAULT, FAULT_INJECTION,
     FAULT_REACTION, PROFILE_ACCELERATION, PROFILE_DECELERATION, PV,
     FOLLOWING_ERROR_ACTUAL, FOLLOWING_ERROR_OFF, FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL, FORCE_LIMIT,
@@ -250,6 +250,8 @@ class SimulatedCia402Drive:
         self._previous_controlword = 0
         self._following_error = False
         self._stop_velocity = 0.0
+        self._target_step = 0
+        self._missed_setpoints = 0
         self._stop_complete = False
         self._settling = 0
         self._profile_velocity = 0.0
@@ -369,6 +371,9 @@ class SimulatedCia402Drive:
             self.network.subscribe(pdo_map.cob_id, self._on_rpdo)
         self._rpdo_codecs = {m.cob_id: pdo_codec(m) for m in receive}
         self._rpdo_events = {m.cob_id for m in receive if m.trans_type >= ASYNCHRONOUS}
+        self._cyclic_target = any(TARGET_POSITION in codec.indices
+                                  for cob_id, codec in self._rpdo_codecs.items()
+                                  if cob_id not in self._rpdo_events)
         self._received.clear()
         transmit = [(m, pdo_codec(m)) for m in self.node.tpdo.map.values() if m.enabled and m.map]
         self._tpdos = [(m.cob_id, m.trans_type, codec.layout.pack, _fetcher(codec.indices))
@@ -445,8 +450,7 @@ class SimulatedCia402Drive:
             values[FAULT_INJECTION] = self.faults.emcy_code
         if self._pdo_dirty:
             self._load_pdo_maps()
-        values.update(self._received)  # the RPDO data received since the last SYNC
-        self._received.clear()
+        self._latch_setpoints()
         self._advance_state_machine(values[CONTROLWORD], inject=True)
         for hook in self.before_physics:
             hook()
@@ -464,6 +468,32 @@ class SimulatedCia402Drive:
                 hook()
         except Exception as error:  # the cycle's TPDOs are out: not a second set
             self.world_fault(error, tpdos_sent=True)
+
+    def _latch_setpoints(self) -> None:
+        """The RPDO data received since the last SYNC; the target extrapolated from the last
+        step where `_extrapolates` says so."""
+        values = self.values
+        target = values[TARGET_POSITION]
+        fresh = bool(self._received)
+        values.update(self._received)
+        self._received.clear()
+        if self._extrapolates(fresh, target):
+            self._missed_setpoints += 1
+            values[TARGET_POSITION] = _int32_wrapped(target + self._target_step)
+        elif fresh:
+            self._missed_setpoints = 0
+        self._target_step = values[TARGET_POSITION] - target
+
+    def _extrapolates(self, fresh: bool, target: int) -> bool:
+        """True if this cycle runs on its extrapolated target (CSP, the target in a
+        synchronous RPDO): none came, or the one that came is the previous cycle's, late
+        (within half a step of `target`, the one the drive ran on, after it extrapolated);
+        `EXTRAPOLATED_CYCLES` in a row at most, then the target is held."""
+        if not (self._cyclic_target and self.values[MODES_OF_OPERATION_DISPLAY] == CSP
+                and self._missed_setpoints < EXTRAPOLATED_CYCLES):
+            return False
+        late = 2 * abs(self.values[TARGET_POSITION] - target) < abs(self._target_step)
+        return not fresh or bool(self._missed_setpoints) and late
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Keep a synchronous RPDO's values until the SYNC; an asynchronous one (254/255)

@@ -1,0 +1,94 @@
+"""A late host never steps the axis (issue 26, item 2): in real time the plan follows the
+drive's cycles, not the host's wall clock. A cycle whose setpoint did not come runs on the
+target the drive extrapolates (CSP, `protocols.cia402.EXTRAPOLATED_CYCLES`); a host back
+from a stall drops the TPDO sets that came meanwhile (`RealtimeClock.catch_up`: a gap) and
+resumes the plan that many cycles on, where the drive is (seen before, with a drive that
+held its last target and a host that sent the missed setpoints one per queued set: 8
+setpoints within 0.1 ms after a 10 ms stall, a 50 µm step in one 1 ms cycle, 1034 N, a
+velocity limit trip).
+
+A real-time chirp at 500 mm/min against the simulated drive in this process (SYNC from
+python-can's periodic sender, as on hardware), its host loop asleep 10, 30 and 100 ms
+mid-sweep.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from feedbench.bench import Bench, parse_run_config
+from feedbench.daq.catalog import Catalog
+from feedbench.daq.recording import open_recording
+from feedbench.demo import example_config
+from feedbench.protocols.cia402 import EXTRAPOLATED_CYCLES
+
+RETURN_FEED_MM_MIN = 1500.0
+"""The example chirp's return move, the plan's fastest."""
+STALL_AT_BLOCK = 15
+"""The stall comes after this many 50-cycle blocks (0.75 s: the chirp's sweep)."""
+
+
+class StallOnce:
+    """An observer whose block callback holds the host's cycle loop `stall_s` once."""
+
+    def __init__(self, stall_s: float) -> None:
+        self.stall_s = stall_s
+        self.blocks = 0
+
+    def on_start(self, plan, channels) -> None: ...
+
+    def on_segment(self, index, segment, cycle) -> None: ...
+
+    def on_block(self, cycles: np.ndarray, block: np.ndarray) -> None:
+        self.blocks += 1
+        if self.blocks == STALL_AT_BLOCK:
+            time.sleep(self.stall_s)
+
+    def on_stop(self, status: str, reason: str) -> None: ...
+
+
+def _chirp(channel: str, directory, stall_s: float) -> dict:
+    """The example chirp, shortened, in real time against the simulated drive in this
+    process, its host loop held `stall_s` once mid-sweep."""
+    raw = example_config("chirp")
+    raw["bench"].update(channel=channel, output_dir=str(directory), clock="realtime")
+    raw["experiment"].update(duration_s=1.0, repetitions=1, settle_s=0.3, tail_s=0.3)
+    config = parse_run_config(raw)
+    with Bench(config.bench, config.plan, config.experiment.devices()) as bench:
+        return bench.run(config, Catalog(directory / "catalog.sqlite"), directory,
+                         observers=[StallOnce(stall_s)], progress=False)
+
+
+@pytest.mark.parametrize("stall_ms", [10, 30, 100])
+def test_a_stalled_host_never_steps_the_axis(can_channel, tmp_path, stall_ms):
+    """10 and 30 ms: the run completes, the stall a gap and a ``timing`` event; 100 ms is
+    more than the drive extrapolates (50 cycles): the run is aborted "host stalled N ms".
+    Never a limit trip; per drive cycle the setpoint and the position move no more than the
+    plan's fastest step."""
+    row = _chirp(can_channel, tmp_path, stall_ms * 1e-3)
+    recording = open_recording(row["file"])
+    if stall_ms < EXTRAPOLATED_CYCLES:
+        assert row["status"] == "complete", row["reason"]
+        late = [int(e.text.split()[3]) for e in recording.events if e.kind == "timing"]
+        assert max(late) >= 0.8 * stall_ms, late
+        assert recording.metadata["timing"]["missed"] >= max(late) - 1
+    else:
+        assert row["status"] == "aborted"
+        assert row["reason"].startswith("host stalled ") and row["reason"].endswith(
+            "cycles without a setpoint, the plan cannot resume where it is")
+        assert int(row["reason"].split()[2]) >= stall_ms
+    largest = RETURN_FEED_MM_MIN / 60e3 * 1e-3  # m per 1 ms cycle: the plan's fastest move
+    moving = recording.cycle < _stop_cycle(recording)
+    cycles = np.diff(recording.cycle[moving])
+    for channel in ("x_ref", "position"):
+        per_cycle = np.abs(np.diff(recording.channels[channel][moving])) / cycles
+        assert per_cycle.max() <= 1.2 * largest, channel
+
+
+def _stop_cycle(recording) -> int:
+    """The cycle the safe stop began (its "disable" segment)."""
+    return min(e.cycle for e in recording.events
+               if e.kind == "segment" and '"disable"' in e.text)
