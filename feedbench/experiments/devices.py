@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Mapping, TypeVar
 
 from feedbench.config import ConfigError, registered
+from feedbench.experiments.plan import Plan
 from feedbench.experiments.runner import CycleDevice
 from feedbench.protocols.address import split_address
 
@@ -100,7 +101,7 @@ class PerCycleDevice:
         self.failed = False
         self._count = 0
 
-    def start(self, plan, recorder) -> None:
+    def start(self, plan: Plan, recorder) -> None:
         """Count the cycles from the run's first."""
         self._count = 0
 
