@@ -16,10 +16,12 @@ import can
 import pytest
 from canopen.profiles.p402 import BaseNode402
 
+from feedbench.daq.clock import LockstepClock
 from feedbench.drivers.cia402 import decode_state
 from feedbench.protocols.canbus import open_network
 from feedbench.protocols.cia402 import (
-    CONTROLWORD, CSP, CST, CSV, MODES_OF_OPERATION, PV, QUICK_STOP_OPTION_CODE, STATUSWORD,
+    CONTROLWORD, CSP, CST, CSV, FAULT_REACTION_OPTION_CODE, MODES_OF_OPERATION, PV,
+    QUICK_STOP_OPTION_CODE, STATUSWORD,
     TARGET_VELOCITY, VELOCITY_ACTUAL, VELOCITY_WINDOW,
 )
 from feedbench.sim_backends import eds
@@ -267,3 +269,30 @@ def test_quick_stop_option_codes(can_channel, option):
             bench.drive.enable_step()
             bench.clock.tick()
             assert bench.drive.state == "OPERATION ENABLED"
+
+
+@pytest.mark.parametrize("reaction, ramp_s", [(0, None), (1, 0.05 / 1.0), (2, 0.05 / 2.0)])
+def test_fault_reaction_option_codes(can_channel, reaction, ramp_s):
+    """A lost host heartbeat (SYNCs go on, the heartbeat stops: at SYNC 1001 for 1000 ms)
+    from 50 mm/s: 0x605E = 0 faults at once (power stage off), 1 ramps on 0x6084 (1 m/s²),
+    2 on 0x6085 (2 m/s²), then FAULT."""
+    with loopback(can_channel, configure=False) as bench:
+        device, drive = bench.device, bench.drive
+        drive.configure(consumer_ms=1000)
+        drive.node.sdo[FAULT_REACTION_OPTION_CODE].raw = reaction
+        clock = LockstepClock(drive.network, [drive], timeout_s=2.0, heartbeat_s=60.0)
+        drive.set_mode(CSV)
+        drive.set_targets(velocity=0.05)  # m/s
+        drive.enable(clock.tick)
+        while clock.cycle < 1001:
+            clock.tick()
+        ramp = [device.simulator.velocity]
+        while drive.state == "FAULT REACTION ACTIVE":
+            clock.tick()
+            ramp.append(device.simulator.velocity)
+        assert drive.state == "FAULT" and drive.emcy_code == 0x8130
+    if ramp_s is None:
+        assert len(ramp) == 1 and not device.simulator.enabled
+    else:
+        assert abs(ramp[-1]) < 1e-4
+        assert len(ramp) - 1 == pytest.approx(ramp_s / 1e-3, abs=3)
