@@ -111,6 +111,11 @@ class Effect:
     requires: tuple[str, ...] = ()
     """Terms that must already be in the model for this one to make sense."""
 
+    rivals: tuple[str, ...] = ()
+    """Terms that explain the same signature another way (a play with friction behind it and
+    pre-sliding both shape the force after each reversal): once one is in the model, the
+    other is not offered on top of it (one finding per signature, not two that share it)."""
+
     difference_step: float = DIFFERENCE_STEP
     """Relative step of the finite differences of the nonlinear refinement's Jacobian in this
     term's parameters: √ε (scipy's own) for a smooth SSR; larger where the SSR is rugged at
@@ -143,7 +148,8 @@ class Effect:
 
     def applicable(self, present: frozenset[str], fixed: frozenset[str]) -> bool:
         """Whether the effect can be added to a model holding the terms `present`."""
-        return self.name not in present and all(r in present for r in self.requires)
+        return (self.name not in present and all(r in present for r in self.requires)
+                and not present.intersection(self.rivals))
 
     def columns(self, kin: Kinematics, values: Mapping[str, float]) -> np.ndarray:
         """Regressors (n × len(linear_keys)) of an additive effect at the SI `values`."""
@@ -878,7 +884,7 @@ LIBRARY: tuple[Effect, ...] = (
               Parameter("mode_f_n_Hz", "Hz", 1.0, "the structural mode whose spring holds "
                         "the play (0: a load on a contact)", linear=False, setting=True),
               Parameter("mode_zeta", "-", 1.0, "that mode's ζ", linear=False, setting=True)),
-             difference_step=RUGGED_STEP),
+             difference_step=RUGGED_STEP, rivals=("presliding",)),
     Ripple("ripple", "force ripple periodic in position (cogging, screw, pinion)",
            "residual periodic in position (Lomb–Scargle peak)",
            (Parameter("A_sin_N", "N", 1.0, "sine component"),
@@ -931,7 +937,7 @@ LIBRARY: tuple[Effect, ...] = (
                            5e-6, 1e-8, 1e-3),
                 _nonlinear("alpha", "-", 1.0, "Dahl's exponent α", 1.0, 0.2, 5.0),
                 _k_tanh_setting()),
-               requires=("coulomb",)),
+               requires=("coulomb",), rivals=("backlash",)),
 )
 """Every term, base terms first; the order breaks ties between equally good candidates."""
 
