@@ -609,7 +609,7 @@ def candidate_table(result: Mapping[str, Any]) -> Table:
                   "critical mode f (Hz)", "critical mode ζ (%)",
                   "tool-tip compliance (predicted)", "min stable depth (mm)",
                   "contour max / RMS (µm)", "tracking max / RMS (µm)",
-                  "velocity bandwidth (Hz)", "within limits.gains"), tuple(rows))
+                  "velocity bandwidth (Hz)", "gains within limits"), tuple(rows))
 
 
 def table_4_3(result: Mapping[str, Any]) -> Table:
