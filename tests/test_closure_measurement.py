@@ -2,6 +2,7 @@
 encoder (errors-in-variables), sampling conventions declared in the sidecar, a sub-cycle
 skew that is not declared, and a base model that cannot be physical (issue 24.1, 24.4)."""
 
+import re
 import sys
 import tempfile
 from pathlib import Path
@@ -141,3 +142,40 @@ def test_a_base_model_that_needs_a_negative_mass_is_declared_not_describing():
     assert not verdict["describes"]
     assert "inertia.M_kg = 0 kg" in verdict["on_bounds"]
     assert any("inertia.M_kg" in reason for reason in verdict["reasons"])
+
+
+def _offset_axis(offset_N: float, seed: int) -> Trace:
+    """20 s at 1 kHz of a 40 kg axis with σ 150 N·s/m on ±20 mm sine moves at 0.2 and 0.7 Hz,
+    a constant force `offset_N` (N) and 1 N force noise."""
+    t = np.arange(0.0, 20.0, 1e-3)
+    w1, w2 = 2 * np.pi * 0.2, 2 * np.pi * 0.7
+    x = 20e-3 * np.sin(w1 * t) + 5e-3 * np.sin(w2 * t)
+    v = 20e-3 * w1 * np.cos(w1 * t) + 5e-3 * w2 * np.cos(w2 * t)
+    a = -20e-3 * w1**2 * np.sin(w1 * t) - 5e-3 * w2**2 * np.sin(w2 * t)
+    force = M_KG * a + SIGMA_NS_M * v + offset_N
+    return Trace(t, x, force + np.random.default_rng(seed).normal(0.0, 1.0, t.size),
+                 name=f"offset {offset_N} N")
+
+
+@pytest.mark.parametrize("held_out_offset_N, holds", [(6.0, True), (15.0, False)])
+def test_an_effect_is_added_only_if_it_holds_on_both_recordings(held_out_offset_N, holds):
+    """An offset of 6 N on the fit recording: on a held-out recording with the same 6 N it is
+    added; with 15 N it still improves the held-out prediction (ΔBIC passes), but fitted
+    there alone it is 15 N, not 6 N ± 25 %: rejected as not holding on every recording,
+    with both values in the reason."""
+    spec = parse_model_config({"terms": {"inertia": {"M_kg": "free"},
+                                         "viscous": {"F_v_Ns_m": "free"}},
+                               "closure": {"candidates": ["offset", "coulomb"]}})
+    report = run_closure(spec, _offset_axis(6.0, seed=1), _offset_axis(held_out_offset_N, 2))
+    data = report_dict(report)
+    if holds:
+        assert [s["effect"] for s in data["steps"]] == ["offset"]
+        assert data["params"]["offset"]["offset_N"]["value"] == pytest.approx(6.0, abs=0.1)
+        return
+    assert "offset" not in data["effects"]
+    reason = {r["effect"]: r["reason"] for r in data["rejected"]}["offset"]
+    match = re.match(r"does not hold on every recording: offset\.offset_N ([\d.]+) ± [\d.]+ "
+                     r"on the fit recording, ([\d.]+) ± [\d.]+ on the held-out one", reason)
+    assert match, reason
+    assert float(match[1]) == pytest.approx(6.0, abs=0.1)
+    assert float(match[2]) == pytest.approx(15.0, abs=0.1)

@@ -223,12 +223,13 @@ def at_bounds(model: Model) -> tuple[str, ...]:
     """"term.key = value unit" of every free parameter that sits on a bound of its range."""
     out = []
     for term in model.terms:
-        for key in term.free:
-            p = term.effect.parameter(key)
-            value = term.values[key]
+        for p in term.effect.parameters:
+            if p.key not in term.free:
+                continue
+            value = term.values[p.key]
             if any(math.isfinite(b) and math.isclose(value, b, rel_tol=1e-4, abs_tol=1e-12)
                    for b in (p.lower, p.upper)):
-                out.append(f"{term.name}.{key} = {value / p.to_si:.4g} {p.unit}")
+                out.append(f"{term.name}.{p.key} = {value / p.to_si:.4g} {p.unit}")
     return tuple(out)
 
 
