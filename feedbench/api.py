@@ -36,7 +36,7 @@ from feedbench.bench import (
     parse_run_config,
 )
 from feedbench.config import ConfigError, Field, interval, read_toml, validate_table
-from feedbench.daq.catalog import Catalog
+from feedbench.daq.catalog import Catalog, open_catalog
 from feedbench.daq.recording import Recording, open_recording
 from feedbench.experiments.family import Experiment, families
 from feedbench.experiments.limits import LimitError, Limits
@@ -333,7 +333,7 @@ class BenchSession:
         self._bench, self._needs = bench, key
         self.output_dir.mkdir(parents=True, exist_ok=True)
         if self._catalog is None:
-            self._catalog = Catalog(self.output_dir / "catalog.sqlite")
+            self._catalog = open_catalog(self.output_dir, setting=self.bench_config["catalog"])
             self._catalog.reconcile()  # runs a dead process left `running`: crashed, files too
         return bench
 

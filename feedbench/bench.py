@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from feedbench.config import ConfigError, Field, one_of, positive, read_toml, validate_table
-from feedbench.daq.catalog import Catalog, CatalogError
+from feedbench.daq.catalog import Catalog, CatalogError, open_catalog, url_problem
 from feedbench.daq.clock import LockstepClock, RealtimeClock, one_core
 from feedbench.daq.recorder import Recorder, expected_size
 from feedbench.daq.recording import open_recording
@@ -71,6 +71,9 @@ BENCH_SCHEMA = {
                       "(faster, same results; `feedbench.daq.clock.one_core`)"),
     "eds": Field(str, "", "EDS file of the drive (empty: the packaged simulated drive's)"),
     "output_dir": Field(str, "runs", "where recordings and the catalog go"),
+    "catalog": Field(str, "", "run catalog: postgresql://user@host/database (no password: "
+                     "PGPASSWORD, ~/.pgpass or a service file) or an SQLite file (empty: "
+                     "output_dir/catalog.sqlite; docs/catalog.md)", url_problem),
     "gains": Field(dict, {}, "servo gains written to the drive by SDO before the run"),
     "stop": Field(dict, {}, "what the safe stop needs from the drives and how it is confirmed "
                   "(drivers.cia402.STOP_SCHEMA)"),
@@ -406,14 +409,16 @@ def check_free_space(directory: Path, needed: float) -> None:
 
 
 def run_config(config: RunConfig, observers: Sequence[Observer] = (),
-               progress: bool = True, stop: StopRequest | None = None) -> dict:
+               progress: bool = True, stop: StopRequest | None = None,
+               catalog: str = "") -> dict:
     """Open the bench of `config`, run its plan, close the bench; returns the run record.
+    `catalog` (``--catalog``) overrides ``$FEEDBENCH_CATALOG`` and ``bench.catalog``.
 
     The output directory and its catalog are made once the bench has opened: a bench that
     cannot be reached leaves nothing behind."""
     output_dir = Path(config.bench["output_dir"])
     with Bench(config.bench, config.plan, config.experiment.devices()) as bench:
         output_dir.mkdir(parents=True, exist_ok=True)
-        catalog = Catalog(output_dir / "catalog.sqlite")
-        catalog.reconcile()  # runs a dead process left `running`: crashed, in their files too
-        return bench.run(config, catalog, output_dir, observers, progress, stop)
+        runs = open_catalog(output_dir, catalog, config.bench["catalog"])
+        runs.reconcile()  # runs a dead process left `running`: crashed, in their files too
+        return bench.run(config, runs, output_dir, observers, progress, stop)

@@ -59,9 +59,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.live:
         from feedbench.gui.live_window import bench_session
 
-        row = bench_session(config, progress=not args.json).exec()
+        row = bench_session(config, progress=not args.json, catalog=args.catalog).exec()
     else:
-        row = run_config(config, progress=not args.json)
+        row = run_config(config, progress=not args.json, catalog=args.catalog)
     if args.json:
         _print_json(row)
     else:
@@ -71,11 +71,18 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_runs(args: argparse.Namespace) -> int:
-    """List the run catalog, the runs left unfinished by a process that has ended settled
-    first (`Catalog.reconcile`: crashed, samples counted from the file)."""
-    catalog = open_catalog(args.dir)
+    """List the run catalog (the runs the filters select), the runs left unfinished by a
+    process that has ended settled first (`Catalog.reconcile`: crashed, samples counted from
+    the file)."""
+    from feedbench.daq.run_filter import Condition, RunFilter, day_bound
+
+    catalog = open_catalog(args.dir, args.catalog)
     catalog.reconcile()
-    rows = catalog.list()
+    rows = catalog.list(where=RunFilter(
+        bench=args.bench, experiment=args.family, status=args.status,
+        since=args.since and day_bound(args.since, "--since"),
+        until=args.until and day_bound(args.until, "--until", end=True),
+        where=tuple(map(Condition.parse, args.where))))
     if args.json:
         _print_json({"runs": [vars(r) for r in rows]})
         return 0
@@ -83,25 +90,26 @@ def cmd_runs(args: argparse.Namespace) -> int:
         print(f"{r.id:<42s} {r.status:<9s} {r.n_samples or 0:>8d}  {r.file}"
               + (f"  ({r.reason})" if r.reason else ""))
     if not rows:
-        print(f"no runs in {args.dir}")
+        print(f"no runs in {catalog.name}")
     return 0
 
 
 def cmd_catalog_rebuild(args: argparse.Namespace) -> int:
     """Recreate the run catalog from the recordings in the output directory."""
-    catalog = open_catalog(args.dir)
+    catalog = open_catalog(args.dir, args.catalog)
     added, skipped = catalog.rebuild()
     for reason in skipped:
         print(f"skipped {reason}")
-    print(f"{catalog.path}: rebuilt from {added} recording(s)")
+    print(f"{catalog.name}: rebuilt from {added} recording(s)")
     return 0
 
 
-def resolve_run(run: str, directory: str) -> str:
-    """A recording path from a file path or a run id (or unique id prefix) in the catalog."""
+def resolve_run(run: str, directory: str, catalog: str = "") -> str:
+    """A recording path from a file path or a run id (or unique id prefix) in the catalog
+    (`open_catalog`)."""
     if Path(run).is_file() or Path(run).suffix.lower() in (".h5", ".hdf5"):
         return run
-    return open_catalog(directory).get(run).file
+    return open_catalog(directory, catalog).get(run).file
 
 
 def output_directory(directory: str | Path) -> Path:
@@ -112,16 +120,18 @@ def output_directory(directory: str | Path) -> Path:
     return path
 
 
-def open_catalog(directory: str | Path):
-    """The run catalog of an output directory (a corrupt one is moved aside and rebuilt);
-    one that cannot be read or written raises `ConfigError`."""
-    from feedbench.daq.catalog import Catalog
+def open_catalog(directory: str | Path, url: str = ""):
+    """The run catalog of an output directory: `url` (``--catalog``), else
+    ``$FEEDBENCH_CATALOG``, else its ``catalog.sqlite`` (`daq.catalog.open_catalog`; a corrupt
+    file is moved aside and rebuilt); one that cannot be read or written raises
+    `ConfigError`."""
+    from feedbench.daq import catalog
 
-    path = output_directory(directory) / "catalog.sqlite"
     try:
-        return Catalog(path)
+        return catalog.open_catalog(output_directory(directory), url)
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot open the run catalog ({exc.strerror})") from None
+        raise ConfigError(f"{exc.filename}: cannot open the run catalog ({exc.strerror})"
+                          ) from None
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
@@ -134,7 +144,8 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         from feedbench.bench import analyze_file
         from feedbench.demo import describe_analysis
 
-        result, describe = analyze_file(resolve_run(args.run, args.dir)), describe_analysis
+        path = resolve_run(args.run, args.dir, args.catalog)
+        result, describe = analyze_file(path), describe_analysis
     if args.json:
         _print_json(result)
     else:
@@ -149,7 +160,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     if not (args.uff58 or args.csv):
         raise ConfigError("export: give --uff58 FILE and/or --csv FILE")
-    path = resolve_run(args.run, args.dir)
+    path = resolve_run(args.run, args.dir, args.catalog)
     if args.uff58:
         print(exchange.export_uff58(path, args.uff58, analyze_file))
     if args.csv:
@@ -159,7 +170,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_live(args: argparse.Namespace) -> int:
     """Replay a recorded run in the live window (no display: one line, before Qt loads)."""
-    path = resolve_run(args.run, args.dir)
+    path = resolve_run(args.run, args.dir, args.catalog)
     require_display()
     from feedbench.gui.live_window import replay_session
 
@@ -171,7 +182,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     """Write the HTML report of recorded runs and print its path."""
     from feedbench.report import write_report
 
-    files = [resolve_run(run, args.dir) for run in args.runs]
+    files = [resolve_run(run, args.dir, args.catalog) for run in args.runs]
     output = Path(args.output or Path(args.dir) / "report.html")
     if output.is_dir():
         raise ConfigError(f"-o: {output} is a directory (give the report's file name)")
@@ -311,6 +322,17 @@ def build_parser() -> argparse.ArgumentParser:
     runs = sub.add_parser("runs", help="list the run catalog")
     runs.add_argument("--dir", default="runs", help="output directory holding catalog.sqlite")
     runs.add_argument("--json", action="store_true")
+    runs.add_argument("--bench", help="only the runs of this bench (FEEDBENCH_BENCH, else "
+                      "its host's name)")
+    runs.add_argument("--family", help="only the runs of this experiment family")
+    runs.add_argument("--status", help="only the runs with this status (complete, aborted, "
+                      "crashed, running, damaged…)")
+    runs.add_argument("--since", metavar="DATE", help="only the runs started on or after DATE "
+                      "(YYYY-MM-DD, or an ISO time; UTC)")
+    runs.add_argument("--until", metavar="DATE", help="only the runs started on or before DATE")
+    runs.add_argument("--where", action="append", default=[], metavar="CONDITION",
+                      help="a key parameter's condition, e.g. 'chirp.f_stop_Hz>150' (family "
+                      "first, or any family's: 'f_stop_Hz>150'); repeat for more")
     runs.set_defaults(func=cmd_runs)
 
     catalog = sub.add_parser("catalog", help="maintain the run catalog")
@@ -390,6 +412,10 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--csv", metavar="FILE", help="CSV file (FILE.toml: its sidecar)")
     export.set_defaults(func=cmd_export)
 
+    for command in (run, runs, rebuild, analyze, live, report, export):
+        command.add_argument("--catalog", metavar="URL", default="", help="the run catalog: "
+                             "postgresql://user@host/database or an SQLite file (default: "
+                             "$FEEDBENCH_CATALOG, else bench.catalog, else DIR/catalog.sqlite)")
     from feedbench.closure_command import add_closure_parser
 
     add_closure_parser(sub)

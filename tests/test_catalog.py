@@ -56,6 +56,7 @@ def test_add_finish_list_get(tmp_path: Path) -> None:
         params={"feed_mm_min": 100.0},
         pid=os.getpid(),
         host=socket.gethostname(),
+        bench=socket.gethostname(),
     )
     rows = catalog.list()
     assert [row.id for row in rows] == [second, first]

@@ -1,23 +1,44 @@
-"""SQLite run catalog: one row per run (id, experiment, times, status, file, key parameters,
-the pid and host of the process that records it).
+"""Run catalog: one row per run (id, experiment, times, status, file, key parameters, the
+bench, pid and host of the process that records it), in an SQLite file beside the recordings
+(the default, ``runs/catalog.sqlite``) or in a PostgreSQL database a lab's benches share.
 
-Every call opens its own connection and runs one short transaction, so one writer (the
-runner) and any number of readers (CLI, analysis, live window) can share the file; the
-database is in WAL mode so readers never block the writer.
+Which one: `open_catalog` takes ``--catalog URL``, else ``$FEEDBENCH_CATALOG``, else
+``[bench] catalog``, else ``<output_dir>/catalog.sqlite``. A URL that holds a password is
+refused in one line naming where it came from: the password comes from libpq's own
+conventions (``PGPASSWORD``, ``~/.pgpass``, a service file: ``postgresql:///?service=lab``),
+so it never lands in a recording's config, the catalog, a log, a report or ``--json``. A run's
+bench is ``$FEEDBENCH_BENCH``, else its host's name.
+
+SQLAlchemy Core rather than psycopg alone: one table definition and one set of statements
+compiled for both databases (parameter styles, DDL, the auto-increment key), and URLs parsed
+and shown without a password; psycopg 3 underneath is libpq, so PGPASSWORD, ~/.pgpass and
+service files work as in psql. No ORM: rows are tuples.
+
+Schema versions: a small numbered migration runner (`MIGRATIONS`), not alembic: a catalog
+upgrades itself in place when any command opens it, under the catalog's write lock, with no
+``alembic upgrade`` step for a bench's user and no script directory or env.py shipped in the
+package for a few statements.
+
+Every call opens its own connection and runs one short transaction, so any number of writers
+(runners) and readers (CLI, analysis, live window) share the catalog; an SQLite file is in WAL
+mode so readers never block the writer. What must see every write before it (a new run id, a
+migration) holds the catalog's write lock: SQLite's ``BEGIN IMMEDIATE``, a PostgreSQL
+transaction-level advisory lock.
 
 The recordings are the source of truth, the catalog an index of them: `reconcile` marks
 `crashed` a run whose process ended without finishing it (samples counted from its file),
-`rebuild` recreates the rows from the recordings in the catalog's directory, and a catalog
-file that SQLite finds corrupt is moved aside (``catalog.sqlite.corrupt-<UTC time>``) and
-rebuilt when it is opened, with one warning line; so is an existing empty file or one
-without the runs table when recordings sit beside it. A row that cannot be read (a JSON
-column that is not a JSON object) is listed with status `damaged`, its file and why; the
-other rows as they are. A catalog that cannot be read or written (read-only or full disk)
-raises `CatalogError`, one line.
+`rebuild` recreates the rows of the recordings in the output directory, and a catalog file
+that SQLite finds corrupt is moved aside (``catalog.sqlite.corrupt-<UTC time>``) and rebuilt
+when it is opened, with one warning line; so is an existing empty file or one without the runs
+table when recordings sit beside it. A row that cannot be read (a JSON column that is not a
+JSON object) is listed with status `damaged`, its file and why; the other rows as they are. A
+catalog that cannot be read or written (read-only or full disk, a server that is down) raises
+`CatalogError`, one line.
 
-Recording paths are stored relative to the catalog's directory and given back as paths from
-the current directory, so every command finds them from anywhere; a catalog made before
-(paths relative to the directory its runs were started from, or absolute) is still read.
+Recording paths in an SQLite catalog are stored relative to its directory and given back as
+paths from the current directory, so every command finds them from anywhere; a catalog made
+before (paths relative to the directory its runs were started from, or absolute) is still
+read. A PostgreSQL catalog stores absolute paths: each bench's recordings are on its host.
 """
 
 from __future__ import annotations
@@ -29,51 +50,67 @@ import os
 import re
 import socket
 import sqlite3
-from collections.abc import Iterator, Mapping
-from contextlib import closing, contextmanager, suppress
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager, nullcontext, suppress
 from dataclasses import dataclass
 from datetime import datetime, timezone
+from itertools import islice
 from pathlib import Path
 from typing import Any
+
+from sqlalchemy import (BigInteger, Column, Integer, MetaData, Table, Text, bindparam,
+                        create_engine, event, func, inspect, select, text)
+from sqlalchemy.engine import URL, Connection, Engine, make_url
+from sqlalchemy.exc import ArgumentError, DBAPIError
+from sqlalchemy.pool import NullPool
 
 from feedbench.config import ConfigError
 from feedbench.daq.recorder import mark_crashed
 from feedbench.daq.recording import RecordingSummary, read_summary, to_json, utc_now_iso
+from feedbench.daq.run_filter import DAMAGED, RunFilter
 
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS runs (
-    id TEXT PRIMARY KEY,
-    experiment TEXT NOT NULL,
-    started_at TEXT,
-    stopped_at TEXT,
-    status TEXT NOT NULL,
-    reason TEXT NOT NULL DEFAULT '',
-    file TEXT,
-    n_samples INTEGER,
-    params JSON NOT NULL DEFAULT '{}',
-    pid INTEGER,
-    host TEXT,
-    timing JSON
+METADATA = MetaData()
+RUNS = Table(
+    "runs", METADATA,
+    Column("seq", Integer, primary_key=True, autoincrement=True),  # the order of listing
+    Column("id", Text, nullable=False, unique=True),
+    Column("experiment", Text, nullable=False),
+    Column("started_at", Text),
+    Column("stopped_at", Text),
+    Column("status", Text, nullable=False),
+    Column("reason", Text, nullable=False, server_default=""),
+    Column("file", Text),
+    Column("n_samples", BigInteger),
+    Column("params", Text, nullable=False, server_default="{}"),  # JSON text
+    Column("pid", Integer),
+    Column("host", Text),
+    Column("timing", Text),  # JSON text
+    Column("bench", Text),
 )
-"""
-ADDED_COLUMNS = {"pid": "INTEGER", "host": "TEXT", "timing": "JSON"}
-"""Columns a catalog made before them gets when it is opened."""
+SCHEMA = Table("catalog_schema", METADATA, Column("version", Integer, nullable=False))
 COLUMN_NAMES = ("id", "experiment", "started_at", "stopped_at", "status", "reason", "file",
-                "n_samples", "params", "pid", "host", "timing")
+                "n_samples", "params", "pid", "host", "timing", "bench")
 COLUMNS = ", ".join(COLUMN_NAMES)
 UNFINISHED = ("created", "running")
 """Statuses of a run whose process has not finished it (yet)."""
-DAMAGED = "damaged"
-"""Status of a row the catalog cannot read (its file and why in the reason)."""
 JSON_COLUMNS = {"params": {}, "timing": None}
 """The JSON columns and what a row without a value has."""
-CORRUPT = (sqlite3.SQLITE_NOTADB, sqlite3.SQLITE_CORRUPT)
+SQLITE_CORRUPT = (sqlite3.SQLITE_NOTADB, sqlite3.SQLITE_CORRUPT)
 BUSY_TIMEOUT_S = 10.0
+CONNECT_TIMEOUT_S = 10
+LOCK_KEY = 0x0FEEDBE4C
+"""PostgreSQL advisory lock id of the catalog's write lock."""
+DEFAULT_NAME = "catalog.sqlite"
+CATALOG_ENV = "FEEDBENCH_CATALOG"
+BENCH_ENV = "FEEDBENCH_BENCH"
+BACKENDS = ("sqlite", "postgresql")
+DELETE_BATCH = 500
 LOGGER = logging.getLogger(__name__)
 
 
 class CatalogError(ConfigError):
-    """The catalog file cannot be read or written (read-only or full disk, not SQLite)."""
+    """The catalog cannot be read or written (read-only or full disk, not SQLite, a server
+    that is down or refuses the connection)."""
 
 
 class RunLookupError(ConfigError, KeyError):
@@ -88,7 +125,8 @@ class RunLookupError(ConfigError, KeyError):
 class RunRow:
     """One catalog row; times are ISO 8601 UTC text, `params` the run's key parameters,
     `timing` a real-time run's cycle timing (`daq.timing.CycleTiming.as_dict`: missed,
-    repeated and late cycles, lateness histogram in µs; None in lockstep)."""
+    repeated and late cycles, lateness histogram in µs; None in lockstep), `bench` the name
+    of the bench that recorded it."""
 
     id: str
     experiment: str
@@ -102,51 +140,109 @@ class RunRow:
     pid: int | None = None
     host: str | None = None
     timing: dict[str, Any] | None = None
+    bench: str | None = None
+
+
+def url_problem(text: str) -> str | None:
+    """Check (a `config.Field`'s): why `text` is no catalog location (a URL with a password,
+    another database than SQLite or PostgreSQL, not a URL), or None. Never shows the URL."""
+    if "://" not in text:
+        return None  # an SQLite file's path
+    try:
+        url = make_url(text)
+    except ArgumentError:
+        return ": not a database URL (postgresql://user@host/database or an SQLite file)"
+    if url.password is not None or "password" in url.query:
+        return (": the URL holds a password; give it to libpq instead (PGPASSWORD, ~/.pgpass "
+                "or a service file)")
+    if url.get_backend_name() not in BACKENDS:
+        return f": the catalog is SQLite or PostgreSQL (got {url.get_backend_name()!r})"
+    if url.get_backend_name() == "sqlite" and not url.database:
+        return ": an SQLite catalog needs a file (sqlite:///path/catalog.sqlite)"
+    return None
+
+
+def catalog_url(text: str | Path, field: str) -> URL:
+    """The catalog location `text` (a URL or an SQLite file's path) as a URL; one that
+    `url_problem` rejects raises `ConfigError` naming `field`."""
+    if problem := url_problem(str(text)):
+        raise ConfigError(f"{field}{problem}")
+    if "://" not in str(text):
+        return URL.create("sqlite", database=str(text))
+    return make_url(str(text))
+
+
+def open_catalog(output_dir: str | Path, option: str = "", setting: str = "") -> Catalog:
+    """The run catalog of the runs in `output_dir`: at `option` (``--catalog``), else
+    ``$FEEDBENCH_CATALOG``, else `setting` (``[bench] catalog``), else
+    ``<output_dir>/catalog.sqlite``; a location with a password raises `ConfigError` naming
+    the one it came from."""
+    for field, location in (("--catalog", option), (CATALOG_ENV, os.environ.get(CATALOG_ENV)),
+                            ("bench.catalog", setting)):
+        if location:
+            return Catalog(catalog_url(location, field), directory=output_dir)
+    return Catalog(Path(output_dir) / DEFAULT_NAME, directory=output_dir)
 
 
 class Catalog:
-    """The run catalog stored in the SQLite file `path` (created if missing; a corrupt one
-    is moved aside and rebuilt from the recordings beside it, an existing empty file or one
-    without the runs table rebuilt from them unless `rebuild_empty` is False; a new file is
-    not: `rebuild` makes it list recordings made before it)."""
+    """The run catalog at `location`: an SQLite file's path or URL, or a PostgreSQL URL
+    (made if missing, an old one upgraded in place: `MIGRATIONS`). `directory` holds the
+    recordings `rebuild` reads (default: an SQLite file's directory, else ``runs``); `bench`
+    names the bench whose runs this process records (default: ``$FEEDBENCH_BENCH``, else the
+    host's name). A corrupt SQLite file is moved aside and rebuilt from the recordings beside
+    it, an existing empty file or one without the runs table rebuilt from them unless
+    `rebuild_empty` is False; a new catalog is not: `rebuild` makes it list recordings made
+    before it."""
 
-    def __init__(self, path: str | Path, *, rebuild_empty: bool = True) -> None:
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        existed, self._made_table = self.path.exists(), False
+    def __init__(self, location: str | Path | URL, *, directory: str | Path | None = None,
+                 bench: str | None = None, rebuild_empty: bool = True) -> None:
+        self.url = location if isinstance(location, URL) else catalog_url(location, "catalog")
+        sqlite = self.url.get_backend_name() == "sqlite"
+        self.path = Path(self.url.database) if sqlite else None
+        """The SQLite file (None: PostgreSQL)."""
+        self.name = str(self.path) if sqlite else self.url.render_as_string(hide_password=True)
+        """Where the catalog is, as messages name it (never with a password)."""
+        self.directory = Path(directory if directory is not None else
+                              self.path.parent if self.path else "runs")
+        self.bench = bench or os.environ.get(BENCH_ENV) or socket.gethostname()
+        self._engine = _engine(self.url)
+        existed, self._made_table = False, False
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            existed = self.path.exists()
         if self._problems():
-            with open(f"{self.path}.lock", "w") as lock:
-                fcntl.flock(lock, fcntl.LOCK_EX)  # one process replaces it, the others wait
-                if problems := self._problems():  # and then find the new one sound
+            with _file_lock(self.path):  # one process replaces it, the others wait
+                if problems := self._problems(locked=True):  # and then find the new one sound
                     self._replace_corrupt("; ".join(problems[:3]))
         elif existed and self._made_table and rebuild_empty and any(
-                self.path.parent.glob("*.h5")):
+                self.directory.glob("*.h5")):
             self._rebuild_empty()
 
-    def _problems(self) -> list[str]:
-        """`_create`, and what makes the file a corrupt catalog (nothing: an empty list)."""
+    def _problems(self, locked: bool = False) -> list[str]:
+        """`_create`, and what makes the file a corrupt SQLite catalog (nothing: an empty
+        list); `locked`: this process holds the file's lock (`_file_lock`)."""
         try:
-            return self._create()
+            return self._create(locked)
         except CatalogError as exc:
-            if getattr(exc.__cause__, "sqlite_errorcode", None) not in CORRUPT:
+            if getattr(exc.__cause__, "sqlite_errorcode", None) not in SQLITE_CORRUPT:
                 raise
             return [str(exc.__cause__)]
 
-    def _create(self) -> list[str]:
-        """Make the table (and the columns added since a catalog was made: under the write
-        lock, so that processes opening it at once add them once); returns what SQLite's
-        integrity check finds wrong (nothing: an empty list)."""
-        with self._transaction() as connection:
-            connection.execute("PRAGMA journal_mode=WAL")
-        with self._transaction(immediate=True) as connection:
-            self._made_table = not connection.execute(
-                "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'runs'").fetchone()
-            connection.execute(SCHEMA)
-            present = {row[1] for row in connection.execute("PRAGMA table_info(runs)")}
-            for name, kind in ADDED_COLUMNS.items():
-                if name not in present:
-                    connection.execute(f"ALTER TABLE runs ADD COLUMN {name} {kind}")
-            return [row[0] for row in connection.execute("PRAGMA quick_check")
+    def _create(self, locked: bool) -> list[str]:
+        """Make the tables, or bring an old catalog to the current schema version (under the
+        write lock, so that processes opening it at once upgrade it once); returns what
+        SQLite's integrity check finds wrong (nothing: an empty list). An SQLite file is
+        switched to WAL under its file lock: two processes switching a new file at once find
+        it locked, busy timeout or not."""
+        if self.path is not None:
+            with (nullcontext() if locked else _file_lock(self.path),
+                  self._transaction(begin="") as connection):  # not within a transaction
+                connection.exec_driver_sql("PRAGMA journal_mode=WAL")
+        with self._transaction(lock=True) as connection:
+            self._made_table = _upgrade(connection, self.name)
+            if self.path is None:
+                return []
+            return [row[0] for row in connection.exec_driver_sql("PRAGMA quick_check")
                     if row[0] != "ok"]
 
     def _replace_corrupt(self, problem: str) -> None:
@@ -158,7 +254,8 @@ class Catalog:
         fresh = self.path.with_name(f"{self.path.name}.rebuilding")
         for suffix in ("", "-wal", "-shm"):  # what a rebuild cut short left
             Path(f"{fresh}{suffix}").unlink(missing_ok=True)
-        added, skipped = Catalog(fresh, rebuild_empty=False).rebuild()
+        added, skipped = Catalog(fresh, directory=self.directory, bench=self.bench,
+                                 rebuild_empty=False).rebuild()
         os.link(self.path, aside)
         for suffix in ("-wal", "-shm"):  # the corrupt file's: never the new one's
             with suppress(FileNotFoundError):
@@ -179,39 +276,46 @@ class Catalog:
     def new_run_id(self, experiment: str) -> str:
         """Reserve a unique, time-sortable id `YYYYMMDD-HHMMSS-<experiment>-<n>` (UTC).
 
-        `n` counts the ids reserved in the same second; the row is created with status
-        `created` so two calls never return the same id.
+        `n` counts the ids reserved in the same second (by every bench of the catalog); the
+        row is created with status `created` under the write lock, so two calls never
+        return the same id.
         """
         stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
         name = re.sub(r"[^A-Za-z0-9_]+", "_", experiment)
-        with self._transaction(immediate=True) as connection:
-            (taken,) = connection.execute(
-                "SELECT COUNT(*) FROM runs WHERE substr(id, 1, ?) = ?",
-                (len(stamp) + 1, stamp + "-"),
-            ).fetchone()
+        with self._transaction(lock=True) as connection:
+            taken = connection.execute(
+                text("SELECT COUNT(*) FROM runs WHERE substr(id, 1, :n) = :prefix"),
+                {"n": len(stamp) + 1, "prefix": stamp + "-"},
+            ).scalar_one()
             run_id = f"{stamp}-{name}-{taken + 1}"
             connection.execute(
-                "INSERT INTO runs (id, experiment, status, pid, host)"
-                " VALUES (?, ?, 'created', ?, ?)",
-                (run_id, experiment, os.getpid(), socket.gethostname()),
+                text("INSERT INTO runs (id, experiment, status, pid, host, bench)"
+                     " VALUES (:id, :experiment, 'created', :pid, :host, :bench)"),
+                {"id": run_id, "experiment": experiment, **self._recorder()},
             )
         return run_id
 
     def add(self, run_id: str, experiment: str, file: str | Path,
             params: Mapping[str, Any]) -> None:
         """Register the start of run `run_id` (status `running`, started now, recorded by
-        this process on this host)."""
+        this process on this host for this bench)."""
         with self._transaction() as connection:
             connection.execute(
-                "INSERT INTO runs (id, experiment, started_at, status, file, params, pid, host)"
-                " VALUES (?, ?, ?, 'running', ?, ?, ?, ?)"
-                " ON CONFLICT(id) DO UPDATE SET experiment = excluded.experiment,"
-                " started_at = excluded.started_at, status = excluded.status,"
-                " file = excluded.file, params = excluded.params, pid = excluded.pid,"
-                " host = excluded.host",
-                (run_id, experiment, utc_now_iso(), self._stored(file), to_json(dict(params)),
-                 os.getpid(), socket.gethostname()),
+                text("INSERT INTO runs (id, experiment, started_at, status, file, params, pid,"
+                     " host, bench) VALUES (:id, :experiment, :started_at, 'running', :file,"
+                     " :params, :pid, :host, :bench)"
+                     " ON CONFLICT(id) DO UPDATE SET experiment = excluded.experiment,"
+                     " started_at = excluded.started_at, status = excluded.status,"
+                     " file = excluded.file, params = excluded.params, pid = excluded.pid,"
+                     " host = excluded.host, bench = excluded.bench"),
+                {"id": run_id, "experiment": experiment, "started_at": utc_now_iso(),
+                 "file": self._stored(file), "params": to_json(dict(params)),
+                 **self._recorder()},
             )
+
+    def _recorder(self) -> dict[str, Any]:
+        """The pid, host and bench columns of a run this process records."""
+        return {"pid": os.getpid(), "host": socket.gethostname(), "bench": self.bench}
 
     def finish(self, run_id: str, status: str, reason: str, n_samples: int,
                timing: Mapping[str, Any] | None = None) -> None:
@@ -219,33 +323,42 @@ class Catalog:
         a real-time run's cycle timing."""
         with self._transaction() as connection:
             updated = connection.execute(
-                "UPDATE runs SET stopped_at = ?, status = ?, reason = ?, n_samples = ?,"
-                " timing = ? WHERE id = ?",
-                (utc_now_iso(), status, reason, int(n_samples), _timing_json(timing), run_id),
+                text("UPDATE runs SET stopped_at = :stopped_at, status = :status,"
+                     " reason = :reason, n_samples = :n_samples, timing = :timing"
+                     " WHERE id = :id"),
+                {"stopped_at": utc_now_iso(), "status": status, "reason": reason,
+                 "n_samples": int(n_samples), "timing": _timing_json(timing), "id": run_id},
             ).rowcount
         if not updated:
-            raise RunLookupError(f"no run with id {run_id!r} in {self.path}")
+            raise RunLookupError(f"no run with id {run_id!r} in {self.name}")
 
-    def list(self, limit: int | None = None) -> list[RunRow]:
-        """Runs newest first (in the order their ids were created), at most `limit`."""
+    def list(self, limit: int | None = None, where: RunFilter | None = None) -> list[RunRow]:
+        """Runs newest first (in the order their ids were created), those `where` selects,
+        at most `limit`."""
+        where = where or RunFilter()
+        query = select(*(RUNS.c[name] for name in COLUMN_NAMES)).where(
+            *where.clauses(RUNS)).order_by(RUNS.c.seq.desc())
+        in_sql = where.status is None and not where.where
+        if limit is not None and in_sql:
+            query = query.limit(limit)
         with self._transaction() as connection:
-            rows = connection.execute(
-                f"SELECT {COLUMNS} FROM runs ORDER BY rowid DESC LIMIT ?",
-                (-1 if limit is None else limit,),
-            ).fetchall()
-        return [self._row(row) for row in rows]
+            rows = connection.execute(query).fetchall()
+        read = (self._row(row) for row in rows)
+        return list(islice((row for row in read if where.matches(row.experiment, row.status,
+                                                                  row.params)), limit))
 
     def get(self, run_id_or_prefix: str) -> RunRow:
         """The run with this exact id, else the only run whose id starts with it."""
         with self._transaction() as connection:
             rows = connection.execute(
-                f"SELECT {COLUMNS} FROM runs WHERE id = ?", (run_id_or_prefix,)
+                text(f"SELECT {COLUMNS} FROM runs WHERE id = :id"), {"id": run_id_or_prefix}
             ).fetchall() or connection.execute(
-                f"SELECT {COLUMNS} FROM runs WHERE substr(id, 1, ?) = ? ORDER BY id",
-                (len(run_id_or_prefix), run_id_or_prefix),
+                text(f"SELECT {COLUMNS} FROM runs WHERE substr(id, 1, :n) = :prefix"
+                     " ORDER BY id"),
+                {"n": len(run_id_or_prefix), "prefix": run_id_or_prefix},
             ).fetchall()
         if not rows:
-            raise RunLookupError(f"no run id starts with {run_id_or_prefix!r} in {self.path}")
+            raise RunLookupError(f"no run id starts with {run_id_or_prefix!r} in {self.name}")
         if len(rows) > 1:
             matches = ", ".join(row[0] for row in rows)
             raise RunLookupError(f"run id prefix {run_id_or_prefix!r} is ambiguous: {matches}")
@@ -259,7 +372,8 @@ class Catalog:
         process finishes it. Returns the ids changed."""
         with self._transaction() as connection:
             rows = connection.execute(
-                "SELECT id, file, pid, host FROM runs WHERE status IN (?, ?)", UNFINISHED
+                text("SELECT id, file, pid, host FROM runs WHERE status IN (:a, :b)"),
+                dict(zip("ab", UNFINISHED)),
             ).fetchall()
         changed = []
         for run_id, file, pid, host in rows:
@@ -281,46 +395,60 @@ class Catalog:
         return changed
 
     def rebuild(self) -> tuple[int, list[str]]:
-        """Recreate the rows from the recordings (``*.h5``) in the catalog's directory: one
-        row per recording (its key parameters: the recorded `[experiment]` table); a file
-        still `running` keeps that status if a process on this host has it open for writing
-        (its pid), else it is `crashed`. The row of a run in progress is kept until its file
-        says how it ended. Rows are in the order the runs started. Returns the number of
-        recordings read and one line per file skipped (not a feedbench recording)."""
+        """Recreate the rows of the recordings (``*.h5``) in `directory`: one row per
+        recording (its key parameters: the recorded `[experiment]` table; this catalog's
+        bench); a file still `running` keeps that status if a process on this host has it
+        open for writing (its pid), else it is `crashed`. The rows replaced are the
+        directory's (`_in_directory`): other directories' and other benches' rows of a shared
+        catalog stay. The row of a run in progress is kept until its file says how it ended.
+        Rows are in the order the runs started. Returns the number of recordings read and one
+        line per file skipped (not a feedbench recording)."""
         rows, skipped = {}, []
-        for path in sorted(self.path.parent.glob("*.h5")):
+        for path in sorted(self.directory.glob("*.h5")):
             summary, why = _summary(str(path))
             if summary is None:
                 skipped.append(why)
             else:
-                rows[summary.run_id] = _rebuilt_row(summary, self._stored(path))
+                rows[summary.run_id] = _rebuilt_row(summary, self._stored(path), self.bench)
         added = len(rows)
-        with self._transaction(immediate=True) as connection:
-            for row in connection.execute(
-                    f"SELECT {COLUMNS} FROM runs WHERE status IN (?, ?)", UNFINISHED).fetchall():
+        with self._transaction(lock=True) as connection:
+            replaced = []
+            for row in connection.execute(text(f"SELECT {COLUMNS} FROM runs")).fetchall():
                 live = dict(zip(COLUMN_NAMES, row))
+                if not self._in_directory(live) and live["id"] not in rows:
+                    continue
+                replaced.append(live["id"])
                 in_file = dict(zip(COLUMN_NAMES, rows.get(live["id"], row)))
-                if (not _ended(live["pid"], live["host"], self._resolved(live["file"]))
-                        and in_file["status"] in UNFINISHED):
-                    rows[live["id"]] = row
-            connection.execute("DELETE FROM runs")
-            connection.executemany(
-                f"INSERT INTO runs ({COLUMNS}) VALUES ({', '.join('?' * len(COLUMN_NAMES))})",
-                sorted(rows.values(), key=lambda row: row[COLUMN_NAMES.index("started_at")]
-                       or "~"))  # a run not started yet: last
+                if (live["status"] in UNFINISHED and in_file["status"] in UNFINISHED
+                        and not _ended(live["pid"], live["host"], self._resolved(live["file"]))):
+                    rows[live["id"]] = tuple(row)
+            _delete(connection, replaced)
+            _insert(connection, sorted(rows.values(), key=lambda row: row[
+                COLUMN_NAMES.index("started_at")] or "~"))  # a run not started yet: last
         return added, skipped
 
+    def _in_directory(self, row: Mapping[str, Any]) -> bool:
+        """Whether a row is one of `directory`'s runs: its recording is there, or it has
+        none and was made on this host (or before hosts were recorded)."""
+        if row["file"] is None:
+            return row["host"] in (None, socket.gethostname())
+        file = Path(os.path.abspath(self._resolved(row["file"])))
+        return file.parent == Path(os.path.abspath(self.directory))
+
     def _stored(self, file: str | Path) -> str:
-        """A recording's path as the catalog stores it: relative to its directory."""
+        """A recording's path as the catalog stores it: relative to an SQLite catalog's
+        directory, else absolute."""
+        if self.path is None:
+            return os.path.abspath(file)
         return os.path.relpath(Path(file).absolute(), self.path.parent.absolute())
 
     def _resolved(self, stored: str | None) -> str | None:
-        """A stored recording path as a path from the current directory: relative to the
-        catalog's directory (or absolute); an old catalog's path relative to the directory
-        its run was started from if it names a file from here, else the file of that name
-        beside the catalog."""
-        if stored is None:
-            return None
+        """A stored recording path as a path from the current directory: relative to an
+        SQLite catalog's directory (or absolute); an old catalog's path relative to the
+        directory its run was started from if it names a file from here, else the file of
+        that name beside the catalog."""
+        if stored is None or self.path is None:
+            return stored
         beside = self.path.parent / stored
         if not beside.exists():
             for old in (Path(stored), self.path.parent / Path(stored).name):
@@ -347,24 +475,124 @@ class Catalog:
                 stopped_at: str | None, timing: Mapping[str, Any] | None = None) -> None:
         with self._transaction() as connection:
             connection.execute(
-                "UPDATE runs SET stopped_at = ?, status = ?, reason = ?, n_samples = ?,"
-                " timing = ? WHERE id = ? AND status IN (?, ?)",
-                (stopped_at or None, status, reason, n_samples, _timing_json(timing), run_id,
-                 *UNFINISHED),
+                text("UPDATE runs SET stopped_at = :stopped_at, status = :status,"
+                     " reason = :reason, n_samples = :n_samples, timing = :timing"
+                     " WHERE id = :id AND status IN (:a, :b)"),
+                {"stopped_at": stopped_at or None, "status": status, "reason": reason,
+                 "n_samples": n_samples, "timing": _timing_json(timing), "id": run_id,
+                 **dict(zip("ab", UNFINISHED))},
             )
 
     @contextmanager
-    def _transaction(self, immediate: bool = False) -> Iterator[sqlite3.Connection]:
-        """One connection, one transaction: committed on success, rolled back on error; an
-        SQLite error (read-only or full disk, not a database) raises `CatalogError`."""
+    def _transaction(self, lock: bool = False, begin: str = "BEGIN") -> Iterator[Connection]:
+        """One connection, one transaction: committed on success, rolled back on error;
+        `lock`: under the catalog's write lock (SQLite: ``BEGIN IMMEDIATE``, PostgreSQL: an
+        advisory lock); SQLite's `begin` '': no transaction (a PRAGMA that needs none). A
+        database error (read-only or full disk, not a database, no server) raises
+        `CatalogError`, one line."""
         try:
-            with closing(sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_S)) as connection:
-                if immediate:
-                    connection.execute("BEGIN IMMEDIATE")
-                with connection:
+            with self._engine.connect() as connection:
+                connection.execution_options(sqlite_begin="BEGIN IMMEDIATE" if lock else begin)
+                with connection.begin():
+                    if lock and self.path is None:
+                        connection.execute(select(func.pg_advisory_xact_lock(LOCK_KEY)))
                     yield connection
-        except sqlite3.DatabaseError as exc:
-            raise CatalogError(f"{self.path}: cannot use the run catalog ({exc})") from exc
+        except DBAPIError as exc:
+            problem = " ".join(str(exc.orig).split())
+            raise CatalogError(f"{self.name}: cannot use the run catalog ({problem})"
+                               ) from exc.orig
+
+
+@contextmanager
+def _file_lock(path: Path) -> Iterator[None]:
+    """The exclusive lock of an SQLite catalog's file (``<file>.lock``), across processes."""
+    with open(f"{path}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
+
+
+def _engine(url: URL) -> Engine:
+    """An engine that connects anew for each transaction (no pool: a replaced SQLite file or
+    a restarted server is found by the next call); SQLite begins its transactions itself
+    (`_sqlite_begin`)."""
+    if url.get_backend_name() == "sqlite":
+        engine = create_engine(url.set(drivername="sqlite+pysqlite"), poolclass=NullPool,
+                               connect_args={"timeout": BUSY_TIMEOUT_S})
+        event.listen(engine, "connect", _sqlite_connected)
+        event.listen(engine, "begin", _sqlite_begin)
+        return engine
+    return create_engine(url.set(drivername="postgresql+psycopg"), poolclass=NullPool,
+                         connect_args={"connect_timeout": CONNECT_TIMEOUT_S})
+
+
+def _sqlite_connected(dbapi_connection: sqlite3.Connection, _record: object) -> None:
+    """Leave transactions to `_sqlite_begin` (pysqlite's own BEGIN is deferred and late)."""
+    dbapi_connection.isolation_level = None
+
+
+def _sqlite_begin(connection: Connection) -> None:
+    """Begin as the transaction asks (``sqlite_begin``: BEGIN, BEGIN IMMEDIATE or none)."""
+    if begin := connection.get_execution_options().get("sqlite_begin", "BEGIN"):
+        connection.exec_driver_sql(begin)
+
+
+def _delete(connection: Connection, ids: list[str]) -> None:
+    """Delete the rows of `ids`, a batch at a time."""
+    statement = text("DELETE FROM runs WHERE id IN :ids").bindparams(
+        bindparam("ids", expanding=True))
+    for start in range(0, len(ids), DELETE_BATCH):
+        connection.execute(statement, {"ids": ids[start:start + DELETE_BATCH]})
+
+
+def _insert(connection: Connection, rows: list[tuple[Any, ...]]) -> None:
+    """Insert whole rows (`COLUMN_NAMES` order), in their order."""
+    if rows:
+        connection.execute(text(f"INSERT INTO runs ({COLUMNS}) VALUES "
+                                f"({', '.join(':' + name for name in COLUMN_NAMES)})"),
+                           [dict(zip(COLUMN_NAMES, row)) for row in rows])
+
+
+def _upgrade(connection: Connection, name: str) -> bool:
+    """Bring the catalog to `SCHEMA_VERSION`: make its tables if it has none (returns True),
+    else run the migrations after its version (none recorded: 0, a catalog made before
+    versions). A catalog made by a newer feedbench raises `CatalogError`."""
+    tables = set(inspect(connection).get_table_names())
+    if "runs" not in tables:
+        METADATA.create_all(connection)
+        connection.execute(SCHEMA.insert().values(version=SCHEMA_VERSION))
+        return True
+    if "catalog_schema" not in tables:
+        SCHEMA.create(connection)
+        connection.execute(SCHEMA.insert().values(version=0))
+    version = connection.execute(select(SCHEMA.c.version)).scalar_one()
+    if version > SCHEMA_VERSION:
+        raise CatalogError(f"{name}: run catalog of schema version {version}, made by a newer "
+                           f"feedbench (this one reads up to {SCHEMA_VERSION}): upgrade it")
+    for number in range(version + 1, SCHEMA_VERSION + 1):
+        MIGRATIONS[number](connection)
+        connection.execute(SCHEMA.update().values(version=number))
+        LOGGER.info("%s: run catalog upgraded to schema version %d", name, number)
+    return False
+
+
+def _version_1(connection: Connection) -> None:
+    """From a catalog made before schema versions (an SQLite file: `id` its primary key, its
+    rowid the order of listing, `pid`, `host` and `timing` possibly missing): the table made
+    anew with `seq` (from the rowid) and `bench`, every row copied."""
+    present = {column["name"] for column in inspect(connection).get_columns("runs")}
+    kept = ", ".join(name for name in COLUMN_NAMES if name in present)
+    connection.execute(text("ALTER TABLE runs RENAME TO runs_unversioned"))
+    RUNS.create(connection)
+    connection.execute(text(f"INSERT INTO runs (seq, {kept}) SELECT rowid, {kept}"
+                            " FROM runs_unversioned ORDER BY rowid"))
+    connection.execute(text("DROP TABLE runs_unversioned"))
+
+
+MIGRATIONS: dict[int, Callable[[Connection], None]] = {1: _version_1}
+"""Schema version → the migration that brings the version before it there (one transaction
+with the version's update). Versions before 1 exist only in SQLite files."""
+SCHEMA_VERSION = max(MIGRATIONS)
+
 
 
 def _json_column(name: str, text: str | None, empty: Any) -> tuple[Any, str]:
@@ -422,8 +650,9 @@ def _ended(pid: int | None, host: str | None, file: str | None) -> bool:
     return False
 
 
-def _rebuilt_row(summary: RecordingSummary, file: str) -> tuple[Any, ...]:
-    """The catalog row of a recording found on disk as `file` (see `Catalog.rebuild`)."""
+def _rebuilt_row(summary: RecordingSummary, file: str, bench: str) -> tuple[Any, ...]:
+    """The catalog row of a recording found on disk as `file` by `bench` (see
+    `Catalog.rebuild`)."""
     status, pid, host = summary.status, None, None
     if status in UNFINISHED:
         pid = _writing_process(summary.path)
@@ -432,7 +661,7 @@ def _rebuilt_row(summary: RecordingSummary, file: str) -> tuple[Any, ...]:
     return (summary.run_id, summary.experiment, summary.started_at, summary.stopped_at or None,
             status, reason, file, summary.n_samples,
             to_json(summary.config.get("experiment", {})), pid, host,
-            _timing_json(summary.timing))
+            _timing_json(summary.timing), bench)
 
 
 def _writing_process(path: Path) -> int | None:

@@ -661,8 +661,10 @@ def qt_app() -> QtWidgets.QApplication:
     return app
 
 
-def bench_session(config, span_s: float = 10.0, progress: bool = True) -> LiveSession:
-    """A live window on a bench run of `config` (a `feedbench.bench.RunConfig`)."""
+def bench_session(config, span_s: float = 10.0, progress: bool = True,
+                  catalog: str = "") -> LiveSession:
+    """A live window on a bench run of `config` (a `feedbench.bench.RunConfig`), catalogued
+    in `catalog` (``--catalog``; `feedbench.bench.run_config`)."""
     from feedbench.bench import run_config
 
     qt_app()
@@ -670,7 +672,7 @@ def bench_session(config, span_s: float = 10.0, progress: bool = True) -> LiveSe
     result = live_result_for(config.plan.experiment)
     observers = [stream, *([result] if result else [])]
     worker = Worker(lambda: run_config(config, observers=observers, progress=progress,
-                                       stop=stop))
+                                       stop=stop, catalog=catalog))
     window = LiveWindow(stream, {}, config.limits, result, stop, worker, span_s,
                         title=f"feedbench live — {config.plan.experiment}")
     return LiveSession(window, worker, stop)
