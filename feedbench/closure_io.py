@@ -98,6 +98,8 @@ def declared_force_lag(sampling: Mapping[str, Any], sample_period: float) -> flo
     delay for a command, − the position's latch (a cycle for cycle_start, plus
     position_latch_cycles): a position latched early is older than its time stamp, so the
     force leads it."""
+    if not sampling:
+        return 0.0
     side = validate_table(sampling, SAMPLING_SCHEMA, "sidecar.sampling")
     cycle = side["cycle_ms"] * 1e-3 or sample_period
     latch = side["position_latch_cycles"] + (1.0 if side["position"] == "cycle_start" else 0.0)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Iterator
 
 import numpy as np
 
@@ -126,7 +127,7 @@ class Step:
 @dataclass(frozen=True)
 class Verdict:
     """Whether a fitted model describes the data: `reasons` why not (empty when it does),
-    `bounds` the parameters that ended on a physical bound ("term.key = value unit"), and
+    `bounds` the parameters that ended on a bound of their range ("term.key = value unit"), and
     `diagnosis`, the signature that dominates what it leaves."""
 
     describes: bool
@@ -146,8 +147,8 @@ class ClosureResult:
     error_before: float
     error_after: float
     options: ClosureOptions
-    base_verdict: Verdict | None = None
-    final_verdict: Verdict | None = None
+    base_verdict: Verdict
+    final_verdict: Verdict
 
     @property
     def final(self) -> Fit:
@@ -192,6 +193,8 @@ def close_the_loop(model: Model, fit_kin: Kinematics, holdout_kin: Kinematics,
             break
         steps.append(step)
         current = step.fit
+    if steps and len(steps) >= options.max_effects:  # the last ranking was the model's before
+        ranking = rank_candidates(current, fit_kin, options)
     before = held_out_error(base.model, holdout_kin)
     after = held_out_error(current.model, holdout_kin)
     first_ranking = steps[0].ranking if steps else ranking
@@ -203,15 +206,16 @@ def close_the_loop(model: Model, fit_kin: Kinematics, holdout_kin: Kinematics,
 def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ...],
           options: ClosureOptions) -> Verdict:
     """Whether `fit` describes the data: its held-out NRMSE `error` within
-    `describes_below`, and the rigid-body mass off its bound (a moving axis has one). The
-    parameters on a bound are listed either way; the diagnosis is the candidate whose
-    signature explains most of what the model leaves (from `ranking`, tried on it)."""
+    `describes_below`, and no mass (kg) on the lower bound of its range (a moving axis, a
+    mode, a load behind a play has one). The parameters on a bound are listed either way;
+    the diagnosis is the candidate whose signature explains most of what the model leaves
+    (from `ranking`, tried on it)."""
     bounds = at_bounds(fit.model)
     reasons = []
     if not error <= options.describes_below:
         reasons.append(f"held-out force NRMSE {error:.1%} is above the "
                        f"{options.describes_below:.0%} a describing model leaves")
-    reasons += [f"{b} is on its physical bound" for b in bounds if b.startswith("inertia.")]
+    reasons += [f"{b} is on the lower bound of its range" for b in bounds if b.endswith(" kg")]
     screened = [c for c in ranking if c.freed is None and np.isfinite(c.screened)]
     best = max(screened, key=lambda c: c.screened, default=None)
     diagnosis = ("no candidate signature in the residual" if best is None or best.screened <= 0
@@ -291,6 +295,8 @@ def disagreement_on(refit: Fit, current: Fit, freed: tuple[int, str] | None,
         return f"does not hold on the held-out recording: its fit there fails ({exc})"
     worst = None
     for name, unit, a, sa, b, sb, tolerance in _compared(refit, other, current, freed):
+        if not math.isfinite(tolerance) or a == b:  # an effective value, or the very same
+            continue
         allowed = options.agreement_sigmas * math.hypot(sa, sb) + tolerance * max(abs(a), abs(b))
         excess = abs(a - b) / allowed if allowed > 0.0 else math.inf
         if not excess <= 1.0 and (worst is None or excess > worst[0]):
@@ -300,7 +306,12 @@ def disagreement_on(refit: Fit, current: Fit, freed: tuple[int, str] | None,
     return None if worst is None else f"does not hold on every recording: {worst[1]}"
 
 
-def _compared(fit: Fit, other: Fit, current: Fit, freed: tuple[int, str] | None):
+Compared = tuple[str, str, float, float, float, float, float]
+"""(name, unit, value, σ, held-out value, held-out σ, relative tolerance) of one quantity."""
+
+
+def _compared(fit: Fit, other: Fit, current: Fit, freed: tuple[int, str] | None
+              ) -> Iterator[Compared]:
     """(name, unit, value, σ on the fit recording, value, σ on the held-out one, tolerance)
     of the quantities an effect or recalibration stands for, in config units: a
     recalibration's move from the declared value, an added term's invariants."""

@@ -189,7 +189,8 @@ class Effect:
                    ) -> dict[str, tuple[str, float, float, float]]:
         """What must come out the same on every recording if the effect is physical:
         {name: (unit, value, σ, relative tolerance)} in config units; by default every
-        fitted parameter (a tolerance of inf: an effective value, not compared)."""
+        fitted parameter with its `Parameter.tolerance` (inf for an effective value, which is
+        then not compared)."""
         out = {}
         for p in self.parameters:
             if p.setting or p.key not in term.free:
@@ -319,10 +320,10 @@ class Ripple(Effect):
     def invariants(self, term, std):
         """Amplitude and pitch (the phase depends on where each recording's encoder zero is)."""
         values, pitch = term.values, self.parameter("pitch_mm")
-        sigma = max(std.get((self.name, "A_sin_N"), math.nan),
-                    std.get((self.name, "A_cos_N"), math.nan))
+        sigma = float(np.fmax(std.get((self.name, "A_sin_N"), math.nan),
+                              std.get((self.name, "A_cos_N"), math.nan)))
         return {"amplitude_N": ("N", math.hypot(values["A_sin_N"], values["A_cos_N"]), sigma,
-                                pitch.tolerance),
+                                self.parameter("A_sin_N").tolerance),
                 "pitch_mm": ("mm", values["pitch_mm"] / pitch.to_si,
                              std.get((self.name, "pitch_mm"), math.nan) / pitch.to_si,
                              pitch.tolerance)}
@@ -390,14 +391,24 @@ class SecondMode(StructuralMode):
 
     def starts(self, kin, context):
         declared = context.terms["structural_mode"]["f_n_Hz"]
-        return [s for s in super().starts(kin, context)
+        return [{**s, "declared_f_n_Hz": declared} for s in super().starts(kin, context)
                 if abs(s["f_n_Hz"] / declared - 1.0) > MODE_SEPARATION]
 
     def implausible(self, values, total_mass, kin):
-        return super().implausible(values, total_mass, kin) or _out_of_band(values, kin)
+        return (super().implausible(values, total_mass, kin) or _out_of_band(values, kin)
+                or _too_close(values))
 
     def describe(self, values):
         return "second mode: " + super().describe(values)
+
+
+def _too_close(values: Mapping[str, float]) -> str | None:
+    """Why a second mode is the declared one moved (within `MODE_SEPARATION`), or None."""
+    declared = values["declared_f_n_Hz"]
+    if declared > 0.0 and abs(values["f_n_Hz"] / declared - 1.0) <= MODE_SEPARATION:
+        return (f"f_n {values['f_n_Hz']:.4g} Hz within {MODE_SEPARATION:.0%} of the declared "
+                f"mode's {declared:.4g} Hz: the declared mode moved, not a second one")
+    return None
 
 
 def _out_of_band(values: Mapping[str, float], kin: Kinematics) -> str | None:
@@ -635,8 +646,8 @@ class Backlash(Effect):
         contact = follower_force(kin.x, kin.v, kin.dt, 2.0 * math.pi * values["f_contact_Hz"],
                                  values["zeta_contact"], 0.0, 0.5 * values["width_um"], mu,
                                  k_tanh)
-        rigid = kin.a + mu * np.tanh(k_tanh * kin.v)
-        return (lowpass(contact, kin.bandwidth, kin.dt) - rigid)[:, None]
+        return (lowpass(contact - mu * np.tanh(k_tanh * kin.v), kin.bandwidth, kin.dt)
+                - kin.a)[:, None]
 
     @staticmethod
     def _in_the_mode_spring(kin: Kinematics, values: Mapping[str, float]) -> np.ndarray:
@@ -650,8 +661,8 @@ class Backlash(Effect):
         played = follower_force(kin.x, kin.v, kin.dt, omega, zeta, 0.0,
                                 0.5 * values["width_um"], mu, k_tanh)
         linear = follower_force(kin.x, kin.v, kin.dt, omega, zeta)
-        rigid = mu * np.tanh(k_tanh * kin.v)
-        return (lowpass(played, kin.bandwidth, kin.dt) - linear - rigid)[:, None]
+        return (lowpass(played - mu * np.tanh(k_tanh * kin.v), kin.bandwidth, kin.dt)
+                - linear)[:, None]
 
     def fitted_keys(self, start):
         """In the mode's spring: the mass, the play and its friction (the spring is the
@@ -663,6 +674,10 @@ class Backlash(Effect):
     def implausible(self, values, total_mass, kin):
         if not 0.0 < values["m_load_kg"] < total_mass:
             return f"load mass {values['m_load_kg']:.3g} kg outside (0, {total_mass:.3g}) kg"
+        if values["width_um"] < 0.5 * SMALLEST_PLAY:
+            return (f"play {values['width_um'] * 1e6:.3g} µm below the "
+                    f"{SMALLEST_PLAY * 1e6:.3g} µm the screening resolves: friction behind a "
+                    f"spring, not a play")
         return None
 
     def starts(self, kin, context):
@@ -673,7 +688,8 @@ class Backlash(Effect):
         mode = context.terms.get("structural_mode")
         in_the_mode = [] if mode is None else [
             {"width_um": w, "mode_f_n_Hz": mode["f_n_Hz"], "mode_zeta": mode["zeta"],
-             "friction_N_kg": share * _declared_friction(context) / max(mode["m_kg"], 1e-9)}
+             "friction_N_kg": min(share * _declared_friction(context) / max(mode["m_kg"], 1e-3),
+                                  self.parameter("friction_N_kg").upper)}
             for w in _play_widths(kin) for share in (0.0, 0.3, 1.0)]
         return in_the_mode + self._load_starts(kin, context)
 
@@ -717,9 +733,13 @@ def _declared_friction(context: Context) -> float:
     return context.terms.get("coulomb", {}).get("F_c_N", 0.0)
 
 
+SMALLEST_PLAY = 1e-6
+"""Smallest play (m) the backlash starts screen; a fitted play below half of it is none."""
+
+
 def _play_widths(kin: Kinematics) -> np.ndarray:
-    """Plays (m) to screen: 1 µm to a twentieth of the stroke, eight per decade."""
-    low, high = 1e-6, max(float(np.ptp(kin.x)) / 20.0, 2e-6)
+    """Plays (m) to screen: `SMALLEST_PLAY` to a twentieth of the stroke, eight per decade."""
+    low, high = SMALLEST_PLAY, max(float(np.ptp(kin.x)) / 20.0, 2 * SMALLEST_PLAY)
     return np.geomspace(low, high, max(2, int(np.ceil(8 * np.log10(high / low))) + 1))
 
 
@@ -795,8 +815,9 @@ class Presliding(Effect):
         often at the noise, is an effective value, not compared."""
         values, level, x_p = term.values, self.parameter("F_p_N"), self.parameter("x_p_um")
         sigma0 = values["F_p_N"] / values["x_p_um"]
-        relative = math.hypot(std.get((self.name, "F_p_N"), math.nan) / values["F_p_N"],
-                              std.get((self.name, "x_p_um"), math.nan) / values["x_p_um"])
+        relative = (math.hypot(std.get((self.name, "F_p_N"), math.nan) / values["F_p_N"],
+                               std.get((self.name, "x_p_um"), math.nan) / values["x_p_um"])
+                    if values["F_p_N"] > 0.0 else math.nan)
         return {"F_p_N": ("N", values["F_p_N"], std.get((self.name, "F_p_N"), math.nan),
                           level.tolerance),
                 "sigma0_N_um": ("N/µm", sigma0 / N_PER_UM, abs(sigma0) * relative / N_PER_UM,
@@ -902,7 +923,9 @@ LIBRARY: tuple[Effect, ...] = (
                (Parameter("m_kg", "kg", 1.0, "mass on the spring", lower=0.0),
                 _nonlinear("f_n_Hz", "Hz", 1.0, "motor-locked frequency √(k/m)/2π",
                            50.0, 0.5, 1e4),
-                _nonlinear("zeta", "-", 1.0, "damping ratio", 0.05, 1e-3, 1.0)),
+                _nonlinear("zeta", "-", 1.0, "damping ratio", 0.05, 1e-3, 1.0),
+                Parameter("declared_f_n_Hz", "Hz", 1.0, "the declared mode's f_n (0: none)",
+                          linear=False, setting=True)),
                requires=("structural_mode",)),
     CubicStiffening("cubic_stiffening",
                     "the structural spring stiffens with deflection k d (1 + κ d²)",

@@ -107,10 +107,8 @@ def _recalibration_text(r: dict[str, Any]) -> str:
     return f"declared {moved} {r['unit']}, σ unknown ({why})"
 
 
-def verdict_dict(verdict: Verdict | None) -> dict[str, Any] | None:
+def verdict_dict(verdict: Verdict) -> dict[str, Any]:
     """Whether a model describes the data, why not, what sits on a bound, the diagnosis."""
-    if verdict is None:
-        return None
     return {"describes": verdict.describes, "reasons": list(verdict.reasons),
             "on_bounds": list(verdict.bounds), "diagnosis": verdict.diagnosis}
 
@@ -123,7 +121,7 @@ def verdict_text(which: str, verdict: Verdict) -> list[str]:
         lines = [f"{which} model does not describe this data: {'; '.join(verdict.reasons)}; "
                  f"the residual is dominated by {verdict.diagnosis}"]
     if verdict.bounds:
-        lines.append(f"    on a physical bound: {', '.join(verdict.bounds)}")
+        lines.append(f"    on a bound of its range: {', '.join(verdict.bounds)}")
     return lines
 
 
