@@ -8,12 +8,21 @@ the simulated world's truth or the thesis's figures; the runs go into one HTML r
 The campaign is what the registered families declare (`experiments.family.Example`), so an
 installed lab family joins it; `quick=True` shortens each run as its `Example.quick` says, so
 the campaign takes a few minutes.
+
+The runs are independent (each its own virtual bus, CPU and recording), so they go to a pool of
+worker processes (`demo_workers`: one per CPU), each of which runs, analyses, summarises and
+draws its example's report section while the other measures; the numbers are the same as one
+after the other in this process (``workers=1``): lockstep virtual time.
 """
 
 from __future__ import annotations
 
+import multiprocessing
+import os
+import sys
 import time
-from dataclasses import asdict
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any, Mapping
@@ -27,10 +36,12 @@ from feedbench.experiments.family import HEADLINE_SEPARATOR, Example, examples, 
 from feedbench.experiments import friction_sweep
 from feedbench.experiments.limits import LimitError
 from feedbench.experiments.tool_tip import feed_text
-from feedbench.report import write_report
+from feedbench.daq.recording import open_recording
+from feedbench.report import run_section, write_sections
 from feedbench.sim_backends import rack_pinion
 from feedbench.sim_backends.smfe_world import build_process
 from feedbench.sim_backends.world import world_truth
+from feedbench.views.sections import RunSection
 
 REPORT_AXES = ("lab", "rack_pinion")
 """Axes whose recordings go into the report: `report.headroom` reads the single drive's
@@ -136,35 +147,104 @@ def _run_one(example: Example, raw: dict, quiet: bool) -> tuple[dict, dict]:
     return run, analysis
 
 
-def _entry(name: str, run: dict, analysis: dict, raw: dict) -> dict:
-    """`experiments.<name>`: the run record, the headline, the summary against the truth of
-    the example's world (a complete run only) and the whole analysis."""
+def _entry(run: dict, analysis: dict, truth: Mapping[str, Any] | None) -> dict:
+    """`experiments.<name>`: the run record, the headline, the summary against the `truth`
+    of the example's world (a complete run only) and the whole analysis."""
     summary = ({"headline": f"{run['status']}: {run['reason']}"} if run["status"] != "complete"
-               else family(analysis["experiment"]).summary(analysis, example_truth(raw)))
+               else family(analysis["experiment"]).summary(analysis, truth))
     return {"run": run, "headline": summary.pop("headline"), "summary": summary,
             "analysis": analysis}
 
 
+@dataclass(frozen=True)
+class Measured:
+    """One example done: its `experiments.<name>` entry and its report section (None: not
+    in the report, `REPORT_AXES`, or no recording)."""
+
+    entry: dict
+    section: RunSection | None
+
+
+def measure(example: Example, raw: dict, quiet: bool = True) -> Measured:
+    """Run one example's config, analyse it, summarise it against its world's truth and draw
+    its report section (in a worker process or this one); the run record gains
+    ``report_s``, the section's drawing time (s)."""
+    run, analysis = _run_one(example, raw, quiet)
+    truth = example_truth(raw) if run["status"] == "complete" else None
+    t0 = time.monotonic()
+    section = (run_section(open_recording(run["file"]), truth, analysis)
+               if run["file"] and raw["bench"].get("axis", "lab") in REPORT_AXES else None)
+    run["report_s"] = time.monotonic() - t0
+    return Measured(_entry(run, analysis, truth), section)
+
+
+def demo_workers(n_examples: int) -> int:
+    """Worker processes for `n_examples` runs: one per CPU this process may use (each
+    simulated bench runs on one, `daq.clock.one_core`), at most one per run."""
+    return max(1, min(len(os.sched_getaffinity(0)), n_examples))
+
+
+def measure_all(chosen: Mapping[str, tuple[Example, dict]], workers: int,
+                quiet: bool = False) -> dict[str, Measured]:
+    """`measure` each example (name → (example, config)), by name in the given order; on
+    `workers` > 1 forked worker processes (they inherit the imports), the longest plans
+    first (`plan_cycles`: the last to start is a short one), one line per finished run on
+    stderr unless `quiet`."""
+    if workers <= 1:
+        return {name: measure(example, raw, quiet) for name, (example, raw) in chosen.items()}
+    done: dict[str, Measured] = {}
+    longest_first = sorted(chosen, key=lambda name: -plan_cycles(chosen[name][1]))
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+        futures = {pool.submit(measure, *chosen[name]): name for name in longest_first}
+        try:
+            for future in as_completed(futures):
+                done[futures[future]] = future.result()
+                if not quiet:
+                    print(_finished_line(futures, future, done), file=sys.stderr, flush=True)
+        except BaseException:
+            pool.shutdown(cancel_futures=True)
+            raise
+    return {name: done[name] for name in chosen}
+
+
+def plan_cycles(raw: dict) -> int:
+    """A run config's plan length in bench cycles (0: a config refused before it runs)."""
+    try:
+        return parse_run_config(raw).plan.n_cycles
+    except (ConfigError, LimitError):
+        return 0
+
+
+def _finished_line(futures: Mapping[Future, str], future: Future,
+                   done: Mapping[str, Measured]) -> str:
+    """``[3/10] smfe: complete (run 6.1 s, analysis 0.2 s, report 0.9 s)``."""
+    run = done[futures[future]].entry["run"]
+    return (f"[{len(done)}/{len(futures)}] {futures[future]}: {run['status']} (run "
+            f"{run['elapsed_s']:.1f} s, analysis {run['analysis_s']:.1f} s, report "
+            f"{run['report_s']:.1f} s)")
+
+
 def run_demo(directory: Path, quiet: bool = False, quick: bool = False,
-             distribution: str | None = None) -> dict:
+             distribution: str | None = None, workers: int | None = None) -> dict:
     """Run and analyse the campaign: every example the families declare (`family.examples`;
-    `distribution`: only that distribution's families; `quick`: each `Example.quick`).
+    `distribution`: only that distribution's families; `quick`: each `Example.quick`) on
+    `workers` processes (default `demo_workers`; 1: one after the other in this process).
     Returns the JSON-able summary: the bench core's keys (friction law, servo mobility;
-    ``runs``: the required examples'), then `experiments.<name>` per example."""
+    ``runs``: the required examples'), then `experiments.<name>` per example, and
+    ``timing``: where the wall time went (`timing`)."""
+    t0 = time.monotonic()
     declared = examples(distribution)
     configs = {name: campaign_config(example, directory, quick)
                for name, example in declared.items()}
-    experiments = {name: _entry(name, *_run_one(declared[name], raw, quiet), raw)
-                   for name, raw in configs.items()}
+    workers = workers or demo_workers(len(configs))
+    t1 = time.monotonic()
+    measured = measure_all({name: (declared[name], configs[name]) for name in configs},
+                           workers, quiet)
+    t2 = time.monotonic()
+    experiments = {name: m.entry for name, m in measured.items()}
     _add_chirp_comparison(experiments, configs)
-    reported = [name for name, raw in configs.items() if experiments[name]["run"]["file"]
-                and raw["bench"].get("axis", "lab") in REPORT_AXES]
-    t0 = time.monotonic()
-    report = write_report([experiments[name]["run"]["file"] for name in reported],
-                          directory / "report.html", title="feedbench demo campaign",
-                          truths={experiments[name]["run"]["file"]: example_truth(configs[name])
-                                  for name in reported
-                                  if experiments[name]["run"]["status"] == "complete"})
+    report = write_sections([m.section for m in measured.values() if m.section],
+                            directory / "report.html", "feedbench demo campaign")
     return {
         "friction": {direction: experiments["friction_sweep"]["summary"][direction]
                      for direction in friction_sweep.SIGNS},
@@ -172,11 +252,23 @@ def run_demo(directory: Path, quiet: bool = False, quick: bool = False,
         "runs": [experiments[name]["run"] for name, example in declared.items()
                  if example.required],
         "report": str(report),
-        "report_s": time.monotonic() - t0,
-        "report_left_out": [name for name in configs if name not in reported],
+        "report_left_out": [name for name, m in measured.items() if m.section is None],
         "quick": quick,
         "experiments": experiments,
+        "timing": timing(experiments, workers, t1 - t0, t2 - t1, time.monotonic() - t2),
     }
+
+
+def timing(experiments: Mapping[str, dict], workers: int, setup_s: float, runs_s: float,
+           report_s: float) -> dict:
+    """Where the demo's wall time went (s): `setup_s` (configs, before the first run),
+    `runs_s` (the runs, their analyses and report sections, on `workers` processes),
+    `report_s` (the chirp comparison and the report file); and the worker time (s) the
+    runs' measuring, analyses and report sections took, summed over the runs."""
+    runs = [e["run"] for e in experiments.values()]
+    return {"workers": workers, "setup_s": setup_s, "runs_s": runs_s, "report_s": report_s,
+            **{f"{part}_worker_s": sum(run[f"{part}_s"] for run in runs)
+               for part in ("elapsed", "analysis", "report")}}
 
 
 # -- text ----------------------------------------------------------------------------------
@@ -218,8 +310,18 @@ def describe_demo(result: dict) -> str:
     lines.append(f"Report: {result['report']}"
                  + (f" (left out: {', '.join(left_out)})" if left_out else ""))
     if "elapsed_s" in result:
-        lines.append(f"Finished in {result['elapsed_s']:.1f} s")
+        lines += timing_lines(result["timing"], result["elapsed_s"])
     return "\n".join(lines)
+
+
+def timing_lines(timing: Mapping[str, float], elapsed_s: float) -> list[str]:
+    """Where the wall time went (`timing`), and the worker time of the runs' parts."""
+    return [f"Finished in {elapsed_s:.1f} s: set-up {timing['setup_s']:.1f} s, runs "
+            f"{timing['runs_s']:.1f} s on {timing['workers']} worker(s), report "
+            f"{timing['report_s']:.1f} s",
+            f"  worker time: measuring {timing['elapsed_worker_s']:.1f} s, analysis "
+            f"{timing['analysis_worker_s']:.1f} s, report sections "
+            f"{timing['report_worker_s']:.1f} s"]
 
 
 def describe_analysis(result: dict) -> str:

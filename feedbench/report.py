@@ -232,11 +232,13 @@ def stream_quality(recording: Recording) -> list[Indicator]:
 
 # assembly
 
-def run_section(recording: Recording, truth: Mapping[str, Any] | None = None) -> RunSection:
+def run_section(recording: Recording, truth: Mapping[str, Any] | None = None,
+                result: Mapping[str, Any] | None = None) -> RunSection:
     """Configuration, traces, results and quality of one recorded run; the results drawn by
-    the recording's experiment family (`Experiment.report`); with the simulated world's
-    `truth` (the run's config knows it, the recording does not) also the family's
-    identified-vs-true table (`Experiment.truth_table`)."""
+    the recording's experiment family (`Experiment.report`) from its `result`
+    (`judged_analysis`: computed here unless given); with the simulated world's `truth` (the
+    run's config knows it, the recording does not) also the family's identified-vs-true
+    table (`Experiment.truth_table`)."""
     section = RunSection(recording.metadata.get("run_id", recording.path.stem),
                          recording.experiment, recording.status)
     section.quality += run_quality(recording)
@@ -250,7 +252,7 @@ def run_section(recording: Recording, truth: Mapping[str, Any] | None = None) ->
         section.quality.append(Indicator("results", "no analysis for this experiment"))
     else:
         try:
-            result = judged_analysis(experiment, recording)
+            result = result or judged_analysis(experiment, recording)
             section.headline = experiment.headline(result)
             section.quality = with_checks(section.quality, result["checks"])
             experiment.report(recording, result, section)
@@ -368,6 +370,12 @@ def write_report(runs: Sequence[str | Path], path: str | Path,
     truths = truths or {}
     sections = [run_section(open_recording(run), truths.get(str(run))) for run in runs]
     sections += [closure_section(report) for report in closures]
+    return write_sections(sections, path, title)
+
+
+def write_sections(sections: Sequence[RunSection], path: str | Path, title: str) -> Path:
+    """Write the HTML report of sections drawn already (`feedbench demo` draws each run's in
+    the worker process that ran it) to `path`; returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(render_html(sections, title), encoding="utf-8")
