@@ -9,6 +9,7 @@ import socket
 import sqlite3
 import subprocess
 import sys
+from contextlib import closing
 from pathlib import Path
 
 import numpy as np
@@ -149,3 +150,35 @@ def test_processes_opening_an_old_catalog_at_once_all_add_their_run(tmp_path: Pa
     assert [process.returncode for process in processes] == [0] * 4, errors
     rows = Catalog(path).list()
     assert sorted(row.pid for row in rows) == sorted(process.pid for process in processes)
+
+
+UNVERSIONED = Path(__file__).parent / "data" / "catalog-unversioned.sqlite"
+"""A catalog written by the code before schema versions (issue 28: commit 92b4afd's
+`Catalog`): three finished runs, recorded by pid 4242 on host bench-pc."""
+
+
+def test_a_catalog_made_before_schema_versions_upgrades_in_place_and_lists_the_same_runs(
+        tmp_path: Path) -> None:
+    path = tmp_path / "catalog.sqlite"
+    path.write_bytes(UNVERSIONED.read_bytes())
+    catalog = Catalog(path)
+    assert [(row.id, row.experiment, row.status, row.reason, row.n_samples, row.params,
+             row.timing, row.pid, row.host, row.bench, row.file) for row in catalog.list()] == [
+        ("20261128-094414-chirp-3", "chirp", "complete", "", 8000,
+         {"type": "chirp", "f_start_Hz": 5.0, "f_stop_Hz": 120.0}, None, 4242, "bench-pc", None,
+         str(tmp_path / "20261128-094414-chirp-3.h5")),
+        ("20261128-094414-chirp-2", "chirp", "aborted", "limit tripped: |force|", 1234,
+         {"type": "chirp", "f_start_Hz": 5.0, "f_stop_Hz": 200.0}, {"missed": 0, "late": 2},
+         4242, "bench-pc", None, str(tmp_path / "20261128-094414-chirp-2.h5")),
+        ("20261128-094414-friction_sweep-1", "friction_sweep", "complete", "", 4940,
+         {"type": "friction_sweep", "feeds_mm_min": [100, 200]}, None, 4242, "bench-pc", None,
+         str(tmp_path / "20261128-094414-friction_sweep-1.h5")),
+    ]
+    with closing(sqlite3.connect(path)) as connection:
+        assert connection.execute("SELECT version FROM catalog_schema").fetchall() == [(1,)]
+        assert connection.execute("SELECT seq, id FROM runs ORDER BY seq").fetchall() == [
+            (1, "20261128-094414-friction_sweep-1"), (2, "20261128-094414-chirp-2"),
+            (3, "20261128-094414-chirp-3")]
+    newest = catalog.new_run_id("chirp")
+    assert [row.id for row in Catalog(path).list(limit=2)] == [newest,
+                                                               "20261128-094414-chirp-3"]
