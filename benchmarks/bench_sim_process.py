@@ -33,8 +33,8 @@ from pathlib import Path
 import can
 import numpy as np
 
-from feedbench.bench import BENCH_SCHEMA, Bench
-from feedbench.config import validate_table
+from feedbench.bench import Bench, bench_table
+from feedbench.experiments.devices import device_tables
 from feedbench.daq.clock import one_core
 from feedbench.models.milling import SMFE_TOOL, TABLE_6_1, simulate_smfe_cut, spindle_ramp
 from feedbench.models.structure import SMFE_TOOL_STRUCTURE
@@ -60,14 +60,14 @@ def cycles_per_s(bench: Bench, n: int) -> float:
 
 
 def _bench_table(**values) -> dict:
-    return validate_table(values, BENCH_SCHEMA, "bench")
+    return bench_table(values)
 
 
 def start_bench_process(directory: Path) -> tuple[subprocess.Popen, dict]:
     """`feedbench sim` (every device) on free loopback ports; its process and ready info."""
     config = directory / "bench.toml"
     config.write_text('[bench]\nsimulated = true\ninterface = "socketcand"\n'
-                      'socketcand = "127.0.0.1:0"\nmodbus = "127.0.0.1:0"\n'
+                      'socketcand = "127.0.0.1:0"\n'
                       f'channel = "bench-{uuid.uuid4().hex[:8]}"\n')
     process = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "sim", str(config)],
                                stdout=subprocess.PIPE, text=True)
@@ -83,8 +83,9 @@ def every_device_in_process(stack: ExitStack) -> Bench:
     virtual bus and on one CPU as a simulated `Bench` runs, and a host `Bench` on it."""
     channel = f"bench-full-{uuid.uuid4().hex[:8]}"
     stack.enter_context(one_core())
-    stack.enter_context(SimulatedBench(_bench_table(channel=channel),
-                                       {name: {} for name in simulated_peers()}))
+    bench = _bench_table(channel=channel)
+    stack.enter_context(SimulatedBench(bench, device_tables(bench, dict.fromkeys(
+        simulated_peers(), {}))))
     return stack.enter_context(Bench(_bench_table(simulated=False, channel=channel)))
 
 
@@ -155,8 +156,9 @@ def milling_cycle_us() -> tuple[float, float, float]:
         simulate_smfe_cut(SMFE_TOOL_STRUCTURE, SMFE_TOOL, TABLE_6_1, 2e-3, 12e-3, "down", rpm, FS)
 
     offline()  # compile (or load the numba cache) outside the timing
-    with SimulatedBench(_bench_table(channel=f"bench-world-{uuid.uuid4().hex[:8]}"),
-                        {"spindle": {}, "load_cell": {}, "daq": {}}) as bench:
+    table = _bench_table(channel=f"bench-world-{uuid.uuid4().hex[:8]}")
+    with SimulatedBench(table, device_tables(table, {"spindle": {}, "load_cell": {},
+                                                     "daq": {}})) as bench:
         inverter = bench.peers["spindle"].inverter  # as the host's register writes set it
         inverter.apply("SPEED_SETPOINT", 1000.0)
         inverter.apply("CONTROL", INVERTER_CONTROL_RUN)

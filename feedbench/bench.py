@@ -10,11 +10,13 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import sys
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+from feedbench.axes import Axis, axis_kind, axis_schema
 from feedbench.config import ConfigError, Field, one_of, positive, read_toml, validate_table
 from feedbench.daq.catalog import Catalog, CatalogError, open_catalog, url_problem
 from feedbench.daq.clock import LockstepClock, RealtimeClock, one_core
@@ -23,12 +25,13 @@ from feedbench.daq.recording import open_recording
 from feedbench.protocols.address import split_address
 from feedbench.protocols.canbus import disconnect, open_network
 from feedbench.drivers.cia402 import Cia402Drive, StopSettings
-from feedbench.experiments.devices import DeviceLinks, open_cycle_devices
+from feedbench.experiments.devices import (
+    DeviceLinks, device_tables, hardware_gaps, open_cycle_devices, read_old_keys,
+)
 from feedbench.experiments.family import Experiment, families, family, judged_analysis
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan
 from feedbench.experiments.runner import Observer, ProgressPrinter, Runner, StopRequest
-from feedbench.rack_pinion_bench import RackPinionAxis
 from feedbench.units import MS_TYPOS, kv_to_per_second, typed_in
 
 BUS_CYCLE_MS = (0.125, 10.0)
@@ -80,21 +83,12 @@ BENCH_SCHEMA = {
     "world": Field(dict, {}, "simulated world (simulated = true only); never read by the host"),
     "socketcand": Field(str, "127.0.0.1:29536", "host:port of the socketcand server "
                         "(interface = socketcand; `feedbench sim` listens there)"),
-    "modbus": Field(str, "", "host:port of the Modbus TCP server of the spindle inverter "
-                    "(simulated: the bench starts one on 127.0.0.1)"),
-    "daq_port": Field(str, "", "serial port of the streaming DAQ, e.g. /dev/ttyACM0 "
-                      "(simulated: the bench's pseudo-terminal)"),
-    "axis": Field(str, "lab", "lab (one linear drive) or rack_pinion (master and slave "
-                  "drives, Ch. 3.2)", one_of("lab", "rack_pinion")),
-    "slave_node_id": Field(int, 2, "rack_pinion: CANopen node id of the slave drive", positive),
-    "load_cell": Field(str, "", "rack_pinion: host:port of the bumper's load-cell amplifier "
-                       "(Modbus TCP; simulated: the bench starts one on 127.0.0.1)"),
-    "load_cell_every": Field(int, 1, "rack_pinion: read the load cell every n bus cycles",
-                             positive),
-    "io_node_id": Field(int, 10, "`feedbench sim`: CANopen node id of the tool-tip exciters' "
-                        "CiA 401 I/O module (a tool-tip [experiment] in the sim config sets "
-                        "it to its io_node_id)", positive),
+    "axis": Field(str, "lab", "the axis kind (feedbench.axes: lab, one linear drive, or a "
+                  "registered one such as rack_pinion)"),
+    "devices": Field(dict, {}, "one [bench.devices.<name>] table per device: kind, address, "
+                     "unit id, its own settings (experiments.devices.Device.table_schema)"),
 }
+"""The [bench] keys of every bench; each registered axis kind adds its own (`bench_schema`)."""
 
 RUN_SCHEMA = {
     "bench": Field(dict, {}, "how to reach the drive"),
@@ -114,12 +108,28 @@ class RunConfig:
     experiment: Experiment
 
 
+def bench_schema() -> dict[str, Field]:
+    """The [bench] schema: `BENCH_SCHEMA` and the keys of the registered axis kinds."""
+    return {**BENCH_SCHEMA, **axis_schema()}
+
+
+def bench_table(table: Mapping[str, Any]) -> dict[str, Any]:
+    """A checked ``[bench]`` table, defaults filled in; the keys of earlier versions are
+    read into their device's table with a one-line hint (`read_old_keys`)."""
+    bench = validate_table(read_old_keys(table), bench_schema(), "bench")
+    axis_kind(bench["axis"])
+    for name, device in bench["devices"].items():
+        if not isinstance(device, dict):
+            raise ConfigError(f"bench.devices.{name}: must be a table (got {device!r})")
+    return bench
+
+
 def parse_run_config(raw: Mapping[str, Any]) -> RunConfig:
     """Validate a whole run config (already parsed TOML); raises `ConfigError`."""
     top = validate_table(raw, RUN_SCHEMA, "config")
     if top["experiment"] is None:
         raise ConfigError("config.experiment: required table [experiment] is missing")
-    bench = validate_table(top["bench"], BENCH_SCHEMA, "bench")
+    bench = bench_table(top["bench"])
     validate_table(bench["gains"], GAINS_SCHEMA, "bench.gains")
     limits = Limits.from_config(top["limits"])
     cls = family(top["experiment"].get("type"))
@@ -128,6 +138,7 @@ def parse_run_config(raw: Mapping[str, Any]) -> RunConfig:
                           f"{' or '.join(cls.axes)} (got {bench['axis']!r})")
     experiment = cls(top["experiment"], bench["cycle_ms"] * 1e-3)
     plan = experiment.plan()
+    device_tables(bench, axis_kind(bench["axis"])(bench, plan, experiment.devices()).needs)
     _check_excitation_fits(plan, limits)
     return RunConfig(bench, limits, plan, dict(raw), experiment)
 
@@ -168,17 +179,50 @@ def analyze_file(path: str | Path) -> dict:
     return result
 
 
-def sim_config(path: str | Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """`feedbench sim`'s config: the validated [bench] table and, if the file has an
-    [experiment], the workpiece its plan prepares (SMFE lanes; else no workpiece) and the
-    node of the I/O module its exciter needs (``bench.io_node_id``)."""
+def sim_config(path: str | Path) -> tuple[dict[str, Any], Plan | None]:
+    """`feedbench sim`'s config: the validated [bench] table, its ``devices`` the checked
+    tables of those the axis serves (`Axis.served`, the settings of the [experiment]'s
+    devices over them, e.g. the exciters' I/O module node), and the plan of the file's
+    [experiment] if it has one (which prepares the world: an SMFE plan's workpiece)."""
     raw = read_toml(path)
-    if "experiment" not in raw:
-        return validate_table(raw.get("bench", {}), BENCH_SCHEMA, "bench"), []
-    config = parse_run_config(raw)
-    exciter = config.experiment.devices().get("exciter", {})
-    bench = {**config.bench, "io_node_id": exciter.get("node_id", config.bench["io_node_id"])}
-    return bench, list(config.plan.params.get("workpiece", ()))
+    if "experiment" in raw:
+        config = parse_run_config(raw)
+        bench, plan, needs = config.bench, config.plan, config.experiment.devices()
+    else:
+        bench, plan, needs = bench_table(raw.get("bench", {})), None, {}
+    axis = axis_kind(bench["axis"])(bench, plan, needs)
+    return {**bench, "devices": device_tables(bench, {**axis.served(), **needs})}, plan
+
+
+def start_served(bench: Mapping[str, Any], bus_options: Mapping[str, Any], stack: ExitStack,
+                 plan: Plan | None = None) -> dict[str, Any]:
+    """`feedbench sim`: start the simulated axis of `bench` (from `sim_config`) with its
+    peers listening where their tables say (closed by `stack`); what the ready line says of
+    it (`sim_backends.process.serve`)."""
+    from feedbench.sim_backends.process import modbus_device_ids
+
+    axis = axis_kind(bench["axis"])(bench, plan, {})
+    tables = bench["devices"]
+    simulated = axis.start_simulated(bench["cycle_ms"] * 1e-3, bus_options, tables, listen=True)
+    stack.callback(simulated.close)
+    addresses = axis.addresses(simulated)
+    modbus = [address for name, address in addresses.items() if "unit_id" in tables[name]]
+    devices = {name: _served_entry(table, addresses.get(name)) for name, table in tables.items()}
+    return {"axis": bench["axis"], "node_id": bench["node_id"],
+            **{key: bench[key] for key in axis.schema},
+            **({"modbus": modbus[0]} if modbus else {}),
+            "modbus_devices": modbus_device_ids(simulated.modbus_devices),
+            "devices": {name: entry for name, entry in devices.items() if entry}}
+
+
+SERVED_KEYS = ("unit_id", "node_id")
+"""Keys of a served device's table the host's table needs besides the address."""
+
+
+def _served_entry(table: Mapping[str, Any], address: str | None) -> dict[str, Any]:
+    """What a host's ``[bench.devices.<name>]`` table needs to reach a served device."""
+    return {**({"address": address} if address else {}),
+            **{key: table[key] for key in SERVED_KEYS if key in table}}
 
 
 def host_config(raw: Mapping[str, Any]) -> dict[str, Any]:
@@ -223,23 +267,17 @@ def _bus_options(cfg: Mapping[str, Any]) -> dict[str, Any]:
     return {"host": host, "port": port}
 
 
-class LabAxis:
-    """The wiring of ``axis = "lab"``: one linear drive (``node_id``) and the devices the
-    plan's experiment needs (`needs`, kind name → settings: `experiments.devices`).
+class LabAxis(Axis):
+    """The wiring of ``axis = "lab"`` (`axes.Axis`): one linear drive (``node_id``) and the
+    devices the plan's experiment needs (`needs`, name → settings: `experiments.devices`).
     Simulated: the drive and the simulated peers of those devices
     (`sim_backends.process.SimulatedBench`, the workpiece prepared as planned)."""
 
-    pdo_config = None
+    name = "lab"
     stop_margin_s = 0.25
     """Default ``[bench.stop] margin_s`` (s): after its quick-stop ramp the simulated lab axis
     creeps down through the Stribeck region under velocity control; stopped from 25 mm/min it
     stood (|v| < 5 mm/min for 10 cycles) after 51 cycles, from a 500 mm/min chirp after 13."""
-
-    def __init__(self, cfg: Mapping[str, Any], plan: Plan | None,
-                 needs: Mapping[str, dict]) -> None:
-        self.cfg = cfg
-        self.plan = plan
-        self.needs = needs
 
     def nodes(self) -> dict[str, int]:
         """Drive name → CANopen node id ("": the only drive)."""
@@ -252,22 +290,27 @@ class LabAxis:
 
         return str(packaged_eds_path())
 
-    def start_simulated(self, cycle_s: float, bus_options: Mapping[str, Any]):
-        """The simulated peer on the bench's bus; `close()` stops it."""
-        from feedbench.sim_backends.process import SimulatedBench
+    def served(self) -> dict[str, dict[str, Any]]:
+        """Every device with a registered simulated peer: `feedbench sim` serves them all."""
+        from feedbench.sim_backends.process import simulated_peers
+
+        return {name: {} for name in simulated_peers()}
+
+    def start_simulated(self, cycle_s: float, bus_options: Mapping[str, Any],
+                        tables: Mapping[str, Mapping[str, Any]], listen: bool = False):
+        """The simulated drive and its devices' peers on the bench's bus; `close()` stops
+        them."""
+        from feedbench.sim_backends.process import LOOPBACK, SimulatedBench, modbus_listen
 
         workpiece = self.plan.params.get("workpiece", ()) if self.plan is not None else ()
-        return SimulatedBench(self.cfg, self.needs, workpiece, bus_options=bus_options)
+        modbus = modbus_listen(tables) if listen else (LOOPBACK, 0)
+        return SimulatedBench(self.cfg, tables, workpiece, bus_options=bus_options,
+                              modbus_address=modbus)
 
     @staticmethod
     def addresses(simulated: Any) -> dict[str, str]:
-        """[bench] address keys → where the simulated peers listen."""
+        """Device name → where its simulated peer listens."""
         return simulated.addresses
-
-
-AXES = {"lab": LabAxis, "rack_pinion": RackPinionAxis}
-"""The wiring of each axis kind (``[bench] axis``): its simulated peer, drives, the devices
-it `needs` and the `addresses` of their simulated peers."""
 
 
 SYNC_LOSS_LIMIT_MAX = 255
@@ -308,19 +351,22 @@ class Bench:
         self.devices: list = []
 
     def __enter__(self) -> Bench:
-        """The same steps for every axis kind (`AXES`): simulated peer, network, drives and
-        gains, clock, the devices the axis needs (at its simulated peers' addresses, else
-        the configured ones); what is open is closed again if a step fails."""
+        """The same steps for every axis kind (`axes.axes`): simulated peer, network, drives
+        and gains, clock, the devices the axis needs (at its simulated peers' addresses, else
+        the configured ones); what is open is closed again if a step fails. The devices'
+        tables and the sync-loss limit are checked before anything opens."""
         cfg = self.config
         cycle_s = cfg["cycle_ms"] * 1e-3
-        sync_loss_cycles(cfg)  # a bad limit is an error before anything opens
+        sync_loss_cycles(cfg)
+        axis = axis_kind(cfg["axis"])(cfg, self.plan, self.needs)
+        tables = device_tables(cfg, axis.needs)
         try:
             if cfg["one_core"] and cfg["simulated"] and cfg["clock"] == "lockstep":
                 self._stack.enter_context(one_core())  # first: every thread below inherits it
-            axis = AXES[cfg["axis"]](cfg, self.plan, self.needs)
             bus_options = _bus_options(cfg)
             if cfg["simulated"]:
-                self.simulated = axis.start_simulated(cycle_s, bus_options)
+                _say_hardware_gaps(tables)
+                self.simulated = axis.start_simulated(cycle_s, bus_options, tables)
                 self._stack.callback(self.simulated.close)
             self.network = open_network(cfg["interface"], cfg["channel"], cfg["bitrate"],
                                         **bus_options)
@@ -335,14 +381,14 @@ class Bench:
                                            timeout_s=cfg["timeout_s"])
             self._stack.callback(self.clock.close)
             addresses = axis.addresses(self.simulated) if self.simulated is not None else {}
-            links = DeviceLinks({**cfg, **addresses}, self.network, drives, self._stack)
-            self.devices = open_cycle_devices(axis.needs, links)
+            links = DeviceLinks(cfg, self.network, drives, self._stack, peers=addresses)
+            self.devices = open_cycle_devices(tables, links)
         except BaseException:
             self._stack.close()
             raise
         return self
 
-    def _open_drives(self, axis: LabAxis | RackPinionAxis) -> dict[str, Cia402Drive]:
+    def _open_drives(self, axis: Axis) -> dict[str, Cia402Drive]:
         """The axis's drives, each configured by SDO with the bench's gains."""
         eds = self.config["eds"] or axis.packaged_eds()
         gains = gains_si(self.config["gains"]) or None
@@ -392,6 +438,15 @@ class Bench:
             reason = f"{reason}; {exc}" if reason else str(exc)
         record = {"id": run_id, "file": str(path), "status": outcome.status, "reason": reason}
         return {**record, "timing": outcome.timing} if outcome.timing else record
+
+
+def _say_hardware_gaps(tables: Mapping[str, Mapping[str, Any]]) -> None:
+    """One line on stderr naming the device addresses this simulated run goes without and
+    hardware would need (`experiments.devices.hardware_gaps`); nothing if none is missing."""
+    gaps = hardware_gaps(tables)
+    if gaps:
+        print(f"feedbench: simulated bench: {', '.join(gaps)} not given (the simulated peers' "
+              "used); hardware needs them", file=sys.stderr)
 
 
 FREE_SPACE_MARGIN = 1.5

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import math
 import os
 import select
@@ -22,7 +23,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 from feedbench.config import ConfigError
 from feedbench.experiments.limits import LimitError
@@ -257,25 +258,30 @@ def cmd_tune(args: argparse.Namespace) -> int:
 
 def cmd_sim(args: argparse.Namespace) -> int:
     """Serve the simulated bench of a config as its own process until Ctrl-C / SIGTERM."""
-    from feedbench.bench import sim_config
+    from feedbench.bench import sim_config, start_served
     from feedbench.sim_backends.faults import with_fault_options
     from feedbench.sim_backends.process import serve
     from feedbench.sim_backends.socketcand_hub import HubError
 
-    bench, workpiece = sim_config(args.config)
+    bench, plan = sim_config(args.config)
     if args.fault:
         bench = with_fault_options(bench, args.fault)
-    for key in SIM_LISTENS:
-        check_can_listen(f"bench.{key}", bench[key])
-    try:
-        serve(bench, workpiece)  # not pinned (`one_core`): the hub's thread runs the cycle alone
+    for field, address in sim_listens(bench).items():
+        check_can_listen(field, address)
+    try:  # not pinned (`one_core`): the hub's thread runs the cycle alone
+        serve(bench, functools.partial(start_served, plan=plan))
     except HubError as exc:
         raise ConfigError(f"bench.socketcand: {exc}") from exc
     return 0
 
 
-SIM_LISTENS = ("socketcand", "modbus")
-"""The [bench] addresses `feedbench sim` listens on."""
+def sim_listens(bench: Mapping[str, Any]) -> dict[str, str]:
+    """The addresses `feedbench sim` listens on by field: the socketcand hub's and the
+    Modbus devices' it serves (those with a ``unit_id``) that give one."""
+    devices = {f"bench.devices.{name}.address": table["address"]
+               for name, table in bench["devices"].items()
+               if "unit_id" in table and table["address"]}
+    return {"bench.socketcand": bench["socketcand"], **devices}
 
 
 def check_can_listen(field: str, address: str) -> None:

@@ -35,6 +35,7 @@ import pytest
 from feedbench.bench import Bench, RunConfig, analyze_file, parse_run_config, run_config
 from feedbench.daq.recorder import Recorder, StreamSpec
 from feedbench.daq.recording import open_recording
+from feedbench.experiments.cycle_io import DaqDevice
 from feedbench.experiments.family import families
 from feedbench.experiments.incremental import LiveAnalysis
 from feedbench.experiments.replay import replay
@@ -143,7 +144,7 @@ def synthetic_recording(path: str | Path, experiment: Mapping[str, Any],
             "config": {"limits": dict(limits), "experiment": dict(experiment)},
             **(metadata or {})}
     per_cycle = round(daq_rate_hz * cycle_s)
-    streams = {"daq": _daq_spec(daq_channels, daq_rate_hz)} if daq_channels else None
+    streams = {DaqDevice.name: _daq_spec(daq_channels, daq_rate_hz)} if daq_channels else None
     with Recorder(path, CHANNELS, UNITS, meta, streams=streams) as recorder:
         cycle, sample = 1, 0
         for step in (Step(*fields) for fields in steps):
@@ -152,7 +153,7 @@ def synthetic_recording(path: str | Path, experiment: Mapping[str, Any],
             cycles = _cycles(cycle, len(step.rows), gap_after)
             recorder.append_block(cycles, step.rows)
             if step.daq is not None:
-                recorder.append_stream("daq", np.repeat(cycles, per_cycle),
+                recorder.append_stream(DaqDevice.name, np.repeat(cycles, per_cycle),
                                        sample + np.arange(len(step.daq)), step.daq)
                 sample += len(step.daq)
             cycle = int(cycles[-1]) + 1

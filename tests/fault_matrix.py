@@ -25,7 +25,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from feedbench.bench import AXES, Bench, parse_run_config
+from feedbench.axes import axis_kind
+from feedbench.bench import Bench, parse_run_config
 from feedbench.config import OWN_DISTRIBUTION
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import Recording, open_recording
@@ -121,8 +122,8 @@ def family_config(family: str, directory: Path, faults: dict[str, Any] | None = 
 def device_kinds(family: str) -> set[str]:
     """The device kinds a run of the family opens besides its drives."""
     config = parse_run_config(family_config(family, Path("runs")))
-    return set(AXES[config.bench["axis"]](config.bench, config.plan,
-                                          config.experiment.devices()).needs)
+    return set(axis_kind(config.bench["axis"])(config.bench, config.plan,
+                                               config.experiment.devices()).needs)
 
 
 def applies(fault: Fault, family: str) -> bool:

@@ -20,7 +20,7 @@ def start_sim(directory: Path, prefix: str = "sim", config: Path | None = None,
     if config is None:
         config = directory / "bench.toml"
         config.write_text('[bench]\nsimulated = true\ninterface = "socketcand"\n'
-                          'socketcand = "127.0.0.1:0"\nmodbus = "127.0.0.1:0"\n'
+                          'socketcand = "127.0.0.1:0"\n'
                           f'channel = "{prefix}-{uuid.uuid4().hex[:8]}"\n')
     process = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "sim", str(config),
                                 *options], stdout=subprocess.PIPE, stderr=subprocess.PIPE,

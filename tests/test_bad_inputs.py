@@ -454,7 +454,7 @@ def test_the_command_line_prints_one_line_too(runs):
     assert proc.stderr.count("\n") == 1 and expected in proc.stderr, proc.stderr
 
 
-@pytest.mark.parametrize("key", ["socketcand", "modbus"])
+@pytest.mark.parametrize("key", ["socketcand", "devices.spindle.address"])
 def test_port_in_use_names_the_field_and_address(key, runs, capsys):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))

@@ -19,7 +19,9 @@ from feedbench.bench import Bench, parse_run_config
 from feedbench.config import ConfigError, read_toml, registered
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording
-from feedbench.experiments.devices import Device, DeviceLinks, devices, open_cycle_devices
+from feedbench.experiments.devices import (
+    Device, DeviceLinks, device_tables, devices, open_cycle_devices,
+)
 from feedbench.experiments.plan import segment_event
 from feedbench.sim_backends.process import simulated_peers
 
@@ -79,19 +81,18 @@ def test_a_kind_not_named_as_its_entry_point_is_refused(lab_package):
 
 
 def test_an_unregistered_device_is_a_config_error():
-    with ExitStack() as stack, pytest.raises(
-            ConfigError, match=r"^experiment.type: needs the device thermometer, which is not "
-                               r"registered \(known: axis_settings, daq, "):
-        open_cycle_devices({"thermometer": {}}, DeviceLinks({}, None, {}, stack))
+    with pytest.raises(ConfigError, match=r"^experiment.type: needs the device thermometer, "
+                                          r"which is not registered \(known: axis_settings, "
+                                          r"daq, "):
+        device_tables({}, {"thermometer": {}})
 
 
-@pytest.mark.parametrize("kind, key", [("daq", "daq_port"), ("spindle", "modbus"),
-                                       ("load_cell", "load_cell")])
-def test_a_device_without_an_address_names_its_bench_key(kind, key):
+@pytest.mark.parametrize("kind", ["daq", "spindle", "load_cell"])
+def test_a_device_without_an_address_names_its_table(kind):
     with ExitStack() as stack, pytest.raises(
-            ConfigError, match=rf"^bench.{key}: the experiment uses the {kind} device; give "
-                               "its address$"):
-        open_cycle_devices({kind: {}}, DeviceLinks({key: ""}, None, {}, stack))
+            ConfigError, match=rf"^bench.devices.{kind}.address: the experiment uses the {kind} "
+                               "device; give its address$"):
+        open_cycle_devices(device_tables({}, {kind: {}}), DeviceLinks({}, None, {}, stack))
 
 
 def test_a_lab_run_records_the_load_cell_it_asks_for(tmp_path):

@@ -56,7 +56,7 @@ def sims(tmp_path_factory):
         directory = tmp_path_factory.mktemp(f"sim-{axis}")
         text = example_text(family).replace(
             'interface = "virtual"',
-            'interface = "socketcand"\nsocketcand = "127.0.0.1:0"\nmodbus = "127.0.0.1:0"', 1)
+            'interface = "socketcand"\nsocketcand = "127.0.0.1:0"', 1)
         (directory / "sim.toml").write_text(text)
         started[axis] = start_sim(directory, config=directory / "sim.toml")
     yield started

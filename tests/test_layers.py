@@ -31,6 +31,7 @@ LAYERS = (
     ("drivers", "sim_backends"),
     ("daq",),
     ("experiments",),
+    ("axes",),  # the axis kinds' seam (`feedbench.axes`), over the plans it runs
     ("closure_io", "rack_pinion_bench"),  # readers of recordings; the rack-and-pinion wiring
     ("bench", "exchange"),  # the composition root; UFF58 / CSV export of a run
     ("report", "gui", "testing"),  # testing: the kit over the bench (`feedbench.testing`)

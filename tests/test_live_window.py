@@ -473,7 +473,7 @@ def test_the_load_cell_read_every_tenth_cycle_is_drawn_over_its_readings(replays
     path, texts, _, window = replays["friction_sweep_rack_pinion"]
     recording = open_recording(path)
     load = recording.channels["load_cell.force"]
-    assert recording.config["bench"]["load_cell_every"] == 10
+    assert recording.config["bench"]["devices"]["load_cell"]["every_cycles"] == 10
     assert np.isnan(load).mean() == pytest.approx(0.9, abs=0.01)
     x, y = window.traces.curves["load_cell.force"].getData()
     assert len(y) > 100 and np.all(np.isfinite(y))

@@ -103,7 +103,8 @@ def test_a_limit_trip_stops_and_disables_both_drives(tmp_path, can_channel):
     """Coupled loading into the bumper with a 2 kN motor-force limit: the run aborts naming
     the drive that tripped, ramps down and leaves both drives disabled; every sample kept."""
     raw = example_config("stepped_loading")
-    raw["bench"].update(output_dir=str(tmp_path), channel=can_channel, load_cell_every=5)
+    raw["bench"].update(output_dir=str(tmp_path), channel=can_channel)
+    raw["bench"]["devices"]["load_cell"]["every_cycles"] = 5
     raw["limits"]["force_N"] = 2000.0
     raw["experiment"].update(backlash=[], single_motor=[], preload_pct=[4.0], setup_s=1.0)
     row = run_config(parse_run_config(raw), progress=False)

@@ -577,7 +577,8 @@ def stepped_loading_run(tmp_path_factory):
 
     raw = example_config("stepped_loading")
     raw["bench"].update(output_dir=str(tmp_path_factory.mktemp("stepped")),
-                        channel=f"report-stepped-{os.getpid()}", load_cell_every=5)
+                        channel=f"report-stepped-{os.getpid()}")
+    raw["bench"]["devices"]["load_cell"]["every_cycles"] = 5
     raw["experiment"].update(backlash=["master"], single_motor=["master"], preload_pct=[20.0],
                              unload=False, settle_s=0.03, measure_s=0.06, ramp_s=0.01,
                              depth_um=250.0, step_um=10.0, single_depth_um=350.0,

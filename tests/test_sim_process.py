@@ -85,8 +85,8 @@ def test_host_sync_advances_the_bench_process_world(bench_process):
     host, port = bench_process["modbus"].rsplit(":", 1)
     client = connect_tcp(host, int(port))
     try:
-        with Bench(cfg) as bench, SerialDaq(bench_process["daq_port"], ACCELEROMETERS,
-                                            10_000) as daq:
+        with Bench(cfg) as bench, SerialDaq(bench_process["devices"]["daq"]["address"],
+                                            ACCELEROMETERS, 10_000) as daq:
             inverter = SpindleInverter(client)
             inverter.set_ramp_rpm_s(6000.0)
             inverter.set_speed_rpm(900.0)
@@ -186,7 +186,7 @@ def test_a_hub_port_is_a_python_can_bus_for_the_nodes_in_the_hub_process(caplog)
 
 def test_sim_config_error_names_the_field(tmp_path, capsys):
     config = tmp_path / "bad.toml"
-    config.write_text('[bench]\nsocketcand = "127.0.0.1:0"\nmodbus = "127.0.0.1:0"\n'
+    config.write_text('[bench]\nsocketcand = "127.0.0.1:0"\n'
                       "[bench.world.milling]\nteeth = 0\n")
     assert main(["sim", str(config)]) == 2
     assert capsys.readouterr().err.strip() == (

@@ -100,7 +100,7 @@ class SimProcess:
 
 def _config(path: Path, *lines: str) -> Path:
     path.write_text("\n".join(["[bench]", "simulated = true", 'interface = "socketcand"',
-                               'socketcand = "127.0.0.1:0"', 'modbus = "127.0.0.1:0"',
+                               'socketcand = "127.0.0.1:0"',
                                f'channel = "sim-{uuid.uuid4().hex[:8]}"', *lines]) + "\n")
     return path
 
@@ -110,7 +110,8 @@ def sims(tmp_path_factory):
     """Both benches, started together (they load in parallel); both must exit 0 on SIGTERM
     with no traceback on stderr."""
     directory = tmp_path_factory.mktemp("sims")
-    processes = {"lab": SimProcess(_config(directory / "lab.toml", f"io_node_id = {IO_NODE}")),
+    processes = {"lab": SimProcess(_config(directory / "lab.toml",
+                                          f"devices.exciter.node_id = {IO_NODE}")),
                  "rack": SimProcess(_config(directory / "rack.toml", 'axis = "rack_pinion"'))}
     try:
         for process in processes.values():
@@ -190,15 +191,16 @@ def test_sim_configs_name_their_bench(tmp_path):
     module at node 10, the rack-and-pinion axis; a tool-tip [experiment] in a sim config
     puts the I/O module at its io_node_id."""
     examples = Path(__file__).parents[1] / "feedbench" / "examples"
-    bench, workpiece = sim_config(examples / "bench_sim.toml")
-    assert (bench["axis"], bench["io_node_id"], len(workpiece)) == ("lab", 10, 3)
-    bench, workpiece = sim_config(examples / "bench_sim_rack_pinion.toml")
-    assert (bench["axis"], bench["node_id"], bench["slave_node_id"], workpiece) == (
-        "rack_pinion", 1, 2, [])
+    bench, plan = sim_config(examples / "bench_sim.toml")
+    assert (bench["axis"], bench["devices"]["exciter"]["node_id"],
+            len(plan.params["workpiece"])) == ("lab", 10, 3)
+    bench, plan = sim_config(examples / "bench_sim_rack_pinion.toml")
+    assert (bench["axis"], bench["node_id"], bench["slave_node_id"], plan) == (
+        "rack_pinion", 1, 2, None)
     hammer = (examples / "impact_hammer.toml").read_text()
     config = tmp_path / "hammer_sim.toml"
     config.write_text(hammer.replace("io_node_id = 10", "io_node_id = 23"))
-    assert sim_config(config)[0]["io_node_id"] == 23
+    assert sim_config(config)[0]["devices"]["exciter"]["node_id"] == 23
 
 
 # -- the documented register maps -----------------------------------------------------------
@@ -252,7 +254,7 @@ def test_the_docs_list_both_modbus_devices_and_the_sims_serve_them(lab, rack):
     assert sum(len(d["registers"]) for d in devices.values()) == 13
     assert lab.info["modbus_devices"] == {"spindle inverter": 1, "load-cell amplifier": 2}
     assert rack.info["modbus_devices"] == {"load-cell amplifier": 2}
-    assert rack.info["load_cell"] == rack.info["modbus"]
+    assert rack.info["devices"]["load_cell"] == {"address": rack.info["modbus"], "unit_id": 2}
 
 
 def test_lab_sim_serves_every_register_of_both_devices(lab, lab_can):
@@ -357,7 +359,7 @@ def test_lab_drive_answers_every_object_of_its_eds(lab, lab_can):
 def test_lab_io_module_answers_its_objects(lab, lab_can):
     """The CiA 401 I/O module of the exciters at the configured node: device type (profile
     401), error register, the digital output and the four analog outputs, all 0 at rest."""
-    assert lab.info["io_node_id"] == IO_NODE
+    assert lab.info["devices"]["exciter"] == {"node_id": IO_NODE}
     module = lab_can.node(IO_NODE, object_dictionary())
     values = read_every_object(module)
     assert values[(0x1000, 0)] == cia401.DEVICE_TYPE
@@ -404,7 +406,7 @@ def test_daq_streams_crc_framed_samples_ten_per_sync(lab, lab_can):
     accelerometer noise of Eq. (6.18) (σ ≈ 0.016 m/s² on x) and ≈ 0 forces."""
     assert crc_ccitt_false(b"123456789") == 0x29B1 == binascii.crc_hqx(b"123456789", 0xFFFF)
     drive = lab_can.node(lab.info["node_id"], str(packaged_eds_path()))
-    with serial.Serial(lab.info["daq_port"], timeout=2) as port:
+    with serial.Serial(lab.info["devices"]["daq"]["address"], timeout=2) as port:
         assert command(port, b"*IDN?") == "OK FEEDBENCH,SIM-DAQ12,0,1.0"
         assert command(port, b"CHAN 0FFF") == "OK"
         assert command(port, b"RATE 10000") == "OK"
@@ -464,7 +466,7 @@ def test_daq_and_sdo_faults_get_their_protocol_answer(lab, lab_can):
     reply of at most 64 ASCII bytes, and the instrument still answers; an SDO read of an
     object the drive lacks → abort 0x06020000."""
     since = len(lab.stderr)
-    with serial.Serial(lab.info["daq_port"], timeout=2) as port:
+    with serial.Serial(lab.info["devices"]["daq"]["address"], timeout=2) as port:
         assert command(port, b"BOGUS") == "ERR unknown command 'BOGUS'"
         assert command(port, b"\xff" * 300).startswith("ERR unknown command")
         assert command(port, b"RATE 12345") == "ERR 12345 Hz is not a whole number of " \

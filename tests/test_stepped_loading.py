@@ -34,7 +34,8 @@ THESIS_LOSS = {4.0: 1100.0, 20.0: 5300.0}
 def run(tmp_path_factory) -> tuple[dict, dict]:
     raw = example_config("stepped_loading")
     raw["bench"].update(output_dir=str(tmp_path_factory.mktemp("stepped")),
-                        channel=f"stepped-loading-{os.getpid()}", load_cell_every=5)
+                        channel=f"stepped-loading-{os.getpid()}")
+    raw["bench"]["devices"]["load_cell"]["every_cycles"] = 5
     raw["experiment"].update(stepped_loading.QUICK)
     row = run_config(parse_run_config(raw), progress=False)
     assert row["status"] == "complete", row["reason"]

@@ -350,7 +350,8 @@ def _interrupted(tmp_path: Path, info: dict, options: list[str], line: str, **tu
     host = tomllib.loads(host_bench_table(info))
     raw["bench"] = {**host["bench"], "output_dir": str(tmp_path), "timeout_s": 5.0}
     raw["tune"].update({**SHORT, "result": str(tmp_path / "tune.json"), **tune})
-    raw["tune"]["tool_tip"] = {**raw["tune"]["tool_tip"], "io_node_id": info["io_node_id"]}
+    raw["tune"]["tool_tip"] = {**raw["tune"]["tool_tip"],
+                               "io_node_id": info["devices"]["exciter"]["node_id"]}
     path = tmp_path / "tune.toml"
     path.write_text(_toml(raw), encoding="utf-8")
     command = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "tune", str(path),

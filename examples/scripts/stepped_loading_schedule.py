@@ -37,7 +37,8 @@ def main() -> None:
     args = parser.parse_args()
 
     config = tomllib.loads(Path(args.config).read_text(encoding="utf-8"))
-    config["bench"]["load_cell_every"] = args.load_cell_every
+    config["bench"].setdefault("devices", {}).setdefault("load_cell", {})["every_cycles"] = \
+        args.load_cell_every
 
     schedule = {"backlash": [], "single_motor": args.single, "preload_pct": args.preloads,
                 "step_um": args.step_um, "single_step_um": args.step_um,

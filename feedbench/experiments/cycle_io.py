@@ -24,6 +24,7 @@ import math
 import time
 from typing import Any, Mapping
 
+from feedbench.config import Field, positive
 from feedbench.daq.recorder import StreamSpec
 from feedbench.experiments.devices import Device, DeviceLinks, PerCycleDevice
 from feedbench.experiments.plan import Plan
@@ -102,9 +103,10 @@ class SpindleCommands(PerCycleDevice):
 
 
 class DaqStream(PerCycleDevice):
-    """The streaming DAQ (`drivers.serial_daq.SerialDaq`) recorded as stream `name`."""
+    """The streaming DAQ (`drivers.serial_daq.SerialDaq`) recorded as stream `name` (its
+    device's)."""
 
-    def __init__(self, daq, name: str = "daq") -> None:
+    def __init__(self, daq, name: str) -> None:
         super().__init__()
         self.daq = daq
         self.name = name
@@ -182,40 +184,52 @@ class DaqStream(PerCycleDevice):
 
 
 class SpindleDevice(Device):
-    """The spindle inverter over Modbus TCP at ``bench.modbus``; settings: `SpindleCommands`'s
-    (``readback_cycles``)."""
+    """The spindle inverter over Modbus TCP (``address``, unit ``unit_id``); its speed read
+    back every ``readback_cycles`` (`SpindleCommands`)."""
 
     name = "spindle"
-    address_key = "modbus"
+    address_doc = "host:port of the inverter's Modbus TCP server"
+    unit_id = 1
+    schema = {"readback_cycles": Field(int, 10, "read the speed back every n bus cycles",
+                                       positive)}
+    old_keys = {"modbus": "address"}
 
     @classmethod
     def open(cls, settings: Mapping[str, Any], links: DeviceLinks) -> SpindleCommands:
         from feedbench.drivers.modbus_devices import SpindleInverter
 
-        return SpindleCommands(SpindleInverter(cls.modbus_client(links)), **settings)
+        inverter = SpindleInverter(cls.modbus_client(settings, links), settings["unit_id"])
+        return SpindleCommands(inverter, settings["readback_cycles"])
 
 
 class DaqDevice(Device):
-    """The streaming DAQ on the serial port ``bench.daq_port``; settings: ``channels`` (names
-    of `protocols.serial_frames.CHANNELS`) and ``rate_hz`` (samples/s)."""
+    """The streaming DAQ on its serial port (``address``); settings: ``channels`` (names of
+    `protocols.serial_frames.CHANNELS`) and ``rate_hz`` (samples/s)."""
 
     name = "daq"
-    address_key = "daq_port"
+    address_doc = "serial port of the streaming DAQ, e.g. /dev/ttyACM0"
+    schema = {"channels": Field((list, tuple), [c.name for c in CHANNELS],
+                                "channels streamed (protocols.serial_frames.CHANNELS)"),
+              "rate_hz": Field(float, 10_000.0, "sample rate (samples/s)", positive)}
+    old_keys = {"daq_port": "address"}
 
     @classmethod
     def open(cls, settings: Mapping[str, Any], links: DeviceLinks) -> DaqStream:
         from feedbench.drivers.serial_daq import SerialDaq
 
-        daq = links.stack.enter_context(SerialDaq(cls.address(links), settings["channels"],
+        daq = links.stack.enter_context(SerialDaq(cls.address(settings), settings["channels"],
                                                   settings["rate_hz"]))
-        return DaqStream(daq)
+        return DaqStream(daq, settings["name"])
 
 
 class ExciterDevice(Device):
-    """The tool-tip exciters' CiA 401 I/O module, node ``node_id`` (setting) on the drives'
-    CAN network, checked and started; the runner's `tool_tip.ExciterOutputs`."""
+    """The tool-tip exciters' CiA 401 I/O module, node ``node_id`` on the drives' CAN
+    network, checked and started; the runner's `tool_tip.ExciterOutputs`."""
 
     name = "exciter"
+    schema = {"node_id": Field(int, 10, "CANopen node id of the CiA 401 I/O module (a "
+                               "tool-tip [experiment] gives its io_node_id)", positive)}
+    old_keys = {"io_node_id": "node_id"}
 
     @classmethod
     def open(cls, settings: Mapping[str, Any], links: DeviceLinks) -> CycleDevice:

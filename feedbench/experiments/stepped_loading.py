@@ -434,7 +434,7 @@ class SteppedLoading(Experiment):
         # set-ups, the load cell read every 5th cycle (a Modbus read per cycle costs ⅓ of
         # the wall time): k_m, k_s within 1 %, backlash within 2 µm, both loss forces within
         # 5 % of the thesis's.
-        Example(NAME, {"bench": {"load_cell_every": 5},
+        Example(NAME, {"bench": {"devices": {"load_cell": {"every_cycles": 5}}},
                        "experiment": {**QUICK, "setup_s": 1.0, "measure_s": 0.1}}, rank=80),
     )
     live_kinds = ("measure",)

@@ -1,10 +1,11 @@
 """The whole simulated bench, in the host's process or as its own (`feedbench sim BENCH.toml`).
 
 `SimulatedBench` starts the CiA 402 drive of a lab-axis ``[bench]`` table on its CAN bus
-and the simulated peer of each device kind a run needs (`SimulatedPeer`, entry points
+and the simulated peer of each device a run needs (`SimulatedPeer`, entry points
 ``feedbench.sim_devices``, the kind's name: `experiments.devices`), each on its real
-transport: the spindle inverter (device id 1) and the load-cell amplifier (device id 2) on
-one Modbus TCP server on 127.0.0.1, the streaming DAQ on a pseudo-terminal, the exciters'
+transport with the settings of its ``[bench.devices.<name>]`` table: the Modbus devices
+(spindle inverter, load-cell amplifier, each at its table's unit id) on one Modbus TCP
+server on 127.0.0.1, the streaming DAQ on a pseudo-terminal, the exciters'
 CiA 401 I/O module on the drive's bus. The worlds at the tool tip feed the DAQ: the
 milling process (`smfe_world.SmfeWorld`, spindle and DAQ) and/or the exciters
 (`structure_world`), summed on the DAQ's inputs (`DaqInputs`), stepped in the drive's SYNC
@@ -15,9 +16,10 @@ world one bus cycle.
 as it would reach hardware: CAN through a socketcand hub (`socketcand_hub.SocketcandHub`;
 the host uses python-can's ``socketcand`` interface, the bench's own nodes join the hub in
 process through its `HubPort`, interface ``feedbench_hub``), Modbus TCP on 127.0.0.1, the
-DAQ on the printed pseudo-terminal path. The lab axis serves every device (both worlds on
-one DAQ); ``axis = "rack_pinion"`` serves the master and slave drives and the bumper's load
-cell (`rack_pinion.SimulatedRackPinionAxis`). It prints one JSON line with the addresses, then
+DAQ on the printed pseudo-terminal path. The axis kind starts its own simulated peer
+(`axes.Axis.start_simulated`: the lab axis serves every device, both worlds on one DAQ;
+each peer listens where its ``[bench.devices.<name>]`` table says, `modbus_listen`). It
+prints one JSON line with the addresses, then
 serves until SIGINT or SIGTERM; every log record, and any exception a thread does not catch,
 is one line on stderr (`one_line_logging`), never a traceback.
 """
@@ -35,7 +37,7 @@ from typing import Any, Callable, ClassVar, TextIO
 
 import numpy as np
 
-from feedbench.config import registered
+from feedbench.config import ConfigError, registered
 from feedbench.protocols.address import LOOPBACK, split_address
 from feedbench.protocols.canbus import frozen_heap
 from feedbench.protocols.serial_frames import CHANNELS
@@ -43,9 +45,6 @@ from feedbench.sim_backends.bench import start_simulated_axis
 from feedbench.sim_backends.faults import world_faults
 from feedbench.sim_backends.modbus_devices import (
     SimulatedLoadCell, SimulatedModbusDevice, SimulatedModbusTcpServer, SimulatedSpindleInverter,
-)
-from feedbench.sim_backends.rack_pinion import (
-    SimulatedRackPinionAxis, build_simulator, load_cell_settings,
 )
 from feedbench.sim_backends.serial_daq import SimulatedSerialDaq
 from feedbench.sim_backends.smfe_world import SmfeWorld, Workpiece, build_process, lanes_from_list
@@ -91,12 +90,13 @@ class SimulatedPeer:
     """The simulated peer of one device kind (`experiments.devices.Device` of the same
     `name`), registered under that name in the entry-point group ``feedbench.sim_devices``.
 
-    `SimulatedBench` constructs the peer of each kind a run needs (`settings`: what the
-    family asked the kind for) on the bench `sim`: it starts its device and transport there
-    (`SimulatedBench.serve_modbus`, a pseudo-terminal, a node on `sim.drive`'s network) and
-    puts its address under the kind's ``[bench]`` key in `sim.addresses`. Once every peer
-    exists, `attach()` hooks it into the world (the drive's `before_physics` /
-    `after_physics`; a world two peers share looks the other up in `sim.peers`);
+    `SimulatedBench` constructs the peer of each device a run needs (`settings`: its checked
+    ``[bench.devices.<name>]`` table with the family's settings over it, ``name`` included,
+    `experiments.devices.device_table`) on the bench `sim`: it starts its device and
+    transport there (`SimulatedBench.serve_modbus`, a pseudo-terminal, a node on
+    `sim.drive`'s network) and puts its address under the device's name in `sim.addresses`.
+    Once every peer exists, `attach()` hooks it into the world (the drive's `before_physics`
+    / `after_physics`; a world two peers share looks the other up in `sim.peers`);
     `end_of_cycle`, if set, runs after every peer's hooks.
     """
 
@@ -122,7 +122,7 @@ def milling_runs(peers: Mapping[str, SimulatedPeer]) -> bool:
 
 
 class SpindlePeer(SimulatedPeer):
-    """The spindle inverter (Modbus device id 1 at ``bench.modbus``); with the DAQ, the
+    """The spindle inverter (Modbus, at its table's ``unit_id``); with the DAQ, the
     milling process it drives (`smfe_world.SmfeWorld`: the ``[bench.world.milling]`` table,
     cutting `sim.workpiece`), else the inverter's own speed ramp alone."""
 
@@ -130,9 +130,9 @@ class SpindlePeer(SimulatedPeer):
 
     def __init__(self, sim: SimulatedBench, settings: Mapping[str, Any]) -> None:
         super().__init__(sim, settings)
-        self.inverter = SimulatedSpindleInverter()
+        self.inverter = SimulatedSpindleInverter(settings["unit_id"])
         self.milling: SmfeWorld | None = None
-        sim.serve_modbus(self.inverter, "modbus")
+        sim.serve_modbus(self.inverter, settings["name"])
 
     def attach(self) -> None:
         sim = self.sim
@@ -149,15 +149,15 @@ class SpindlePeer(SimulatedPeer):
 
 
 class LoadCellPeer(SimulatedPeer):
-    """The load-cell amplifier (Modbus device id 2 at ``bench.load_cell``): the force the
+    """The load-cell amplifier (Modbus, at its table's ``unit_id``): the force the
     exciters apply to the tool tip (the drive's `tip_force`, N), sampled once per bus cycle."""
 
     name = "load_cell"
 
     def __init__(self, sim: SimulatedBench, settings: Mapping[str, Any]) -> None:
         super().__init__(sim, settings)
-        self.load_cell = SimulatedLoadCell(lambda: sim.drive.tip_force)
-        sim.serve_modbus(self.load_cell, "load_cell")
+        self.load_cell = SimulatedLoadCell(lambda: sim.drive.tip_force, settings["unit_id"])
+        sim.serve_modbus(self.load_cell, settings["name"])
         sim.drive.after_physics.append(lambda: self.load_cell.advance(sim.cycle_s))
 
 
@@ -166,7 +166,7 @@ CORRUPTION = {"crc": "flip", "desync": "truncate"}
 
 
 class DaqPeer(SimulatedPeer):
-    """The streaming DAQ on a pseudo-terminal (``bench.daq_port``); the worlds push their
+    """The streaming DAQ on a pseudo-terminal (its address); the worlds push their
     samples to `inputs`, summed and sent at the end of each cycle."""
 
     name = "daq"
@@ -176,7 +176,7 @@ class DaqPeer(SimulatedPeer):
         self.daq = SimulatedSerialDaq(sim.cycle_s)
         self.daq.answer_between_cycles(sim.drive.lock)  # samples pushed after the TPDOs
         sim.stack.callback(self.daq.close)
-        sim.addresses["daq_port"] = self.daq.port
+        sim.addresses[settings["name"]] = self.daq.port
         self.inputs = DaqInputs(self.daq)
         self.end_of_cycle = self._send
 
@@ -192,10 +192,10 @@ class DaqPeer(SimulatedPeer):
 
 class ExciterPeer(SimulatedPeer):
     """The tool-tip exciters (`structure_world`: shaker, inertial actuator, impact hammer)
-    commanded by a CiA 401 I/O module at node ``node_id`` (setting; `feedbench sim`: the
-    bench's ``io_node_id``), feeding the DAQ if there is one. Beside the milling process the
-    accelerometers' noise is the milling table's (``noise_m_s2``), counted once: the
-    structure table's accelerometer noise is not added to it."""
+    commanded by a CiA 401 I/O module at node ``node_id`` (its table's), feeding the DAQ if
+    there is one. Beside the milling process the accelerometers' noise is the milling
+    table's (``noise_m_s2``), counted once: the structure table's accelerometer noise is not
+    added to it."""
 
     name = "exciter"
 
@@ -211,25 +211,25 @@ class ExciterPeer(SimulatedPeer):
         daq = sim.peers.get("daq")
         self.structure = start_structure_world(
             sim.drive, daq.inputs if daq is not None else None,
-            self.settings.get("node_id", sim.bench["io_node_id"]), table, sim.cycle_s)
+            self.settings["node_id"], table, sim.cycle_s)
 
 
 class SimulatedBench:
     """The simulated lab axis of a validated ``[bench]`` table and the simulated peers of the
-    devices a run `needs` (kind name → settings; kinds without a registered peer are left
-    to the drive); `close()` stops them.
+    devices a run needs (`tables`: name → checked table, `experiments.devices.device_table`;
+    kinds without a registered peer are left to the drive); `close()` stops them.
 
     The drive (CiA 402 on its CAN bus, `bus_options` to python-can: ``host``, ``port`` of a
     socketcand server, or ``hub``, the `SocketcandHub` a ``feedbench_hub`` port joins)
     starts first, then each peer (`SimulatedPeer`); the peers on Modbus
     share one server on 127.0.0.1 at port ``modbus_address[1]`` (0: a free one). `addresses`:
-    ``[bench]`` key → where each peer is reached, as the host config would give it.
+    device name → where its peer is reached, as the host config would give it.
     `workpiece`: lane tables (mode, a_e_mm, a_p_mm, start_mm, stop_mm) a milling process
     cuts (the SMFE plan's ``workpiece``). `faults`: the world's ``faults`` table
     (`sim_backends.faults`), injected on the drive's bus, the Modbus server and the DAQ.
     """
 
-    def __init__(self, bench: Mapping[str, Any], needs: Mapping[str, Mapping[str, Any]],
+    def __init__(self, bench: Mapping[str, Any], tables: Mapping[str, Mapping[str, Any]],
                  workpiece: Sequence[Mapping[str, Any]] = (),
                  bus_options: Mapping[str, Any] | None = None,
                  modbus_address: tuple[str, int] = (LOOPBACK, 0)) -> None:
@@ -250,18 +250,18 @@ class SimulatedBench:
                                               noise=build_sensor_noise(self.world),
                                               faults=self.faults, **(bus_options or {}))
             self.stack.callback(self.drive.close)
-            self._start_peers(needs, modbus_address)
+            self._start_peers(tables, modbus_address)
         except BaseException:
             self.stack.close()
             raise
 
-    def _start_peers(self, needs: Mapping[str, Mapping[str, Any]],
+    def _start_peers(self, tables: Mapping[str, Mapping[str, Any]],
                      modbus_address: tuple[str, int]) -> None:
-        """Each needed kind's peer, the Modbus server they share, their world hooks."""
+        """Each needed device's peer, the Modbus server they share, their world hooks."""
         known = simulated_peers()
-        for name, settings in needs.items():
-            if name in known:
-                self.peers[name] = known[name](self, settings)
+        for name, settings in tables.items():
+            if settings["kind"] in known:
+                self.peers[name] = known[settings["kind"]](self, settings)
         for device in self.modbus_devices:  # advanced by the drive's hooks, after its TPDOs
             device.answer_between_cycles(self.drive.lock)
         if self.modbus_devices:
@@ -275,11 +275,11 @@ class SimulatedBench:
         self.drive.after_physics.extend(peer.end_of_cycle for peer in self.peers.values()
                                         if peer.end_of_cycle is not None)
 
-    def serve_modbus(self, device: SimulatedModbusDevice, address_key: str) -> None:
+    def serve_modbus(self, device: SimulatedModbusDevice, name: str) -> None:
         """Serve `device` (at its own device id) on the bench's Modbus server, whose address
-        goes under the ``[bench]`` key `address_key`."""
+        goes under the device's `name` in `addresses`."""
         self.modbus_devices.append(device)
-        self._modbus_keys.add(address_key)
+        self._modbus_keys.add(name)
 
     def close(self) -> None:
         """Stop every device (in reverse order of starting)."""
@@ -292,23 +292,28 @@ class SimulatedBench:
         self.close()
 
 
-def serve(bench: Mapping[str, Any], workpiece: Sequence[Mapping[str, Any]] = (),
-          out: TextIO = sys.stdout, stop: threading.Event | None = None) -> None:
+StartBench = Callable[[Mapping[str, Any], Mapping[str, Any], ExitStack], dict[str, Any]]
+"""Starts the simulated axis of a ``[bench]`` table with python-can options (closed by the
+stack) and returns what the ready line says of it (`bench.start_served`)."""
+
+
+def serve(bench: Mapping[str, Any], start: StartBench, out: TextIO = sys.stdout,
+          stop: threading.Event | None = None) -> None:
     """Run the simulated bench until SIGINT / SIGTERM (or `stop` is set); print its addresses.
 
-    The hub listens on ``bench.socketcand`` and the Modbus server on ``bench.modbus``
-    (``host:port``, port 0: a free one); the ready line is ``feedbench-sim ready {json}``
-    with ``socketcand``, ``channel``, ``axis``, the node ids, ``modbus`` and the Modbus
-    devices served (``modbus_devices``: name → device id), and per axis ``daq_port`` (lab)
-    or ``load_cell`` (rack_pinion). Log records go to stderr, one line each, meanwhile.
+    The hub listens on ``bench.socketcand`` (``host:port``, port 0: a free one); `start`
+    starts the axis and its peers on it. The ready line is ``feedbench-sim ready {json}``
+    with ``socketcand``, ``channel`` and what `start` says: ``axis``, its node ids, ``modbus``
+    (the peers' Modbus server), the Modbus devices served (``modbus_devices``: name →
+    device id) and ``devices`` (name → what the host's table needs: address, unit id, node
+    id). Log records go to stderr, one line each, meanwhile.
     """
     hub = SocketcandHub(*split_address(bench["socketcand"], "bench.socketcand", listen=True))
     host, port = hub.start()
     try:
         with one_line_logging(), ExitStack() as stack:
             info = {"socketcand": f"{host}:{port}", "channel": bench["channel"],
-                    **_start_bench({**bench, "interface": "feedbench_hub"}, workpiece,
-                                   {"hub": hub}, stack)}
+                    **start({**bench, "interface": "feedbench_hub"}, {"hub": hub}, stack)}
             stack.callback(hub.stop)  # on exit first: no frame reaches a device as it closes
             print(f"{READY} {json.dumps(info)}", file=out)
             print(host_bench_table(info), file=out, flush=True)
@@ -318,47 +323,44 @@ def serve(bench: Mapping[str, Any], workpiece: Sequence[Mapping[str, Any]] = (),
         hub.stop()
 
 
-def _start_bench(bench: Mapping[str, Any], workpiece: Sequence[Mapping[str, Any]],
-                 bus_options: Mapping[str, Any], stack: ExitStack) -> dict[str, Any]:
-    """Start the bench of ``bench.axis`` (closed by `stack`); what the ready line says of it."""
-    modbus = split_address(bench["modbus"], "bench.modbus", listen=True)
-    if bench["axis"] == "rack_pinion":
-        axis = SimulatedRackPinionAxis(
-            build_simulator(bench["world"], bench["cycle_ms"] * 1e-3), bench["interface"],
-            bench["channel"], (bench["node_id"], bench["slave_node_id"]),
-            load_cell_settings(bench["world"]), modbus_port=modbus[1],
-            faults=world_faults(bench["world"]), **bus_options)
-        stack.callback(axis.close)
-        address = "{}:{}".format(*axis.modbus_address)
-        return {"axis": "rack_pinion", "node_id": bench["node_id"],
-                "slave_node_id": bench["slave_node_id"], "modbus": address,
-                "modbus_devices": _device_ids([axis.load_cell]), "load_cell": address}
-    simulated = stack.enter_context(SimulatedBench(
-        bench, {name: {} for name in simulated_peers()}, workpiece, bus_options=bus_options,
-        modbus_address=modbus))
-    return {"axis": "lab", "node_id": bench["node_id"], "io_node_id": bench["io_node_id"],
-            "modbus": simulated.addresses["modbus"],
-            "modbus_devices": _device_ids(simulated.modbus_devices),
-            "daq_port": simulated.addresses["daq_port"]}
+def modbus_listen(tables: Mapping[str, Mapping[str, Any]]) -> tuple[str, int]:
+    """Where `feedbench sim`'s one Modbus server listens: the address the Modbus devices'
+    tables (those with a ``unit_id``) give, 127.0.0.1 on a free port if none does; two
+    different ones are a `ConfigError` naming both fields."""
+    given = {name: table["address"] for name, table in tables.items()
+             if "unit_id" in table and table.get("address")}
+    if len(set(given.values())) > 1:
+        (first, a), (second, b) = sorted(given.items())[:2]
+        raise ConfigError(f"bench.devices.{second}.address: {b} differs from "
+                          f"bench.devices.{first}.address ({a}); the simulated bench serves "
+                          "its Modbus devices on one server")
+    if not given:
+        return LOOPBACK, 0
+    name, address = next(iter(given.items()))
+    return split_address(address, f"bench.devices.{name}.address", listen=True)
 
 
-def _device_ids(devices: Sequence[SimulatedModbusDevice]) -> dict[str, int]:
+def modbus_device_ids(devices: Sequence[SimulatedModbusDevice]) -> dict[str, int]:
+    """The ready line's ``modbus_devices``: each device's register map name → device id."""
     return {device.register_map.device: device.device_id for device in devices}
 
 
-HOST_KEYS = ("socketcand", "channel", "axis", "node_id", "slave_node_id", "modbus",
-             "load_cell", "daq_port")
-"""Ready-line keys that are [bench] keys of the host's config, in the order printed."""
+HOST_KEYS = ("socketcand", "channel", "axis")
+"""Ready-line keys that are [bench] keys of the host's config, printed first; then the
+axis's node ids (the ready line's keys ending in ``node_id``) and its ``devices``."""
 
 
 def host_bench_table(info: Mapping[str, Any]) -> str:
-    """The [bench] table a host config needs to reach this simulated bench (TOML)."""
-    lines = ["# host config: reach this simulated bench over loopback, as hardware",
-             "[bench]", "simulated = false", 'interface = "socketcand"', 'clock = "lockstep"',
-             *(f"{key} = {json.dumps(info[key])}" for key in HOST_KEYS if key in info)]
-    if "io_node_id" in info:
-        lines.append(f"# tool-tip exciters: [experiment] io_node_id = {info['io_node_id']}")
-    return "\n".join(lines)
+    """The [bench] table a host config needs to reach this simulated bench (TOML; the
+    devices' tables as dotted keys, so that keys appended to it stay in [bench])."""
+    nodes = [key for key in info if key.endswith("node_id")]
+    devices = [f"devices.{name}.{key} = {json.dumps(value)}"
+               for name, table in info.get("devices", {}).items() for key, value in table.items()]
+    return "\n".join(["# host config: reach this simulated bench over loopback, as hardware",
+                      "[bench]", "simulated = false", 'interface = "socketcand"',
+                      'clock = "lockstep"',
+                      *(f"{key} = {json.dumps(info[key])}" for key in (*HOST_KEYS, *nodes)
+                        if key in info), *devices])
 
 
 class OneLineFormatter(logging.Formatter):

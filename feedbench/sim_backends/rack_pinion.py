@@ -376,6 +376,11 @@ class SimulatedRackPinionAxis:
     def load_cell_id(self) -> int:
         return self.load_cell.device_id
 
+    @property
+    def modbus_devices(self) -> list[SimulatedLoadCell]:
+        """The Modbus devices it serves: the load cell."""
+        return [self.load_cell]
+
     def close(self) -> None:
         self.bus.close()
         self._server.stop()
