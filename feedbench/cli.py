@@ -105,6 +105,16 @@ def cmd_catalog_rebuild(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_catalog_sync(args: argparse.Namespace) -> int:
+    """Register in the catalog the runs recorded in the output directory while it was
+    unreachable (`Catalog.sync`)."""
+    catalog = open_catalog(args.dir, args.catalog)
+    added, settled = catalog.sync()
+    print(f"{catalog.name}: {len(added)} run(s) registered, {len(settled)} settled from "
+          "their recordings")
+    return 0
+
+
 def resolve_run(run: str, directory: str, catalog: str = "") -> str:
     """A recording path from a file path or a run id (or unique id prefix) in the catalog
     (`open_catalog`)."""
@@ -357,6 +367,10 @@ def build_parser() -> argparse.ArgumentParser:
                                      "recordings (*.h5) in the output directory")
     rebuild.add_argument("--dir", default="runs", help="output directory holding the recordings")
     rebuild.set_defaults(func=cmd_catalog_rebuild)
+    sync = catalog_sub.add_parser("sync", help="register the runs recorded in the output "
+                                  "directory while the catalog was unreachable")
+    sync.add_argument("--dir", default="runs", help="output directory holding the recordings")
+    sync.set_defaults(func=cmd_catalog_sync)
 
     analyze = sub.add_parser("analyze", help="analyse a recorded run (id, id prefix or .h5) "
                              "or the FRFs of a UFF58 file (.uff, .unv)")
@@ -430,7 +444,7 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--csv", metavar="FILE", help="CSV file (FILE.toml: its sidecar)")
     export.set_defaults(func=cmd_export)
 
-    for command in (run, runs, rebuild, analyze, live, report, export):
+    for command in (run, runs, rebuild, sync, analyze, live, report, export):
         command.add_argument("--catalog", metavar="URL", default="", help="the run catalog: "
                              "postgresql://user@host/database or an SQLite file (default: "
                              "$FEEDBENCH_CATALOG, else bench.catalog, else DIR/catalog.sqlite)")

@@ -191,6 +191,30 @@ def test_a_damaged_row_is_listed_damaged_and_rebuilt_from_its_file_on_both(locat
         for run_id in ids[::-1]]
 
 
+def test_sync_registers_what_the_recordings_say_and_changes_nothing_else_on_both(
+        location, tmp_path):
+    """Runs recorded while the catalog was unreachable: one it never heard of, one whose
+    process (alive: `reconcile` leaves it) could not write its end."""
+    catalog = Catalog(location, directory=tmp_path)
+    unfinished = catalog.new_run_id("friction_sweep")
+    catalog.add(unfinished, "friction_sweep", tmp_path / f"{unfinished}.h5", {})
+    other = catalog.new_run_id("chirp")
+    catalog.add(other, "chirp", tmp_path / "elsewhere.h5", {"f_stop_Hz": 200.0})
+    unknown = "20261125-101010-friction_sweep-1"
+    for run_id, status in ((unfinished, "aborted"), (unknown, "complete")):
+        record(tmp_path / f"{run_id}.h5", "friction_sweep", friction_steps(), status=status,
+               reason="SIGINT" if status == "aborted" else "")
+    assert catalog.reconcile() == []
+
+    assert catalog.sync() == ([unknown], [unfinished])
+    rows = {row.id: row for row in catalog.list()}
+    assert [(rows[i].status, rows[i].reason, rows[i].n_samples, rows[i].bench) for i in (
+        unfinished, unknown)] == [("aborted", "SIGINT", 4940, catalog.bench),
+                                  ("complete", "", 4940, catalog.bench)]
+    assert (rows[other].status, rows[other].params) == ("running", {"f_stop_Hz": 200.0})
+    assert catalog.sync() == ([], []), "once"
+
+
 @needs_postgres
 def test_rebuild_replaces_its_directorys_rows_and_keeps_the_other_benches(postgres_url,
                                                                           tmp_path):

@@ -320,15 +320,23 @@ class Catalog:
     def finish(self, run_id: str, status: str, reason: str, n_samples: int,
                timing: Mapping[str, Any] | None = None) -> None:
         """Record the end of run `run_id`: status (complete / aborted), reason, sample count,
-        a real-time run's cycle timing."""
-        with self._transaction() as connection:
-            updated = connection.execute(
-                text("UPDATE runs SET stopped_at = :stopped_at, status = :status,"
-                     " reason = :reason, n_samples = :n_samples, timing = :timing"
-                     " WHERE id = :id"),
-                {"stopped_at": utc_now_iso(), "status": status, "reason": reason,
-                 "n_samples": int(n_samples), "timing": _timing_json(timing), "id": run_id},
-            ).rowcount
+        a real-time run's cycle timing. A catalog gone since the run started (a server
+        stopped) raises `CatalogError` saying that the run is kept in its recording and
+        `feedbench catalog sync` registers it once the catalog is back."""
+        try:
+            with self._transaction() as connection:
+                updated = connection.execute(
+                    text("UPDATE runs SET stopped_at = :stopped_at, status = :status,"
+                         " reason = :reason, n_samples = :n_samples, timing = :timing"
+                         " WHERE id = :id"),
+                    {"stopped_at": utc_now_iso(), "status": status, "reason": reason,
+                     "n_samples": int(n_samples), "timing": _timing_json(timing),
+                     "id": run_id},
+                ).rowcount
+        except CatalogError as exc:
+            raise CatalogError(f"run {run_id} {status}, kept in its recording but not in the "
+                               f"catalog ({exc}); feedbench catalog sync registers it once "
+                               "the catalog is back") from exc.__cause__
         if not updated:
             raise RunLookupError(f"no run with id {run_id!r} in {self.name}")
 
@@ -423,9 +431,31 @@ class Catalog:
                         and not _ended(live["pid"], live["host"], self._resolved(live["file"]))):
                     rows[live["id"]] = tuple(row)
             _delete(connection, replaced)
-            _insert(connection, sorted(rows.values(), key=lambda row: row[
-                COLUMN_NAMES.index("started_at")] or "~"))  # a run not started yet: last
+            _insert(connection, list(rows.values()))
         return added, skipped
+
+    def sync(self) -> tuple[list[str], list[str]]:
+        """Register what the recordings in `directory` say and the catalog does not know (runs
+        recorded while it was unreachable): a recording without a row gets one (as `rebuild`
+        makes it), a row left unfinished takes its file's final status. Nothing else changes.
+        Returns the ids registered and the ids settled."""
+        found = {}
+        for path in sorted(self.directory.glob("*.h5")):
+            summary, _ = _summary(str(path))
+            if summary is not None:
+                found[summary.run_id] = summary
+        with self._transaction(lock=True) as connection:
+            known = dict(connection.execute(text("SELECT id, status FROM runs")).fetchall())
+            added = [_rebuilt_row(summary, self._stored(summary.path), self.bench)
+                     for run_id, summary in found.items() if run_id not in known]
+            _insert(connection, added)
+        settled = [run_id for run_id, summary in found.items()
+                   if known.get(run_id) in UNFINISHED and summary.status not in UNFINISHED]
+        for run_id in settled:
+            summary = found[run_id]
+            self._settle(run_id, summary.status, summary.reason, summary.n_samples,
+                         summary.stopped_at, summary.timing)
+        return [row[0] for row in added], settled
 
     def _in_directory(self, row: Mapping[str, Any]) -> bool:
         """Whether a row is one of `directory`'s runs: its recording is there, or it has
@@ -545,11 +575,14 @@ def _delete(connection: Connection, ids: list[str]) -> None:
 
 
 def _insert(connection: Connection, rows: list[tuple[Any, ...]]) -> None:
-    """Insert whole rows (`COLUMN_NAMES` order), in their order."""
+    """Insert whole rows (`COLUMN_NAMES` order) in the order their runs started (a run not
+    started yet last)."""
+    started = COLUMN_NAMES.index("started_at")
     if rows:
         connection.execute(text(f"INSERT INTO runs ({COLUMNS}) VALUES "
                                 f"({', '.join(':' + name for name in COLUMN_NAMES)})"),
-                           [dict(zip(COLUMN_NAMES, row)) for row in rows])
+                           [dict(zip(COLUMN_NAMES, row))
+                            for row in sorted(rows, key=lambda row: row[started] or "~")])
 
 
 def _upgrade(connection: Connection, name: str) -> bool:
