@@ -9,18 +9,23 @@ PYTEST_ARGS = -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 .PHONY: demo test test-latest lock bench docs clean
 
+# the stamp holds the set-up's wall time (s), which `make demo` reports
 $(STAMP): pyproject.toml $(LOCK)
-	$(PY) -m venv $(VENV)
-	$(BIN)/pip install --quiet 'pip==$(PIP_VERSION)'
-	$(BIN)/pip install --quiet -c $(LOCK) -e '.[test]'
-	touch $(STAMP)
+	start=$$(date +%s) && \
+	$(PY) -m venv $(VENV) && \
+	$(BIN)/pip install --quiet 'pip==$(PIP_VERSION)' && \
+	$(BIN)/pip install --quiet -c $(LOCK) -e '.[test]' && \
+	echo $$(( $$(date +%s) - start )) > $(STAMP)
 
 $(VENV)/.bench: $(STAMP)
 	$(BIN)/pip install --quiet -c $(LOCK) -e '.[test,bench]'
 	touch $(VENV)/.bench
 
+# the demo prints where its time went; then the set-up of this clone (once, before it)
 demo: $(STAMP)
 	$(BIN)/feedbench demo --quick
+	@s=$$(cat $(STAMP)); echo "Set-up of this clone (venv + pip install, once):" \
+		"$${s:-not timed}$${s:+ s}; the first demo also compiles the physics (numba, cached)"
 
 # two xdist workers, whole files each, slowest files first (tests/conftest.py): 3 min 40 s
 # on this 2-core machine, one process (`make test TEST_WORKERS=0`) 7-8 min

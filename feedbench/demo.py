@@ -178,6 +178,20 @@ def measure(example: Example, raw: dict, quiet: bool = True) -> Measured:
     return Measured(_entry(run, analysis, truth), section)
 
 
+RUN_NAMES_AND_TIMES = ("id", "file", "report", "elapsed_s", "analysis_s", "report_s", "timing")
+"""The keys of a demo summary that name a run (id, file, report file) or time it."""
+
+
+def numbers_of(summary: Any) -> Any:
+    """A demo summary or a part of it (as JSON) without `RUN_NAMES_AND_TIMES`: what two
+    demos of the same configs share to the last digit (lockstep virtual time), however many
+    workers ran them."""
+    if isinstance(summary, dict):
+        return {key: numbers_of(value) for key, value in summary.items()
+                if key not in RUN_NAMES_AND_TIMES}
+    return [numbers_of(value) for value in summary] if isinstance(summary, list) else summary
+
+
 def demo_workers(n_examples: int) -> int:
     """Worker processes for `n_examples` runs: one per CPU this process may use (each
     simulated bench runs on one, `daq.clock.one_core`), at most one per run."""

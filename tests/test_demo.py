@@ -13,7 +13,7 @@ import pytest
 
 from feedbench.config import OWN_DISTRIBUTION
 from feedbench.daq.recording import printable_json
-from feedbench.demo import campaign_config, describe_analysis, measure
+from feedbench.demo import campaign_config, describe_analysis, measure, numbers_of
 from feedbench.experiments.family import examples, families
 
 FRICTION_TOL = {"F_c": 0.02, "F_s": 0.02, "sigma": 0.02, "v_s": 0.05}
@@ -26,8 +26,6 @@ DEMO_TIMEOUT_S = 540
 """The campaign takes ≈ 25 s alone on 2 cores (its runs on 2 worker processes), ≈ 60 s
 beside another pytest worker, more on a slower machine or when it compiles the physics on
 first use (fresh clone)."""
-VOLATILE = ("id", "file", "elapsed_s", "analysis_s", "report_s")
-"""What differs between two runs of one config: the run id, its file and the wall times."""
 
 pytestmark = pytest.mark.timeout(DEMO_TIMEOUT_S + 60)
 
@@ -168,12 +166,8 @@ def test_analyze_text_is_the_headline_details_and_checks_with_their_reasons(demo
 
 
 def same_numbers(entry: dict) -> dict:
-    """A demo entry as its JSON, without the keys that name the run or time it (`VOLATILE`)."""
-    def strip(value):
-        if isinstance(value, dict):
-            return {k: strip(v) for k, v in value.items() if k not in VOLATILE}
-        return [strip(v) for v in value] if isinstance(value, list) else value
-    return strip(json.loads(printable_json(entry)))
+    """A demo entry as its JSON (`demo --json`), without what names or times the run."""
+    return numbers_of(json.loads(printable_json(entry)))
 
 
 def test_a_run_in_a_demo_worker_gives_the_numbers_it_gives_alone_in_this_process(
