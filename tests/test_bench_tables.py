@@ -67,11 +67,15 @@ class Thermometer(Device):
 class SimulatedThermometer(SimulatedModbusDevice):
     register_map = MAP
 
+    def __init__(self, device_id, temperature_C):
+        super().__init__(device_id)
+        self.temperature_C = temperature_C
+
     def advance(self, dt_s):
         pass
 
     def values(self):
-        return {"temperature": 21.5}
+        return {"temperature": self.temperature_C}
 
     def apply(self, name, value):
         raise InvalidWrite(name)
@@ -79,10 +83,12 @@ class SimulatedThermometer(SimulatedModbusDevice):
 
 class ThermometerPeer(SimulatedPeer):
     name = "thermometer"
+    world_schema = {"temperature_C": Field(float, 20.0, "the room's temperature (degC)")}
 
     def __init__(self, sim, settings):
         super().__init__(sim, settings)
-        sim.serve_modbus(SimulatedThermometer(settings["unit_id"]), settings["name"])
+        sim.serve_modbus(SimulatedThermometer(settings["unit_id"], self.world["temperature_C"]),
+                         settings["name"])
 '''
 
 
@@ -109,10 +115,12 @@ def _bench(**keys) -> dict:
 
 
 def test_a_lab_device_is_configured_by_its_own_table(lab_thermometer, capsys):
-    """The lab's kind, asked for by name, opened from its table alone: its unit id (9, not
-    its default 7) reaches both the host and the simulated peer, its own setting the host;
-    the simulated run says on one line which address hardware would need."""
-    bench = _bench(devices={"thermometer": {"unit_id": 9, "offset_C": 1.0}})
+    """The lab's kind, asked for by name, opened from its tables alone: its unit id (9, not
+    its default 7) reaches both the host and the simulated peer, its own setting the host,
+    its peer's world table the peer; the simulated run says on one line which address
+    hardware would need."""
+    bench = _bench(devices={"thermometer": {"unit_id": 9, "offset_C": 1.0}},
+                   world={"thermometer": {"temperature_C": 21.5}})
     with Bench(bench, None, {"thermometer": {}}) as opened:
         device, = opened.devices
         assert opened.simulated.modbus_devices[0].device_id == 9
@@ -193,6 +201,19 @@ def test_an_old_config_is_read_with_one_line_per_key(capsys):
         'feedbench: bench.modbus is read as bench.devices.spindle.address; write '
         '[bench.devices.spindle] address = "10.0.0.5:502"']
     assert device_tables(bench, {"load_cell": {}})["load_cell"]["every_cycles"] == 4
+
+
+def test_a_peer_owns_its_world_table(lab_thermometer):
+    """``[bench.world.<name>]``: the simulated device's constants, checked by its peer's
+    schema (an unknown key named), and the lab axis's own keys beside them."""
+    bench = _bench(world={"load_cell": {"range_N": 5000.0}, "m_mot_kg": 30.0})
+    with Bench(bench, None, {"load_cell": {}}) as opened:
+        assert opened.simulated.peers["load_cell"].load_cell.range_N == 5000.0
+        assert opened.simulated.drive.simulator.axis.m_mot == 30.0
+    bench = _bench(world={"thermometer": {"temperature_K": 294.0}})
+    with pytest.raises(ConfigError, match=r"^bench.world.thermometer.temperature_K: unknown "
+                                          r"key \(known: temperature_C\)$"):
+        Bench(bench, None, {"thermometer": {}}).__enter__()
 
 
 def test_axis_kinds_are_registered_with_their_own_keys():

@@ -37,7 +37,9 @@ from typing import Any, Callable, ClassVar, TextIO
 
 import numpy as np
 
-from feedbench.config import ConfigError, registered
+from feedbench.config import (
+    ConfigError, Field, non_negative, positive, registered, validate_table,
+)
 from feedbench.protocols.address import LOOPBACK, split_address
 from feedbench.protocols.canbus import frozen_heap
 from feedbench.protocols.serial_frames import CHANNELS
@@ -97,15 +99,20 @@ class SimulatedPeer:
     `sim.drive`'s network) and puts its address under the device's name in `sim.addresses`.
     Once every peer exists, `attach()` hooks it into the world (the drive's `before_physics`
     / `after_physics`; a world two peers share looks the other up in `sim.peers`);
-    `end_of_cycle`, if set, runs after every peer's hooks.
+    `end_of_cycle`, if set, runs after every peer's hooks. `world`: its own
+    ``[bench.world.<name>]`` table, checked against `world_schema` (`SimulatedBench`).
     """
 
     name: ClassVar[str]
+    world_schema: ClassVar[Mapping[str, Field]] = {}
+    """Its ``[bench.world.<name>]`` table: the simulated device's constants (engineering
+    units), never read by the host."""
     end_of_cycle: Callable[[], None] | None = None
 
     def __init__(self, sim: SimulatedBench, settings: Mapping[str, Any]) -> None:
         self.sim = sim
         self.settings = settings
+        self.world = sim.peer_worlds[settings["name"]]
 
     def attach(self) -> None:
         """Hook into the world; nothing by default."""
@@ -114,6 +121,18 @@ class SimulatedPeer:
 def simulated_peers() -> dict[str, type[SimulatedPeer]]:
     """Every registered simulated peer by device kind (entry points of `SIM_PEER_GROUP`)."""
     return registered(SIM_PEER_GROUP, SimulatedPeer)
+
+
+def peer_worlds(world: Mapping[str, Any],
+                tables: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The ``[bench.world.<name>]`` tables of the simulated peers, each checked against its
+    peer's `world_schema` (defaults filled in): one per registered peer kind and per device
+    of `tables` (name → checked device table) whose kind has a peer."""
+    known = simulated_peers()
+    kinds = {**{kind: kind for kind in known},
+             **{name: table["kind"] for name, table in tables.items() if table["kind"] in known}}
+    return {name: validate_table(world.get(name, {}), known[kind].world_schema,
+                                 f"bench.world.{name}") for name, kind in kinds.items()}
 
 
 def milling_runs(peers: Mapping[str, SimulatedPeer]) -> bool:
@@ -127,10 +146,13 @@ class SpindlePeer(SimulatedPeer):
     cutting `sim.workpiece`), else the inverter's own speed ramp alone."""
 
     name = "spindle"
+    world_schema = {"max_speed_rpm": Field(float, 6000.0, "overspeed trip (rpm)", positive),
+                    "ramp_rpm_s": Field(float, 200.0, "ramp limit at power-up (rpm/s)",
+                                        positive)}
 
     def __init__(self, sim: SimulatedBench, settings: Mapping[str, Any]) -> None:
         super().__init__(sim, settings)
-        self.inverter = SimulatedSpindleInverter(settings["unit_id"])
+        self.inverter = SimulatedSpindleInverter(settings["unit_id"], **self.world)
         self.milling: SmfeWorld | None = None
         sim.serve_modbus(self.inverter, settings["name"])
 
@@ -153,10 +175,13 @@ class LoadCellPeer(SimulatedPeer):
     exciters apply to the tool tip (the drive's `tip_force`, N), sampled once per bus cycle."""
 
     name = "load_cell"
+    world_schema = {"range_N": Field(float, 25000.0, "amplifier range (N)", positive),
+                    "noise_std_N": Field(float, 2.0, "noise std (N)", non_negative)}
 
     def __init__(self, sim: SimulatedBench, settings: Mapping[str, Any]) -> None:
         super().__init__(sim, settings)
-        self.load_cell = SimulatedLoadCell(lambda: sim.drive.tip_force, settings["unit_id"])
+        self.load_cell = SimulatedLoadCell(lambda: sim.drive.tip_force, settings["unit_id"],
+                                           **self.world)
         sim.serve_modbus(self.load_cell, settings["name"])
         sim.drive.after_physics.append(lambda: self.load_cell.advance(sim.cycle_s))
 
@@ -242,12 +267,15 @@ class SimulatedBench:
         self.modbus_devices: list[SimulatedModbusDevice] = []
         self._modbus_keys: set[str] = set()
         self.peers: dict[str, SimulatedPeer] = {}
+        self.peer_worlds = peer_worlds(self.world, tables)
+        axis_world = {key: table for key, table in self.world.items()
+                      if key not in self.peer_worlds}
         try:
-            simulator = build_axis(self.world, self.cycle_s)
-            self.faults = world_faults(self.world)
+            simulator = build_axis(axis_world, self.cycle_s)
+            self.faults = world_faults(axis_world)
             self.drive = start_simulated_axis(bench["interface"], bench["channel"],
                                               bench["node_id"], simulator,
-                                              noise=build_sensor_noise(self.world),
+                                              noise=build_sensor_noise(axis_world),
                                               faults=self.faults, **(bus_options or {}))
             self.stack.callback(self.drive.close)
             self._start_peers(tables, modbus_address)
