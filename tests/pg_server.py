@@ -13,8 +13,13 @@ import shutil
 import socket
 import subprocess
 import tempfile
+import uuid
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+
+import psycopg
+import pytest
 
 USER = "feedbench"
 DATABASE = "postgres"
@@ -97,3 +102,34 @@ def remove_server(server: PostgresServer) -> None:
         server.stop()
     finally:
         shutil.rmtree(server.directory, ignore_errors=True)
+
+
+def running_server() -> Iterator[PostgresServer]:
+    """A server started, then stopped and removed."""
+    started = start_server()
+    try:
+        yield started
+    finally:
+        remove_server(started)
+
+
+@pytest.fixture(scope="module")
+def server() -> Iterator[PostgresServer]:
+    """One throw-away server for a test module (each test makes its own database)."""
+    yield from running_server()
+
+
+@pytest.fixture
+def own_server() -> Iterator[PostgresServer]:
+    """A server of the test's own (to stop and start again)."""
+    yield from running_server()
+
+
+@pytest.fixture
+def postgres_url(server: PostgresServer, monkeypatch: pytest.MonkeyPatch) -> str:
+    """A new, empty database on the server; its password only in `PGPASSWORD`."""
+    monkeypatch.setenv("PGPASSWORD", server.password)
+    name = f"catalog_{uuid.uuid4().hex[:12]}"
+    with psycopg.connect(server.url, autocommit=True) as connection:
+        connection.execute(f"CREATE DATABASE {name}")
+    return server.url.rsplit("/", 1)[0] + "/" + name

@@ -12,10 +12,8 @@ import socket
 import subprocess
 import sys
 import uuid
-from collections.abc import Iterator
 from pathlib import Path
 
-import psycopg
 import pytest
 from sqlalchemy import text
 
@@ -25,7 +23,7 @@ from feedbench.config import ConfigError
 from feedbench.daq.catalog import Catalog, RunRow, open_catalog
 from feedbench.daq.recording import open_recording
 from feedbench.daq.run_filter import Condition, RunFilter
-from pg_server import BINARIES, PostgresServer, remove_server, start_server
+from pg_server import BINARIES, postgres_url, server  # noqa: F401  (fixtures)
 from prerequisites import requires
 from test_catalog_truth import short_sweep
 from test_report import friction_steps, record
@@ -33,26 +31,6 @@ from test_report import friction_steps, record
 needs_postgres = requires(BINARIES is not None, "PostgreSQL's server programs (Debian package "
                           "postgresql; .ci/run installs it)")
 SECRET_URL = "postgresql://lab:{password}@127.0.0.1:5432/runs"
-
-
-@pytest.fixture(scope="module")
-def server() -> Iterator[PostgresServer]:
-    """One throw-away server for the module's tests (each makes its own database)."""
-    started = start_server()
-    try:
-        yield started
-    finally:
-        remove_server(started)
-
-
-@pytest.fixture
-def postgres_url(server: PostgresServer, monkeypatch: pytest.MonkeyPatch) -> str:
-    """A new, empty database on the server; its password only in `PGPASSWORD`."""
-    monkeypatch.setenv("PGPASSWORD", server.password)
-    name = f"catalog_{uuid.uuid4().hex[:12]}"
-    with psycopg.connect(server.url, autocommit=True) as connection:
-        connection.execute(f"CREATE DATABASE {name}")
-    return server.url.rsplit("/", 1)[0] + "/" + name
 
 
 @pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=needs_postgres)])

@@ -15,19 +15,16 @@ import subprocess
 import sys
 import textwrap
 import time
-from collections.abc import Iterator
 from importlib import resources
 from pathlib import Path
-
-import pytest
 
 from feedbench.cli import main
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording
 from feedbench.daq.run_filter import RunFilter
-from pg_server import BINARIES, PostgresServer, remove_server, start_server
+from pg_server import BINARIES, own_server, postgres_url, server  # noqa: F401  (fixtures)
 from prerequisites import requires
-from test_catalog_postgres import postgres_url, server  # noqa: F401  (fixtures)
+from test_catalog_concurrency import LISTER, python
 from test_catalog_truth import _flushed
 
 pytestmark = requires(BINARIES is not None, "PostgreSQL's server programs (Debian package "
@@ -58,30 +55,13 @@ WRITER = textwrap.dedent("""
         catalog.finish(run_id, status, reason, recorder.n_samples)
         print(run_id, path, flush=True)
 """)
-LISTER = textwrap.dedent("""
-    import contextlib, io, pathlib, sys
-    from feedbench.cli import main
-
-    url, stop = sys.argv[1], pathlib.Path(sys.argv[2])
-    listed = 0
-    while not stop.exists():
-        with contextlib.redirect_stdout(io.StringIO()):
-            if main(["runs", "--catalog", url]) != 0:
-                sys.exit("feedbench runs failed")
-        listed += 1
-    print(listed)
-""")
 
 
-def python(script: str, *args: object) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-c", script, *map(str, args)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-def test_four_benches_at_once_lose_and_duplicate_no_run(postgres_url, tmp_path):
+def test_four_benches_at_once_lose_and_duplicate_no_run(postgres_url, tmp_path, monkeypatch):
     Catalog(postgres_url)  # the schema, made once before the benches start
     stop = tmp_path / "stop"
-    lister = python(LISTER, postgres_url, stop)
+    monkeypatch.setenv("FEEDBENCH_CATALOG", postgres_url)  # the lister's `feedbench runs`
+    lister = python(LISTER, tmp_path, stop)
     started = time.monotonic()
     for k in range(BENCHES):
         (tmp_path / f"bench-{k}").mkdir()
@@ -109,16 +89,6 @@ def test_four_benches_at_once_lose_and_duplicate_no_run(postgres_url, tmp_path):
             ] == [RUNS_PER_BENCH] * BENCHES
     print(f"{len(rows)} runs by {BENCHES} benches in {elapsed:.1f} s "
           f"({len(rows) / elapsed:.0f} runs/s), listed {listed.strip()} times meanwhile")
-
-
-@pytest.fixture
-def own_server() -> Iterator[PostgresServer]:
-    """A server of this test's own, to stop and start again."""
-    started = start_server()
-    try:
-        yield started
-    finally:
-        remove_server(started)
 
 
 def sweep_config(path: Path, directory: Path, channel: str, catalog: str) -> Path:

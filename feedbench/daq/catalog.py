@@ -231,10 +231,10 @@ class Catalog:
     def _create(self, locked: bool) -> list[str]:
         """Make the tables, or bring an old catalog to the current schema version (under the
         write lock, so that processes opening it at once upgrade it once); returns what
-        SQLite's integrity check finds wrong (nothing: an empty list). An SQLite file is
-        switched to WAL under its file lock: two processes switching a new file at once find
-        it locked, busy timeout or not."""
-        if self.path is not None:
+        SQLite's integrity check finds wrong (nothing: an empty list). An SQLite file not in
+        WAL mode yet is switched under its file lock: two processes switching a new file at
+        once find it locked, busy timeout or not."""
+        if self.path is not None and _not_in_wal_mode(self.path):
             with (nullcontext() if locked else _file_lock(self.path),
                   self._transaction(begin="") as connection):  # not within a transaction
                 connection.exec_driver_sql("PRAGMA journal_mode=WAL")
@@ -531,6 +531,19 @@ class Catalog:
             problem = " ".join(str(exc.orig).split())
             raise CatalogError(f"{self.name}: cannot use the run catalog ({problem})"
                                ) from exc.orig
+
+
+def _not_in_wal_mode(path: Path) -> bool:
+    """Whether `path` is no SQLite file in WAL mode yet (missing, empty, in rollback mode, not
+    SQLite: its header's bytes 18-19 are not 2, sqlite.org/fileformat.html); a directory is
+    no catalog and is left to fail when opened."""
+    if path.is_dir():
+        return False
+    try:
+        with open(path, "rb") as file:
+            return file.read(20)[18:20] != b"\x02\x02"
+    except FileNotFoundError:
+        return True
 
 
 @contextmanager
