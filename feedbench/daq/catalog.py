@@ -479,12 +479,14 @@ class Catalog:
         that name beside the catalog."""
         if stored is None or self.path is None:
             return stored
-        beside = self.path.parent / stored
-        if not beside.exists():
-            for old in (Path(stored), self.path.parent / Path(stored).name):
-                if old.exists():
-                    return str(old)
-        return str(beside)
+        parent = "" if self.path.parent == Path(".") else str(self.path.parent)
+        beside = os.path.join(parent, stored)
+        if os.sep not in stored or os.path.exists(beside):  # a name: as stored since then
+            return beside
+        for old in (stored, os.path.join(parent, os.path.basename(stored))):
+            if os.path.exists(old):
+                return old
+        return beside
 
     def _row(self, row: tuple[Any, ...]) -> RunRow:
         """A catalog row as a `RunRow`, its file resolved (`_resolved`); a row whose JSON
