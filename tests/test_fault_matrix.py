@@ -1,4 +1,4 @@
-"""The fault matrix, in lockstep in this process (issue 18.4): the bus faults the simulated
+"""The fault matrix, in lockstep in forked processes (issue 18.4): the bus faults the simulated
 peers inject (`feedbench.sim_backends.faults`: CAN frame loss and bursts, SYNC and PDO
 timeouts, EMCY) against every experiment family, each row a test (`tests/fault_matrix.py`;
 bus-off, the devices' faults, a full disk and SIGINT: tests/test_fault_matrix_devices.py;
@@ -17,17 +17,22 @@ import pytest
 
 from feedbench.config import ConfigError
 from feedbench.sim_backends.faults import Faults, parse_fault_options, with_fault_options
-from fault_matrix import DOC, FAMILIES, FAULT, FAULTS, HEADER, applies, row_test, row_line
+from fault_matrix import (DOC, FAMILIES, FAULT, FAULTS, HEADER, applies, measured_rows,
+                          row_line, row_test)
 
 BUS = [FAULT[name] for name in ("can_loss", "can_burst", "sync_timeout", "pdo_timeout", "emcy")]
 """This file's faults; bus-off, the devices', a full disk and SIGINT:
 test_fault_matrix_devices.py (two files, so that two test workers share the matrix)."""
 
 
+measured = measured_rows(BUS)
+"""Every row of this file's faults, `fault_matrix.ROW_PROCESSES` at a time."""
+
+
 @pytest.mark.parametrize("fault", BUS, ids=lambda fault: fault.name)
 @pytest.mark.parametrize("family", FAMILIES)
-def test_fault_row(fault, family, tmp_path, can_channel):
-    row_test(fault, family, tmp_path, can_channel)
+def test_fault_row(fault, family, measured):
+    row_test(fault, family, measured)
 
 
 def test_the_table_has_every_row_in_order():
