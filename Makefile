@@ -7,7 +7,7 @@ LOCK := requirements.lock
 PIP_VERSION := 26.3
 PYTEST_ARGS = -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
-.PHONY: demo test test-latest lock bench docs clean
+.PHONY: demo test test-fast test-latest lock bench docs clean
 
 # the stamp holds the set-up's wall time (s), which `make demo` reports
 $(STAMP): pyproject.toml $(LOCK)
@@ -32,6 +32,11 @@ demo: $(STAMP)
 TEST_WORKERS ?= 2
 test: $(STAMP)
 	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest $(PYTEST_ARGS)
+
+# the edit loop: the suite without the files marked slow (tests/conftest.py: SLOW_FIRST,
+# each 5 s or more alone), under a minute on 2 workers
+test-fast: $(STAMP)
+	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest $(PYTEST_ARGS) -m "not slow"
 
 # the suite with the newest versions pyproject.toml allows (no lock), in its own fresh
 # environment: shows dependency drift before a fresh machine's user meets it

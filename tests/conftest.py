@@ -28,21 +28,39 @@ if _WORKER:
 from feedbench.testing import simulated_bench, virtual_channel  # noqa: E402, F401
 
 SLOW_FIRST = (
-    "test_demo.py", "test_report.py", "test_structure_experiments.py", "test_smfe_bench.py",
-    "test_notebook.py", "test_stepped_loading.py", "test_scripts.py", "test_live_window.py",
-    "test_config_cli.py", "test_closure_cases.py", "test_api.py", "test_fault_paths.py",
-    "test_campaign.py", "test_rack_pinion_bench.py", "test_sim_process.py",
-    "test_fault_matrix.py", "test_fault_matrix_devices.py", "test_fault_matrix_host.py",
+    "test_demo.py", "test_closure_independent.py", "test_fault_matrix_host.py",
+    "test_report.py", "test_fault_matrix.py", "test_watchdogs.py", "test_live_window.py",
+    "test_smfe_bench.py", "test_tune.py", "test_closure_cases.py", "test_scripts.py",
+    "test_timeouts.py", "test_fault_paths.py", "test_closure_measurement.py",
+    "test_catalog_postgres_benches.py", "test_campaign.py", "test_mistakes.py",
+    "test_notebook.py", "test_fault_matrix_devices.py", "test_structure_experiments.py",
+    "test_stepped_loading.py", "test_config_cli.py", "test_catalog_truth.py",
+    "test_sim_process.py", "test_dynamic_friction.py", "test_closure_emps.py",
+    "test_closure_gallery.py", "test_realtime.py", "test_closure_robust.py",
+    "test_late_host.py", "test_bad_inputs.py", "test_catalog_postgres.py",
+    "test_catalog_paths.py", "test_fuzz_parsers.py", "test_rack_pinion_bench.py",
+    "test_catalog_concurrency.py", "test_serial_daq.py", "test_sim_serves_all.py",
+    "test_run_safety.py", "test_cia402_conformance.py", "test_api.py", "test_smfe.py",
+    "test_closure_kuka.py", "test_clock.py", "test_live_offline.py", "test_bench_tables.py",
+    "test_backlash_reversal.py",
 )
-"""Test files, longest first (measured under `make test`: the demo ≈ 170 s, the scripts
-≈ 85 s, the others 15–60 s each); they start first so the other worker spreads the short
-ones around them. The scripts (four simulated benches at once) start once the demo is
-done: together the two overload the 2 cores and a 1 s bus timeout trips."""
+"""Test files of 5 s or more alone (`pytest -n 0 FILE`, pytest's ≈ 2 s start included),
+longest first: measured one file at a time on 28 Nov beside other jobs, the demo ≈ 45 s
+(its runs on two processes), the closure on the independent simulator 78 s, the SIGKILL
+rows 56 s, the report 52 s, the others 5–31 s. They start first so the other worker spreads
+the short ones around them; the demo first, so that the scripts (four simulated benches at
+once) start after it: together they overload the 2 cores and a 1 s bus timeout trips.
+Marked ``slow``: `make test-fast` runs the other files."""
+
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """`SLOW_FIRST` files first, the rest in collection order; each file's tests stay together."""
+    """`SLOW_FIRST` files first, their tests marked ``slow`` (`make test-fast` leaves them
+    out), the rest in collection order; each file's tests stay together."""
     rank = {name: i for i, name in enumerate(SLOW_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(SLOW_FIRST)))
+    for item in items:
+        if item.path.name in rank:
+            item.add_marker(pytest.mark.slow)
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
