@@ -32,7 +32,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 
 from feedbench.bench import (
-    BENCH_SCHEMA, GAINS_SCHEMA, RUN_SCHEMA, Bench, RunConfig, gains_si, analyze_file,
+    GAINS_SCHEMA, RUN_SCHEMA, Bench, RunConfig, analyze_file, bench_table, gains_si,
     parse_run_config,
 )
 from feedbench.config import ConfigError, Field, interval, read_toml, validate_table
@@ -290,7 +290,7 @@ class BenchSession:
     def __init__(self, config: Mapping[str, Any], source: str = "config") -> None:
         top = validate_table(config, {**RUN_SCHEMA, "experiment": Field(dict, {}, "unused")},
                              source)
-        self.bench_config = validate_table(top["bench"], BENCH_SCHEMA, "bench")
+        self.bench_config = bench_table(top["bench"])
         validate_table(self.bench_config["gains"], GAINS_SCHEMA, "bench.gains")
         limits = dict(top["limits"])
         self.gain_limits = validate_table(limits.pop("gains", {}), GAIN_LIMITS_SCHEMA,
