@@ -25,6 +25,12 @@ from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
 from feedbench.protocols.cia402 import EXTRAPOLATED_CYCLES
 
+pytestmark = pytest.mark.realtime
+"""Run alone (`make test`'s second step): with both cores busy (another xdist worker's
+closure fits) the host loop starves beyond the deliberate stall and steps of 30-47 µm per
+cycle appear (measured 28 Nov, 2 of 3 runs failing): issue 26 item 2 under full CPU load is
+not solved yet."""
+
 RETURN_FEED_MM_MIN = 1500.0
 """The example chirp's return move, the plan's fastest."""
 STALL_AT_BLOCK = 15
