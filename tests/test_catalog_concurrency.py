@@ -31,9 +31,10 @@ WRITER = textwrap.dedent("""
     from feedbench.daq.recorder import Recorder
     from feedbench.experiments.runner import CHANNELS, UNITS
 
-    directory, runs, cycles = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+    location, directory, bench = sys.argv[1:4]
+    runs, cycles = int(sys.argv[4]), int(sys.argv[5])
     for _ in range(runs):  # as bench.run_config and Bench.run
-        catalog = Catalog(f"{directory}/catalog.sqlite")
+        catalog = Catalog(location, directory=directory, bench=bench or None)
         catalog.reconcile()
         run_id = catalog.new_run_id("friction_sweep")
         path = f"{directory}/{run_id}.h5"
@@ -47,8 +48,11 @@ WRITER = textwrap.dedent("""
         except Exception as exc:
             status, reason = "aborted", str(exc)
         catalog.finish(run_id, status, reason, recorder.n_samples)
-        print(run_id, status, reason, flush=True)
+        print(run_id, path, status, reason, flush=True)
 """)
+"""A bench process's runs into the catalog at argv 1 (a file or a URL) and the recordings'
+directory argv 2, as bench argv 3 (empty: the host's name): argv 4 runs of argv 5 cycles
+each; a line per run: id, file, status, reason."""
 LISTER = textwrap.dedent("""
     import contextlib, io, pathlib, sys
     from feedbench.cli import main
@@ -123,8 +127,8 @@ def test_writers_listers_and_readers_at_once_lose_no_run(tmp_path: Path) -> None
     Catalog(directory / "catalog.sqlite")
     watchers = [python(LISTER, directory, stop), python(READER, directory, stop)]
     started = time.monotonic()
-    writers = [python(WRITER, directory, RUNS_PER_WRITER, CYCLES_PER_RUN)
-               for _ in range(WRITERS)]
+    writers = [python(WRITER, directory / "catalog.sqlite", directory, "", RUNS_PER_WRITER,
+                      CYCLES_PER_RUN) for _ in range(WRITERS)]
     written = [writer.communicate(timeout=120) for writer in writers]
     stop.touch()
     watched = [watcher.communicate(timeout=60) for watcher in watchers]
@@ -132,8 +136,8 @@ def test_writers_listers_and_readers_at_once_lose_no_run(tmp_path: Path) -> None
 
     assert [(writer.returncode, err) for writer, (_, err) in zip(writers, written)] == [
         (0, "")] * WRITERS
-    outcomes = [line.split(" ", 2) for out, _ in written for line in out.splitlines()]
-    assert [line for line in outcomes if line[1] != "complete"] == [], "0 aborted"
+    outcomes = [line.split(" ", 3) for out, _ in written for line in out.splitlines()]
+    assert [line for line in outcomes if line[2] != "complete"] == [], "0 aborted"
     assert len(outcomes) == WRITERS * RUNS_PER_WRITER
     assert [(watcher.returncode, err) for watcher, (_, err) in zip(watchers, watched)] == [
         (0, "")] * 2

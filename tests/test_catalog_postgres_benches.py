@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import textwrap
 import time
 from importlib import resources
 from pathlib import Path
@@ -24,7 +23,7 @@ from feedbench.daq.recording import open_recording
 from feedbench.daq.run_filter import RunFilter
 from pg_server import BINARIES, own_server, postgres_url, server  # noqa: F401  (fixtures)
 from prerequisites import requires
-from test_catalog_concurrency import LISTER, python
+from test_catalog_concurrency import LISTER, WRITER, python
 from test_catalog_truth import _flushed
 
 pytestmark = requires(BINARIES is not None, "PostgreSQL's server programs (Debian package "
@@ -33,28 +32,6 @@ pytestmark = requires(BINARIES is not None, "PostgreSQL's server programs (Debia
 BENCHES = 4
 RUNS_PER_BENCH = 50
 CYCLES_PER_RUN = 300
-WRITER = textwrap.dedent("""
-    import sys
-    import numpy as np
-    from feedbench.daq.catalog import Catalog
-    from feedbench.daq.recorder import Recorder
-    from feedbench.experiments.runner import CHANNELS, UNITS
-
-    url, directory, bench, runs, cycles = sys.argv[1:4] + [int(n) for n in sys.argv[4:6]]
-    for _ in range(runs):  # as bench.run_config and Bench.run
-        catalog = Catalog(url, directory=directory, bench=bench)
-        catalog.reconcile()
-        run_id = catalog.new_run_id("friction_sweep")
-        path = f"{directory}/{run_id}.h5"
-        catalog.add(run_id, "friction_sweep", path, {"feeds": 5})
-        recorder = Recorder(path, CHANNELS, UNITS, {"experiment": "friction_sweep",
-                            "run_id": run_id, "config": {"experiment": {}}}, chunk_rows=100)
-        recorder.event(0, "segment", "feed 100 mm/min")
-        recorder.append_block(np.arange(cycles), np.zeros((cycles, len(CHANNELS))))
-        status, reason = recorder.close("complete", "", {"timing": None})
-        catalog.finish(run_id, status, reason, recorder.n_samples)
-        print(run_id, path, flush=True)
-""")
 
 
 def test_four_benches_at_once_lose_and_duplicate_no_run(postgres_url, tmp_path, monkeypatch):
