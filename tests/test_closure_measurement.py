@@ -179,3 +179,23 @@ def test_an_effect_is_added_only_if_it_holds_on_both_recordings(held_out_offset_
     assert match, reason
     assert float(match[1]) == pytest.approx(6.0, abs=0.1)
     assert float(match[2]) == pytest.approx(15.0, abs=0.1)
+
+
+def test_a_model_with_direction_dependent_friction_on_a_one_way_record_does_not_describe():
+    """An axis that only moves forward (20 mm/s plus a 2 Hz wobble that never reverses it):
+    a Coulomb level there is a constant, so the model describes the force to the noise but
+    not the friction; the verdict says the axis moved one way only (odrive-pull of the
+    gallery ended with σ and F_c on 0 and a Stribeck decay as "describes")."""
+    t = np.arange(0.0, 10.0, 1e-3)
+    w = 2 * np.pi * 2.0
+    v = 20e-3 + 10e-3 * np.cos(w * t)
+    x, a = 20e-3 * t + 10e-3 / w * np.sin(w * t), -10e-3 * w * np.sin(w * t)
+    force = M_KG * a + SIGMA_NS_M * v + F_C_N + np.random.default_rng(4).normal(0, 1.0, t.size)
+    spec = parse_model_config({"terms": {"inertia": {"M_kg": "free"},
+                                         "viscous": {"F_v_Ns_m": "free"},
+                                         "coulomb": {"F_c_N": F_C_N}}})
+    verdict = run_closure(spec, Trace(t, x, force, name="one way")).result.final_verdict
+    assert not verdict.describes
+    assert any(r.startswith("the axis moved one way only (0.0% of the used samples")
+               and r.endswith("coulomb cannot be told from an offset and a slope")
+               for r in verdict.reasons), verdict.reasons

@@ -199,12 +199,16 @@ def close_the_loop(model: Model, fit_kin: Kinematics, holdout_kin: Kinematics,
     after = held_out_error(current.model, holdout_kin)
     first_ranking = steps[0].ranking if steps else ranking
     return ClosureResult(base, tuple(steps), tuple(ranking), before, after, options,
-                         judge(base, before, first_ranking, options),
-                         judge(current, after, ranking, options))
+                         judge(base, before, first_ranking, options, fit_kin),
+                         judge(current, after, ranking, options, fit_kin))
+
+
+ONE_WAY_SHARE = 0.05
+"""Below this share of the used samples moving the other way, the axis moved one way only."""
 
 
 def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ...],
-          options: ClosureOptions) -> Verdict:
+          options: ClosureOptions, kin: Kinematics) -> Verdict:
     """Whether `fit` describes the data: its held-out NRMSE `error` within
     `describes_below`, and no mass (kg) on the lower bound of its range (a moving axis, a
     mode, a load behind a play has one). The parameters on a bound are listed either way;
@@ -216,11 +220,25 @@ def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ..
         reasons.append(f"held-out force NRMSE {error:.1%} is above the "
                        f"{options.describes_below:.0%} a describing model leaves")
     reasons += [f"{b} is on the lower bound of its range" for b in bounds if b.endswith(" kg")]
+    reasons += one_way(fit.model, kin)
     screened = [c for c in ranking if c.freed is None and np.isfinite(c.screened)]
     best = max(screened, key=lambda c: c.screened, default=None)
     diagnosis = ("no candidate signature in the residual" if best is None or best.screened <= 0
                  else f"{best.name} ({best.evidence})")
     return Verdict(not reasons, tuple(reasons), bounds, diagnosis)
+
+
+def one_way(model: Model, kin: Kinematics) -> list[str]:
+    """Why friction terms that change with the direction cannot be told apart on `kin` (the
+    axis moved one way only: a Coulomb level, a Stribeck decay and an offset are then one
+    constant and a slope), or nothing."""
+    terms = sorted(model.names & {"coulomb", "stribeck", "direction_dependent"})
+    used = kin.v[kin.rows]
+    other_way = min(np.mean(used > 0.0), np.mean(used < 0.0))
+    if not terms or other_way >= ONE_WAY_SHARE:
+        return []
+    return [f"the axis moved one way only ({other_way:.1%} of the used samples the other "
+            f"way): {', '.join(terms)} cannot be told from an offset and a slope"]
 
 
 def at_bounds(model: Model) -> tuple[str, ...]:

@@ -253,7 +253,14 @@ class Stribeck(Effect):
                           sigma=0.0, delta=values["delta"])[:, None]
 
     def implausible(self, values, total_mass, kin):
-        return None if values["dF_s_N"] > 0.0 else "static level below the Coulomb level"
+        if not values["dF_s_N"] > 0.0:
+            return "static level below the Coulomb level"
+        fastest = float(np.max(np.abs(kin.v[kin.rows])))
+        if values["v_s_mm_min"] > fastest:
+            return (f"Stribeck velocity {values['v_s_mm_min'] / MM_PER_MIN:.4g} mm/min beyond "
+                    f"the fastest speed used, {fastest / MM_PER_MIN:.4g} mm/min: a slope over "
+                    f"the data, not a decay it shows")
+        return None
 
     def starts(self, kin, context):
         top = max(float(np.quantile(np.abs(kin.v), 0.9)), 1e-4)
