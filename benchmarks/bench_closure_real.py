@@ -4,16 +4,18 @@
 
 Per dataset it prints the findings in order, whether the effect its authors document (its
 key) is among the first two, the held-out force NRMSE before → after, whether the base and
-the final fit are physical (every mass or inertia > 0, every friction level ≥ 0,
-0 < ζ < 1; the values that are not are listed) and the closure's wall time. The held-out
-datasets (nobody tunes on them) come in a table of their own.
+the final fit are physical (every mass or inertia > 0, every friction level ≥ 0, a mode's
+0 < ζ < 1: `analysis.closure.report.unphysical`; the values that are not are listed) —
+"yes", "n.d." when the closure declared that model not describing the data, "NO" when an
+unphysical model was called describing — and the closure's wall time. The held-out datasets
+(nobody tunes on them) come in a table of their own.
 
 Figures (`run()`, and one JSON line at the end when run alone), per dataset `<name>`:
 real_<name>_key_first_two (1/0), real_<name>_error_before / _error_after (fractions),
-real_<name>_base_physical / _final_physical (1/0), real_<name>_seconds; and the shares
-real_tuning_key_first_two, real_held_out_key_first_two, real_*_base_physical,
-real_*_final_physical over the tuning and the held-out datasets (known machines included in
-the tuning set).
+real_<name>_base_physical / _final_physical (1/0), real_<name>_base_honest /
+_final_honest (1/0: physical, or declared not describing), real_<name>_seconds; and the
+shares of each 1/0 figure over the tuning and the held-out datasets (known machines
+included in the tuning set).
 
 Run alone: `python benchmarks/bench_closure_real.py`.
 """
@@ -29,6 +31,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from feedbench.analysis.closure import report_dict
+from feedbench.analysis.closure.report import unphysical
 from feedbench.closure_command import closure_report
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
@@ -36,13 +39,6 @@ from gallery import datasets  # noqa: E402  (tests/gallery.py)
 from prerequisites import SHARED_DATA  # noqa: E402  (tests/prerequisites.py)
 
 from _timing import print_figures  # noqa: E402  (benchmarks/_timing.py)
-
-POSITIVE = frozenset({"M_kg", "m_kg", "m_load_kg"})
-"""Masses and inertias (kg, kg·m², or the dataset's force unit · s²/m): must be > 0."""
-NON_NEGATIVE = frozenset({"F_v_Ns_m", "F_c_N", "dF_s_N", "friction_N_kg"})
-"""Friction levels (viscous, Coulomb, Stribeck excess, a load's friction): must be ≥ 0."""
-DAMPING = frozenset({"zeta", "zeta_contact"})
-"""Damping ratios: must lie in (0, 1)."""
 
 EMPS = SHARED_DATA / "emps"
 KUKA = SHARED_DATA / "kuka-robot"
@@ -72,11 +68,23 @@ class Outcome:
     final_flags: tuple[str, ...]
     seconds: float
     crash: str = ""
+    base_describes: bool = False
+    final_describes: bool = False
 
     @property
     def key_first_two(self) -> bool:
         """Whether the authors' effect is the first or the second finding."""
         return self.case.key in self.findings[:2]
+
+    @property
+    def base_honest(self) -> bool:
+        """The base fit physical, or declared not describing the data (issue 24's bar)."""
+        return not self.crash and (not self.base_flags or not self.base_describes)
+
+    @property
+    def final_honest(self) -> bool:
+        """The final fit physical, or declared not describing the data."""
+        return not self.crash and (not self.final_flags or not self.final_describes)
 
 
 def known_cases() -> list[Case]:
@@ -108,20 +116,6 @@ def findings(report: dict[str, Any]) -> tuple[str, ...]:
                  for step in report["steps"])
 
 
-def unphysical(params: dict[str, dict[str, dict[str, Any]]]) -> tuple[str, ...]:
-    """`term.key = value` of every mass ≤ 0, friction level < 0 or ζ outside (0, 1)."""
-    flags = []
-    for term, values in params.items():
-        for key, entry in values.items():
-            value = entry["value"]
-            bad = ((key in POSITIVE and not value > 0.0)
-                   or (key in NON_NEGATIVE and not value >= 0.0)
-                   or (key in DAMPING and not 0.0 < value < 1.0))
-            if bad:
-                flags.append(f"{term}.{key} = {value:.4g}")
-    return tuple(flags)
-
-
 def close(case: Case) -> Outcome:
     """Run one case and read its report."""
     start = time.perf_counter()
@@ -132,10 +126,15 @@ def close(case: Case) -> Outcome:
                        f"{type(exc).__name__}: {exc}")
     return Outcome(case, findings(report), report["error_before"], report["error_after"],
                    unphysical(report["base_params"]), unphysical(report["final_params"]),
-                   time.perf_counter() - start)
+                   time.perf_counter() - start, "", report["base_verdict"]["describes"],
+                   report["final_verdict"]["describes"])
 
 
-def _physical(flags: tuple[str, ...]) -> str:
+def _physical(flags: tuple[str, ...], describes: bool) -> str:
+    """"yes" (physical, describes), "n.d." (physical or not, declared not describing the
+    data), "NO" (not physical yet called describing: the failure the column is for)."""
+    if not describes:
+        return "n.d."
     return "yes" if not flags else "NO"
 
 
@@ -147,7 +146,8 @@ def row(outcome: Outcome) -> str:
     line = (f"{case.name:<16s} {case.key:<8s} {', '.join(outcome.findings) or '—':<44.44s} "
             f"{'yes' if outcome.key_first_two else 'MISS':<5s} "
             f"{outcome.error_before:7.2%} → {outcome.error_after:7.2%}  "
-            f"{_physical(outcome.base_flags):<4s} {_physical(outcome.final_flags):<4s} "
+            f"{_physical(outcome.base_flags, outcome.base_describes):<4s} "
+            f"{_physical(outcome.final_flags, outcome.final_describes):<5s} "
             f"{outcome.seconds:5.1f} s")
     flagged = [f"base {f}" for f in outcome.base_flags] + [
         f"final {f}" for f in outcome.final_flags]
@@ -173,8 +173,11 @@ def figures_of(outcomes: list[Outcome], group: str) -> dict[str, float]:
                         f"{name}_error_after": o.error_after,
                         f"{name}_base_physical": float(not o.crash and not o.base_flags),
                         f"{name}_final_physical": float(not o.crash and not o.final_flags),
+                        f"{name}_base_honest": float(o.base_honest),
+                        f"{name}_final_honest": float(o.final_honest),
                         f"{name}_seconds": o.seconds})
-    for figure in ("key_first_two", "base_physical", "final_physical"):
+    for figure in ("key_first_two", "base_physical", "final_physical", "base_honest",
+                   "final_honest"):
         values = [figures[f"real_{o.case.name}_{figure}"] for o in outcomes]
         figures[f"real_{group}_{figure}"] = sum(values) / len(values) if values else math.nan
     return figures

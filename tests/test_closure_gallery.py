@@ -1,17 +1,21 @@
 """The gallery of real measurements from other labs (tests/data, issue 24.5): every slice
 reads through the CSV + sidecar route with the units, shape and sample rate its README
 states, and the closure runs on every dataset. What the closure finds there is measured by
-`benchmarks/bench_closure_real.py`; only what holds whatever the closure's search does is
-asserted here."""
+`benchmarks/bench_closure_real.py`; issue 24's bar is asserted here per dataset: no
+unphysical model called describing, and the authors' effect among the first two findings (a
+miss is a strict xfail that says why)."""
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 
 import numpy as np
 import pytest
 
+from feedbench.analysis.closure import report_dict
+from feedbench.analysis.closure.report import unphysical
 from feedbench.cli import main
 from feedbench.closure_command import closure_report
 from feedbench.closure_io import read_csv_trace
@@ -63,12 +67,54 @@ def test_every_slice_reads_with_its_units_shape_and_rate(dataset, path):
                                    atol=RANGE_TOLERANCE * span, err_msg=channel)
 
 
+@functools.cache
+def _closed(name: str) -> dict:
+    """The closure's JSON report on a gallery dataset (once per process)."""
+    dataset = next(d for d in DATASETS if d.name == name)
+    return report_dict(closure_report(dataset.fit, dataset.model, dataset.validation))
+
+
 @pytest.mark.parametrize("dataset", DATASETS, ids=_id)
 def test_the_closure_runs_on_every_dataset(dataset):
-    report = closure_report(dataset.fit, dataset.model, dataset.validation)
-    result = report.result
-    assert math.isfinite(result.error_before) and result.error_before > 0.0
-    assert math.isfinite(result.error_after) and result.error_after > 0.0
+    report = _closed(dataset.name)
+    assert math.isfinite(report["error_before"]) and report["error_before"] > 0.0
+    assert math.isfinite(report["error_after"]) and report["error_after"] > 0.0
+
+
+@pytest.mark.parametrize("dataset", DATASETS, ids=_id)
+def test_no_unphysical_model_is_called_describing(dataset):
+    """Issue 24's bar on every real dataset: the base and the final model are physical (no
+    mass ≤ 0, friction < 0, a mode's ζ outside (0, 1)), or the closure declares them not
+    describing the data, saying why."""
+    report = _closed(dataset.name)
+    for which in ("base", "final"):
+        verdict = report[f"{which}_verdict"]
+        flags = unphysical(report[f"{which}_params"])
+        assert not flags or not verdict["describes"], (which, flags)
+        assert verdict["describes"] or verdict["reasons"], which
+
+
+KEY_MISSED = {
+    "odrive-pull": ("the current follows the active motor's speed loop (i ≈ 9 A − 4 A·s/rev "
+                    "× speed, r = −0.96): the passive motor's cogging reaches the closure "
+                    "through the string at incommensurate pitches (2.74, 3.41, 4.32, 4.90 "
+                    "per turn), no single-pitch ripple explains 15 % of the residual; the "
+                    "offset (the constant pull) is found, the model declared not describing"),
+}
+
+
+def _key_case(dataset: Dataset):
+    reason = KEY_MISSED.get(dataset.name)
+    marks = [pytest.mark.xfail(strict=True, reason=reason)] if reason else []
+    return pytest.param(dataset, id=dataset.name, marks=marks)
+
+
+@pytest.mark.parametrize("dataset", [_key_case(d) for d in DATASETS])
+def test_the_effect_its_authors_document_is_among_the_first_two_findings(dataset):
+    report = _closed(dataset.name)
+    found = [step["effect"] if step["kind"] == "effect" else step["kind"]
+             for step in report["steps"]]
+    assert dataset.key in found[:2], found
 
 
 def test_feedbench_closure_takes_a_gallery_slice_from_the_command_line(capsys):

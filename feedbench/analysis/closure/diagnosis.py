@@ -232,13 +232,33 @@ def one_way(model: Model, kin: Kinematics) -> list[str]:
     """Why friction terms that change with the direction cannot be told apart on `kin` (the
     axis moved one way only: a Coulomb level, a Stribeck decay and an offset are then one
     constant and a slope), or nothing."""
-    terms = sorted(model.names & {"coulomb", "stribeck", "direction_dependent"})
-    used = kin.v[kin.rows]
-    other_way = min(np.mean(used > 0.0), np.mean(used < 0.0))
+    terms = sorted(model.names & DIRECTIONAL)
+    other_way = other_way_share(kin)
     if not terms or other_way >= ONE_WAY_SHARE:
         return []
     return [f"the axis moved one way only ({other_way:.1%} of the used samples the other "
             f"way): {', '.join(terms)} cannot be told from an offset and a slope"]
+
+
+DIRECTIONAL = frozenset({"coulomb", "stribeck", "direction_dependent"})
+"""Friction terms that change with the direction of motion."""
+
+
+def other_way_share(kin: Kinematics) -> float:
+    """Share of the used samples of `kin` moving in the direction less travelled."""
+    used = kin.v[kin.rows]
+    return float(min(np.mean(used > 0.0), np.mean(used < 0.0)))
+
+
+def refused_one_way(candidate: Candidate, kin: Kinematics) -> Candidate:
+    """`candidate` rejected if it is a directional friction term and the axis moved one way
+    only on `kin`: its level is then an offset and its decay a slope (`one_way`)."""
+    other_way = other_way_share(kin)
+    if candidate.name not in DIRECTIONAL or other_way >= ONE_WAY_SHARE:
+        return candidate
+    return replace(candidate, rejected=(
+        f"the axis moved one way only ({other_way:.1%} of the used samples the other way): "
+        f"it cannot be told from an offset and a slope"))
 
 
 def at_bounds(model: Model) -> tuple[str, ...]:
@@ -390,7 +410,8 @@ def rank_candidates(current: Fit, kin: Kinematics, options: ClosureOptions) -> l
     context = Context(current.residual, current.acting,
                       {t.name: t.values for t in current.model.terms})
     basis = _free_basis(current, kin)
-    tried = [try_effect(EFFECTS[name], current, kin, context, basis, options.starts)
+    tried = [refused_one_way(try_effect(EFFECTS[name], current, kin, context, basis,
+                                        options.starts), kin)
              for name in options.candidates if EFFECTS[name].applicable(present, fixed)]
     return sorted(tried, key=_order)
 

@@ -35,6 +35,29 @@ def model_params(fit: Fit) -> dict[str, dict[str, dict[str, float | bool]]]:
     return {t.name: term_params(t, fit) for t in fit.model.terms}
 
 
+POSITIVE = frozenset({"M_kg", "m_kg", "m_load_kg"})
+"""Masses and inertias (kg, kg·m², or the dataset's force unit · s²/m): must be > 0."""
+NON_NEGATIVE = frozenset({"F_v_Ns_m", "F_c_N", "dF_s_N", "friction_N_kg", "zeta_contact"})
+"""Friction levels (viscous, Coulomb, Stribeck excess, a load's friction) and a contact's
+damping ratio (a contact may be overdamped): must be ≥ 0."""
+DAMPING = frozenset({"zeta"})
+"""Damping ratios of structural modes (lightly damped by what a mode is): must lie in (0, 1)."""
+
+
+def unphysical(params: dict[str, dict[str, dict[str, Any]]]) -> tuple[str, ...]:
+    """"term.key = value" of every mass ≤ 0, friction level < 0 or ζ outside (0, 1) in a
+    report's `model_params` (`base_params`, `final_params`)."""
+    flags = []
+    for term, values in params.items():
+        for key, entry in values.items():
+            value = entry["value"]
+            if ((key in POSITIVE and not value > 0.0)
+                    or (key in NON_NEGATIVE and not value >= 0.0)
+                    or (key in DAMPING and not 0.0 < value < 1.0)):
+                flags.append(f"{term}.{key} = {value:.4g}")
+    return tuple(flags)
+
+
 def candidate_dict(candidate: Candidate) -> dict[str, Any]:
     """One ranked candidate: its evidence and score."""
     return {"effect": candidate.name, "kind": candidate.kind, "evidence": candidate.evidence,
