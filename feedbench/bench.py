@@ -22,6 +22,7 @@ from feedbench.daq.catalog import Catalog, CatalogError, open_catalog, url_probl
 from feedbench.daq.clock import LockstepClock, RealtimeClock, one_core
 from feedbench.daq.recorder import Recorder, expected_size
 from feedbench.daq.recording import open_recording
+from feedbench.daq.store import copy_recording, store_problem
 from feedbench.protocols.address import split_address
 from feedbench.protocols.canbus import disconnect, open_network
 from feedbench.drivers.cia402 import Cia402Drive, StopSettings
@@ -77,6 +78,9 @@ BENCH_SCHEMA = {
     "catalog": Field(str, "", "run catalog: postgresql://user@host/database (no password: "
                      "PGPASSWORD, ~/.pgpass or a service file) or an SQLite file (empty: "
                      "output_dir/catalog.sqlite; docs/catalog.md)", url_problem),
+    "store": Field(str, "", "the lab's recording store each recording is copied to after its "
+                   "run: a directory (NAS mount) or an fsspec URL (empty: none; "
+                   "docs/catalog.md)", store_problem),
     "gains": Field(dict, {}, "servo gains written to the drive by SDO before the run"),
     "stop": Field(dict, {}, "what the safe stop needs from the drives and how it is confirmed "
                   "(drivers.cia402.STOP_SCHEMA)"),
@@ -405,11 +409,13 @@ class Bench:
 
     def run(self, config: RunConfig, catalog: Catalog, output_dir: Path,
             observers: Sequence[Observer] = (), progress: bool = True,
-            stop: StopRequest | None = None) -> dict:
+            stop: StopRequest | None = None, store: str = "") -> dict:
         """Execute `config.plan`; returns the catalog row as a dict.
 
         `observers` see the data stream (live window); `stop` lets another thread ask for a
-        safe stop.
+        safe stop. After the run its closed recording is copied to the lab's store, `store`
+        (``--store``) or ``bench.store`` (`daq.store.copy_recording`; the record's ``store``:
+        where, ``copied`` or ``pending`` and why, sha256).
         """
         runner = Runner(self.drive, self.clock, config.limits, stop=stop,
                         observers=[*observers, *([ProgressPrinter()] if progress else [])],
@@ -437,7 +443,17 @@ class Bench:
         except CatalogError as exc:  # full disk: `feedbench runs` settles it from the file
             reason = f"{reason}; {exc}" if reason else str(exc)
         record = {"id": run_id, "file": str(path), "status": outcome.status, "reason": reason}
-        return {**record, "timing": outcome.timing} if outcome.timing else record
+        if outcome.timing:
+            record["timing"] = outcome.timing
+        if store := store or self.config.get("store", ""):
+            copy = copy_recording(run_id, path, store, catalog.bench)
+            record["store"] = copy.as_dict()
+            try:
+                catalog.record_copy(run_id, copy)
+            except CatalogError as exc:  # gone since: said once; sync --store records it
+                if reason == outcome.reason:
+                    record["reason"] = f"{reason}; {exc}" if reason else str(exc)
+        return record
 
 
 def _say_hardware_gaps(tables: Mapping[str, Mapping[str, Any]]) -> None:
@@ -465,9 +481,10 @@ def check_free_space(directory: Path, needed: float) -> None:
 
 def run_config(config: RunConfig, observers: Sequence[Observer] = (),
                progress: bool = True, stop: StopRequest | None = None,
-               catalog: str = "") -> dict:
+               catalog: str = "", store: str = "") -> dict:
     """Open the bench of `config`, run its plan, close the bench; returns the run record.
-    `catalog` (``--catalog``) overrides ``$FEEDBENCH_CATALOG`` and ``bench.catalog``.
+    `catalog` (``--catalog``) overrides ``$FEEDBENCH_CATALOG`` and ``bench.catalog``, `store`
+    (``--store``) ``bench.store``.
 
     The output directory and its catalog are made once the bench has opened: a bench that
     cannot be reached leaves nothing behind."""
@@ -476,4 +493,4 @@ def run_config(config: RunConfig, observers: Sequence[Observer] = (),
         output_dir.mkdir(parents=True, exist_ok=True)
         runs = open_catalog(output_dir, catalog, config.bench["catalog"])
         runs.reconcile()  # runs a dead process left `running`: crashed, in their files too
-        return bench.run(config, runs, output_dir, observers, progress, stop)
+        return bench.run(config, runs, output_dir, observers, progress, stop, store)

@@ -60,9 +60,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.live:
         from feedbench.gui.live_window import bench_session
 
-        row = bench_session(config, progress=not args.json, catalog=args.catalog).exec()
+        row = bench_session(config, progress=not args.json, catalog=args.catalog,
+                            store=args.store).exec()
     else:
-        row = run_config(config, progress=not args.json, catalog=args.catalog)
+        row = run_config(config, progress=not args.json, catalog=args.catalog, store=args.store)
     if args.json:
         _print_json(row)
     else:
@@ -107,20 +108,31 @@ def cmd_catalog_rebuild(args: argparse.Namespace) -> int:
 
 def cmd_catalog_sync(args: argparse.Namespace) -> int:
     """Register in the catalog the runs recorded in the output directory while it was
-    unreachable (`Catalog.sync`)."""
+    unreachable (`Catalog.sync`), then retry the store copies still pending (with --store:
+    copy there the recordings without one; `daq.store.sync_copies`)."""
+    from feedbench.daq.store import sync_copies
+
     catalog = open_catalog(args.dir, args.catalog)
     added, settled = catalog.sync()
     print(f"{catalog.name}: {len(added)} run(s) registered, {len(settled)} settled from "
           "their recordings")
-    return 0
+    copied, failed = sync_copies(catalog, args.store)
+    for line in failed:
+        print(line)
+    if copied or failed:
+        print(f"{len(copied)} recording(s) copied to the store, {len(failed)} still pending")
+    return 1 if failed else 0
 
 
 def resolve_run(run: str, directory: str, catalog: str = "") -> str:
     """A recording path from a file path or a run id (or unique id prefix) in the catalog
-    (`open_catalog`)."""
+    (`open_catalog`): its local file, else its copy in the lab's store
+    (`daq.store.recording_file`)."""
+    from feedbench.daq.store import recording_file
+
     if Path(run).is_file() or Path(run).suffix.lower() in (".h5", ".hdf5"):
         return run
-    return open_catalog(directory, catalog).get(run).file
+    return recording_file(open_catalog(directory, catalog).get(run))
 
 
 def output_directory(directory: str | Path) -> Path:
@@ -332,6 +344,15 @@ def count(text: str) -> int:
     return value
 
 
+def store_location(text: str) -> str:
+    """An argument that must be a recording store (`daq.store.store_problem`)."""
+    from feedbench.daq.store import store_problem
+
+    if problem := store_problem(text):
+        raise argparse.ArgumentTypeError(problem.lstrip(": "))
+    return text
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every sub-command."""
     parser = Parser(prog="feedbench")
@@ -343,6 +364,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("config")
     run.add_argument("--json", action="store_true", help="print the run record as JSON")
     run.add_argument("--live", action="store_true", help="watch the run in the live window")
+    run.add_argument("--store", default="", metavar="STORE", type=store_location,
+                     help="copy the recording there after the run: a directory (NAS) or an "
+                     "fsspec URL (default: bench.store; docs/catalog.md)")
     run.set_defaults(func=cmd_run)
 
     runs = sub.add_parser("runs", help="list the run catalog")
@@ -370,6 +394,9 @@ def build_parser() -> argparse.ArgumentParser:
     sync = catalog_sub.add_parser("sync", help="register the runs recorded in the output "
                                   "directory while the catalog was unreachable")
     sync.add_argument("--dir", default="runs", help="output directory holding the recordings")
+    sync.add_argument("--store", default="", metavar="STORE", type=store_location,
+                      help="also copy there the recordings that have no store copy (the "
+                      "pending copies are retried without it)")
     sync.set_defaults(func=cmd_catalog_sync)
 
     analyze = sub.add_parser("analyze", help="analyse a recorded run (id, id prefix or .h5) "

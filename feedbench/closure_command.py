@@ -245,7 +245,9 @@ def cmd_closure(args: argparse.Namespace) -> int:
         return 0
     if not args.data:
         raise ConfigError("closure: give a trace (CSV + sidecar, .mat or .h5) or --cases")
-    report = closure_report(args.data, args.model, args.validation, args.holdout, args.axis)
+    data, validation = (run_file(given, args.dir, args.catalog) if given else None
+                        for given in (args.data, args.validation))
+    report = closure_report(data, args.model, validation, args.holdout, args.axis)
     plots = save_plots(report, args.plots) if args.plots else []
     html = None
     if args.report:
@@ -267,11 +269,29 @@ def cmd_closure(args: argparse.Namespace) -> int:
     return 0
 
 
+TRACE_SUFFIXES = (".csv", ".mat", ".h5", ".hdf5")
+
+
+def run_file(data: str, directory: str, catalog: str = "") -> str:
+    """A trace file as given, or the recording of a run id (or unique id prefix) in the
+    catalog: its local file, else its copy in the lab's store (`daq.store.run_recording`)."""
+    if Path(data).exists() or Path(data).suffix.lower() in TRACE_SUFFIXES:
+        return data
+    from feedbench.daq.store import run_recording
+
+    return run_recording(data, directory, catalog)
+
+
 def add_closure_parser(sub: Any) -> None:
     """Register `feedbench closure` on the sub-command parsers."""
     closure = sub.add_parser("closure", help="residual → missing effect → augmented model → "
                              "error before/after, on a trace or on simulated cases")
-    closure.add_argument("data", nargs="?", help="trace: .csv (+ .toml sidecar), .mat, .h5")
+    closure.add_argument("data", nargs="?", help="trace: .csv (+ .toml sidecar), .mat, .h5, "
+                         "or a run id in the catalog (its recording, else its store copy)")
+    closure.add_argument("--dir", default="runs", help="output directory holding the "
+                         "catalog (a run id's)")
+    closure.add_argument("--catalog", metavar="URL", default="", help="the run catalog of a "
+                         "run id (default: $FEEDBENCH_CATALOG, else DIR/catalog.sqlite)")
     closure.add_argument("--model", help="model config TOML (default for .mat: EMPS rigid "
                          "body + viscous; KUKA: motor inertia + viscous, link side)")
     closure.add_argument("--axis", type=int, help="joint of a KUKA robot .mat file (1–6)")

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from feedbench.daq.catalog import Catalog, RunLookupError, RunRow
+from feedbench.daq.catalog import SCHEMA_VERSION, Catalog, RunLookupError, RunRow
 
 
 def test_ids_are_unique_and_formatted_when_created_in_the_same_second(tmp_path: Path) -> None:
@@ -175,7 +175,8 @@ def test_a_catalog_made_before_schema_versions_upgrades_in_place_and_lists_the_s
          str(tmp_path / "20261128-094414-friction_sweep-1.h5")),
     ]
     with closing(sqlite3.connect(path)) as connection:
-        assert connection.execute("SELECT version FROM catalog_schema").fetchall() == [(1,)]
+        assert connection.execute("SELECT version FROM catalog_schema").fetchall() == [
+            (SCHEMA_VERSION,)]
         assert connection.execute("SELECT seq, id FROM runs ORDER BY seq").fetchall() == [
             (1, "20261128-094414-friction_sweep-1"), (2, "20261128-094414-chirp-2"),
             (3, "20261128-094414-chirp-3")]

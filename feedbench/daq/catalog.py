@@ -86,10 +86,17 @@ RUNS = Table(
     Column("host", Text),
     Column("timing", Text),  # JSON text
     Column("bench", Text),
+    Column("store", Text),  # the store copy's location (a path or fsspec URL: daq.store)
+    Column("store_status", Text),  # copied, pending (None: no store)
+    Column("store_reason", Text),  # why a copy is pending
+    Column("sha256", Text),  # the recording's checksum, checked after the copy
 )
 SCHEMA = Table("catalog_schema", METADATA, Column("version", Integer, nullable=False))
 COLUMN_NAMES = ("id", "experiment", "started_at", "stopped_at", "status", "reason", "file",
-                "n_samples", "params", "pid", "host", "timing", "bench")
+                "n_samples", "params", "pid", "host", "timing", "bench", "store", "store_status",
+                "store_reason", "sha256")
+STORE_COLUMNS = ("store", "store_status", "store_reason", "sha256")
+"""The columns of a recording's store copy (`daq.store`), kept when its row is rebuilt."""
 COLUMNS = ", ".join(COLUMN_NAMES)
 UNFINISHED = ("created", "running")
 """Statuses of a run whose process has not finished it (yet)."""
@@ -126,7 +133,9 @@ class RunRow:
     """One catalog row; times are ISO 8601 UTC text, `params` the run's key parameters,
     `timing` a real-time run's cycle timing (`daq.timing.CycleTiming.as_dict`: missed,
     repeated and late cycles, lateness histogram in µs; None in lockstep), `bench` the name
-    of the bench that recorded it."""
+    of the bench that recorded it; `store` where the recording's copy in the lab's store is
+    (a path or fsspec URL), `store_status` ``copied`` or ``pending`` (`store_reason`: why;
+    None: no store), `sha256` the recording's checksum (`daq.store`)."""
 
     id: str
     experiment: str
@@ -141,6 +150,10 @@ class RunRow:
     host: str | None = None
     timing: dict[str, Any] | None = None
     bench: str | None = None
+    store: str | None = None
+    store_status: str | None = None
+    store_reason: str | None = None
+    sha256: str | None = None
 
 
 def url_problem(text: str) -> str | None:
@@ -340,6 +353,16 @@ class Catalog:
         if not updated:
             raise RunLookupError(f"no run with id {run_id!r} in {self.name}")
 
+    def record_copy(self, run_id: str, copy: Any) -> None:
+        """Record where run `run_id`'s recording is in the lab's store (a `daq.store.Copy`:
+        location, ``copied`` or ``pending`` and why, sha256)."""
+        with self._transaction() as connection:
+            connection.execute(
+                text("UPDATE runs SET store = :store, store_status = :status,"
+                     " store_reason = :reason, sha256 = :sha256 WHERE id = :id"),
+                {"store": copy.url, "status": copy.status, "reason": copy.reason,
+                 "sha256": copy.sha256, "id": run_id})
+
     def list(self, limit: int | None = None, where: RunFilter | None = None) -> list[RunRow]:
         """Runs newest first (in the order their ids were created), those `where` selects,
         at most `limit`."""
@@ -408,9 +431,10 @@ class Catalog:
         bench); a file still `running` keeps that status if a process on this host has it
         open for writing (its pid), else it is `crashed`. The rows replaced are the
         directory's (`_in_directory`): other directories' and other benches' rows of a shared
-        catalog stay. The row of a run in progress is kept until its file says how it ended.
-        Rows are in the order the runs started. Returns the number of recordings read and one
-        line per file skipped (not a feedbench recording)."""
+        catalog stay, and so does a row whose recording is only in the lab's store (`daq.store`;
+        a rebuilt row keeps where its copy is). The row of a run in progress is kept until its
+        file says how it ended. Rows are in the order the runs started. Returns the number of
+        recordings read and one line per file skipped (not a feedbench recording)."""
         rows, skipped = {}, []
         for path in sorted(self.directory.glob("*.h5")):
             summary, why = _summary(str(path))
@@ -425,11 +449,16 @@ class Catalog:
                 live = dict(zip(COLUMN_NAMES, row))
                 if not self._in_directory(live) and live["id"] not in rows:
                     continue
+                if live["id"] not in rows and live["store_status"] == "copied":
+                    continue  # its recording is in the lab's store only (daq.store): kept
                 replaced.append(live["id"])
                 in_file = dict(zip(COLUMN_NAMES, rows.get(live["id"], row)))
                 if (live["status"] in UNFINISHED and in_file["status"] in UNFINISHED
                         and not _ended(live["pid"], live["host"], self._resolved(live["file"]))):
                     rows[live["id"]] = tuple(row)
+                elif live["id"] in rows and live["store"] is not None:  # the copy stays known
+                    in_file.update({name: live[name] for name in STORE_COLUMNS})
+                    rows[live["id"]] = tuple(in_file[name] for name in COLUMN_NAMES)
             _delete(connection, replaced)
             _insert(connection, list(rows.values()))
         return added, skipped
@@ -636,7 +665,16 @@ def _version_1(connection: Connection) -> None:
     connection.execute(text("DROP TABLE runs_unversioned"))
 
 
-MIGRATIONS: dict[int, Callable[[Connection], None]] = {1: _version_1}
+def _version_2(connection: Connection) -> None:
+    """The columns of a recording's copy in the lab's store (`STORE_COLUMNS`, empty for the
+    runs before; a table made anew by `_version_1` has them already)."""
+    present = {column["name"] for column in inspect(connection).get_columns("runs")}
+    for name in STORE_COLUMNS:
+        if name not in present:
+            connection.execute(text(f"ALTER TABLE runs ADD COLUMN {name} TEXT"))
+
+
+MIGRATIONS: dict[int, Callable[[Connection], None]] = {1: _version_1, 2: _version_2}
 """Schema version → the migration that brings the version before it there (one transaction
 with the version's update). Versions before 1 exist only in SQLite files."""
 SCHEMA_VERSION = max(MIGRATIONS)
@@ -709,7 +747,7 @@ def _rebuilt_row(summary: RecordingSummary, file: str, bench: str) -> tuple[Any,
     return (summary.run_id, summary.experiment, summary.started_at, summary.stopped_at or None,
             status, reason, file, summary.n_samples,
             to_json(summary.config.get("experiment", {})), pid, host,
-            _timing_json(summary.timing), bench)
+            _timing_json(summary.timing), bench, None, None, None, None)
 
 
 def _writing_process(path: Path) -> int | None:

@@ -662,9 +662,9 @@ def qt_app() -> QtWidgets.QApplication:
 
 
 def bench_session(config, span_s: float = 10.0, progress: bool = True,
-                  catalog: str = "") -> LiveSession:
+                  catalog: str = "", store: str = "") -> LiveSession:
     """A live window on a bench run of `config` (a `feedbench.bench.RunConfig`), catalogued
-    in `catalog` (``--catalog``; `feedbench.bench.run_config`)."""
+    in `catalog` (``--catalog``), copied to `store` (``--store``; `feedbench.bench.run_config`)."""
     from feedbench.bench import run_config
 
     qt_app()
@@ -672,7 +672,7 @@ def bench_session(config, span_s: float = 10.0, progress: bool = True,
     result = live_result_for(config.plan.experiment)
     observers = [stream, *([result] if result else [])]
     worker = Worker(lambda: run_config(config, observers=observers, progress=progress,
-                                       stop=stop, catalog=catalog))
+                                       stop=stop, catalog=catalog, store=store))
     window = LiveWindow(stream, {}, config.limits, result, stop, worker, span_s,
                         title=f"feedbench live — {config.plan.experiment}")
     return LiveSession(window, worker, stop)
