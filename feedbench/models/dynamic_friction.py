@@ -6,7 +6,7 @@ Fig. 2.9) before it slips, so the force follows the displacement since the rever
 the velocity: a hysteresis loop in the force–displacement plane. The thesis names the
 dynamic models that capture it (§2.3, §5.2: LuGre and GMS, its refs. [105], [106], which
 are entries [106], [107] of its reference list: the list is shifted by one) and leaves them
-out of its own model. Three laws, each from its paper, SI units (m, s, N):
+out of its own model. Four laws, each from its paper, SI units (m, s, N):
 
 - Dahl (P. R. Dahl, "A solid friction model", Aerospace Corp. TOR-0158(3107-18)-1, 1968;
   "Solid friction damping of mechanical vibrations", AIAA J. 14 (1976) 1675–1682):
@@ -24,6 +24,27 @@ out of its own model. Three laws, each from its paper, SI units (m, s, N):
   α = 0 for |z| ≤ z_ba or sgn z ≠ sgn v (purely elastic: no drift under a force below
   breakaway, which LuGre and Dahl show), α = 1 for |z| ≥ |z_ss|, between them
   ½ sin(π (|z| − (|z_ss| + z_ba)/2) / (|z_ss| − z_ba)) + ½ (`ElastoPlastic.force`, RK4).
+- Generalized Maxwell-slip, GMS (F. Al-Bender, V. Lampaert, J. Swevers, "The generalized
+  Maxwell-slip model: a novel model for friction simulation and compensation", IEEE Trans.
+  Autom. Control 50 (2005) 1883–1887, the thesis's [107]; V. Lampaert, F. Al-Bender,
+  J. Swevers, "A generalized Maxwell-slip friction model appropriate for control purposes",
+  PhysCon 2003): N blocks in parallel, block i a spring k_i whose force F_i = k_i z_i
+  cannot exceed W_i = α_i s(v), Σ α_i = 1. Sliding obeys the single-state law (1)
+      dF/dt = sgn(v) C (1 − F/s(v)),
+      s(v) = sgn(v) (F_c + (F_s − F_c) e^{−|v/v_s|^δ})          (2)
+  C (N/s) the attraction parameter. Block i sticks,
+      dF_i/dt = k_i v                                           (3)
+  until |F_i| reaches W_i, then slips,
+      dF_i/dt = sgn(v) C (α_i − F_i/s(v))                       (4)
+  until the velocity reverses (or stops); the friction force is
+      F = Σ F_i + σ2 v                                          (5)
+  or, with the blocks' damping, Σ (k_i z_i + σ_i dz_i/dt) + σ2 v (6) (`GMS.force`;
+  stick exact, slip exact over each substep at constant v: F_i → α_i s + (F_i − α_i s)
+  e^{−C t/|s|}). The α_i inside (4) makes the sum of slipping blocks obey (1). The
+  equation numbers are the 2005 note's as recalled: the PDF was not at hand when this was
+  written, check them against it. With F_s = F_c a slipping block stays at W_i whatever C:
+  the model is rate independent, Iwan's parallel elastic-perfectly-plastic blocks
+  (`maxwell_slip_normalised`): Masing's rule and non-local memory hold exactly.
 
 With F_s = F_c and σ1 = σ2 = 0, LuGre is Dahl with α = 1: F_c w(x) where w follows
 dw/dx = (1 − w sgn ẋ)/x_p, x_p = F_c/σ0 the pre-sliding displacement; its steady state is
@@ -257,3 +278,208 @@ class ElastoPlastic(BristleLaw):
         params = np.array([self.sigma0, self.F_c, self.F_s, self.v_s, self.z_ba])
         return _elastoplastic(np.ascontiguousarray(v, dtype=float), float(dt), params,
                               float(z0))
+
+
+# --- the generalized Maxwell-slip model -----------------------------------------------------
+
+GMS_STRIBECK_STEP = 0.005
+"""Largest change of v on one GMS substep, in Stribeck velocities (s(v) is held at the
+substep's midpoint: this bounds its change there to about 0.4 % of F_s − F_c)."""
+
+
+@njit(**_JIT)
+def _stribeck_delta(v: float, F_c: float, F_s: float, v_s: float, delta: float) -> float:
+    """|s(v)| = F_c + (F_s − F_c) e^{−|v/v_s|^δ} (N), the GMS paper's Stribeck curve."""
+    return F_c + (F_s - F_c) * math.exp(-abs(v / v_s) ** delta)
+
+
+@njit(**_JIT)
+def _gms_block(F: float, slip: float, k: float, alpha: float, vm: float, h: float,
+               S: float, C: float) -> tuple:
+    """One block over h (s) at constant velocity vm ≠ 0 (m/s), |s(vm)| = S (N): its force
+    F (N) and state slip (0 sticking, ±1 slipping in that direction) after h.
+
+    Sticking, dF/dt = k v, is exact; the instant it reaches W = α S in the direction of
+    motion the block slips for the rest of h, where dF/dt = sgn(v) C (α − F/s(v)) has the
+    exact solution F → d α S + (F − d α S) e^{−C t/S} (d = sgn v)."""
+    d = 1.0 if vm > 0.0 else -1.0
+    if slip != 0.0 and slip != d:
+        slip = 0.0                                   # the velocity reversed: it sticks
+    target = d * alpha * S
+    remaining = h
+    if slip == 0.0:
+        if d * F >= alpha * S:
+            remaining = h                            # at or beyond its limit: slips now
+        else:
+            reach = (target - F) / (k * vm)
+            if reach >= h:
+                return F + k * vm * h, 0.0
+            F = target
+            remaining = h - reach
+        slip = d
+    return target + (F - target) * math.exp(-C * remaining / S), slip
+
+
+@njit(**_JIT)
+def _gms(v: np.ndarray, dt: float, k: np.ndarray, alpha: np.ndarray, p: np.ndarray,
+         F0: np.ndarray) -> tuple:
+    """Block forces F_i (N, samples × blocks) and Σ dF_i/dt (N/s) at the samples of v
+    (m/s), v linear between samples and held at its midpoint on each substep (sticking is
+    then exact: the midpoint rule integrates a linear v exactly). Substeps keep a block's
+    elastic travel k_i |v| h / (α_i min(F_c, F_s)) ≤ MAX_DECAY_PER_SUBSTEP and, with a
+    Stribeck peak, the change of v within GMS_STRIBECK_STEP v_s, so a block's stick–slip
+    transition and s(v) are resolved within a sample."""
+    F_c, F_s, v_s, delta, C = p[0], p[1], p[2], p[3], p[4]
+    stribeck_step = GMS_STRIBECK_STEP * v_s if F_s != F_c else math.inf
+    n_blocks = k.size
+    rate = 0.0
+    for b in range(n_blocks):
+        rate = max(rate, k[b] / (alpha[b] * min(F_c, F_s)))
+    forces = np.empty((v.size, n_blocks))
+    total_rate = np.empty(v.size)
+    F = F0.copy()
+    slip = np.zeros(n_blocks)
+    for i in range(v.size):
+        if i > 0:
+            m = _substeps(v[i - 1], v[i], dt, rate)
+            m = min(MAX_SUBSTEPS, max(m, int(math.ceil(abs(v[i] - v[i - 1]) / stribeck_step))))
+            h = dt / m
+            for j in range(m):
+                vm = v[i - 1] + (v[i] - v[i - 1]) * (j + 0.5) / m
+                if vm == 0.0:
+                    for b in range(n_blocks):
+                        slip[b] = 0.0
+                    continue
+                S = _stribeck_delta(vm, F_c, F_s, v_s, delta)
+                for b in range(n_blocks):
+                    F[b], slip[b] = _gms_block(F[b], slip[b], k[b], alpha[b], vm, h, S, C)
+        forces[i] = F
+        S = _stribeck_delta(v[i], F_c, F_s, v_s, delta)
+        d = 0.0 if v[i] == 0.0 else (1.0 if v[i] > 0.0 else -1.0)
+        r = 0.0
+        for b in range(n_blocks):
+            if slip[b] != 0.0 and slip[b] == d:
+                r += d * C * (alpha[b] - F[b] / (d * S))
+            else:
+                r += k[b] * v[i]
+        total_rate[i] = r
+    return forces, total_rate
+
+
+@dataclass(frozen=True)
+class GMS:
+    """The generalized Maxwell-slip model (Al-Bender, Lampaert, Swevers 2005, Eqs. (1)–(6)
+    in the module docstring), SI: stiffness k_i (N/m) and weights α_i (–, Σ α_i = 1) of the N
+    blocks, F_c, F_s (N) Coulomb and static levels and v_s (m/s), δ (–) of the Stribeck
+    curve s(v), C (N/s) the attraction parameter (how fast a slipping block's force
+    follows α_i s(v): the frictional lag), sigma1 (N·s/m) the blocks' damping (block i
+    gets σ1 k_i / Σk, so σ1 v while every block sticks, as LuGre's σ1), sigma2 (N·s/m)
+    the viscous coefficient."""
+
+    stiffness: tuple[float, ...]
+    weights: tuple[float, ...]
+    F_c: float
+    F_s: float
+    v_s: float
+    C: float
+    delta: float = 2.0
+    sigma1: float = 0.0
+    sigma2: float = 0.0
+
+    def __post_init__(self) -> None:
+        k, a = np.asarray(self.stiffness, float), np.asarray(self.weights, float)
+        if not (k.ndim == 1 and k.size >= 1 and k.shape == a.shape):
+            raise ValueError(f"need as many stiffnesses as weights (≥ 1), got {k.size}, "
+                             f"{a.size}")
+        if not (np.all(k > 0.0) and np.all(a > 0.0) and abs(a.sum() - 1.0) <= 1e-9):
+            raise ValueError("stiffnesses and weights must be > 0, the weights sum to 1")
+        for name in ("F_c", "F_s", "v_s", "C", "delta"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("sigma1", "sigma2"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+
+    @classmethod
+    def uniform(cls, F_c: float, presliding: float, blocks: int = 8, **law) -> "GMS":
+        """`blocks` blocks of one stiffness whose slip displacements Δ_i = α_i F_c / k_i
+        are the midpoints of N equal parts of (0, 2 x_p] (`maxwell_slip_limits`): Iwan's
+        uniform distribution, a virgin curve within F_c/(4N²) of F_c (ξ − ξ²/4), ξ = x/x_p
+        ≤ 2, initial stiffness σ0 = F_c/x_p. `law`: F_s (default
+        F_c), v_s (1 m/s), C (1e9 N/s), delta, sigma1, sigma2."""
+        limits, weights = maxwell_slip_limits(presliding, blocks)
+        law = {"F_s": F_c, "v_s": 1.0, "C": 1e9} | law
+        return cls(stiffness=tuple(float(k) for k in weights * F_c / limits),
+                   weights=tuple(float(a) for a in weights), F_c=F_c, **law)
+
+    def stribeck(self, v: np.ndarray | float) -> np.ndarray:
+        """|s(v)| = F_c + (F_s − F_c) e^{−|v/v_s|^δ} (N)."""
+        v = np.asarray(v, dtype=float)
+        return self.F_c + (self.F_s - self.F_c) * np.exp(-np.abs(v / self.v_s) ** self.delta)
+
+    def steady(self, v: np.ndarray | float) -> np.ndarray:
+        """Steady sliding force (N) at constant v (m/s): s(v) + σ2 v (every block at
+        α_i s(v), the Stribeck curve)."""
+        v = np.asarray(v, dtype=float)
+        return self.stribeck(v) * np.sign(v) + self.sigma2 * v
+
+    def block_forces(self, v: np.ndarray, dt: float, F0: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Each block's force F_i (N, samples × blocks) and Σ_i dF_i/dt (N/s) at the
+        samples of v (m/s, every dt s), from block forces F0 (N; default 0, every block
+        sticking at the start)."""
+        k, a = np.asarray(self.stiffness, float), np.asarray(self.weights, float)
+        F0 = np.zeros(k.size) if F0 is None else np.asarray(F0, dtype=float)
+        params = np.array([self.F_c, self.F_s, self.v_s, self.delta, self.C])
+        return _gms(np.ascontiguousarray(v, dtype=float), float(dt), k, a, params,
+                    np.ascontiguousarray(F0))
+
+    def force(self, v: np.ndarray, dt: float, F0: np.ndarray | None = None) -> np.ndarray:
+        """Friction force (N) Σ_i (F_i + σ_i dz_i/dt) + σ2 v, Eq. (6) with F_i = k_i z_i
+        and σ_i = σ1 k_i/Σk, at each sample of v (m/s, every dt s)."""
+        forces, rate = self.block_forces(v, dt, F0)
+        return (forces.sum(axis=1) + self.sigma1 / float(np.sum(self.stiffness)) * rate
+                + self.sigma2 * np.asarray(v, dtype=float))
+
+
+def maxwell_slip_limits(presliding: float, blocks: int) -> tuple[np.ndarray, np.ndarray]:
+    """Slip displacements Δ_i (m) and weights α_i of Iwan's uniform distribution: blocks of
+    one stiffness, Δ_i = 2 x_p (i − ½)/N, α_i = Δ_i / Σ Δ (so k_i = α_i F_c/Δ_i is the
+    same for all, and the initial stiffness Σ k_i is F_c/x_p)."""
+    if not (presliding > 0.0 and blocks >= 1):
+        raise ValueError(f"need presliding > 0 and blocks >= 1, got {presliding}, {blocks}")
+    limits = 2.0 * presliding * (np.arange(blocks) + 0.5) / blocks
+    return limits, limits / limits.sum()
+
+
+@njit(**_JIT)
+def _maxwell_slip_path(x: np.ndarray, limits: np.ndarray, u0: float) -> np.ndarray:
+    """Normalised block deflections u_i = z_i/Δ_i ∈ [−1, 1] (samples × blocks) along x:
+    each block follows x until |z_i| = Δ_i and slips there (exact for x linear between
+    samples: an elastic-perfectly-plastic block depends on the path only)."""
+    out = np.empty((x.size, limits.size))
+    z = u0 * limits
+    for i in range(x.size):
+        if i > 0:
+            dx = x[i] - x[i - 1]
+            for b in range(limits.size):
+                z[b] = min(max(z[b] + dx, -limits[b]), limits[b])
+        for b in range(limits.size):
+            out[i, b] = z[b] / limits[b]
+    return out
+
+
+def maxwell_slip_normalised(x: np.ndarray, presliding: float, blocks: int = 8,
+                            u0: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The rate-independent GMS (F_s = F_c, or C → ∞ at a constant s) over its level:
+    w = F/F_c = Σ α_i u_i ∈ [−1, 1] along positions x (m), Iwan's uniform distribution of
+    `blocks` blocks (`maxwell_slip_limits`), and the block states u_i = z_i/Δ_i (samples ×
+    blocks); u0: every block's u at x[0]. Virgin curve within 1/(4N²) of w = ξ − ξ²/4,
+    ξ = x/x_p ≤ 2 (piecewise linear, breaking at the Δ_i); after a reversal the branch is
+    the virgin curve scaled by 2 in x and w (Masing), and a closed minor loop leaves no
+    trace (non-local memory)."""
+    if not -1.0 <= u0 <= 1.0:
+        raise ValueError(f"need |u0| <= 1, got {u0}")
+    limits, weights = maxwell_slip_limits(presliding, blocks)
+    u = _maxwell_slip_path(np.ascontiguousarray(x, dtype=float), limits, float(u0))
+    return u @ weights, u
