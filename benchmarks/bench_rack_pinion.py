@@ -17,16 +17,18 @@ from __future__ import annotations
 
 import numpy as np
 
+from feedbench.axes import axis_kind
+from feedbench.bench import bench_table
 from feedbench.daq.clock import LockstepClock
+from feedbench.experiments.devices import device_tables
 from feedbench.drivers.cia402 import Cia402Drive
 from feedbench.drivers.modbus_devices import LoadCellAmplifier, connect_tcp
-from feedbench.drivers.rack_pinion import AXIS_PDOS
+from feedbench.rack_pinion_bench import AXIS_PDOS
 from feedbench.models.axis import CSP, AxisSimulator
 from feedbench.models.rack_pinion import RackPinionSimulator
 from feedbench.protocols.canbus import open_network
 from feedbench.sim_backends.bench import start_simulated_axis
 from feedbench.sim_backends.eds import packaged_eds_path
-from feedbench.sim_backends.rack_pinion import SimulatedRackPinionAxis, build_simulator
 from feedbench.sim_backends.rack_pinion import packaged_eds_path as rack_pinion_eds
 
 from _timing import best_seconds  # benchmarks/_timing.py
@@ -70,7 +72,10 @@ def cycles_per_second(clock: LockstepClock) -> float:
 
 def rack_pinion_bus(channel: str) -> tuple[float, float]:
     """Cycles per second with both drives, and µs per load-cell request."""
-    simulated = SimulatedRackPinionAxis(build_simulator({}, 1e-3), "virtual", channel)
+    bench = bench_table({"axis": "rack_pinion", "channel": channel})
+    axis = axis_kind("rack_pinion")(bench, None, {})
+    tables = device_tables(bench, axis.needs)
+    simulated = axis.start_simulated(1e-3, {}, tables)
     network = open_network("virtual", channel)
     try:
         drives = [Cia402Drive(network, node_id, rack_pinion_eds(), AXIS_PDOS)
@@ -78,8 +83,9 @@ def rack_pinion_bus(channel: str) -> tuple[float, float]:
         for drive in drives:
             drive.configure()
         rate = cycles_per_second(LockstepClock(network, drives))
-        client = connect_tcp(*simulated.modbus_address)
-        amplifier = LoadCellAmplifier(client, simulated.load_cell_id)
+        host, port = simulated.addresses["load_cell"].split(":")
+        client = connect_tcp(host, int(port))
+        amplifier = LoadCellAmplifier(client, tables["load_cell"]["unit_id"])
         read = best_seconds(lambda: [amplifier.reading() for _ in range(MODBUS_READS)], REPEATS)
         client.close()
         return rate, read / MODBUS_READS * 1e6

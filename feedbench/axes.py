@@ -9,8 +9,10 @@ An axis kind says what differs between benches: its drives (`nodes`, the PDO map
 of its simulated drives), the devices it needs whatever the family (`devices`, opened as a
 family's are: `experiments.devices`), its own ``[bench]`` keys (`schema`, added to the
 bench schema, `axis_schema`), its simulated peer (`start_simulated`) and where that peer's
-devices listen (`addresses`). `bench.Bench` runs the same steps for every kind and names
-none.
+devices listen (`addresses`); for the demo and a campaign, the truth of its simulated world
+(`truth`), whether the report draws its recordings (`reported`) and the key of its
+simulated noise's seed (`noise_seed`). `bench.Bench`, `demo` and `campaign` run the same
+steps for every kind and name none (`bench.run_axis`: the kind a run config names).
 """
 
 from __future__ import annotations
@@ -40,6 +42,12 @@ class Axis:
     """The PDO maps of its drives (`drivers.cia402.Cia402Drive`; None: the drive's own)."""
     stop_margin_s: ClassVar[float] = 0.25
     """Default ``[bench.stop] margin_s`` (s): how long a stop may take to stand still."""
+    reported: ClassVar[bool] = False
+    """The demo's report draws its recordings (`report.run_section` reads the single drive's
+    channels, e.g. ``force``; say True once it draws yours)."""
+    noise_seed: ClassVar[str | None] = None
+    """The dotted config key of its simulated measurement noise's seed, which a campaign
+    draws per run (``bench.world.noise_seed``; None: no seeded noise)."""
 
     def __init__(self, cfg: Mapping[str, Any], plan: Plan | None,
                  needs: Mapping[str, Mapping[str, Any]]) -> None:
@@ -72,6 +80,13 @@ class Axis:
     def addresses(simulated: Any) -> dict[str, str]:
         """Device name → where its simulated peer listens."""
         raise NotImplementedError
+
+    @staticmethod
+    def truth(world: Mapping[str, Any]) -> dict[str, Any]:
+        """The true values of the simulated world of the ``[bench.world]`` table `world` (SI),
+        which the demo and a campaign hand each family's `Experiment.summary`; none by
+        default."""
+        return {}
 
 
 def axes(distribution: str | None = None) -> dict[str, type[Axis]]:

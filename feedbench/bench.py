@@ -117,6 +117,12 @@ def bench_schema() -> dict[str, Field]:
     return {**BENCH_SCHEMA, **axis_schema()}
 
 
+def run_axis(raw: Mapping[str, Any]) -> type[Axis]:
+    """The axis kind a run config (`raw`, its tables) names in ``[bench] axis``, the default
+    if it names none."""
+    return axis_kind(raw.get("bench", {}).get("axis", BENCH_SCHEMA["axis"].default))
+
+
 def bench_table(table: Mapping[str, Any]) -> dict[str, Any]:
     """A checked ``[bench]`` table, defaults filled in; the keys of earlier versions are
     read into their device's table with a one-line hint (`read_old_keys`)."""
@@ -278,6 +284,8 @@ class LabAxis(Axis):
     (`sim_backends.process.SimulatedBench`, the workpiece prepared as planned)."""
 
     name = "lab"
+    reported = True
+    noise_seed = "bench.world.noise_seed"
     stop_margin_s = 0.25
     """Default ``[bench.stop] margin_s`` (s): after its quick-stop ramp the simulated lab axis
     creeps down through the Stribeck region under velocity control; stopped from 25 mm/min it
@@ -315,6 +323,18 @@ class LabAxis(Axis):
     def addresses(simulated: Any) -> dict[str, str]:
         """Device name → where its simulated peer listens."""
         return simulated.addresses
+
+    @staticmethod
+    def truth(world: Mapping[str, Any]) -> dict[str, Any]:
+        """The simulated world's truth (`sim_backends.world.world_truth`); with a milling
+        world also its modal structure (tool rows 0–2, workpiece 3–5)."""
+        from feedbench.sim_backends.smfe_world import build_process
+        from feedbench.sim_backends.world import world_truth
+
+        truth = world_truth(world)
+        if "milling" in world:
+            truth["milling_structure"] = build_process(world["milling"])[0].structure
+        return truth
 
 
 SYNC_LOSS_LIMIT_MAX = 255

@@ -30,7 +30,7 @@ from typing import Any, Callable, Iterator, Mapping
 
 import numpy as np
 
-from feedbench.bench import analyze_file, parse_run_config, run_config
+from feedbench.bench import analyze_file, parse_run_config, run_axis, run_config
 from feedbench.config import ConfigError, Field, one_of, positive, read_toml, validate_table
 from feedbench.daq.recording import printable_json
 from feedbench.demo import example_truth
@@ -135,9 +135,9 @@ def _draws(settings: Mapping[str, Any], base: Mapping[str, Any]) -> list[dict[st
 
     A draw's random numbers come from ``numpy.random.default_rng([seed, k])``, so a run's
     parameters do not depend on which worker runs it or when."""
-    lab = base["bench"].get("axis", "lab") == "lab"
+    noise = run_axis(base).noise_seed  # the key of the simulated axis's noise seed, if any
     if settings["kind"] == "grid":
-        return [{NOISE_SEED: seed} if lab else {} for seed in settings["seeds"]]
+        return [{noise: seed} if noise else {} for seed in settings["seeds"]]
     spread = dotted(settings["spread"])
     centre = {key: _base_value(base, key) for key in spread}
     draws = []
@@ -145,7 +145,7 @@ def _draws(settings: Mapping[str, Any], base: Mapping[str, Any]) -> list[dict[st
         rng = np.random.default_rng([seed, k])
         draw = {key: centre[key] * (1.0 + float(spread[key]) * float(rng.standard_normal()))
                 for key in sorted(spread)}
-        draws.append({**draw, **({NOISE_SEED: int(rng.integers(2**31))} if lab else {})})
+        draws.append({**draw, **({noise: int(rng.integers(2**31))} if noise else {})})
     return draws
 
 

@@ -3,8 +3,9 @@
 Each family's example config (feedbench's own in `feedbench/examples/`) runs exactly as
 `feedbench run` runs it: through the real drivers over a virtual CAN bus (and Modbus TCP, the
 serial DAQ) against the simulated devices. Each recording is analysed and summarised beside
-the simulated world's truth or the thesis's figures; the runs go into one HTML report
-(`REPORT_AXES`).
+the simulated world's truth (`example_truth`: its axis kind's, `axes.Axis.truth`) or the
+thesis's figures; the runs go into one HTML report (those of axis kinds it draws,
+`axes.Axis.reported`).
 The campaign is what the registered families declare (`experiments.family.Example`), so an
 installed lab family joins it; `quick=True` shortens each run as its `Example.quick` says, so
 the campaign takes a few minutes.
@@ -22,30 +23,18 @@ import os
 import sys
 import time
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any, Mapping
 
-import numpy as np
-
-from feedbench.bench import analyze_file, parse_run_config, run_config
+from feedbench.bench import analyze_file, parse_run_config, run_axis, run_config
 from feedbench.config import ConfigError, read_toml
-from feedbench.experiments.chirp import band_text
-from feedbench.experiments.family import HEADLINE_SEPARATOR, Example, examples, family, headline
-from feedbench.experiments import friction_sweep
+from feedbench.experiments.family import HEADLINE_SEPARATOR, Example, examples, families, family
 from feedbench.experiments.limits import LimitError
-from feedbench.experiments.tool_tip import feed_text
 from feedbench.daq.recording import open_recording
 from feedbench.report import run_section, write_sections
-from feedbench.sim_backends import rack_pinion
-from feedbench.sim_backends.smfe_world import build_process
-from feedbench.sim_backends.world import world_truth
 from feedbench.views.sections import RunSection
-
-REPORT_AXES = ("lab", "rack_pinion")
-"""Axes whose recordings go into the report: `report.headroom` reads the single drive's
-`force` channel, which a rack-and-pinion recording (`master.*`, `slave.*`) lacks (KeyError)."""
 
 
 def example_config(name: str) -> dict:
@@ -66,62 +55,22 @@ def campaign_config(example: str | Example, directory: Path, quick: bool) -> dic
 # -- truth of each example's simulated world (SI) ------------------------------------------
 
 
-def rack_pinion_truth(world: Mapping[str, Any]) -> dict:
-    """The rack-and-pinion world's truth, with the friction the summed motor forces show:
-    the guideway's Eq. (5.2) plus both motors' viscous drag in σ."""
-    axis = rack_pinion.build_simulator(world, 1e-3).axis
-    friction = {d: asdict(getattr(axis.friction, d)) for d in ("positive", "negative")}
-    for side in friction.values():
-        side["sigma"] += 2.0 * axis.motor_damping
-    return {**rack_pinion.world_truth(world), "friction": friction}
-
-
 def example_truth(raw: Mapping[str, Any]) -> dict:
-    """The truth behind an example config's simulated world (read by the demo only); with
-    a milling world also its modal structure (tool rows 0–2, workpiece 3–5)."""
-    world = raw["bench"].get("world", {})
-    if raw["bench"].get("axis") == "rack_pinion":
-        return rack_pinion_truth(world)
-    truth = world_truth(world)
-    if "milling" in world:
-        truth["milling_structure"] = build_process(world["milling"])[0].structure
-    return truth
+    """The truth behind a run config's simulated world (read by the demo and a campaign
+    only): its axis kind's (`axes.Axis.truth`)."""
+    return run_axis(raw).truth(raw["bench"].get("world", {}))
 
 
-def sine_stream_vs_chirp(stream: dict, chirp: dict, feed: float, amplitude: float) -> dict:
-    """Largest |a/F| deviation of the sine-stream from the shaker chirp's H1 in the
-    half-power band of the resonance (|H| ≥ max/√2), at the chirp's feed and amplitude."""
-    steps = next(s for s in stream["streams"]
-                 if s["feed_mm_min"] == feed and s["amplitude_N"] == amplitude)
-    h1 = next(f for f in chirp["feeds"] if f["feed_mm_min"] == feed)["frf"]
-    f = np.asarray(steps["frf"]["f_hz"])
-    sine = np.asarray(steps["frf"]["accelerance_abs"])
-    band = sine >= sine.max() / np.sqrt(2.0)
-    deviation = np.abs(sine[band] / np.interp(f[band], h1["f_hz"], h1["H1_abs"]) - 1.0)
-    return {"feed_mm_min": feed, "amplitude_N": amplitude,
-            "band_hz": [float(f[band].min()), float(f[band].max())],
-            "n_points": int(band.sum()), "max_deviation": float(deviation.max())}
-
-
-def _add_chirp_comparison(experiments: dict, configs: dict) -> None:
-    """The sine-stream against the shaker chirp (Ch. 5.5.3), when both completed and share
-    a feed."""
-    pair = ("sine_stream", "shaker_chirp")
-    if any(experiments.get(n, {}).get("run", {}).get("status") != "complete" for n in pair):
-        return
-    chirp = configs["shaker_chirp"]["experiment"]
-    feeds = set(chirp["feeds_mm_min"]) & set(configs["sine_stream"]["experiment"]["feeds_mm_min"])
-    if not feeds:
-        return
-    stream = experiments["sine_stream"]
-    comparison = sine_stream_vs_chirp(stream["analysis"], experiments["shaker_chirp"]["analysis"],
-                                      max(feeds), chirp["amplitude_N"])
-    stream["summary"]["vs_shaker_chirp"] = comparison
-    stream["headline"] = headline(
-        stream["headline"],
-        f"vs shaker-chirp H1 at {feed_text(comparison['feed_mm_min'])}, "
-        f"{comparison['amplitude_N']:g} N: {100 * comparison['max_deviation']:.2f} % in "
-        f"{comparison['band_hz'][0]:g}–{comparison['band_hz'][1]:g} Hz (half-power band)")
+def core_parts(configs: Mapping[str, Mapping], experiments: Mapping[str, dict]) -> dict:
+    """The bench core's parts of the demo's result: for each family that declares a
+    `Experiment.demo_key`, its `demo_part` of its first example that completed."""
+    parts: dict[str, Any] = {}
+    for name, raw in configs.items():
+        cls = family(raw["experiment"]["type"])
+        if (cls.demo_key and cls.demo_key not in parts
+                and experiments[name]["run"]["status"] == "complete"):
+            parts[cls.demo_key] = cls.demo_part(experiments[name]["summary"])
+    return parts
 
 
 # -- the campaign ------------------------------------------------------------------------
@@ -159,7 +108,7 @@ def _entry(run: dict, analysis: dict, truth: Mapping[str, Any] | None) -> dict:
 @dataclass(frozen=True)
 class Measured:
     """One example done: its `experiments.<name>` entry and its report section (None: not
-    in the report, `REPORT_AXES`, or no recording)."""
+    in the report, `axes.Axis.reported`, or no recording)."""
 
     entry: dict
     section: RunSection | None
@@ -173,7 +122,7 @@ def measure(example: Example, raw: dict, quiet: bool = True) -> Measured:
     truth = example_truth(raw) if run["status"] == "complete" else None
     t0 = time.monotonic()
     section = (run_section(open_recording(run["file"]), truth, analysis)
-               if run["file"] and raw["bench"].get("axis", "lab") in REPORT_AXES else None)
+               if run["file"] and run_axis(raw).reported else None)
     run["report_s"] = time.monotonic() - t0
     return Measured(_entry(run, analysis, truth), section)
 
@@ -256,13 +205,12 @@ def run_demo(directory: Path, quiet: bool = False, quick: bool = False,
                            workers, quiet)
     t2 = time.monotonic()
     experiments = {name: m.entry for name, m in measured.items()}
-    _add_chirp_comparison(experiments, configs)
+    for cls in dict.fromkeys(family(raw["experiment"]["type"]) for raw in configs.values()):
+        cls.demo_compare(experiments, configs)  # what the other runs show beside its own
     report = write_sections([m.section for m in measured.values() if m.section],
                             directory / "report.html", "feedbench demo campaign")
     return {
-        "friction": {direction: experiments["friction_sweep"]["summary"][direction]
-                     for direction in friction_sweep.SIGNS},
-        "servo_mobility": experiments["chirp"]["summary"],
+        **core_parts(configs, experiments),
         "runs": [experiments[name]["run"] for name, example in declared.items()
                  if example.required],
         "report": str(report),
@@ -289,17 +237,9 @@ def timing(experiments: Mapping[str, dict], workers: int, setup_s: float, runs_s
 
 
 def _bench_core_lines(result: dict) -> list[str]:
-    lines = ["Friction (Andersson, Eq. 5.2): identified vs simulator truth",
-             *friction_sweep.comparison_lines(result["friction"])]
-    m = result["servo_mobility"]
-    return lines + [
-        "Servo mobility (motor force -> motor velocity, H1):",
-        f"  anti-resonance {m['antiresonance_hz']:6.2f} Hz   "
-        f"(f_t, Eq. 4.13: {m['truth_f_t_hz']:.2f} Hz)",
-        f"  resonance      {m['resonance_hz']:6.2f} Hz   "
-        f"(f_r, Eq. 4.14: {m['truth_f_r_hz']:.2f} Hz)",
-        f"  min coherence {band_text(m)}: {m['min_coherence']:.4f}",
-    ]
+    """Each family's lines of its part of the bench's core (`Experiment.demo_lines`)."""
+    return [line for cls in families().values() if cls.demo_key in result
+            for line in cls.demo_lines(result[cls.demo_key])]
 
 
 def _experiment_lines(name: str, entry: dict) -> list[str]:

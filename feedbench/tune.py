@@ -42,7 +42,8 @@ from feedbench.bench import GAINS_SCHEMA, parse_run_config
 from feedbench.config import ConfigError, Field, interval, non_negative, positive, read_toml
 from feedbench.config import validate_table
 from feedbench.daq.recording import printable_json
-from feedbench.experiments.closed_loop_bode import bandwidth_and_reason
+from feedbench.experiments.closed_loop_bode import ClosedLoopBode, bandwidth_and_reason
+from feedbench.experiments.shaker_chirp import ShakerChirp
 from feedbench.experiments.tool_tip import (
     COMPLIANCE_LABEL, LOBE_SPEEDS_RPM, TABLE_5_1, lobes_results,
 )
@@ -189,10 +190,10 @@ def parse_tune_config(raw: Mapping[str, Any], source: str = "config") -> TuneCon
                               "limits.velocity_mm_min")
     feed = t["feed_mm_min"]
     run_tables = {"bench": session.bench_config, "limits": session.limits_config}
-    bode = _family_settings("closed_loop_bode", t["bode"], "tune.bode", run_tables,
+    bode = _family_settings(ClosedLoopBode.name, t["bode"], "tune.bode", run_tables,
                             loop="velocity", feed_mm_min=feed)
     tool_tip = None if t["tool_tip"] is None else _family_settings(
-        "shaker_chirp", t["tool_tip"], "tune.tool_tip", run_tables, feeds_mm_min=[feed])
+        ShakerChirp.name, t["tool_tip"], "tune.tool_tip", run_tables, feeds_mm_min=[feed])
     measure = tuple(_gain_table(g, f"tune.measure_gains.{name}", False)
                     for name, g in t["measure_gains"].items())
     for name, gains in zip(t["measure_gains"], measure):
@@ -304,7 +305,7 @@ def measure_bode(session: BenchSession, config: TuneConfig, progress: StepProgre
     """The closed velocity-loop Bode at the drive's gains: run id, f (Hz), closed loop,
     open-loop mobility (Eq. 4.20, m/(N·s)) and −3 dB bandwidth (Hz)."""
     progress.start(f"closed velocity-loop Bode at {gains_text(session.drive.gains)}")
-    run = session.run("closed_loop_bode", progress=progress, **config.bode)
+    run = session.run(ClosedLoopBode.name, progress=progress, **config.bode)
     frf = run.result["frf"]
     return {"run": run.id, "file": str(run.path), "f_hz": frf["f_hz"],
             "closed": {"abs": frf["abs"], "phase_rad": frf["phase_rad"]},
@@ -322,7 +323,7 @@ def measure_tip(session: BenchSession, config: TuneConfig, progress: StepProgres
     gains = session.drive.gains
     progress.start(f"tool-tip FRF (shaker) at {gains_text(gains)}")
     session.drive.move_to(home_mm, config.tune["move_feed_mm_min"])
-    run = session.run("shaker_chirp", progress=progress, **config.tool_tip)
+    run = session.run(ShakerChirp.name, progress=progress, **config.tool_tip)
     feed = run.result["feeds"][0]
     return {"run": run.id, "file": str(run.path), "gains": gains, "f_hz": feed["frf"]["f_hz"],
             "compliance": {"abs": feed["frf"]["compliance_abs"],

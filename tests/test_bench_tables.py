@@ -272,17 +272,12 @@ def test_no_device_name_outside_its_own_modules():
     assert _named_outside(allowed) == []
 
 
-@pytest.mark.xfail(strict=True, reason="left for the demo's and the layout's work (issue 27 "
-                   "items 3, 5): demo.py (REPORT_AXES, example_truth) and campaign.py "
-                   "(_draws) name the axes")
 def test_no_axis_name_outside_its_own_module():
     allowed = {name: {_module_path(kind)} | _family_modules()
                for name, kind in axes(OWN_DISTRIBUTION).items()}
     assert _named_outside(allowed) == []
 
 
-@pytest.mark.xfail(strict=True, reason="left for the layout's work (issue 27 item 5): "
-                   "api.py, demo.py and tune.py name families")
 def test_no_family_name_outside_its_own_module():
     allowed = {name: {_module_path(cls)} for name, cls in families(OWN_DISTRIBUTION).items()}
     assert _named_outside(allowed) == []

@@ -13,7 +13,7 @@ from feedbench.daq.clock import LockstepClock
 from feedbench.daq.recording import open_recording
 from feedbench.demo import example_config
 from feedbench.drivers.cia402 import Cia402Drive
-from feedbench.drivers.rack_pinion import AXIS_PDOS, AxisController, load_position, motor_position
+from feedbench.rack_pinion_bench import AXIS_PDOS, AxisController, load_position, motor_position
 from feedbench.models.axis import CSP
 from feedbench.protocols.canbus import open_network
 from feedbench.sim_backends.rack_pinion import (

@@ -10,7 +10,7 @@ import numpy as np
 
 from feedbench.experiments.cycle_io import spindle_commands
 from feedbench.experiments.plan import Plan, Segment, segment_event
-from feedbench.experiments.rack_pinion_io import SETTING_KEYS
+from feedbench.rack_pinion_bench import SETTING_KEYS
 from feedbench.experiments.runner import segment_text
 from feedbench.protocols.cia402 import CSP
 

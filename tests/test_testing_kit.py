@@ -17,7 +17,7 @@ from feedbench.demo import campaign_config, example_config
 from feedbench.experiments.cycle_io import DaqStream, SpindleCommands
 from feedbench.experiments.devices import PerCycleDevice
 from feedbench.experiments.family import LAB_RANK, examples, families
-from feedbench.experiments.rack_pinion_io import AxisEncoders, AxisSettings, LoadCellForce
+from feedbench.rack_pinion_bench import AxisEncoders, AxisSettings, LoadCellForce
 from feedbench.testing import GAP_CYCLES, LIMITS, Step, cycle_rows, same, synthetic_recording
 
 FEEDBENCH_FAMILIES = {"friction_sweep", "chirp", "closed_loop_bode", "impact_hammer",

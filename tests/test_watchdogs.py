@@ -193,7 +193,7 @@ def test_both_rack_and_pinion_drives_stop_one_world_when_the_host_dies(can_chann
     """Master and slave on one bus (`drive_bus`), host gone mid-move: both fault with EMCY
     0x8130, and the shared world runs one cycle per 1 ms period while they ramp down (not one
     per drive), both power stages off and the world still afterwards."""
-    from feedbench.drivers.rack_pinion import AXIS_PDOS
+    from feedbench.rack_pinion_bench import AXIS_PDOS
     from feedbench.sim_backends.rack_pinion import (
         SimulatedRackPinionAxis, build_simulator, packaged_eds_path,
     )

@@ -138,7 +138,7 @@ class BacklashReversal(Experiment):
 
     def plan(self) -> Plan:
         """Per motor: uncouple (the segment's ``coupling`` command sets the axis controller,
-        `rack_pinion_io.AxisSettings`), then strokes (measured) and dwells, alternating."""
+        `rack_pinion_bench.AxisSettings`), then strokes (measured) and dwells, alternating."""
         p, dt = self.settings, self.cycle_s
         segments: list[Segment] = []
         for motor in p["motors"]:

@@ -261,6 +261,17 @@ class Chirp(Experiment):
     title = "servo mobility of the sweeps so far"
     examples = (Example(NAME, rank=20, required=True),)  # --quick: runs as configured
     live_kinds = ("excite",)
+    demo_key = "servo_mobility"
+
+    @classmethod
+    def demo_lines(cls, m: Mapping[str, Any]) -> list[str]:
+        """The demo's servo mobility: f_t and f_r against the model's, the coherence."""
+        return ["Servo mobility (motor force -> motor velocity, H1):",
+                f"  anti-resonance {m['antiresonance_hz']:6.2f} Hz   "
+                f"(f_t, Eq. 4.13: {m['truth_f_t_hz']:.2f} Hz)",
+                f"  resonance      {m['resonance_hz']:6.2f} Hz   "
+                f"(f_r, Eq. 4.14: {m['truth_f_r_hz']:.2f} Hz)",
+                f"  min coherence {band_text(m)}: {m['min_coherence']:.4f}"]
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:

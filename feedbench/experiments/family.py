@@ -88,7 +88,10 @@ class Experiment:
     segment kinds whose completion brings something new to analyse (the live result is
     recomputed then); `title`: what the live panel and the report call it; `has_frfs`: its
     result holds FRFs that `frfs` lists for export; `examples`: the example configs it
-    ships (`Example`), which `feedbench demo` runs.
+    ships (`Example`), which `feedbench demo` runs; `demo_key`: the key of the demo's result
+    under which its example's summary (`demo_part`) also goes, its part of the bench's core
+    ("": none), printed by `demo_lines`; `demo_compare`: what the campaign's other runs
+    show beside its own.
     """
 
     name: ClassVar[str]
@@ -98,6 +101,7 @@ class Experiment:
     live_kinds: ClassVar[tuple[str, ...]] = ("measure", "excite")
     has_frfs: ClassVar[bool] = False
     examples: ClassVar[tuple[Example, ...]] = ()
+    demo_key: ClassVar[str] = ""
 
     def __init__(self, params: Mapping[str, Any], cycle_s: float) -> None:
         """Check `params` (the config's [experiment] table) for a bus cycle of `cycle_s` s;
@@ -155,6 +159,25 @@ class Experiment:
         """The demo's summary against the simulated world's `truth`: key values in SI and a
         ``headline``."""
         return {"headline": scalar_text(result)}
+
+    @classmethod
+    def demo_part(cls, summary: Mapping[str, Any]) -> Any:
+        """Its part of the demo's result (under `demo_key`) from its example's `summary`
+        (without the headline): the whole summary by default."""
+        return dict(summary)
+
+    @classmethod
+    def demo_lines(cls, part: Any) -> list[str]:
+        """`feedbench demo`'s lines of its `demo_part`, before the experiments (none by
+        default)."""
+        return []
+
+    @classmethod
+    def demo_compare(cls, entries: dict[str, dict], configs: Mapping[str, Mapping]) -> None:
+        """Add to its example's entry of the demo (`entries`: example name → its
+        ``experiments.<name>`` entry; `configs`: example name → run config; `demo_examples`
+        finds a family's) what the campaign's other runs show beside it; nothing by
+        default."""
 
     @classmethod
     def truth_table(cls, result: Mapping[str, Any], truth: Mapping[str, Any]) -> Table:
@@ -243,6 +266,13 @@ def examples(distribution: str | None = None) -> dict[str, Example]:
                                  or cls.__module__.partition(".")[0])
              for cls in families(distribution).values() for example in cls.examples]
     return {e.name: e for e in sorted(found, key=lambda e: (e.rank, e.name))}
+
+
+def demo_examples(configs: Mapping[str, Mapping], family_name: str) -> list[str]:
+    """The names of the examples of `configs` (example name → run config) that run the
+    family `family_name`, in their order."""
+    return [name for name, raw in configs.items()
+            if raw.get("experiment", {}).get("type") == family_name]
 
 
 def family(name: Any, where: str = "experiment.type") -> type[Experiment]:

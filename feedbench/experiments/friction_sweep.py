@@ -277,6 +277,17 @@ class FrictionSweep(Experiment):
             "measure_s": 0.3}}, rank=100),
     )
     live_kinds = ("measure",)
+    demo_key = "friction"
+
+    @classmethod
+    def demo_part(cls, summary: Mapping[str, Any]) -> dict:
+        """The demo's ``friction``: Eq. (5.2) per direction against the world's."""
+        return {direction: summary[direction] for direction in SIGNS}
+
+    @classmethod
+    def demo_lines(cls, part: Mapping[str, Any]) -> list[str]:
+        return ["Friction (Andersson, Eq. 5.2): identified vs simulator truth",
+                *comparison_lines(part)]
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:

@@ -25,14 +25,15 @@ from feedbench.analysis.checks import check, peak_checks
 from feedbench.analysis.frf import accelerance_to_receptance
 from feedbench.analysis.sinefit import stepped_sine_frf
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
-from feedbench.experiments.family import Example, Experiment, headline
+from feedbench.experiments.family import Example, Experiment, demo_examples, headline
 from feedbench.experiments.preflight import check_feeds
 from feedbench.experiments.plan import Plan, Window, recorded_windows
 from feedbench.experiments.tool_tip import (
     COMPLIANCE_LABEL, FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL,
-    TIP_ACCELERATION, ExcitationWindow, daq_needs, exciter_channel, feed_label, overloaded,
-    plan_over_feeds, tip_force, window_samples,
+    TIP_ACCELERATION, ExcitationWindow, daq_needs, exciter_channel, feed_label, feed_text,
+    overloaded, plan_over_feeds, tip_force, window_samples,
 )
+from feedbench.experiments.shaker_chirp import ShakerChirp
 from feedbench.models.exciters import ExciterDynamics, InertialActuator, shaker
 from feedbench.protocols.cia402 import CSP
 from feedbench.views.frfs import ExchangeFrf, polar
@@ -245,6 +246,21 @@ def stream_checks(streams: list[dict], gate: float) -> list[dict]:
                             s["frf"]["r_squared"]) for s in used], gate, "R²") if used else [])]
 
 
+def sine_stream_vs_chirp(stream: dict, chirp: dict, feed: float, amplitude: float) -> dict:
+    """Largest |a/F| deviation of the sine-stream from the shaker chirp's H1 in the
+    half-power band of the resonance (|H| ≥ max/√2), at the chirp's feed and amplitude."""
+    steps = next(s for s in stream["streams"]
+                 if s["feed_mm_min"] == feed and s["amplitude_N"] == amplitude)
+    h1 = next(f for f in chirp["feeds"] if f["feed_mm_min"] == feed)["frf"]
+    f = np.asarray(steps["frf"]["f_hz"])
+    sine = np.asarray(steps["frf"]["accelerance_abs"])
+    band = sine >= sine.max() / np.sqrt(2.0)
+    deviation = np.abs(sine[band] / np.interp(f[band], h1["f_hz"], h1["H1_abs"]) - 1.0)
+    return {"feed_mm_min": feed, "amplitude_N": amplitude,
+            "band_hz": [float(f[band].min()), float(f[band].max())],
+            "n_points": int(band.sum()), "max_deviation": float(deviation.max())}
+
+
 class SineStream(Experiment):
     """Sine-stream at the tool tip (Ch. 5.5.3, Figs. 5.20–5.22): per step the sine fits of
     force and tool-tip acceleration give one FRF point with its R² (`analysis.sinefit`);
@@ -263,6 +279,31 @@ class SineStream(Experiment):
                                       "f_step_Hz": 0.5}}, rank=60),
     )
     live_kinds = ("excite",)
+
+    @classmethod
+    def demo_compare(cls, entries: dict[str, dict], configs: Mapping[str, Mapping]) -> None:
+        """Its example against the shaker chirp's (Ch. 5.5.3), when both completed and share
+        a feed: ``vs_shaker_chirp`` in its summary (`sine_stream_vs_chirp`), a part of its
+        headline."""
+        pair = [next(iter(demo_examples(configs, name)), None)
+                for name in (cls.name, ShakerChirp.name)]
+        if None in pair or any(entries[n]["run"]["status"] != "complete" for n in pair):
+            return
+        stream_name, chirp_name = pair
+        chirp = configs[chirp_name]["experiment"]
+        feeds = (set(chirp["feeds_mm_min"])
+                 & set(configs[stream_name]["experiment"]["feeds_mm_min"]))
+        if not feeds:
+            return
+        stream = entries[stream_name]
+        comparison = sine_stream_vs_chirp(stream["analysis"], entries[chirp_name]["analysis"],
+                                          max(feeds), chirp["amplitude_N"])
+        stream["summary"]["vs_shaker_chirp"] = comparison
+        stream["headline"] = headline(
+            stream["headline"],
+            f"vs shaker-chirp H1 at {feed_text(comparison['feed_mm_min'])}, "
+            f"{comparison['amplitude_N']:g} N: {100 * comparison['max_deviation']:.2f} % in "
+            f"{comparison['band_hz'][0]:g}–{comparison['band_hz'][1]:g} Hz (half-power band)")
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:

@@ -1,7 +1,7 @@
 """Stepped loading and backlash of the rack-and-pinion axis (thesis Ch. 3.4, Figs. 3.8–3.12).
 
 The axis stands near a rigid bumper with a load cell. One run holds a sequence of tests,
-each set up by the axis controller's objects at its first segment (`rack_pinion_io`):
+each set up by the axis controller's objects at its first segment (`rack_pinion_bench.AxisSettings`):
 - backlash, one motor at a time (the other off): back-and-forth moves of 1 mm away from
   the bumper at a constant feed (Ch. 3.4.2, Fig. 3.9);
 - loading, one motor at a time: a stepped position command into the bumper and back
@@ -98,7 +98,7 @@ def _samples(n_s: float, cycle_s: float) -> int:
 def _setup(test: str, settings: dict[str, Any], p: Mapping[str, Any], x: float,
            cycle_s: float) -> Segment:
     """Hold while the axis controller takes the test's settings (the segment's commands,
-    `rack_pinion_io.AxisSettings`)."""
+    `rack_pinion_bench.AxisSettings`)."""
     return Segment(f"setup {test}", "settle", np.full(_samples(p["setup_s"], cycle_s), x),
                    info={"test": test}, commands=settings)
 

@@ -107,6 +107,9 @@ class SimulatedPeer:
     world_schema: ClassVar[Mapping[str, Field]] = {}
     """Its ``[bench.world.<name>]`` table: the simulated device's constants (engineering
     units), never read by the host."""
+    old_world_keys: ClassVar[Mapping[str, str]] = {}
+    """``[bench.world]`` keys of earlier versions that were its own → its table's key
+    (`read_old_world_keys`)."""
     end_of_cycle: Callable[[], None] | None = None
 
     def __init__(self, sim: SimulatedBench, settings: Mapping[str, Any]) -> None:
@@ -121,6 +124,24 @@ class SimulatedPeer:
 def simulated_peers() -> dict[str, type[SimulatedPeer]]:
     """Every registered simulated peer by device kind (entry points of `SIM_PEER_GROUP`)."""
     return registered(SIM_PEER_GROUP, SimulatedPeer)
+
+
+def read_old_world_keys(world: Mapping[str, Any], say: bool = True) -> dict[str, Any]:
+    """A ``[bench.world]`` table with the keys of earlier versions (each a peer's
+    `old_world_keys`) moved into ``<peer>``'s table; `say`: one line on stderr for each
+    saying what to write instead."""
+    out = {key: dict(value) if isinstance(value, dict) else value
+           for key, value in world.items()}
+    for name, peer in simulated_peers().items():
+        for old, new in peer.old_world_keys.items():
+            if old in out:
+                value = out.pop(old)
+                out.setdefault(name, {}).setdefault(new, value)
+                if say:
+                    print(f"feedbench: bench.world.{old} is read as bench.world.{name}.{new}; "
+                          f"write [bench.world.{name}] {new} = {json.dumps(value)}",
+                          file=sys.stderr)
+    return out
 
 
 def peer_worlds(world: Mapping[str, Any],
@@ -171,12 +192,15 @@ class SpindlePeer(SimulatedPeer):
 
 
 class LoadCellPeer(SimulatedPeer):
-    """The load-cell amplifier (Modbus, at its table's ``unit_id``): the force the
-    exciters apply to the tool tip (the drive's `tip_force`, N), sampled once per bus cycle."""
+    """The load-cell amplifier (Modbus, at its table's ``unit_id``): the external force on
+    the axis where the load cell sits (the drive's `tip_force`, N: on the lab axis what the
+    exciters apply to the tool tip, on the rack-and-pinion axis the bumper's), sampled once
+    per bus cycle."""
 
     name = "load_cell"
     world_schema = {"range_N": Field(float, 25000.0, "amplifier range (N)", positive),
                     "noise_std_N": Field(float, 2.0, "noise std (N)", non_negative)}
+    old_world_keys = {"load_cell_range_N": "range_N", "load_cell_noise_N": "noise_std_N"}
 
     def __init__(self, sim: SimulatedBench, settings: Mapping[str, Any]) -> None:
         super().__init__(sim, settings)
@@ -240,8 +264,9 @@ class ExciterPeer(SimulatedPeer):
 
 
 class SimulatedBench:
-    """The simulated lab axis of a validated ``[bench]`` table and the simulated peers of the
-    devices a run needs (`tables`: name → checked table, `experiments.devices.device_table`;
+    """The simulated axis of a validated ``[bench]`` table (the lab axis; another kind
+    overrides `start_axis`) and the simulated peers of the devices a run needs (`tables`:
+    name → checked table, `experiments.devices.device_table`;
     kinds without a registered peer are left to the drive); `close()` stops them.
 
     The drive (CiA 402 on its CAN bus, `bus_options` to python-can: ``host``, ``port`` of a
@@ -261,7 +286,7 @@ class SimulatedBench:
         self.stack = ExitStack()
         self.bench = bench
         self.cycle_s = bench["cycle_ms"] * 1e-3
-        self.world = bench["world"]
+        self.world = read_old_world_keys(bench["world"])
         self.workpiece = workpiece
         self.addresses: dict[str, str] = {}
         self.modbus_devices: list[SimulatedModbusDevice] = []
@@ -271,17 +296,25 @@ class SimulatedBench:
         axis_world = {key: table for key, table in self.world.items()
                       if key not in self.peer_worlds}
         try:
-            simulator = build_axis(axis_world, self.cycle_s)
             self.faults = world_faults(axis_world)
-            self.drive = start_simulated_axis(bench["interface"], bench["channel"],
-                                              bench["node_id"], simulator,
-                                              noise=build_sensor_noise(axis_world),
-                                              faults=self.faults, **(bus_options or {}))
+            self.drive = self.start_axis(axis_world, bus_options or {})
             self.stack.callback(self.drive.close)
             self._start_peers(tables, modbus_address)
         except BaseException:
             self.stack.close()
             raise
+
+    def start_axis(self, world: Mapping[str, Any], bus_options: Mapping[str, Any]) -> Any:
+        """The simulated drives of the axis and its physics (`world`: the ``[bench.world]``
+        keys no peer owns) on the bench's bus, with `self.faults`: what the peers see as
+        `drive` (`lock`, `before_physics` / `after_physics` hooks, `tip_force`, `close()`).
+        The lab axis: one CiA 402 drive; another axis kind's peer overrides it
+        (`sim_backends.rack_pinion.RackPinionBench`)."""
+        bench = self.bench
+        return start_simulated_axis(bench["interface"], bench["channel"], bench["node_id"],
+                                    build_axis(world, self.cycle_s),
+                                    noise=build_sensor_noise(world), faults=self.faults,
+                                    **bus_options)
 
     def _start_peers(self, tables: Mapping[str, Mapping[str, Any]],
                      modbus_address: tuple[str, int]) -> None:

@@ -1,4 +1,5 @@
-"""The simulated rack-and-pinion axis on the bus: two CiA 402 drives, one world, a load cell.
+"""The simulated peer of the rack-and-pinion axis (`rack_pinion_bench.RackPinionAxis`): two
+CiA 402 drives on the bus, one world, and the registered peers of the devices a run needs.
 
 `RackPinionWorld` holds the `RackPinionSimulator` and one `MotorPort` per motor: each
 port looks to its `SimulatedCia402Drive` like the lab bench's `AxisSimulator` (gains, force
@@ -6,8 +7,10 @@ limit, power stage, actual values), but `step_cycle` only latches that node's se
 the world steps once per SYNC after both nodes latched (`drive_bus.SimulatedDriveBus`).
 The axis controller's objects (preload level, weighting factors, coupling, preload PI)
 answer on the master node (`AxisObjects`); each node reports its motor encoder and the
-linear scale (`protocols.rack_pinion`). The bumper's load cell is the Modbus
-`SimulatedLoadCell`, sampled once per cycle, served on 127.0.0.1.
+linear scale (`protocols.rack_pinion`). `RackPinionBench` is the axis's simulated bench:
+`process.SimulatedBench` with this axis in place of the lab's, so it starts the registered
+peers of the run's devices as the lab axis does (the bumper's load cell: `LoadCellPeer`,
+reading the bumper's force, on the bench's Modbus server on 127.0.0.1).
 
 `python -m feedbench.sim_backends.rack_pinion` regenerates `rack_pinion.eds`.
 """
@@ -18,7 +21,7 @@ import copy
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
 from feedbench.models.axis import CascadeGains, ServoTiming
@@ -33,7 +36,9 @@ from feedbench.protocols.cia402 import CSP, RATED_TORQUE
 from feedbench.sim_backends import eds
 from feedbench.sim_backends.drive_bus import SimulatedDriveBus
 from feedbench.sim_backends.faults import NO_FAULTS, Faults
-from feedbench.sim_backends.modbus_devices import SimulatedLoadCell, SimulatedModbusTcpServer
+from feedbench.sim_backends.process import (
+    LOOPBACK, SimulatedBench, read_old_world_keys, simulated_peers,
+)
 from feedbench.sim_backends.world import FRICTION_SCHEMA, servo_timing
 from feedbench.units import MIN_PER_MM, MM_PER_MIN, N_MIN_PER_MM, N_PER_UM
 
@@ -84,8 +89,6 @@ WORLD_SCHEMA = {
                        "side it stops; 0: no bumper)"),
     "bumper_N_um": Field(float, 66.7, "bumper stiffness (N/µm)", positive),
     "bumper_Ns_m": Field(float, 7.5e4, "bumper damping (N·s/m)", non_negative),
-    "load_cell_range_N": Field(float, 25000.0, "load-cell amplifier range (N)", positive),
-    "load_cell_noise_N": Field(float, 2.0, "load-cell noise std (N)", non_negative),
     "K_p_Ns_m": Field(float, RACK_PINION_GAINS.K_p, "each motor's velocity-PI gain at the rack "
                       "(N·s/m)", positive),
     "T_i_ms": Field(float, RACK_PINION_GAINS.T_i * 1e3, "velocity-PI integral time (ms)",
@@ -159,18 +162,30 @@ def build_simulator(table: Mapping[str, Any], cycle_s: float) -> RackPinionSimul
     return simulator
 
 
-def load_cell_settings(table: Mapping[str, Any]) -> dict[str, float]:
-    """`SimulatedLoadCell` keyword arguments from a ``[bench.world]`` table."""
-    w = validate_table(table, WORLD_SCHEMA, "bench.world")
-    return {"range_N": w["load_cell_range_N"], "noise_std_N": w["load_cell_noise_N"]}
-
-
 def world_truth(table: Mapping[str, Any]) -> dict[str, float]:
     """The true values the stepped-loading experiment identifies, SI (for the demo)."""
     axis = build_simulator(table, 1e-3).axis
     return {"k_master": axis.k_master, "k_slave": axis.k_slave,
             "backlash_master": axis.backlash_master, "backlash_slave": axis.backlash_slave,
             "rated_force": axis.rated_force, "K_tr": axis.K_tr}
+
+
+def truth(world: Mapping[str, Any]) -> dict[str, Any]:
+    """The world's truth the demo and a campaign summarise against (`world_truth`), with the
+    friction the summed motor forces show: the guideway's Eq. (5.2) plus both motors'
+    viscous drag in σ (`axes.Axis.truth`)."""
+    world = _axis_world(read_old_world_keys(world, say=False))
+    axis = build_simulator(world, 1e-3).axis
+    friction = {d: dataclasses.asdict(getattr(axis.friction, d))
+                for d in ("positive", "negative")}
+    for side in friction.values():
+        side["sigma"] += 2.0 * axis.motor_damping
+    return {**world_truth(world), "friction": friction}
+
+
+def _axis_world(world: Mapping[str, Any]) -> dict[str, Any]:
+    """The axis's own ``[bench.world]`` keys: the peers' tables (``load_cell``) left out."""
+    return {key: value for key, value in world.items() if key not in simulated_peers()}
 
 
 def packaged_eds_path() -> Path:
@@ -258,7 +273,8 @@ class MotorPort:
 
 
 class RackPinionWorld:
-    """The axis behind both drives and the devices sampled with it (the load cell).
+    """The axis behind both drives; `before_physics` and `after_physics`: the per-cycle
+    hooks of the peers sampled with it (the load cell), run around each step.
 
     A copy of the simulator is stepped once here: numba compiles (or loads its cache) on
     the first call, which must not happen in the first SYNC the host waits for.
@@ -268,21 +284,24 @@ class RackPinionWorld:
         copy.deepcopy(simulator).step_cycle(CSP, 0.0)
         self.simulator = simulator
         self.ports = {motor: MotorPort(self, motor) for motor in MOTORS}
-        self.sampled: list[SimulatedLoadCell] = []
+        self.before_physics: list[Callable[[], None]] = []
+        self.after_physics: list[Callable[[], None]] = []
 
     def driving_port(self) -> MotorPort:
         """The node whose mode and targets run the axis: the slave's when it drives alone."""
         return self.ports["slave" if self.simulator.coupling == SLAVE_ALONE else "master"]
 
     def step(self) -> None:
-        """One bus cycle with the latched setpoints of both nodes, then sample the devices."""
+        """One bus cycle with the latched setpoints of both nodes, between the hooks."""
+        for hook in self.before_physics:
+            hook()
         drive = self.driving_port().command
         master, slave = (self.ports[m].command for m in MOTORS)
         self.simulator.step_cycle(
             drive.mode, drive.target_position, drive.target_velocity, drive.velocity_offset,
             (master.target_force, slave.target_force), (master.force_offset, slave.force_offset))
-        for device in self.sampled:
-            device.advance(self.simulator.timing.cycle)
+        for hook in self.after_physics:
+            hook()
 
 
 def _nm(value: float) -> int:
@@ -339,29 +358,20 @@ class AxisObjects(MotorObjects):
 
 
 class SimulatedRackPinionAxis:
-    """Master and slave drives on one bus channel, their world, the load cell's server.
+    """Master and slave drives on one bus channel and their world; what the peers see as the
+    bench's `drive` (`process.SimulatedBench.start_axis`): the cycle's `lock`, the world's
+    `before_physics` / `after_physics` hooks and `tip_force`, the external force on the axis
+    where its load cell sits (the bumper's, N).
 
-    `faults` (`sim_backends.faults`) act on the drives' bus and the load cell's server.
-    `close()` stops everything. `modbus_address` is where the load cell answers (device
-    id `load_cell_id`; its server listens on 127.0.0.1:`modbus_port`, 0: a free port).
+    `faults` (`sim_backends.faults`) act on the drives' bus. `close()` stops the drives.
     """
 
     def __init__(self, simulator: RackPinionSimulator, interface: str = "virtual",
                  channel: str = "feedbench", node_ids: tuple[int, int] = (1, 2),
-                 load_cell: dict[str, Any] | None = None, modbus_port: int = 0,
                  faults: Faults = NO_FAULTS, **bus_options: Any) -> None:
         self.world = RackPinionWorld(simulator)
-        self.load_cell = SimulatedLoadCell(lambda: simulator.bumper_force, **(load_cell or {}))
-        self.world.sampled.append(self.load_cell)
-        self._server = SimulatedModbusTcpServer([self.load_cell], port=modbus_port,
-                                                faults=faults)
-        self.modbus_address = self._server.start()
-        try:
-            self.bus = SimulatedDriveBus(faults.bus(open_bus(interface, channel, **bus_options)),
-                                         self.world.step, faults)
-        except BaseException:
-            self._server.stop()
-            raise
+        self.bus = SimulatedDriveBus(faults.bus(open_bus(interface, channel, **bus_options)),
+                                     self.world.step, faults)
         try:
             self.drives = {
                 motor: self.bus.add_drive(node_id, self.world.ports[motor], packaged_eds_path(),
@@ -371,19 +381,37 @@ class SimulatedRackPinionAxis:
         except BaseException:
             self.close()
             raise
+        self.lock = self.bus.lock
+        self.before_physics = self.world.before_physics
+        self.after_physics = self.world.after_physics
 
     @property
-    def load_cell_id(self) -> int:
-        return self.load_cell.device_id
-
-    @property
-    def modbus_devices(self) -> list[SimulatedLoadCell]:
-        """The Modbus devices it serves: the load cell."""
-        return [self.load_cell]
+    def tip_force(self) -> float:
+        """The bumper's force on the carriage (N): what the load cell in it reads."""
+        return self.world.simulator.bumper_force
 
     def close(self) -> None:
         self.bus.close()
-        self._server.stop()
+
+
+class RackPinionBench(SimulatedBench):
+    """The simulated rack-and-pinion axis of a validated ``[bench]`` table (master at
+    ``node_id``, slave at ``slave_node_id``; the world: `WORLD_SCHEMA`, the keys of earlier
+    versions read, `process.read_old_world_keys`) and the registered peers of the devices of
+    `tables`, started as on the lab axis (`process.SimulatedBench`)."""
+
+    def __init__(self, bench: Mapping[str, Any], tables: Mapping[str, Mapping[str, Any]],
+                 bus_options: Mapping[str, Any] | None = None,
+                 modbus_address: tuple[str, int] = (LOOPBACK, 0)) -> None:
+        super().__init__(bench, tables, (), bus_options, modbus_address)
+
+    def start_axis(self, world: Mapping[str, Any],
+                   bus_options: Mapping[str, Any]) -> SimulatedRackPinionAxis:
+        bench = self.bench
+        return SimulatedRackPinionAxis(build_simulator(world, self.cycle_s), bench["interface"],
+                                       bench["channel"],
+                                       (bench["node_id"], bench["slave_node_id"]),
+                                       faults=self.faults, **bus_options)
 
 
 if __name__ == "__main__":
