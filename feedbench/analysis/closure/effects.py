@@ -29,7 +29,7 @@ from numba import njit
 
 from feedbench.analysis.closure.trace import Kinematics, lowpass, lowpass_derivatives
 from feedbench.models import effects as laws
-from feedbench.models.dynamic_friction import dahl_normalised
+from feedbench.models.dynamic_friction import dahl_normalised, maxwell_slip_normalised
 from feedbench.models.friction import AnderssonFriction, DirectionalFriction
 from feedbench.units import MIN_PER_MM, MM_PER_MIN, N_PER_UM
 
@@ -852,6 +852,40 @@ class Presliding(Effect):
                 f"{values['sigma1_Ns_m']:.3g} N·s/m")
 
 
+GMS_BLOCKS = 16
+"""Blocks of the `gms` candidate's Iwan distribution (its virgin curve within 1/(4·16²) =
+0.1 % of F_p of the parabola)."""
+
+
+@dataclass(frozen=True)
+class MaxwellSlip(Presliding):
+    """Pre-sliding by the generalized Maxwell-slip model (Al-Bender, Lampaert, Swevers 2005,
+    the thesis's [107]; `models.dynamic_friction.GMS`), rate independent (F_s = F_c: a
+    slipping block stays at its limit whatever the attraction C): `GMS_BLOCKS` blocks of one
+    stiffness with slip displacements uniform on (0, 2 x_p] (Iwan's distribution,
+    `models.dynamic_friction.maxwell_slip_normalised`, exact over each sample interval).
+    Its signature beside Dahl's (`presliding`): non-local memory, a branch after a reversal
+    is the virgin curve w = ξ − ξ²/4 (ξ = x/x_p ≤ 2) scaled by 2 (Masing), and a closed
+    minor loop leaves no trace. The term adds F_p (w(x) − tanh(k_tanh v)) and the blocks'
+    damping σ1 v × (share of the blocks still elastic), band-limited as the reading is;
+    linear F_p (N), σ1 (N·s/m), nonlinear x_p = F_p/σ0 (σ0 the initial stiffness of the
+    loop); starts, invariants and resolution test as `presliding`'s."""
+
+    def columns(self, kin, values):
+        k_tanh = values["k_tanh_min_mm"]
+        w, u = maxwell_slip_normalised(kin.x, values["x_p_um"], GMS_BLOCKS,
+                                       math.tanh(k_tanh * kin.v[0]) if kin.n else 0.0)
+        elastic = np.mean((np.abs(u) < 1.0) | (np.sign(u) != np.sign(kin.v)[:, None]), axis=1)
+        return lowpass_columns(np.column_stack([w - np.tanh(k_tanh * kin.v),
+                                                kin.v * elastic]), kin)
+
+    def describe(self, values):
+        return (f"pre-sliding hysteresis (generalized Maxwell-slip, {GMS_BLOCKS} blocks): "
+                f"initial stiffness {values['F_p_N'] / values['x_p_um'] / N_PER_UM:.3g} N/µm, "
+                f"level {values['F_p_N']:.3g} N, full sliding after "
+                f"{2e6 * values['x_p_um']:.3g} µm, damping {values['sigma1_Ns_m']:.3g} N·s/m")
+
+
 def lowpass_columns(columns: np.ndarray, kin: Kinematics) -> np.ndarray:
     """Each column (n × p) through the kinematics' zero-phase filter, as the force is."""
     return np.column_stack([lowpass(column, kin.bandwidth, kin.dt) for column in columns.T])
@@ -912,7 +946,7 @@ LIBRARY: tuple[Effect, ...] = (
               Parameter("mode_f_n_Hz", "Hz", 1.0, "the structural mode whose spring holds "
                         "the play (0: a load on a contact)", linear=False, setting=True),
               Parameter("mode_zeta", "-", 1.0, "that mode's ζ", linear=False, setting=True)),
-             difference_step=RUGGED_STEP, rivals=("presliding",)),
+             difference_step=RUGGED_STEP, rivals=("presliding", "gms")),
     Ripple("ripple", "force ripple periodic in position (cogging, screw, pinion)",
            "residual periodic in position (Lomb–Scargle peak)",
            (Parameter("A_sin_N", "N", 1.0, "sine component"),
@@ -967,7 +1001,19 @@ LIBRARY: tuple[Effect, ...] = (
                            5e-6, 1e-8, 1e-3),
                 _nonlinear("alpha", "-", 1.0, "Dahl's exponent α", 1.0, 0.2, 5.0),
                 _k_tanh_setting()),
-               requires=("coulomb",), rivals=("backlash",)),
+               requires=("coulomb",), rivals=("backlash", "gms")),
+    MaxwellSlip("gms",
+                "pre-sliding hysteresis: generalized Maxwell-slip friction F_p w(x), Iwan's "
+                "uniform blocks, in place of F_p tanh(k_tanh v)",
+                "residual after each reversal, following the displacement since it, "
+                "with non-local memory (Masing branches)",
+                (Parameter("F_p_N", "N", 1.0, "level of the Maxwell-slip friction F_p",
+                           lower=0.0),
+                 Parameter("sigma1_Ns_m", "N·s/m", 1.0, "blocks' damping σ1", lower=0.0),
+                 _nonlinear("x_p_um", "µm", 1e-6, "pre-sliding displacement x_p = F_p/σ0 "
+                            "(full sliding at 2 x_p)", 5e-6, 1e-8, 1e-3),
+                 _k_tanh_setting()),
+                requires=("coulomb",), rivals=("backlash", "presliding")),
 )
 """Every term, base terms first; the order breaks ties between equally good candidates."""
 

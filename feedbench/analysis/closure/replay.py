@@ -32,7 +32,7 @@ RIGID_MODE_FACTOR = 20.0
 COHERENCE_MIN = 0.8
 """FRF bins with a lower measured coherence are left out of the FRF errors."""
 
-NOT_REPLAYED = ("backlash", "second_mode", "cubic_stiffening", "presliding")
+NOT_REPLAYED = ("backlash", "second_mode", "cubic_stiffening", "presliding", "gms")
 
 
 @dataclass(frozen=True)
