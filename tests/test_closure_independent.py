@@ -89,6 +89,27 @@ def test_simulated_drivetrain_play_is_a_dead_zone(name):
     assert np.ptp(gap) > 2 * half
 
 
+def test_simulated_table_friction_holds_the_tip_against_the_play():
+    """backlash_guided_large: the table's guideways carry F_table of the Coulomb level. At
+    the 16 m/min cruise the motor pushes the table through the play: the gap is the half
+    play plus the spring's deflection F_table / k (k = m (2π f_n)²) within 0.5 µm, and the
+    motor's own Coulomb level is the rest (30 − 10 N)."""
+    case = CASES["backlash_guided_large"]
+    plant, _ = world(case)
+    run = record(case, FIT_PROGRAM, seed=8)
+    speed = np.gradient(run.reference, run.time)
+    V = FIT_PROGRAM.feeds[-1] / 60.0
+    cruise = np.flatnonzero(np.abs(speed - V) < 1e-6 * V)
+    settled = cruise[cruise.size // 2:]
+    gap = (run.states[:, 0] - run.states[:, 1])[settled]
+    s = STRUCTURES["2mass"]
+    k = s.modal_kg * (2 * math.pi * s.f_n_Hz) ** 2
+    expected = 0.5e-6 * case.truth["play_um"] + case.truth["F_table_N"] / k
+    assert np.abs(gap - expected).max() < 0.5e-6
+    assert plant.friction.F_c == pytest.approx(s.F_c - case.truth["F_table_N"])
+    assert plant.coulomb()[1] == case.truth["F_table_N"]
+
+
 def test_simulated_channel_skew_latches_the_position_early():
     """channel_skew: at the 16 m/min cruise the recorded position trails the motor's
     position at the time stamp by V × skew (V 0.267 m/s, skew 3/8 of a 1 ms cycle: 100 µm)

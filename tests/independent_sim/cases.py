@@ -174,6 +174,8 @@ _LIST = [
     _case("recal_viscous", "recalibrate:viscous.F_v_Ns_m", "recalibration",
           declared={"F_v_Ns_m": TWO_MASS.sigma * 1.30}, free=_CLEAN_FREE),
     *_sized("backlash_drivetrain", {"play_um": 30.0}, {"play_um": 100.0}, injected="backlash"),
+    *_sized("backlash_guided", {"play_um": 30.0, "F_table_N": 10.0},
+            {"play_um": 100.0, "F_table_N": 10.0}, injected="backlash"),
     _case("second_mode", "second_mode", "effect",
           plant={"m2_kg": 3.0, "f2_Hz": 130.0, "zeta2": 0.02}),
     _case("ripple_long_pitch", "ripple", "effect",
@@ -194,15 +196,15 @@ def world(case: CaseSpec) -> tuple[Plant, Drive]:
     level: as declared, the axis's mass and friction include them, and only the play or the
     second mode is undeclared."""
     s, w = STRUCTURES[case.structure], case.truth
-    load_N = w.get("F_load_N", 0.0)
+    load_N, table_N = w.get("F_load_N", 0.0), w.get("F_table_N", 0.0)
     masses, springs = _chain(s, w)
-    friction = Friction(s.sigma, w["F_c_N"] - load_N, w.get("dF_s_N", 0.0),
+    friction = Friction(s.sigma, w["F_c_N"] - load_N - table_N, w.get("dF_s_N", 0.0),
                         w.get("v_s_mm_min", 1.0) * 1e-3 / 60.0, 2.0, w.get("dF_v_Ns_m", 0.0))
     backlash = ((w["m_load_kg"], load_N, w["width_um"] * 1e-6)
                 if "m_load_kg" in w else None)
     ripple = (w.get("amplitude_N", 0.0), w.get("pitch_mm", 1.0) * 1e-3,
               math.radians(w.get("phase_deg", 0.0)))
-    plant = Plant(masses, springs, friction, w.get("offset_N", 0.0), ripple, backlash)
+    plant = Plant(masses, springs, friction, w.get("offset_N", 0.0), ripple, backlash, table_N)
     return plant, Drive(*_gains(s.total_kg), FORCE_LIMIT_N, w["tau_ms"] * 1e-3,
                         w.get("beta_per_kN", 0.0) * 1e-3, w.get("gain", 1.0))
 

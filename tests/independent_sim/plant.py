@@ -81,7 +81,8 @@ class Plant:
 
     offset (N): a constant force on the motor side (gravity, a counterweight);
     ripple (N, m, rad): A sin(2π x / pitch + phase) on the motor side;
-    backlash (kg, N, m): a load mass behind a play, with its own Coulomb friction.
+    backlash (kg, N, m): a load mass behind a play, with its own Coulomb friction;
+    table_coulomb (N): the Coulomb level of mass 1's own guideways (a table on guides).
     """
 
     masses: tuple[float, ...]
@@ -90,6 +91,7 @@ class Plant:
     offset: float = 0.0
     ripple: tuple[float, float, float] = (0.0, 1.0, 0.0)
     backlash: tuple[float, float, float] | None = None
+    table_coulomb: float = 0.0
 
     @property
     def all_masses(self) -> tuple[float, ...]:
@@ -112,8 +114,10 @@ class Plant:
 
     def coulomb(self) -> np.ndarray:
         """Coulomb level (N) acting on each mass but the motor (whose friction is
-        `friction`): the backlash load's; 0 elsewhere."""
+        `friction`): the table's guideways' on mass 1, the backlash load's; 0 elsewhere."""
         levels = np.zeros(len(self.all_masses))
+        if self.table_coulomb:
+            levels[1] = self.table_coulomb
         if self.backlash:
             levels[-1] = self.backlash[1]
         return levels
