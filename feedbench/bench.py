@@ -326,12 +326,15 @@ class LabAxis(Axis):
 
     @staticmethod
     def truth(world: Mapping[str, Any]) -> dict[str, Any]:
-        """The simulated world's truth (`sim_backends.world.world_truth`); with a milling
-        world also its modal structure (tool rows 0–2, workpiece 3–5)."""
+        """The simulated world's truth (`sim_backends.world.world_truth`; the peers' own
+        tables left out); with a milling world also its modal structure (tool rows 0–2,
+        workpiece 3–5)."""
+        from feedbench.sim_backends.process import simulated_peers
         from feedbench.sim_backends.smfe_world import build_process
         from feedbench.sim_backends.world import world_truth
 
-        truth = world_truth(world)
+        truth = world_truth({key: table for key, table in world.items()
+                             if key not in simulated_peers()})
         if "milling" in world:
             truth["milling_structure"] = build_process(world["milling"])[0].structure
         return truth

@@ -16,7 +16,7 @@ import pytest
 
 import feedbench
 from feedbench.bench import Bench, parse_run_config
-from feedbench.config import ConfigError, read_toml, registered
+from feedbench.config import OWN_DISTRIBUTION, ConfigError, read_toml, registered
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording
 from feedbench.experiments.devices import (
@@ -29,12 +29,12 @@ EXAMPLES = Path(feedbench.__file__).parent / "examples"
 
 
 def test_every_kind_is_registered_by_its_name_with_its_simulated_peer():
-    kinds = devices()
+    kinds = devices(OWN_DISTRIBUTION)  # feedbench's own: a lab's installed kinds beside them
     assert set(kinds) == {"spindle", "daq", "exciter", "axis_settings", "encoders",
                           "load_cell"}
     assert all(kind.name == name for name, kind in kinds.items())
     # the rack-and-pinion axis's simulator serves its settings and encoders (its drives)
-    assert set(simulated_peers()) == {"spindle", "daq", "exciter", "load_cell"}
+    assert set(simulated_peers(OWN_DISTRIBUTION)) == {"spindle", "daq", "exciter", "load_cell"}
     assert all(peer.name == name for name, peer in simulated_peers().items())
 
 

@@ -252,7 +252,9 @@ def test_the_docs_list_both_modbus_devices_and_the_sims_serve_them(lab, rack):
     assert {name: d["id"] for name, d in devices.items()} == {
         "Spindle inverter": 1, "Load-cell amplifier": 2}
     assert sum(len(d["registers"]) for d in devices.values()) == 13
-    assert lab.info["modbus_devices"] == {"spindle inverter": 1, "load-cell amplifier": 2}
+    # the lab sim serves every registered peer: an installed lab package's beside these
+    assert lab.info["modbus_devices"].items() >= {"spindle inverter": 1,
+                                                  "load-cell amplifier": 2}.items()
     assert rack.info["modbus_devices"] == {"load-cell amplifier": 2}
     assert rack.info["devices"]["load_cell"] == {"address": rack.info["modbus"], "unit_id": 2}
 

@@ -121,9 +121,10 @@ class SimulatedPeer:
         """Hook into the world; nothing by default."""
 
 
-def simulated_peers() -> dict[str, type[SimulatedPeer]]:
-    """Every registered simulated peer by device kind (entry points of `SIM_PEER_GROUP`)."""
-    return registered(SIM_PEER_GROUP, SimulatedPeer)
+def simulated_peers(distribution: str | None = None) -> dict[str, type[SimulatedPeer]]:
+    """Every registered simulated peer by device kind (entry points of `SIM_PEER_GROUP`; of
+    that installed `distribution` only, if given)."""
+    return registered(SIM_PEER_GROUP, SimulatedPeer, distribution)
 
 
 def read_old_world_keys(world: Mapping[str, Any], say: bool = True) -> dict[str, Any]:
