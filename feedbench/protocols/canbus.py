@@ -10,6 +10,7 @@ from __future__ import annotations
 import collections
 import gc
 import logging
+import queue
 import socket
 import struct
 import threading
@@ -19,6 +20,7 @@ from typing import Any, Callable, Iterable, Iterator, NamedTuple
 
 import can
 import canopen
+from can.interfaces import virtual
 from can.interfaces.socketcand import SocketCanDaemonBus
 from canopen.nmt import NMT_STATES
 from canopen.objectdictionary import NUMBER_TYPES, ODVariable
@@ -167,6 +169,47 @@ def frozen_heap() -> Iterator[None]:
                 gc.unfreeze()
 
 
+class LocalVirtualBus(virtual.VirtualBus):
+    """python-can's `virtual` bus (same channels: its frames reach plain `VirtualBus`es on
+    the channel and theirs reach it) at a fraction of the cost per frame: a frame is copied
+    for each receiver by value, not by `copy.deepcopy` (≈ 13 µs against 2 µs per frame and
+    receiver, measured), and it receives through a `queue.SimpleQueue` (C; `queue.Queue`
+    takes and notifies a Python-level Condition per frame). A lockstep cycle of one drive
+    moves 6 frames. Delivery, order and timestamps are python-can's: a copy per receiver,
+    never the sender's own frame unless `receive_own_messages`."""
+
+    def __init__(self, channel: Any = "channel-0", rx_queue_size: int = 0,
+                 **options: Any) -> None:
+        super().__init__(channel=channel, rx_queue_size=rx_queue_size, **options)
+        if rx_queue_size:  # a bounded queue drops frames as python-can's does
+            return
+        with virtual.channels_lock:
+            fast: queue.SimpleQueue[can.Message] = queue.SimpleQueue()
+            self.channel[self.channel.index(self.queue)] = fast
+            self.queue = fast  # type: ignore[assignment]
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self._check_if_open()
+        timestamp = msg.timestamp if self.preserve_timestamps else time.time()
+        arbitration_id, extended, data = msg.arbitration_id, msg.is_extended_id, msg.data
+        all_sent = True
+        for bus_queue in self.channel:
+            if bus_queue is self.queue and not self.receive_own_messages:
+                continue
+            copy = can.Message(
+                timestamp=timestamp, arbitration_id=arbitration_id, is_extended_id=extended,
+                is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame,
+                channel=self.channel_id, dlc=msg.dlc, data=bytearray(data), is_fd=msg.is_fd,
+                is_rx=bus_queue is not self.queue, bitrate_switch=msg.bitrate_switch,
+                error_state_indicator=msg.error_state_indicator, check=False)
+            try:
+                bus_queue.put(copy, block=True, timeout=timeout)
+            except queue.Full:
+                all_sent = False
+        if not all_sent:
+            raise can.CanOperationError("Could not send message to one or more recipients")
+
+
 class BoundedSocketcandBus(SocketCanDaemonBus):
     """python-can's socketcand bus whose handshake waits at most `HANDSHAKE_TIMEOUT_S` for
     each line of the server. Wrapped here: python-can 4.6.1's `_expect_msg` calls a blocking
@@ -202,6 +245,8 @@ def open_bus(interface: str, channel: str, bitrate: int = 1_000_000, **options: 
             options.setdefault("tcp_tune", True)
             reach(options["host"], options["port"])
             return BoundedSocketcandBus(channel=channel, bitrate=bitrate, **options)
+        if interface == "virtual":
+            return LocalVirtualBus(channel=channel, bitrate=bitrate, **options)
         return can.Bus(interface=interface, channel=channel, bitrate=bitrate, **options)
     except can.CanInterfaceNotImplementedError as exc:
         raise ConfigError(f"bench.interface: {exc}") from None
