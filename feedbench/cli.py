@@ -165,10 +165,19 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         result, describe = analyze_uff58(args.run), describe_uff58
     else:
         from feedbench.bench import analyze_file
+        from feedbench.daq.importers import is_foreign
+        from feedbench.daq.importers.mapping import imported_copy
         from feedbench.demo import describe_analysis
 
-        path = resolve_run(args.run, args.dir, args.catalog)
-        result, describe = analyze_file(path), describe_analysis
+        if args.mapping and not is_foreign(args.run):
+            raise ConfigError("--mapping: for the recordings of other DAQ systems (.mf4, .tdms)")
+        if is_foreign(args.run):  # another DAQ system's file: analysed as imported
+            with imported_copy(args.run, args.mapping) as path:
+                result = analyze_file(path)
+            result["run"]["file"] = args.run
+        else:
+            result = analyze_file(resolve_run(args.run, args.dir, args.catalog))
+        describe = describe_analysis
     if args.json:
         _print_json(result)
     else:
@@ -203,14 +212,53 @@ def cmd_live(args: argparse.Namespace) -> int:
 
 def cmd_report(args: argparse.Namespace) -> int:
     """Write the HTML report of recorded runs and print its path."""
+    from feedbench.daq.importers import is_foreign
+    from feedbench.daq.importers.mapping import imported_copy
     from feedbench.report import write_report
 
-    files = [resolve_run(run, args.dir, args.catalog) for run in args.runs]
     output = Path(args.output or Path(args.dir) / "report.html")
     if output.is_dir():
         raise ConfigError(f"-o: {output} is a directory (give the report's file name)")
-    print(write_report(files, output))
+    if args.mapping and not any(map(is_foreign, args.runs)):
+        raise ConfigError("--mapping: for the recordings of other DAQ systems (.mf4, .tdms)")
+    with contextlib.ExitStack() as stack:  # another DAQ system's file: reported as imported
+        files = [str(stack.enter_context(imported_copy(run, args.mapping))) if is_foreign(run)
+                 else resolve_run(run, args.dir, args.catalog) for run in args.runs]
+        print(write_report(files, output))
     return 0
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    """Import another DAQ system's recording (MDF4, TDMS) as a feedbench recording in the
+    output directory, catalogued like a measured run; print its id, file and status."""
+    from feedbench.daq.importers.mapping import import_recording, load_run
+
+    run = load_run(args.file, args.mapping)
+    params = checked_experiment(run.config["experiment"])
+    row = import_recording(run, output_directory(args.dir),
+                           open_catalog(args.dir, args.catalog), params)
+    if args.json:
+        _print_json(row)
+    else:
+        print(f"{row['id']}  {row['status']}  {row['file']}  ({row['n_samples']} samples at "
+              f"{row['rate_Hz']:g} Hz from {Path(args.file).name})")
+    return 0
+
+
+def checked_experiment(table: Mapping[str, Any]) -> dict[str, Any]:
+    """A mapping's [experiment] table checked against its family's schema (each key named in
+    the error as ``mapping.experiment.<key>``); ``imported`` (no family) as it is."""
+    from feedbench.config import validate_table
+    from feedbench.experiments.family import families
+
+    kind = table.get("type", "imported")
+    if kind == "imported":
+        return dict(table)
+    known = families()
+    if kind not in known:
+        raise ConfigError(f"mapping.experiment.type: unknown experiment family {kind!r} "
+                          f"(known: {', '.join(sorted(known))})")
+    return validate_table(dict(table), known[kind].schema, "mapping.experiment")
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -404,6 +452,8 @@ def build_parser() -> argparse.ArgumentParser:
     analyze.add_argument("run")
     analyze.add_argument("--dir", default="runs")
     analyze.add_argument("--json", action="store_true")
+    analyze.add_argument("--mapping", metavar="M.toml", help="which channel of an MDF4 or "
+                         "TDMS file is which (default: the file's .toml; docs/import.md)")
     analyze.set_defaults(func=cmd_analyze)
 
     live = sub.add_parser("live", help="replay a recorded run in the live window")
@@ -418,7 +468,19 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("runs", nargs="+")
     report.add_argument("--dir", default="runs")
     report.add_argument("-o", "--output", help="report file (default: DIR/report.html)")
+    report.add_argument("--mapping", metavar="M.toml", help="which channel of the MDF4 or "
+                        "TDMS files is which (default: each file's .toml; docs/import.md)")
     report.set_defaults(func=cmd_report)
+
+    importer = sub.add_parser("import", help="import another DAQ system's recording (ASAM "
+                              "MDF4 .mf4, NI TDMS .tdms) as a catalogued feedbench run")
+    importer.add_argument("file", help="the recording (.mf4, .mdf, .tdms)")
+    importer.add_argument("--mapping", metavar="M.toml", help="which channel is which, in "
+                          "what unit, the experiment (default: FILE's .toml; docs/import.md)")
+    importer.add_argument("--dir", default="runs", help="output directory of the recording "
+                          "and its catalog")
+    importer.add_argument("--json", action="store_true", help="print the run record as JSON")
+    importer.set_defaults(func=cmd_import)
 
     demo = sub.add_parser("demo", help="the campaign on the simulated bench: every "
                           "experiment family, identified vs true values, and its report")
@@ -471,7 +533,7 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--csv", metavar="FILE", help="CSV file (FILE.toml: its sidecar)")
     export.set_defaults(func=cmd_export)
 
-    for command in (run, runs, rebuild, sync, analyze, live, report, export):
+    for command in (run, runs, rebuild, sync, analyze, live, report, export, importer):
         command.add_argument("--catalog", metavar="URL", default="", help="the run catalog: "
                              "postgresql://user@host/database or an SQLite file (default: "
                              "$FEEDBENCH_CATALOG, else bench.catalog, else DIR/catalog.sqlite)")

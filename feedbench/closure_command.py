@@ -65,14 +65,15 @@ def default_model(data: str | Path, axis: int | None = None) -> Path | None:
 
 def closure_report(data: str | Path, model: str | Path | None = None,
                    validation: str | Path | None = None,
-                   holdout: float | None = None, axis: int | None = None) -> ClosureReport:
-    """Read the traces (joint `axis` of a KUKA file) and the model config, run the
-    closure; returns the report."""
+                   holdout: float | None = None, axis: int | None = None,
+                   mapping: str | Path | None = None) -> ClosureReport:
+    """Read the traces (joint `axis` of a KUKA file; `mapping`: which channel of an MDF4 or
+    TDMS file is which) and the model config, run the closure; returns the report."""
     from feedbench.analysis.closure import parse_model_config, run_closure
 
     if holdout is not None and not 0.0 < holdout < 1.0:
         raise ConfigError(f"--holdout: must lie between 0 and 1 (got {holdout:g})")
-    trace, controller = read_checked(data, axis)
+    trace, controller = read_checked(data, axis, mapping)
     model_path = model or default_model(data, axis)
     if model_path is None:
         raise ConfigError("--model: required (a model config TOML, see docs/closure.md)")
@@ -90,7 +91,8 @@ def closure_report(data: str | Path, model: str | Path | None = None,
         raise ConfigError(f"{data}: {exc}") from None
 
 
-def read_checked(path: str | Path, axis: int | None = None) -> tuple[Trace, dict[str, Any]]:
+def read_checked(path: str | Path, axis: int | None = None,
+                 mapping: str | Path | None = None) -> tuple[Trace, dict[str, Any]]:
     """`closure_io.read_trace`; a file its reader or `Trace` refuses (NaN or inf samples, time
     not increasing, not a MATLAB file) raises `ConfigError` naming the file."""
     from scipy.io.matlab import MatReadError
@@ -98,7 +100,7 @@ def read_checked(path: str | Path, axis: int | None = None) -> tuple[Trace, dict
     from feedbench.closure_io import read_trace
 
     try:
-        return read_trace(path, axis)
+        return read_trace(path, axis, mapping)
     except ConfigError:
         raise
     except (ValueError, MatReadError) as exc:
@@ -247,7 +249,8 @@ def cmd_closure(args: argparse.Namespace) -> int:
         raise ConfigError("closure: give a trace (CSV + sidecar, .mat or .h5) or --cases")
     data, validation = (run_file(given, args.dir, args.catalog) if given else None
                         for given in (args.data, args.validation))
-    report = closure_report(data, args.model, validation, args.holdout, args.axis)
+    report = closure_report(data, args.model, validation, args.holdout, args.axis,
+                            args.mapping)
     plots = save_plots(report, args.plots) if args.plots else []
     html = None
     if args.report:
@@ -269,7 +272,7 @@ def cmd_closure(args: argparse.Namespace) -> int:
     return 0
 
 
-TRACE_SUFFIXES = (".csv", ".mat", ".h5", ".hdf5")
+TRACE_SUFFIXES = (".csv", ".mat", ".h5", ".hdf5", ".mf4", ".mdf", ".tdms")
 
 
 def run_file(data: str, directory: str, catalog: str = "") -> str:
@@ -287,6 +290,7 @@ def add_closure_parser(sub: Any) -> None:
     closure = sub.add_parser("closure", help="residual → missing effect → augmented model → "
                              "error before/after, on a trace or on simulated cases")
     closure.add_argument("data", nargs="?", help="trace: .csv (+ .toml sidecar), .mat, .h5, "
+                         ".mf4 or .tdms (+ .toml mapping), "
                          "or a run id in the catalog (its recording, else its store copy)")
     closure.add_argument("--dir", default="runs", help="output directory holding the "
                          "catalog (a run id's)")
@@ -295,6 +299,8 @@ def add_closure_parser(sub: Any) -> None:
     closure.add_argument("--model", help="model config TOML (default for .mat: EMPS rigid "
                          "body + viscous; KUKA: motor inertia + viscous, link side)")
     closure.add_argument("--axis", type=int, help="joint of a KUKA robot .mat file (1–6)")
+    closure.add_argument("--mapping", metavar="M.toml", help="which channel of an MDF4 or "
+                         "TDMS file (DATA) is which (default: its .toml; docs/import.md)")
     closure.add_argument("--validation", help="second trace to judge on (else the end of DATA)")
     closure.add_argument("--holdout", type=float, help="share of DATA held out (0–1)")
     closure.add_argument("--plots", help="directory for PNG plots")

@@ -54,14 +54,7 @@ from feedbench.analysis.closure.trace import SIGNALS, Trace, lowpass
 from feedbench.config import (
     ConfigError, Field, non_negative, one_of, read_toml, validate_table,
 )
-
-UNITS_TO_SI = {
-    "s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6,
-    "m": 1.0, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "nm": 1e-9, "rad": 1.0,
-    "deg": math.pi / 180.0, "N": 1.0, "kN": 1e3, "Nm": 1.0, "N·m": 1.0, "kNm": 1e3,
-    "m/s2": 1.0, "mm/s2": 1e-3, "g": 9.80665, "rad/s2": 1.0,
-}
-"""Units a sidecar may name, and their SI factor (m, rad, N, N·m, s, m/s², rad/s²)."""
+from feedbench.units import UNITS_TO_SI  # the units a sidecar may name and their SI factor
 
 SIDECAR_SCHEMA = {
     "name": Field(str, "", "what the trace is"),
@@ -451,17 +444,48 @@ def read_recording(path: str | Path) -> Trace:
     from feedbench.daq.recording import open_recording
 
     recording = open_recording(path)
-    channels = recording.channels
-    cycle = float(recording.metadata.get("cycle_s", 1e-3))
+    channels, metadata = recording.channels, recording.metadata
+    cycle = float(metadata.get("cycle_s", 1e-3))
+    lag = 0.5 * cycle
+    if "force_lag_s" in metadata:  # an imported recording: the lag its mapping declares
+        lag = float(metadata["force_lag_s"]) + declared_force_lag(metadata.get("sampling", {}),
+                                                                  cycle)
     return Trace(recording.cycle * cycle, channels["position"], channels["force"],
                  channels.get("x_ref"), channels.get("force_offset"), Path(path).name,
-                 0.5 * cycle)
+                 lag, channels.get("external_force"), channels.get("tip_acceleration"))
 
 
-def read_trace(path: str | Path, axis: int | None = None) -> tuple[Trace, dict[str, Any]]:
-    """Any supported trace by its suffix (.csv, .mat, .h5), with the controller table it
-    carries (CSV sidecars only; empty otherwise); axis: the joint of a KUKA .mat file."""
+def read_foreign_trace(path: str | Path, mapping: str | Path | None = None
+                       ) -> tuple[Trace, dict[str, Any]]:
+    """Another DAQ system's recording (MDF4, TDMS: `daq.importers`) as a trace, with the
+    controller table of its mapping (`mapping`, else the .toml beside it)."""
+    from feedbench.daq.importers.mapping import load_run
+
+    run = load_run(path, mapping)
+    channels, cycle = run.channels, run.cycle_s
+    lag = run.metadata["force_lag_s"] + declared_force_lag(run.metadata["sampling"], cycle)
+    trace = _trace(Path(path), np.arange(run.n_samples) * cycle, channels["position"],
+                   channels["force"], channels.get("x_ref"), channels.get("force_offset"),
+                   run.name, lag, channels.get("external_force"),
+                   channels.get("tip_acceleration"))
+    return trace, run.controller
+
+
+def read_trace(path: str | Path, axis: int | None = None, mapping: str | Path | None = None
+               ) -> tuple[Trace, dict[str, Any]]:
+    """Any supported trace by its suffix (.csv, .mat, .h5, a foreign format's: .mf4,
+    .tdms…), with the controller table it carries (CSV sidecars and import mappings; empty
+    otherwise); axis: the joint of a KUKA .mat file; mapping: a foreign file's."""
+    from feedbench.daq.importers import is_foreign
+
     suffix = Path(path).suffix.lower()
+    if mapping is not None and not is_foreign(path):
+        raise ConfigError(f"{path}: --mapping is for the recordings of other DAQ systems "
+                          "(.mf4, .tdms)")
+    if is_foreign(path):
+        if axis is not None:
+            raise ConfigError(f"{path}: --axis is for the KUKA .mat recordings")
+        return read_foreign_trace(path, mapping)
     if axis is not None and suffix != ".mat":
         raise ConfigError(f"{path}: --axis is for the KUKA .mat recordings")
     if suffix == ".csv":
@@ -470,7 +494,8 @@ def read_trace(path: str | Path, axis: int | None = None) -> tuple[Trace, dict[s
         return read_mat(path, axis), {}
     if suffix in (".h5", ".hdf5"):
         return read_recording(path), {}
-    raise ConfigError(f"{path}: unknown trace format {suffix!r} (.csv + .toml sidecar, .mat, .h5)")
+    raise ConfigError(f"{path}: unknown trace format {suffix!r} (.csv + .toml sidecar, .mat, .h5, "
+                      ".mf4 or .tdms + .toml mapping)")
 
 
 def save_plots(report: Any, directory: str | Path) -> list[Path]:

@@ -59,3 +59,23 @@ def typed_in(value: float, unit: str, low: float, high: float,
     guesses = [f"{name}? {value:g} {name} = {value * size:g} {unit}" for name, size in typos
                if low <= value * size <= high]
     return "; typed in " + "; in ".join(guesses) if guesses else ""
+
+
+SI_UNITS: dict[str, tuple[float, str]] = {
+    "s": (1.0, "time"), "ms": (1e-3, "time"), "us": (1e-6, "time"), "µs": (1e-6, "time"),
+    "m": (1.0, "length"), "mm": (1e-3, "length"), "um": (1e-6, "length"),
+    "µm": (1e-6, "length"), "nm": (1e-9, "length"),
+    "rad": (1.0, "angle"), "deg": (3.141592653589793 / 180.0, "angle"),
+    "N": (1.0, "force"), "kN": (1e3, "force"),
+    "Nm": (1.0, "torque"), "N·m": (1.0, "torque"), "kNm": (1e3, "torque"),
+    "m/s": (1.0, "velocity"), "mm/s": (1e-3, "velocity"), "mm/min": (MM_PER_MIN, "velocity"),
+    "m/min": (1.0 / 60.0, "velocity"), "rad/s": (1.0, "angular velocity"),
+    "rpm": (RPM, "angular velocity"),
+    "m/s2": (1.0, "acceleration"), "mm/s2": (1e-3, "acceleration"),
+    "g": (9.80665, "acceleration"), "rad/s2": (1.0, "angular acceleration"),
+}
+"""Units a recording's sidecar or import mapping may name: their SI factor (m, rad, N, N·m,
+s, m/s, rad/s, m/s², rad/s²) and the quantity they measure."""
+
+UNITS_TO_SI = {unit: factor for unit, (factor, _) in SI_UNITS.items()}
+"""Each known unit's SI factor (`SI_UNITS` without the quantity)."""

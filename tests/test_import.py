@@ -1,0 +1,310 @@
+"""Recordings other DAQ systems wrote (issue 28 item 4): MDF4 and TDMS files written by asammdf
+and npTDMS from a simulated run read back bit-exact, imported as catalogued runs that analyse
+as the original does; rates met on one time base; gaps and bad mappings refused in one line;
+two public files from real measurements (tests/data/asap2-canape, tests/data/nptdms-daqmx-raw)
+analysed and judged; the closure on an imported MDF4 recording."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from feedbench.bench import analyze_file
+from feedbench.cli import main
+from feedbench.closure_io import read_csv_trace, read_recording
+from feedbench.daq.importers import formats, read_foreign
+from feedbench.daq.importers.mapping import load_run
+from feedbench.daq.recording import open_recording
+from feedbench.experiments.plan import segment_event
+from test_report import chirp_steps, record
+
+DATA = Path(__file__).parent / "data"
+PUBLIC_MDF4 = DATA / "asap2-canape" / "ASAP2_Demo_V171_slice.mf4"
+PUBLIC_TDMS = DATA / "nptdms-daqmx-raw" / "raw1.tdms"
+EXAMPLES = Path(__file__).parents[1] / "feedbench" / "examples" / "closure"
+MAPPED = {"position": "position", "velocity": "velocity", "force": "force",
+          "reference": "x_ref", "excitation": "force_offset"}
+"""Mapping channel → the recording's channel, for the simulated chirp's export."""
+UNITS = {"position": "m", "velocity": "m/s", "force": "N", "x_ref": "m", "force_offset": "N"}
+
+
+@pytest.fixture(scope="module")
+def chirp_run(tmp_path_factory) -> Path:
+    """A simulated chirp run (the two-mass servo mobility, three sweeps) as the runner
+    records it."""
+    path = tmp_path_factory.mktemp("import") / "chirp.h5"
+    record(path, "chirp", chirp_steps())
+    return path
+
+
+def segment_tables(recording) -> list[str]:
+    """The run's segments as a mapping's [[segments]] TOML (start and stop in s from the
+    first sample)."""
+    cycle_s, first = recording.metadata["cycle_s"], int(recording.cycle[0])
+    lines = []
+    for seg in recording.segments():
+        label, kind, info, _ = segment_event(seg.label)
+        lines += ["[[segments]]", f'label = "{label}"', f'kind = "{kind}"',
+                  f"start_s = {(seg.start - first) * cycle_s!r}",
+                  f"stop_s = {(seg.stop - first) * cycle_s!r}"]
+        if info:
+            lines += ["[segments.info]"] + [f"{k} = {json.dumps(v)}" for k, v in info.items()]
+    return lines
+
+
+def mapping_text(recording, channels: dict[str, str]) -> str:
+    """A mapping naming `channels` (mapping channel → the file's channel), the chirp
+    family and the run's segments."""
+    lines = ['name = "simulated chirp"', "[channels]"]
+    lines += [f'{key} = "{name}"' for key, name in channels.items()]
+    lines += ["[experiment]", 'type = "chirp"', *segment_tables(recording)]
+    return "\n".join(lines) + "\n"
+
+
+def write_mdf4(recording, path: Path, names: dict[str, str]) -> None:
+    """The run's channels as an MDF 4.10 file written by asammdf (one channel group at the
+    drive's cycle, SI units)."""
+    from asammdf import MDF, Signal
+
+    time = recording.cycle * recording.metadata["cycle_s"]
+    mdf = MDF(version="4.10")
+    mdf.append([Signal(recording.channels[channel], time, name=names[key],
+                       unit=UNITS[channel]) for key, channel in MAPPED.items()],
+               comment="feedbench simulated chirp")
+    mdf.save(path, overwrite=True)
+    mdf.close()
+
+
+def write_tdms(recording, path: Path, names: dict[str, str]) -> None:
+    """The run's channels as a TDMS file written by npTDMS (waveform channels: start 0,
+    increment the drive's cycle, SI units)."""
+    from nptdms import ChannelObject, TdmsWriter
+
+    with TdmsWriter(path) as writer:
+        writer.write_segment([ChannelObject("drive", names[key].split("/")[-1],
+                                            recording.channels[channel], properties={
+                                                "wf_increment": recording.metadata["cycle_s"],
+                                                "wf_start_offset": 0.0,
+                                                "unit_string": UNITS[channel]})
+                              for key, channel in MAPPED.items()])
+
+
+WRITERS = {"mdf4": (write_mdf4, ".mf4", "X_{}"), "tdms": (write_tdms, ".tdms", "drive/X_{}")}
+
+
+@pytest.mark.parametrize("fmt", list(WRITERS))
+def test_a_file_written_by_the_library_imports_bit_exact_and_analyses_as_the_run(
+        fmt, chirp_run, tmp_path, capsys):
+    write, suffix, pattern = WRITERS[fmt]
+    original = open_recording(chirp_run)
+    names = {key: pattern.format(key) for key in MAPPED}
+    source = tmp_path / f"chirp{suffix}"
+    write(original, source, names)
+    source.with_suffix(".toml").write_text(mapping_text(original, names))
+
+    assert main(["import", str(source), "--dir", str(tmp_path / "runs"), "--json"]) == 0
+    row = json.loads(capsys.readouterr().out)
+    imported = open_recording(row["file"])
+    for key, channel in MAPPED.items():  # bit-exact: the samples themselves, SI in and out
+        assert np.array_equal(imported.channels[channel], original.channels[channel]), channel
+    assert imported.metadata["cycle_s"] == original.metadata["cycle_s"]
+    first = int(original.cycle[0])  # the import numbers its cycles from 0
+    assert [(s.start, s.stop, s.label) for s in imported.segments()] == \
+        [(s.start - first, s.stop - first, s.label) for s in original.segments()]
+    assert imported.status == "complete" and imported.experiment == "chirp"
+    assert row["n_samples"] == original.n_samples == imported.n_samples
+
+    ours, theirs = analyze_file(chirp_run), analyze_file(row["file"])
+    for key in ("antiresonance_hz", "resonance_hz", "min_coherence", "valid"):
+        assert theirs[key] == ours[key], key
+    assert theirs["valid"] is True
+
+    assert main(["runs", "--dir", str(tmp_path / "runs"), "--family", "chirp", "--json"]) == 0
+    listed = json.loads(capsys.readouterr().out)["runs"]
+    assert [r["id"] for r in listed] == [row["id"]] and listed[0]["status"] == "complete"
+    assert main(["analyze", row["id"], "--dir", str(tmp_path / "runs"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["resonance_hz"] == ours["resonance_hz"]
+    assert main(["analyze", str(source), "--json"]) == 0  # the file itself, not catalogued
+    assert json.loads(capsys.readouterr().out)["resonance_hz"] == ours["resonance_hz"]
+
+
+def test_an_imported_run_is_reported_like_a_measured_one(chirp_run, tmp_path, capsys):
+    original = open_recording(chirp_run)
+    names = {key: f"X_{key}" for key in MAPPED}
+    source = tmp_path / "chirp.mf4"
+    write_mdf4(original, source, names)
+    (tmp_path / "m.toml").write_text(mapping_text(original, names))
+    runs = tmp_path / "runs"
+    assert main(["import", str(source), "--mapping", str(tmp_path / "m.toml"),
+                 "--dir", str(runs)]) == 0
+    run_id = capsys.readouterr().out.split()[0]
+    assert main(["report", run_id, "--dir", str(runs), "-o", str(tmp_path / "r.html")]) == 0
+    html = (tmp_path / "r.html").read_text()
+    assert run_id in html and "servo mobility" in html
+
+
+def test_rates_meet_on_one_time_base(tmp_path):
+    """Position at 1 kHz (the base), a reference at 100 Hz (interpolated), a force at 4 kHz
+    (low-passed, then taken at the base's times), an accelerometer at 10 kHz kept as a
+    stream with the cycle of each sample."""
+    from asammdf import MDF, Signal
+
+    t1, t4, t10 = (np.arange(int(2.0 * f)) / f for f in (1000.0, 4000.0, 10000.0))
+    t01 = np.arange(200) / 100.0
+    mdf = MDF(version="4.10")
+    mdf.append([Signal(np.sin(2 * np.pi * 3 * t1), t1, name="x", unit="mm")])
+    mdf.append([Signal(5.0 * t01, t01, name="xref", unit="mm")])
+    mdf.append([Signal(np.sin(2 * np.pi * 50 * t4) + 0.5 * np.sin(2 * np.pi * 1700 * t4), t4,
+                       name="F", unit="kN")])
+    mdf.append([Signal(np.cos(2 * np.pi * 800 * t10), t10, name="acc", unit="g")])
+    source = tmp_path / "rates.mf4"
+    mdf.save(source, overwrite=True)
+    run = load_run(source, {"channels": {"position": "x", "reference": "xref", "force": "F"},
+                            "streams": {"daq": {"acc_tool_x": "acc"}}})
+    base = np.arange(run.n_samples) * run.cycle_s
+    assert run.cycle_s == pytest.approx(1e-3, rel=1e-12)
+    assert run.n_samples == 1991  # the span every channel covers: 0 … 1.99 s (the 100 Hz one)
+    assert np.array_equal(run.channels["position"], 1e-3 * np.sin(2 * np.pi * 3 * t1[:1991]))
+    np.testing.assert_allclose(run.channels["x_ref"], 5e-3 * base, rtol=0, atol=1e-15)
+    inner = slice(100, -100)  # away from the filter's ends: the 50 Hz sine, phase kept
+    np.testing.assert_allclose(run.channels["force"][inner],
+                               1e3 * np.sin(2 * np.pi * 50 * base[inner]), rtol=0, atol=2.0)
+    notes = run.metadata["import_channels"]
+    assert notes["reference"]["resampled"].startswith("linear interpolation from 100 Hz")
+    assert notes["force"]["resampled"].startswith("polyphase FIR resampling by 1/4")
+    assert notes["position"]["resampled"] == "none (on the time base)"
+    spec, cycle, sequence, values = run.streams["daq"]
+    assert spec.rate_hz == pytest.approx(10000.0) and spec.units["acc_tool_x"] == "m/s2"
+    assert np.array_equal(cycle[:12], [0] * 10 + [1] * 2)
+    assert np.array_equal(values["acc_tool_x"], 9.80665 * np.cos(2 * np.pi * 800 * t10)[:19910])
+    path = tmp_path / "rates.h5"
+    from feedbench.daq.importers.mapping import write_recording
+
+    recording = open_recording(write_recording(run, path))
+    assert np.array_equal(recording.streams["daq"].channels["acc_tool_x"], values["acc_tool_x"])
+    assert recording.streams["daq"].n_dropped == 0
+
+
+def gap_file(tmp_path: Path, gap: bool = True) -> Path:
+    """An MDF4 file whose force channel lost 50 samples (0.05 s) at t = 1 s (or none)."""
+    from asammdf import MDF, Signal
+
+    t = np.arange(2000) / 1000.0
+    kept = np.r_[0:1000, 1050:2000] if gap else np.arange(2000)
+    mdf = MDF(version="4.10")
+    mdf.append([Signal(t, t, name="x", unit="mm")])
+    mdf.append([Signal(t[kept], t[kept], name="F", unit="N")])
+    path = tmp_path / "gap.mf4"
+    mdf.save(path, overwrite=True)
+    return path
+
+
+BAD = {
+    "gap": ({"position": "x", "force": "F"}, {},
+            r"^mapping\.channels\.force: channel 'F' has 1 gap\(s\): the first 0\.051 s long "
+            r"at t = 0\.999 s \(sample period 0\.001 s\); gaps are refused"),
+    "no channel": ({"position": "x", "force": "Fx"}, {},
+                   r"^mapping\.channels\.force: no channel 'Fx' in gap\.mf4 \(channels: F, x\)$"),
+    "wrong quantity": ({"position": "x", "force": "F"}, {"force": "mm"},
+                       r"^mapping\.units\.force: 'mm' is a unit of length, the run's force is "
+                       r"a force or torque"),
+    "no position": ({"force": "F"}, {},
+                    r"^mapping\.channels\.position: required"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD))
+def test_bad_input_is_one_line_naming_the_field(case, tmp_path, capsys):
+    channels, units, message = BAD[case]
+    source = gap_file(tmp_path, gap=case == "gap")
+    lines = ["[channels]"] + [f'{k} = "{v}"' for k, v in channels.items()]
+    lines += ["[units]"] + [f'{k} = "{v}"' for k, v in units.items()]
+    source.with_suffix(".toml").write_text("\n".join(lines) + "\n")
+    assert main(["import", str(source), "--dir", str(tmp_path / "runs")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert __import__("re").search(message, err.removeprefix("feedbench: error: ")), err
+    assert not list((tmp_path / "runs").glob("*.h5"))  # nothing written, nothing catalogued
+
+
+@pytest.mark.parametrize("channel, message", [
+    ("ASAM.M.SCALAR.UBYTE.HYPERBOLIC", r"has \d+ NaN or infinite sample\(s\), the first at t ="),
+    ("ASAM.M.SCALAR.UBYTE.VTAB_RANGE_NO_DEFAULT_VALUE", r"is not numeric \(\|S21 samples"),
+])
+def test_a_real_file_s_unusable_channel_is_named(channel, message, tmp_path, capsys):
+    mapping = tmp_path / "m.toml"
+    mapping.write_text(f'[channels]\nposition = "ASAM.M.SCALAR.FLOAT64.IDENTICAL"\n'
+                       f'force = "{channel}"\n[units]\nposition = "um"\nforce = "N"\n')
+    assert main(["analyze", str(PUBLIC_MDF4), "--mapping", str(mapping)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "mapping.channels.force" in err, err
+    assert __import__("re").search(message, err), err
+
+
+@pytest.mark.parametrize("path, source_rates", [
+    (PUBLIC_MDF4, {"position": 1000.0, "force": 1000.0, "reference": 100.0, "excitation": 10.0}),
+    (PUBLIC_TDMS, {"position": 50000.0, "force": 50000.0}),
+])
+def test_public_recordings_analyse_and_judge_themselves(path, source_rates, capsys):
+    """Real files from real DAQ systems (CANape on an ETK, NI DAQmx raw), small, cited; their
+    signals are no feed drive, so the chirp analysis the mapping asks for must run and say
+    that its FRF is not one (the coherence across the four records)."""
+    assert path.stat().st_size < 300_000
+    readme = (path.parent / "README.md").read_text()
+    assert "LGPL-3.0" in readme and "commit" in readme
+    run = load_run(path)
+    for key, rate in source_rates.items():
+        assert run.metadata["import_channels"][key]["rate_Hz"] == pytest.approx(rate, rel=1e-4)
+    assert main(["analyze", str(path), "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["experiment"] == "chirp" and result["n_sweeps"] == 4
+    assert result["valid"] is False
+    assert any("coherence at the peaks" in why for why in result["not_valid_because"])
+    assert all(check["ok"] for check in result["checks"]
+               if check["name"] in ("status", "missing samples (gaps)"))
+
+
+def test_the_formats_are_one_seam():
+    assert set(formats()) >= {"mdf4", "tdms"}
+    tdms = read_foreign(PUBLIC_TDMS)
+    assert tdms.channels["First  Channel"].unit == "Volts"
+    assert np.array_equal(tdms.channels["First  Channel"].values,
+                          tdms.channels["Layer Data/First  Channel"].values)
+    mdf = read_foreign(PUBLIC_MDF4)
+    assert "ASAM.M.SCALAR.UBYTE.VTAB_RANGE_NO_DEFAULT_VALUE" in mdf.skipped
+
+
+@pytest.mark.slow
+def test_the_closure_runs_on_an_imported_mdf4_recording(tmp_path, capsys):
+    """The closure's sample axis (a simulated bench axis with an effect hidden in it) written
+    as MDF4 by asammdf, imported, and closed: the same finding as on its CSV."""
+    from asammdf import MDF, Signal
+
+    trace, controller = read_csv_trace(EXAMPLES / "sample_axis.csv")
+    mdf = MDF(version="4.10")
+    mdf.append([Signal(trace.position * 1e3, trace.time, name="X_pos", unit="mm"),
+                Signal(trace.force, trace.time, name="F_motor", unit="N"),
+                Signal(trace.reference * 1e3, trace.time, name="X_ref", unit="mm"),
+                Signal(trace.excitation, trace.time, name="F_exc", unit="N")])
+    source = tmp_path / "axis.mf4"
+    mdf.save(source, overwrite=True)
+    source.with_suffix(".toml").write_text(
+        'force_lag_ms = 0.5\n[channels]\nposition = "X_pos"\nforce = "F_motor"\n'
+        'reference = "X_ref"\nexcitation = "F_exc"\n[controller]\n'
+        + "".join(f"{k} = {json.dumps(v)}\n" for k, v in controller.items()))
+    assert main(["import", str(source), "--dir", str(tmp_path / "runs"), "--json"]) == 0
+    imported = json.loads(capsys.readouterr().out)["file"]
+    again = read_recording(imported)
+    np.testing.assert_allclose(again.position, trace.position, rtol=1e-15, atol=0)
+    assert again.force_lag == pytest.approx(trace.force_lag, rel=1e-12)
+    model = str(EXAMPLES / "bench_coulomb_viscous.toml")
+    assert main(["closure", imported, "--model", model, "--json"]) == 0
+    on_import = json.loads(capsys.readouterr().out)
+    assert main(["closure", str(EXAMPLES / "sample_axis.csv"), "--model", model, "--json"]) == 0
+    on_csv = json.loads(capsys.readouterr().out)
+    assert on_import["effects"] == on_csv["effects"] == ["ripple"]
+    for key in ("error_before", "error_after"):
+        assert on_import[key] == pytest.approx(on_csv[key], rel=1e-6), key
