@@ -308,3 +308,21 @@ def test_the_closure_runs_on_an_imported_mdf4_recording(tmp_path, capsys):
     assert on_import["effects"] == on_csv["effects"] == ["ripple"]
     for key in ("error_before", "error_after"):
         assert on_import[key] == pytest.approx(on_csv[key], rel=1e-6), key
+
+
+@pytest.mark.parametrize("name, content, message", [
+    ("cut.mf4", PUBLIC_MDF4.read_bytes()[:5000], r"cut\.mf4: not a readable MDF file \("),
+    ("cut.tdms", PUBLIC_TDMS.read_bytes()[:3000],
+     r"cut\.tdms: no numeric channel in the file \(npTDMS: Last segment metadata is incomplete"),
+    ("noise.mf4", bytes(range(256)) * 16, r"noise\.mf4: not a readable MDF file \(MdfException"),
+    ("noise.tdms", bytes(range(256)) * 16, r"noise\.tdms: not a readable TDMS file \("),
+    ("empty.mf4", b"", r"empty\.mf4: not a readable MDF file"),
+])
+def test_a_damaged_file_is_one_line_naming_it(name, content, message, tmp_path, capsys):
+    source = tmp_path / name
+    source.write_bytes(content)
+    source.with_suffix(".toml").write_text('[channels]\nposition = "x"\nforce = "F"\n')
+    assert main(["import", str(source), "--dir", str(tmp_path / "runs")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err  # the libraries' log lines and __del__ kept quiet
+    assert __import__("re").search(message, err), err

@@ -13,12 +13,16 @@ experiment family: a third format is one file.
 
 from __future__ import annotations
 
+import gc
 import importlib
+import logging
+import sys
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cache
 from importlib import metadata as importlib_metadata
 from pathlib import Path
-from typing import Any, ClassVar, Protocol
+from typing import Any, ClassVar, Iterator, Protocol
 
 import numpy as np
 
@@ -114,6 +118,37 @@ def formats() -> dict[str, type[Format]]:
                               f"called {kind.name!r}")
         found[name] = kind
     return found
+
+
+@contextmanager
+def library_quiet(logger: str) -> Iterator[list[str]]:
+    """Inside the block, the library's log lines (`logger`) are collected in the list given,
+    not printed, and what its objects' ``__del__`` raises is dropped (asammdf's half-built
+    file object fails in its ``__del__`` after a failed open): an error stays one line."""
+    heard: list[str] = []
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = lambda record: heard.append(record.getMessage())  # type: ignore[method-assign]
+    names = [logger] + [name for name in logging.root.manager.loggerDict
+                        if name.startswith(logger + ".")]
+    logs = [logging.getLogger(name) for name in names]
+    saved = [(log.handlers, log.propagate) for log in logs]
+    previous_hook = sys.unraisablehook
+
+    def unraisable(info: Any) -> None:
+        module = getattr(getattr(info, "object", None), "__module__", "") or ""
+        if not module.startswith(logger):
+            previous_hook(info)
+
+    for log in logs:
+        log.handlers, log.propagate = [handler], False
+    sys.unraisablehook = unraisable
+    try:
+        yield heard
+    finally:
+        gc.collect()  # a half-built object of the library goes now, its __del__ quiet
+        for log, (handlers, propagate) in zip(logs, saved):
+            log.handlers, log.propagate = handlers, propagate
+        sys.unraisablehook = previous_hook
 
 
 def suffixes() -> dict[str, str]:

@@ -3,7 +3,6 @@ read by asammdf: every numeric channel with the time of its channel group's mast
 
 from __future__ import annotations
 
-import logging
 import warnings
 from pathlib import Path
 from typing import Any, ClassVar
@@ -11,7 +10,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from feedbench.config import ConfigError
-from feedbench.daq.importers import ForeignChannel, ForeignFile
+from feedbench.daq.importers import ForeignChannel, ForeignFile, library_quiet
 
 
 class Mdf4:
@@ -27,21 +26,21 @@ class Mdf4:
         applied (physical), time from the group's master channel (s)."""
         from asammdf import MDF
 
-        logging.getLogger("asammdf").setLevel(logging.ERROR)
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
+        problem = ""
+        with library_quiet("asammdf"), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
                 mdf = MDF(path)
                 try:
                     return _read(path, mdf)
                 finally:
                     mdf.close()
-        except ConfigError:
-            raise
-        except Exception as exc:  # asammdf raises many kinds for a foreign or damaged file
-            text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-            raise ConfigError(f"{path}: not a readable MDF file ({type(exc).__name__}"
-                              f"{': ' + text if text else ''})") from None
+            except ConfigError:
+                raise
+            except Exception as exc:  # asammdf raises many kinds for a foreign or damaged file
+                text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+                problem = f"{type(exc).__name__}{': ' + text if text else ''}"
+        raise ConfigError(f"{path}: not a readable MDF file ({problem})")
 
 
 def _read(path: Path, mdf: Any) -> ForeignFile:

@@ -9,7 +9,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from feedbench.config import ConfigError
-from feedbench.daq.importers import ForeignChannel, ForeignFile
+from feedbench.daq.importers import ForeignChannel, ForeignFile, library_quiet
 
 TIME_NAMES = ("time", "Time", "TIME", "t", "Zeit")
 """A group's time channel (s), used for its channels that carry no waveform timing."""
@@ -28,13 +28,18 @@ class Tdms:
         """Every numeric channel of every group (physical values: DAQmx scaling applied)."""
         from nptdms import TdmsFile
 
-        try:
-            tdms = TdmsFile.read(path)
-        except Exception as exc:  # npTDMS raises many kinds for a foreign or damaged file
-            text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-            raise ConfigError(f"{path}: not a readable TDMS file ({type(exc).__name__}"
-                              f"{': ' + text if text else ''})") from None
-        return _read(path, tdms)
+        with library_quiet("nptdms") as heard:
+            try:
+                tdms = TdmsFile.read(path)
+            except Exception as exc:  # npTDMS raises many kinds for a foreign or damaged file
+                text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+                raise ConfigError(f"{path}: not a readable TDMS file ({type(exc).__name__}"
+                                  f"{': ' + text if text else ''})") from None
+            found = _read(path, tdms)
+        if not found.channels:
+            said = f" (npTDMS: {heard[0]})" if heard else ""
+            raise ConfigError(f"{path}: no numeric channel in the file{said}")
+        return found
 
 
 def _read(path: Path, tdms: Any) -> ForeignFile:
