@@ -7,7 +7,7 @@ LOCK := requirements.lock
 PIP_VERSION := 26.3
 PYTEST_ARGS = -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
-.PHONY: demo test test-fast test-latest lock bench docs clean
+.PHONY: demo test test-lab test-fast test-latest lock bench docs clean
 
 # the stamp holds the set-up's wall time (s), which `make demo` reports
 $(STAMP): pyproject.toml $(LOCK)
@@ -35,6 +35,18 @@ TEST_WORKERS ?= 2
 test: $(STAMP)
 	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest $(PYTEST_ARGS) -m "not realtime"
 	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -q -n 0 -m realtime
+	$(MAKE) test-lab
+
+# the worked example of a lab's extension (examples/lab_extension: its own package, entry
+# points in its own pyproject.toml) installed beside feedbench, where it stays: its tests
+# (run, analyze, report, sim, demo, campaign), then feedbench's tests of what is registered
+LAB_TESTS := tests/test_bench_tables.py tests/test_testing_kit.py tests/test_device_seam.py \
+	tests/test_sim_serves_all.py
+test-lab: $(STAMP)
+	$(BIN)/pip install --quiet --no-deps --no-build-isolation -e examples/lab_extension
+	cd examples/lab_extension && QT_QPA_PLATFORM=offscreen $(abspath $(BIN))/python -m pytest \
+		-q -p no:cacheprovider
+	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -q -n 0 $(LAB_TESTS)
 
 # the edit loop: the suite without the files marked slow (tests/conftest.py: SLOW_FIRST,
 # each 5 s or more alone), under a minute on 2 workers

@@ -373,14 +373,15 @@ def serve(bench: Mapping[str, Any], start: StartBench, out: TextIO = sys.stdout,
     hub = SocketcandHub(*split_address(bench["socketcand"], "bench.socketcand", listen=True))
     host, port = hub.start()
     try:
-        with one_line_logging(), ExitStack() as stack:
+        with one_line_logging(), ExitStack() as stack, _stop_requests(stop) as stopped:
             info = {"socketcand": f"{host}:{port}", "channel": bench["channel"],
                     **start({**bench, "interface": "feedbench_hub"}, {"hub": hub}, stack)}
             stack.callback(hub.stop)  # on exit first: no frame reaches a device as it closes
             print(f"{READY} {json.dumps(info)}", file=out)
             print(host_bench_table(info), file=out, flush=True)
             with frozen_heap():  # no 0.1 s full collection in the middle of the cycles
-                _wait_for_stop(stop)
+                while not stopped.wait(0.5):
+                    pass
     finally:
         hub.stop()
 
@@ -463,17 +464,19 @@ def _log_thread_exception(args: threading.ExceptHookArgs) -> None:
                                       args.exc_type.__name__, args.exc_value)
 
 
-def _wait_for_stop(stop: threading.Event | None) -> None:
-    """Until `stop` is set, or (None) until SIGINT / SIGTERM; the previous handlers return."""
+@contextmanager
+def _stop_requests(stop: threading.Event | None) -> Iterator[threading.Event]:
+    """While inside: `stop`, or (None) an event that SIGINT / SIGTERM set (from before the
+    ready line, so a stop asked for as soon as it is read is a clean exit); the previous
+    handlers return."""
     if stop is not None:
-        stop.wait()
+        yield stop
         return
     stopped = threading.Event()
     previous = {signum: signal.signal(signum, lambda *_: stopped.set())
                 for signum in (signal.SIGINT, signal.SIGTERM)}
     try:
-        while not stopped.wait(0.5):
-            pass
+        yield stopped
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
