@@ -439,11 +439,16 @@ def read_recording(path: str | Path) -> Trace:
     """A feedbench HDF5 recording (the runner's channels) as a trace.
 
     The drive's force actual is its force averaged over each cycle (what the simulated
-    drive publishes), so the force samples lag the position samples by half a cycle.
+    drive publishes), so the force samples lag the position samples by half a cycle; an
+    imported recording's lag is the one its mapping declared (`force_lag_s`, [sampling]).
     """
     from feedbench.daq.recording import open_recording
 
-    recording = open_recording(path)
+    return _recording_trace(open_recording(path))
+
+
+def _recording_trace(recording: Any) -> Trace:
+    """The trace of an open `daq.recording.Recording` (`read_recording`)."""
     channels, metadata = recording.channels, recording.metadata
     cycle = float(metadata.get("cycle_s", 1e-3))
     lag = 0.5 * cycle
@@ -451,7 +456,7 @@ def read_recording(path: str | Path) -> Trace:
         lag = float(metadata["force_lag_s"]) + declared_force_lag(metadata.get("sampling", {}),
                                                                   cycle)
     return Trace(recording.cycle * cycle, channels["position"], channels["force"],
-                 channels.get("x_ref"), channels.get("force_offset"), Path(path).name,
+                 channels.get("x_ref"), channels.get("force_offset"), recording.path.name,
                  lag, channels.get("external_force"), channels.get("tip_acceleration"))
 
 
@@ -492,8 +497,11 @@ def read_trace(path: str | Path, axis: int | None = None, mapping: str | Path | 
         return read_csv_trace(path)
     if suffix == ".mat":
         return read_mat(path, axis), {}
-    if suffix in (".h5", ".hdf5"):
-        return read_recording(path), {}
+    if suffix in (".h5", ".hdf5"):  # an imported run keeps its mapping's [controller]
+        from feedbench.daq.recording import open_recording
+
+        recording = open_recording(path)
+        return _recording_trace(recording), dict(recording.metadata.get("controller", {}))
     raise ConfigError(f"{path}: unknown trace format {suffix!r} (.csv + .toml sidecar, .mat, .h5, "
                       ".mf4 or .tdms + .toml mapping)")
 

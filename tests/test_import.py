@@ -326,3 +326,32 @@ def test_a_damaged_file_is_one_line_naming_it(name, content, message, tmp_path, 
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1, err  # the libraries' log lines and __del__ kept quiet
     assert __import__("re").search(message, err), err
+
+
+@pytest.mark.parametrize("experiment, message", [
+    ('type = "chirp"\nf_stop_hz = 150.0', r"^mapping\.experiment\.f_stop_hz: unknown key"),
+    ('type = "chrip"', r"^mapping\.experiment\.type: unknown experiment family 'chrip' "
+                       r"\(known: .*chirp"),
+])
+def test_the_experiment_is_checked_before_anything_is_written(experiment, message, tmp_path,
+                                                              capsys):
+    source = gap_file(tmp_path, gap=False)
+    source.with_suffix(".toml").write_text(
+        f'[channels]\nposition = "x"\nforce = "F"\n[experiment]\n{experiment}\n')
+    assert main(["import", str(source), "--dir", str(tmp_path / "runs")]) == 2
+    err = capsys.readouterr().err.strip().removeprefix("feedbench: error: ")
+    assert __import__("re").search(message, err), err
+    assert not (tmp_path / "runs").exists() or not list((tmp_path / "runs").glob("*.h5"))
+
+
+def test_an_imported_run_closes_with_its_mapping_s_controller(tmp_path, capsys):
+    source = gap_file(tmp_path, gap=False)
+    source.with_suffix(".toml").write_text(
+        '[channels]\nposition = "x"\nforce = "F"\n[controller]\nK_p_Ns_m = 8645.7\n'
+        'delay_ms = 0.75\n')
+    assert main(["import", str(source), "--dir", str(tmp_path / "runs"), "--json"]) == 0
+    from feedbench.closure_io import read_trace
+
+    trace, controller = read_trace(json.loads(capsys.readouterr().out)["file"])
+    assert controller == {"K_p_Ns_m": 8645.7, "delay_ms": 0.75}
+    assert trace.force_lag == 0.0  # as the mapping declares (no lag), not half a cycle
