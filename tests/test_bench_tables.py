@@ -216,6 +216,24 @@ def test_a_peer_owns_its_world_table(lab_thermometer):
         Bench(bench, None, {"thermometer": {}}).__enter__()
 
 
+def test_the_rack_and_pinion_axis_starts_the_registered_peers_the_run_needs(lab_thermometer,
+                                                                          capsys):
+    """Its simulated peer starts the peers of its own devices (the load cell, reading the
+    bumper) and of any device the run needs (a lab's thermometer) as the lab axis does; the
+    world key of earlier versions is read into the load cell's own table with one line."""
+    bench = _bench(axis="rack_pinion", devices={"thermometer": {"unit_id": 9}},
+                   world={"load_cell_range_N": 5000.0, "thermometer": {"temperature_C": 23.0}})
+    with Bench(bench, None, {"thermometer": {}}) as opened:
+        assert set(opened.simulated.peers) == {"load_cell", "thermometer"}
+        assert opened.simulated.peers["load_cell"].load_cell.range_N == 5000.0
+        assert sorted(d.device_id for d in opened.simulated.modbus_devices) == [2, 9]
+        thermometer = next(d for d in opened.devices if d.channels == (
+            "thermometer.temperature",))
+        assert thermometer.after_sync(1) == (pytest.approx(23.0),)
+    assert ("feedbench: bench.world.load_cell_range_N is read as bench.world.load_cell.range_N; "
+            "write [bench.world.load_cell] range_N = 5000.0") in capsys.readouterr().err
+
+
 def test_axis_kinds_are_registered_with_their_own_keys():
     assert {name: kind.name for name, kind in axes(OWN_DISTRIBUTION).items()} == {
         "lab": "lab", "rack_pinion": "rack_pinion"}
