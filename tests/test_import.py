@@ -313,7 +313,7 @@ def test_the_closure_runs_on_an_imported_mdf4_recording(tmp_path, capsys):
 @pytest.mark.parametrize("name, content, message", [
     ("cut.mf4", PUBLIC_MDF4.read_bytes()[:5000], r"cut\.mf4: not a readable MDF file \("),
     ("cut.tdms", PUBLIC_TDMS.read_bytes()[:3000],
-     r"cut\.tdms: no numeric channel in the file \(npTDMS: Last segment metadata is incomplete"),
+     r"cut\.tdms: no channel in the file \(npTDMS: Last segment metadata is incomplete"),
     ("noise.mf4", bytes(range(256)) * 16, r"noise\.mf4: not a readable MDF file \(MdfException"),
     ("noise.tdms", bytes(range(256)) * 16, r"noise\.tdms: not a readable TDMS file \("),
     ("empty.mf4", b"", r"empty\.mf4: not a readable MDF file"),
@@ -355,3 +355,22 @@ def test_an_imported_run_closes_with_its_mapping_s_controller(tmp_path, capsys):
     trace, controller = read_trace(json.loads(capsys.readouterr().out)["file"])
     assert controller == {"K_p_Ns_m": 8645.7, "delay_ms": 0.75}
     assert trace.force_lag == 0.0  # as the mapping declares (no lag), not half a cycle
+
+
+def test_a_tdms_group_s_time_channel_times_the_channels_without_waveform_timing(tmp_path):
+    """A logger writing its own time stamps (1 kHz with 20 µs jitter, no wf_increment): the
+    group's `Time` channel times the others, which are interpolated onto the even base."""
+    from nptdms import ChannelObject, TdmsWriter
+
+    rng = np.random.default_rng(1)
+    time = np.arange(3000) * 1e-3 + rng.uniform(-2e-5, 2e-5, 3000)
+    with TdmsWriter(tmp_path / "log.tdms") as writer:
+        writer.write_segment([ChannelObject("log", "Time", time),
+                              ChannelObject("log", "x", 2.0 * time, {"unit_string": "mm"}),
+                              ChannelObject("log", "F", 7.0 + 0 * time, {"unit_string": "N"})])
+    run = load_run(tmp_path / "log.tdms", {"channels": {"position": "x", "force": "F"}})
+    assert run.cycle_s == pytest.approx(1e-3, rel=1e-4)
+    base = run.t0_s + np.arange(run.n_samples) * run.cycle_s
+    np.testing.assert_allclose(run.channels["position"], 2e-3 * base, rtol=0, atol=1e-15)
+    assert np.all(run.channels["force"] == 7.0)
+    assert run.metadata["import_channels"]["position"]["resampled"].startswith("linear")

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from functools import cache
 from importlib import metadata as importlib_metadata
 from pathlib import Path
-from typing import Any, ClassVar, Iterator, Protocol
+from typing import Any, ClassVar, Collection, Iterator, Protocol
 
 import numpy as np
 
@@ -75,6 +75,8 @@ class ForeignFile:
     metadata: dict[str, Any] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
     """Channels the format could not offer as numbers, with why (text, arrays, …)."""
+    listing: tuple[str, ...] = ()
+    """Every channel name of the file, read or not (`Format.read`'s `names`)."""
 
     def channel(self, name: str, field_name: str) -> ForeignChannel:
         """The channel `name`; one missing is a ConfigError naming `field_name`, the file and
@@ -84,7 +86,7 @@ class ForeignFile:
         if name in self.skipped:
             raise ConfigError(f"{field_name}: channel {name!r} of {self.path.name} is not "
                               f"numeric ({self.skipped[name]})")
-        names = sorted(self.channels)
+        names = sorted(self.listing or self.channels)
         listed = ", ".join(names[:12]) + (f", … ({len(names)} in all)" if len(names) > 12 else "")
         raise ConfigError(f"{field_name}: no channel {name!r} in {self.path.name} "
                           f"(channels: {listed})")
@@ -97,9 +99,10 @@ class Format(Protocol):
     suffixes: ClassVar[tuple[str, ...]]
 
     @classmethod
-    def read(cls, path: Path) -> ForeignFile:
-        """Every channel of the file; a file the library cannot read is a ConfigError naming
-        it."""
+    def read(cls, path: Path, names: Collection[str] | None = None) -> ForeignFile:
+        """The file's channels (those of `names` only, when given: the others' samples are
+        not read, their names listed); a file the library cannot read is a ConfigError
+        naming it."""
 
 
 @cache
@@ -161,9 +164,10 @@ def is_foreign(path: str | Path) -> bool:
     return Path(path).suffix.lower() in suffixes()
 
 
-def read_foreign(path: str | Path, format_name: str = "") -> ForeignFile:
-    """Read `path` with the format its suffix (or `format_name`) names; a missing file, an
-    unknown suffix or format is a ConfigError."""
+def read_foreign(path: str | Path, format_name: str = "",
+                 names: Collection[str] | None = None) -> ForeignFile:
+    """Read `path` with the format its suffix (or `format_name`) names, the channels of
+    `names` only if given; a missing file, an unknown suffix or format is a ConfigError."""
     path = Path(path)
     known = suffixes()
     name = format_name or known.get(path.suffix.lower(), "")
@@ -175,4 +179,4 @@ def read_foreign(path: str | Path, format_name: str = "") -> ForeignFile:
                           f"(known: {', '.join(sorted(formats()))})")
     if not path.is_file():
         raise ConfigError(f"{path}: no such file")
-    return formats()[name].read(path)
+    return formats()[name].read(path, names)

@@ -184,7 +184,9 @@ def load_run(source: str | Path, mapping: str | Path | Mapping[str, Any] | None 
         side = read_mapping(path)
     else:
         side = check_mapping(mapping)
-    return build_run(read_foreign(source, side["format"]), side)
+    wanted = {*side["channels"].values(), *(name for table in side["streams"].values()
+                                            for name in table.values())}
+    return build_run(read_foreign(source, side["format"], wanted), side)
 
 
 def build_run(foreign: ForeignFile, side: Mapping[str, Any]) -> ImportedRun:

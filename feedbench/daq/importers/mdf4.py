@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Collection
 
 import numpy as np
 
@@ -21,9 +21,9 @@ class Mdf4:
     suffixes: ClassVar[tuple[str, ...]] = (".mf4", ".mdf")
 
     @classmethod
-    def read(cls, path: Path) -> ForeignFile:
-        """Every numeric 1-D channel of every group, values with the file's conversion
-        applied (physical), time from the group's master channel (s)."""
+    def read(cls, path: Path, names: Collection[str] | None = None) -> ForeignFile:
+        """Every numeric 1-D channel of every group (of `names` only, when given), values
+        with the file's conversion applied (physical), time from the group's master (s)."""
         from asammdf import MDF
 
         problem = ""
@@ -32,7 +32,7 @@ class Mdf4:
             try:
                 mdf = MDF(path)
                 try:
-                    return _read(path, mdf)
+                    return _read(path, mdf, names)
                 finally:
                     mdf.close()
             except ConfigError:
@@ -43,7 +43,7 @@ class Mdf4:
         raise ConfigError(f"{path}: not a readable MDF file ({problem})")
 
 
-def _read(path: Path, mdf: Any) -> ForeignFile:
+def _read(path: Path, mdf: Any, names: Collection[str] | None) -> ForeignFile:
     occurrences: dict[str, list[tuple[int, int]]] = {}
     for group_index, group in enumerate(mdf.groups):
         master = mdf.masters_db.get(group_index)
@@ -52,9 +52,13 @@ def _read(path: Path, mdf: Any) -> ForeignFile:
                 occurrences.setdefault(channel.name, []).append((group_index, index))
     channels: dict[str, ForeignChannel] = {}
     skipped: dict[str, str] = {}
+    listing = []
     for name, places in occurrences.items():
         for group_index, index in places:
             key = name if len(places) == 1 else f"{name}@{group_index}"
+            listing.append(key)
+            if names is not None and key not in names:
+                continue
             signal = mdf.get(name, group=group_index, index=index, raw=False)
             samples = np.asarray(signal.samples)
             if samples.ndim != 1 or samples.dtype.kind not in "biuf":
@@ -66,4 +70,4 @@ def _read(path: Path, mdf: Any) -> ForeignFile:
     metadata = {"version": str(mdf.version),
                 "start_time": str(getattr(header, "start_time", "")),
                 "comment": str(getattr(header, "comment", "") or "")[:2000]}
-    return ForeignFile(path, Mdf4.name, channels, metadata, skipped)
+    return ForeignFile(path, Mdf4.name, channels, metadata, skipped, tuple(listing))

@@ -4,7 +4,7 @@ channel, DAQmx raw data scaled, times from the waveform properties."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Collection
 
 import numpy as np
 
@@ -24,45 +24,50 @@ class Tdms:
     suffixes: ClassVar[tuple[str, ...]] = (".tdms",)
 
     @classmethod
-    def read(cls, path: Path) -> ForeignFile:
-        """Every numeric channel of every group (physical values: DAQmx scaling applied)."""
+    def read(cls, path: Path, names: Collection[str] | None = None) -> ForeignFile:
+        """Every numeric channel of every group (of `names` only, when given: the file is
+        opened, not read whole), physical values (DAQmx scaling applied)."""
         from nptdms import TdmsFile
 
         with library_quiet("nptdms") as heard:
             try:
-                tdms = TdmsFile.read(path)
+                with TdmsFile.open(path) as tdms:
+                    found = _read(path, tdms, names)
             except Exception as exc:  # npTDMS raises many kinds for a foreign or damaged file
                 text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
                 raise ConfigError(f"{path}: not a readable TDMS file ({type(exc).__name__}"
                                   f"{': ' + text if text else ''})") from None
-            found = _read(path, tdms)
-        if not found.channels:
+        if not found.listing:
             said = f" (npTDMS: {heard[0]})" if heard else ""
-            raise ConfigError(f"{path}: no numeric channel in the file{said}")
+            raise ConfigError(f"{path}: no channel in the file{said}")
         return found
 
 
-def _read(path: Path, tdms: Any) -> ForeignFile:
-    found: list[tuple[str, str, ForeignChannel | str]] = []
+def _read(path: Path, tdms: Any, names: Collection[str] | None) -> ForeignFile:
+    counts: dict[str, int] = {}
+    for group in tdms.groups():
+        for channel in group.channels():
+            counts[channel.name] = counts.get(channel.name, 0) + 1
+    channels: dict[str, ForeignChannel] = {}
+    skipped: dict[str, str] = {}
+    listing = []
     for group in tdms.groups():
         by_name = {channel.name: channel for channel in group.channels()}
         clock = next((by_name[n] for n in TIME_NAMES if n in by_name), None)
-        for channel in group.channels():
-            found.append((group.name, channel.name, _channel(channel, clock)))
-    counts: dict[str, int] = {}
-    for _, name, _ in found:
-        counts[name] = counts.get(name, 0) + 1
-    channels: dict[str, ForeignChannel] = {}
-    skipped: dict[str, str] = {}
-    for group, name, read in found:
-        for key in [f"{group}/{name}"] + ([name] if counts[name] == 1 else []):
-            if isinstance(read, str):
-                skipped[key] = read
-            else:
-                channels[key] = ForeignChannel(key, read.time, read.values, read.unit,
-                                               read.increment)
+        for name, channel in by_name.items():
+            keys = [f"{group.name}/{name}"] + ([name] if counts[name] == 1 else [])
+            listing += keys
+            if names is not None and not set(keys) & set(names):
+                continue
+            read = _channel(channel, clock)
+            for key in keys:
+                if isinstance(read, str):
+                    skipped[key] = read
+                else:
+                    channels[key] = ForeignChannel(key, read.time, read.values, read.unit,
+                                                   read.increment)
     metadata = {key: _plain(value) for key, value in tdms.properties.items()}
-    return ForeignFile(path, Tdms.name, channels, metadata, skipped)
+    return ForeignFile(path, Tdms.name, channels, metadata, skipped, tuple(listing))
 
 
 def _channel(channel: Any, clock: Any) -> ForeignChannel | str:
