@@ -19,7 +19,7 @@ from feedbench.daq.importers import formats, read_foreign
 from feedbench.daq.importers.mapping import load_run
 from feedbench.daq.recording import open_recording
 from feedbench.experiments.plan import segment_event
-from test_report import chirp_steps, record
+from test_report import DAQ_RATE, chirp_steps, hammer_steps, record, record_with_daq
 
 DATA = Path(__file__).parent / "data"
 PUBLIC_MDF4 = DATA / "asap2-canape" / "ASAP2_Demo_V171_slice.mf4"
@@ -374,3 +374,44 @@ def test_a_tdms_group_s_time_channel_times_the_channels_without_waveform_timing(
     np.testing.assert_allclose(run.channels["position"], 2e-3 * base, rtol=0, atol=1e-15)
     assert np.all(run.channels["force"] == 7.0)
     assert run.metadata["import_channels"]["position"]["resampled"].startswith("linear")
+
+
+def test_a_hammer_test_s_daq_channels_stay_a_stream_and_analyse_as_the_run(tmp_path, capsys):
+    """The tool-tip analyses read the DAQ at its own rate: a simulated impact-hammer run (1 kHz
+    drive, hammer force and tip acceleration at 10 kHz) written as TDMS by npTDMS, the DAQ
+    channels mapped as the `daq` stream, imported: the stream equal bit for bit, each sample
+    in its bus cycle, and the hammer analysis the same as the original's."""
+    from nptdms import ChannelObject, TdmsWriter
+
+    original_path = tmp_path / "hammer.h5"
+    record_with_daq(original_path, {"type": "impact_hammer"}, hammer_steps(),
+                    ("hammer_force", "acc_tool_x"))
+    original = open_recording(original_path)
+    stream = original.streams["daq"]
+    cycle_s = original.metadata["cycle_s"]
+    with TdmsWriter(tmp_path / "hammer.tdms") as writer:
+        writer.write_segment(
+            [ChannelObject("drive", channel, original.channels[channel],
+                           {"wf_increment": cycle_s, "wf_start_offset": 0.0,
+                            "unit_string": UNITS[channel]})
+             for channel in ("position", "force")]
+            + [ChannelObject("daq", channel, stream.channels[channel],
+                             {"wf_increment": 1.0 / DAQ_RATE, "wf_start_offset": 0.0,
+                              "unit_string": {"hammer_force": "N", "acc_tool_x": "m/s2"}[channel]})
+               for channel in ("hammer_force", "acc_tool_x")])
+    lines = ["[channels]", 'position = "drive/position"', 'force = "drive/force"',
+             "[streams.daq]", 'hammer_force = "daq/hammer_force"', 'acc_tool_x = "daq/acc_tool_x"',
+             "[experiment]", 'type = "impact_hammer"', *segment_tables(original)]
+    (tmp_path / "hammer.toml").write_text("\n".join(lines) + "\n")
+    assert main(["import", str(tmp_path / "hammer.tdms"), "--dir", str(tmp_path / "runs"),
+                 "--json"]) == 0
+    imported = open_recording(json.loads(capsys.readouterr().out)["file"])
+    got = imported.streams["daq"]
+    for channel in ("hammer_force", "acc_tool_x"):
+        assert np.array_equal(got.channels[channel], stream.channels[channel]), channel
+    assert np.array_equal(got.cycle, stream.cycle - int(original.cycle[0]))
+    assert np.array_equal(got.sequence, stream.sequence) and got.n_dropped == 0
+    ours, theirs = analyze_file(original_path), analyze_file(imported.path)
+    assert theirs["valid"] == ours["valid"]
+    for mine, other in zip(ours["feeds"], theirs["feeds"]):
+        assert other["frf"] == mine["frf"]
