@@ -53,13 +53,14 @@ import sqlite3
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager, nullcontext, suppress
 from dataclasses import dataclass
+from functools import cached_property
 from datetime import datetime, timezone
 from itertools import islice
 from pathlib import Path
 from typing import Any
 
 from sqlalchemy import (BigInteger, Column, Integer, MetaData, Table, Text, bindparam,
-                        create_engine, event, func, inspect, select, text)
+                        create_engine, event, func, inspect, select, text, true)
 from sqlalchemy.engine import URL, Connection, Engine, make_url
 from sqlalchemy.exc import ArgumentError, DBAPIError
 from sqlalchemy.pool import NullPool
@@ -67,7 +68,7 @@ from sqlalchemy.pool import NullPool
 from feedbench.config import ConfigError
 from feedbench.daq.recorder import mark_crashed
 from feedbench.daq.recording import RecordingSummary, read_summary, to_json, utc_now_iso
-from feedbench.daq.run_filter import DAMAGED, RunFilter
+from feedbench.daq.run_filter import DAMAGED, RunFilter, parsed_parameters
 
 METADATA = MetaData()
 RUNS = Table(
@@ -112,6 +113,8 @@ CATALOG_ENV = "FEEDBENCH_CATALOG"
 BENCH_ENV = "FEEDBENCH_BENCH"
 BACKENDS = ("sqlite", "postgresql")
 DELETE_BATCH = 500
+INVALID_TEXT = "22P02"
+"""PostgreSQL's SQLSTATE for text a cast refuses (parameters that are not JSON)."""
 LOGGER = logging.getLogger(__name__)
 
 
@@ -367,16 +370,31 @@ class Catalog:
         """Runs newest first (in the order their ids were created), those `where` selects,
         at most `limit`."""
         where = where or RunFilter()
-        query = select(*(RUNS.c[name] for name in COLUMN_NAMES)).where(
-            *where.clauses(RUNS)).order_by(RUNS.c.seq.desc())
-        in_sql = where.status is None and not where.where
-        if limit is not None and in_sql:
-            query = query.limit(limit)
-        with self._transaction() as connection:
-            rows = connection.execute(query).fetchall()
+        try:
+            rows = self._select(where, limit)
+        except CatalogError as exc:  # PostgreSQL: a damaged row's parameters are not JSON
+            if getattr(exc.__cause__, "sqlstate", None) != INVALID_TEXT:
+                raise
+            rows = self._select(where, limit, in_sql=False)
         read = (self._row(row) for row in rows)
         return list(islice((row for row in read if where.matches(row.experiment, row.status,
                                                                   row.params)), limit))
+
+    def _select(self, where: RunFilter, limit: int | None,
+                in_sql: bool = True) -> list[tuple[Any, ...]]:
+        """The rows `where`'s SQL selects (`RunFilter.clauses`; `in_sql` False: its `--where`
+        conditions left to `RunFilter.matches`), newest first, at most `limit` when SQL
+        decides alone."""
+        query = select(*(RUNS.c[name] for name in COLUMN_NAMES))
+        document = None
+        if where.where and in_sql and self.path is None:  # PostgreSQL: parsed once a row
+            parsed = parsed_parameters(RUNS)
+            query, document = query.select_from(RUNS.join(parsed, true())), parsed.c.document
+        query = query.where(*where.clauses(RUNS, document, in_sql)).order_by(RUNS.c.seq.desc())
+        if limit is not None and where.status is None and not where.where:
+            query = query.limit(limit)
+        with self._transaction() as connection:
+            return connection.execute(query).fetchall()
 
     def get(self, run_id_or_prefix: str) -> RunRow:
         """The run with this exact id, else the only run whose id starts with it."""
@@ -508,7 +526,7 @@ class Catalog:
         that name beside the catalog."""
         if stored is None or self.path is None:
             return stored
-        parent = "" if self.path.parent == Path(".") else str(self.path.parent)
+        parent = self._parent
         beside = os.path.join(parent, stored)
         if os.sep not in stored or os.path.exists(beside):  # a name: as stored since then
             return beside
@@ -516,6 +534,11 @@ class Catalog:
             if os.path.exists(old):
                 return old
         return beside
+
+    @cached_property
+    def _parent(self) -> str:
+        """An SQLite catalog's directory as a path from the current directory ('': here)."""
+        return "" if self.path.parent == Path(".") else str(self.path.parent)
 
     def _row(self, row: tuple[Any, ...]) -> RunRow:
         """A catalog row as a `RunRow`, its file resolved (`_resolved`); a row whose JSON
@@ -530,7 +553,9 @@ class Catalog:
         if problems:
             values.update(status=DAMAGED, reason=f"catalog row damaged: {'; '.join(problems)} "
                           "(feedbench catalog rebuild recreates it from its file)")
-        return RunRow(**values)
+        row = object.__new__(RunRow)  # every field: a frozen __init__ costs 4 µs a row
+        row.__dict__.update(values)
+        return row
 
     def _settle(self, run_id: str, status: str, reason: str, n_samples: int,
                 stopped_at: str | None, timing: Mapping[str, Any] | None = None) -> None:

@@ -2,14 +2,19 @@
 parameter (``--where 'chirp.f_stop_Hz>150'``).
 
 The bench, family, status and dates become SQL conditions on the catalog's columns (the same
-on SQLite and PostgreSQL: text comparisons, ISO 8601 UTC times sort as text); a `--where`
-condition reads in SQL only the rows whose parameters' text names its key, and is checked on
-each one's parameters once read, so a row whose parameters cannot be read (`damaged`) is never
-compared and no database has to parse JSON it may not be able to.
+on SQLite and PostgreSQL: text comparisons, ISO 8601 UTC times sort as text). A `--where`
+condition becomes SQL too (`Condition.clause`, through SQLAlchemy Core: SQLite's json_tree,
+PostgreSQL's jsonb ``#>`` and jsonb_typeof; each row's parameters parsed once), exact for a
+number, text, true, false or null and letting an array or object through; every row read is then checked on its
+parameters in Python (`Condition.matches`, the definition), so the SQL only spares reading
+the rows that cannot match. A row whose parameters are not JSON (`damaged`) never matches:
+SQLite checks json_valid first; PostgreSQL refuses the cast, and `Catalog.list` then checks
+the conditions in Python alone (`RunFilter.clauses` with ``in_sql=False``).
 """
 
 from __future__ import annotations
 
+import math
 import operator
 import re
 from collections.abc import Callable, Mapping
@@ -17,7 +22,10 @@ from dataclasses import dataclass
 from datetime import date, datetime, time, timedelta, timezone
 from typing import Any
 
-from sqlalchemy import ColumnElement, Table
+from sqlalchemy import (ColumnElement, Table, and_, case, cast, exists, false, func, literal,
+                        or_, select, true)
+from sqlalchemy.dialects.postgresql import ARRAY, JSONB
+from sqlalchemy.types import Float, Text
 
 from feedbench.config import ConfigError
 
@@ -66,6 +74,73 @@ class Condition:
             return False
 
 
+    def clause(self, runs: Table, document: Any = None) -> ColumnElement[bool]:
+        """The SQL condition on the catalog's `runs` table that selects the rows whose
+        parameters meet it (`matches`): exact where the run's value is a number, text, true,
+        false or null, true where it is an array or an object (`matches` decides those).
+        SQLite: `document` None, the parameters parsed once per row (json_tree) if they are
+        JSON (json_valid); PostgreSQL: `document` the row's parameters as jsonb (parsed once
+        per row: `parsed_parameters`)."""
+        paths = [self.path]
+        if len(self.path) > 1:  # led by a family: its runs' own key, others' nested table
+            paths.insert(0, self.path[1:])
+        compare = OPERATORS[self.op]
+        number = _number(self.value)
+        if document is None:
+            where = [("$" + "".join(f'."{key}"' for key in path)) for path in paths]
+            at = where[0] if len(where) == 1 else case(
+                (runs.c.experiment == self.path[0], where[0]), else_=where[1])
+            node = func.json_tree(runs.c.params, at).table_valued("type", "atom", "parent")
+            kind, value, text = node.c.type, node.c.atom, node.c.atom
+            numeric, string, integer = ("integer", "real"), "text", ("integer",)
+            constants = {"true": "true", "false": "false", "null": "None"}
+        else:
+            where = [literal(list(path), ARRAY(Text)) for path in paths]
+            at = where[0] if len(where) == 1 else case(
+                (runs.c.experiment == self.path[0], where[0]), else_=where[1])
+            found = document.op("#>")(at)
+            kind = func.jsonb_typeof(found)
+            value = found.op("#>>", return_type=Text)(literal([], ARRAY(Text)))
+            text = value.collate("C")  # code point order, as Python's
+            numeric, string, integer = ("number",), "string", ()
+            constants = {"null": "None"}
+        alternatives = [kind.in_(("array", "object"))]
+        if number is not None:  # the cast only on a number (CASE: in that order)
+            alternatives.append(case((kind.in_(numeric), compare(cast(value, Float), number)),
+                                     else_=false()))
+        else:  # a number's text: an integer's the same in SQL, a real's may differ: let through
+            alternatives.append(kind.in_([name for name in numeric if name not in integer]))
+            if integer:
+                alternatives.append(and_(kind.in_(integer), compare(cast(value, Text),
+                                                                    self.value)))
+        alternatives.append(and_(kind == string, compare(text, self.value)))
+        if document is not None:  # a boolean's text is true / false
+            alternatives.append(and_(kind == "boolean", compare(text, self.value)))
+        alternatives += [kind == name for name, shown in constants.items()
+                         if compare(shown, self.value)]
+        if document is not None:
+            return or_(*alternatives)
+        matching = exists().where(node.c.parent.is_(None), or_(*alternatives))
+        return case((func.json_valid(runs.c.params) == 1, matching), else_=false()) == true()
+
+
+def parsed_parameters(runs: Table) -> Any:
+    """PostgreSQL: the rows' parameters as jsonb, parsed once per row (a lateral subquery
+    the planner keeps apart: OFFSET 0) for the `Condition.clause` of each ``--where``; join
+    it to `runs` on true."""
+    return (select(cast(runs.c.params, JSONB).label("document")).correlate(runs).offset(0)
+            .lateral("parsed"))
+
+
+def _number(value: str) -> float | None:
+    """The condition's value as a finite number, or None (text, nan, inf: `matches`)."""
+    try:
+        number = float(value)
+    except ValueError:
+        return None
+    return number if math.isfinite(number) else None
+
+
 def _comparable(found: Any, value: str) -> tuple[Any, Any]:
     """The run's value and the condition's, both numbers if both read as numbers, else text."""
     if isinstance(found, (int, float)) and not isinstance(found, bool):
@@ -103,8 +178,11 @@ class RunFilter:
     until: str | None = None
     where: tuple[Condition, ...] = ()
 
-    def clauses(self, runs: Table) -> list[ColumnElement[bool]]:
-        """The SQL conditions on the catalog's `runs` table (all but `where`)."""
+    def clauses(self, runs: Table, document: Any = None,
+                in_sql: bool = True) -> list[ColumnElement[bool]]:
+        """The SQL conditions on the catalog's `runs` table; the `where` conditions in SQL
+        (`Condition.clause`; `document`: PostgreSQL's `parsed_parameters` column) unless not
+        `in_sql` (then only the rows whose parameters name the key: `matches` checks them)."""
         status = None if self.status == DAMAGED else self.status  # a status read, not stored
         clauses = [runs.c[name] == value for name, value in (
             ("bench", self.bench), ("experiment", self.experiment), ("status", status))
@@ -115,6 +193,8 @@ class RunFilter:
             clauses.append(runs.c.started_at < self.until)
         clauses += [runs.c.params.contains(f'"{condition.path[-1]}"', autoescape=True)
                     for condition in self.where]  # only rows that name the key: fewer to read
+        if in_sql:
+            clauses += [condition.clause(runs, document) for condition in self.where]
         return clauses
 
     def matches(self, experiment: str, status: str, params: Mapping[str, Any]) -> bool:

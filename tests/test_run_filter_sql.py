@@ -1,0 +1,132 @@
+"""`feedbench runs --where` evaluated in SQL (issue 28, benchmark of the "Done when"): the
+same runs as `Condition.matches` (the definition) selects, on SQLite and on PostgreSQL, for
+numbers, text, booleans, null, arrays, nested tables, a family's prefix, missing keys and
+damaged rows; and the SQL itself selects exactly the matching rows wherever the value is no
+array or table (nor a number tested against text), so listing does not read the rest."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from sqlalchemy import text
+
+from feedbench.daq.catalog import Catalog
+from feedbench.daq.run_filter import Condition, RunFilter
+from pg_server import BINARIES, postgres_url, server  # noqa: F401  (fixtures)
+from prerequisites import requires
+
+PARAMS = [
+    ("chirp", {"f_stop_Hz": 120.0, "mode": "open", "window": True, "seed": 7}),
+    ("chirp", {"f_stop_Hz": 200, "mode": "closed", "window": False, "seed": None}),
+    ("chirp", {"f_stop_Hz": 150.0, "mode": "150", "label": "Ünïcode", "seed": 12}),
+    ("chirp", {"f_stop_Hz": "high", "mode": "b"}),
+    ("friction_sweep", {"feeds_mm_min": [100, 200], "f_stop_Hz": 900,
+                        "chirp": {"f_stop_Hz": 160.0}, "mode": "open"}),
+    ("friction_sweep", {"feeds_mm_min": [100.0, 200.0], "settle_s": 1e-5}),
+    ("stepped_loading", {"steps": {"force_N": [10, 20]}, "f_stop_Hz": 1.5e3, "window": "true"}),
+    ("stepped_loading", {}),
+]
+CONDITIONS = [
+    "chirp.f_stop_Hz>150", "f_stop_Hz>150", "f_stop_Hz>=150", "f_stop_Hz=200",
+    "f_stop_Hz!=200", "f_stop_Hz<1500", "f_stop_Hz<=1500.0", "chirp.f_stop_Hz = high",
+    "f_stop_Hz>h", "f_stop_Hz=200.0", "mode=open", "mode>c", "mode=150", "mode<150",
+    "mode!=open", "window=true", "window!=false", "window=True", "seed=None", "seed>5",
+    "seed!=None", "feeds_mm_min=[100, 200]", "friction_sweep.feeds_mm_min=[100.0, 200.0]",
+    "feeds_mm_min>[", "steps.force_N=[10, 20]", "stepped_loading.steps.force_N=[10, 20]",
+    "label>Z", "label=Ünïcode", "settle_s=1e-05", "settle_s<0.001", "f_stop_Hz>nan",
+    "f_stop_Hz<inf", "f_stop_Hz!=nan", "missing=1", "chirp.missing.deeper>0",
+]
+DAMAGED = ["not json {", "[1, 2]", '"f_stop_Hz"', '{"f_stop_Hz": 300']
+
+
+@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=requires(
+    BINARIES is not None, "PostgreSQL's server programs (Debian package postgresql)"))])
+def catalog(request: pytest.FixtureRequest, tmp_path: Path) -> Catalog:
+    """A catalog holding `PARAMS`' runs, oldest first."""
+    location = (str(tmp_path / "catalog.sqlite") if request.param == "sqlite"
+                else request.getfixturevalue("postgres_url"))
+    catalog = Catalog(location, directory=tmp_path)
+    for family, params in PARAMS:
+        run_id = catalog.new_run_id(family)
+        catalog.add(run_id, family, f"{run_id}.h5", params)
+        catalog.finish(run_id, "complete", "", 1)
+    return catalog
+
+
+def by_definition(catalog: Catalog, conditions: tuple[Condition, ...]) -> list[str]:
+    """The ids `Condition.matches` selects from every row read."""
+    return [row.id for row in catalog.list() if row.status != "damaged" and all(
+        condition.matches(row.experiment, row.params) for condition in conditions)]
+
+
+def selected_in_sql(catalog: Catalog, where: RunFilter) -> list[str]:
+    return [row[0] for row in catalog._select(where, None)]
+
+
+@pytest.mark.parametrize("condition", CONDITIONS)
+def test_a_condition_selects_in_sql_what_its_definition_selects(catalog, condition):
+    conditions = (Condition.parse(condition),)
+    expected = by_definition(catalog, conditions)
+    assert [row.id for row in catalog.list(where=RunFilter(where=conditions))] == expected
+    in_sql = selected_in_sql(catalog, RunFilter(where=conditions))
+    assert set(expected) <= set(in_sql)
+    [condition] = conditions
+    let_through = {row.id for row in catalog.list() if lets_through(condition, row)}
+    assert set(in_sql) - set(expected) <= let_through, "SQL exact but for arrays and tables"
+
+
+def lets_through(condition: Condition, row) -> bool:
+    """Whether SQL leaves the row to `Condition.matches`: its value is an array or a table,
+    or a number and the condition's value no finite number (a real's text differs between
+    Python and SQL)."""
+    path = (condition.path[1:] if len(condition.path) > 1
+            and condition.path[0] == row.experiment else condition.path)
+    found = row.params
+    for key in path:
+        if not isinstance(found, dict) or key not in found:
+            return False
+        found = found[key]
+    if isinstance(found, (list, dict)):
+        return True
+    try:
+        number = math.isfinite(float(condition.value))
+    except ValueError:
+        number = False
+    return not number and isinstance(found, (int, float)) and not isinstance(found, bool)
+
+
+def test_conditions_together_and_with_the_other_filters(catalog):
+    conditions = (Condition.parse("f_stop_Hz>100"), Condition.parse("mode!=closed"))
+    where = RunFilter(experiment="chirp", where=conditions)
+    expected = [row_id for row_id in by_definition(catalog, conditions)
+                if "-chirp-" in row_id]
+    assert len(expected) == 3, "120 open, 150 (mode 150), high (text: 'high' > '100')"
+    assert [row.id for row in catalog.list(where=where)] == expected
+    assert selected_in_sql(catalog, where) == expected
+    assert [row.id for row in catalog.list(limit=1, where=where)] == expected[:1]
+
+
+def test_damaged_rows_never_match_and_the_others_still_do(catalog):
+    rows = catalog.list()
+    for row, damage in zip(rows, DAMAGED):
+        with catalog._engine.begin() as connection:
+            connection.execute(text("UPDATE runs SET params = :p WHERE id = :id"),
+                               {"p": damage, "id": row.id})
+    for condition in ("f_stop_Hz>100", "chirp.f_stop_Hz>100", "mode=open", "seed=None"):
+        conditions = (Condition.parse(condition),)
+        listed = [row.id for row in catalog.list(where=RunFilter(where=conditions))]
+        assert listed == by_definition(catalog, conditions)
+        assert not set(listed) & {row.id for row in rows[:len(DAMAGED)]}
+    assert [row.status for row in catalog.list()][:len(DAMAGED)] == ["damaged"] * len(DAMAGED)
+
+
+def test_a_listed_row_has_every_field_of_a_run_row(catalog):
+    from dataclasses import fields
+
+    from feedbench.daq.catalog import COLUMN_NAMES, RunRow
+
+    assert tuple(field.name for field in fields(RunRow)) == COLUMN_NAMES
+    row = catalog.list()[0]
+    assert row == RunRow(**{name: getattr(row, name) for name in COLUMN_NAMES})
