@@ -5,8 +5,8 @@ against closed-form physics; then a fast subset of its cases asserts, per case, 
 `benchmarks/bench_closure_independent.py` counts over all of them: the injected effect (or the
 wrongly declared parameter) is the first and only finding and the held-out error is fixed
 (at least halved, or within 1.5× the noise floor); a clean case is left untouched; nothing
-crashes. A case the closure fails is marked xfail(strict) naming what goes wrong: today issue
-24's backlash in the drive train.
+crashes. A case the closure fails would be marked xfail(strict) naming what goes wrong (none
+today).
 """
 
 from __future__ import annotations
@@ -177,12 +177,8 @@ SUBSET = [
     pytest.param("offset_small", True, id="offset_small-free"),
     pytest.param("ripple_long_pitch", False, id="ripple_long_pitch"),
     pytest.param("channel_skew", False, id="channel_skew"),
-    pytest.param("backlash_drivetrain_large", False, id="backlash_drivetrain_large",
-                 marks=pytest.mark.xfail(strict=True, reason=(
-                     "issue 24: the table floats free inside the play (no friction behind "
-                     "it) and rattles on a 61 Hz mode with zeta 0.012; the closure's "
-                     "backlash-in-the-mode term, started at the true 30 um, leaves 47 % of "
-                     "the fit force: the mode's zeta is recalibrated first"))),
+    pytest.param("backlash_drivetrain_large", False, id="backlash_drivetrain_large"),
+    pytest.param("backlash_guided_small", False, id="backlash_guided_small"),
     pytest.param("second_mode", False, id="second_mode"),
 ]
 
