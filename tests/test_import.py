@@ -415,3 +415,19 @@ def test_a_hammer_test_s_daq_channels_stay_a_stream_and_analyse_as_the_run(tmp_p
     assert theirs["valid"] == ours["valid"]
     for mine, other in zip(ours["feeds"], theirs["feeds"]):
         assert other["frf"] == mine["frf"]
+
+
+@pytest.mark.parametrize("segments, message", [
+    ([{"start_s": 0.0}], r"^mapping\.segments\[0\]\.kind: required key is missing"),
+    ([{"kind": "excite", "start_s": 0.02, "stop_s": 0.01}],
+     r"^mapping\.segments\[0\]\.stop_s: 0\.01 s is not after its start_s 0\.02 s$"),
+    ([{"kind": "excite", "start_s": 1.0}],
+     r"^mapping\.segments\[0\]\.start_s: 1 s lies after the run's 0\.03998 s$"),
+    ([{"kind": "excite", "start_s": 0.0, "stop_s": 0.02}, {"kind": "excite", "start_s": 0.01}],
+     r"^mapping\.segments\[1\]\.start_s: overlaps the segment before$"),
+])
+def test_bad_segments_are_named(segments, message):
+    mapping = {"channels": {"position": "First  Channel", "force": "Second Chan"},
+               "units": {"position": "mm", "force": "N"}, "segments": segments}
+    with pytest.raises(__import__("feedbench.config").config.ConfigError, match=message):
+        load_run(PUBLIC_TDMS, mapping)

@@ -39,12 +39,14 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Iterator, Mapping, NoReturn
 
 import numpy as np
 import scipy.signal
 
-from feedbench.config import ConfigError, Field, non_negative, positive, read_toml, validate_table
+from feedbench.config import (
+    REQUIRED, ConfigError, Field, non_negative, positive, read_toml, validate_table,
+)
 from feedbench.daq.importers import ForeignChannel, ForeignFile, read_foreign
 from feedbench.daq.recorder import Recorder, StreamSpec
 from feedbench.units import SI_UNITS
@@ -87,7 +89,7 @@ MAPPING_SCHEMA = {
 
 SEGMENT_SCHEMA = {
     "label": Field(str, "", "the segment's label"),
-    "kind": Field(str, None, "measure, excite, settle, move…"),
+    "kind": Field(str, REQUIRED, "measure, excite, settle, move…"),
     "start_s": Field(float, 0.0, "start from the run's first sample (s)", non_negative),
     "stop_s": Field(float, math.inf, "end from the run's first sample (s)", positive),
     "info": Field(dict, {}, "labels the analysis reads (feed, frequency, test…)"),
@@ -169,7 +171,7 @@ def check_mapping(raw: Mapping[str, Any]) -> dict[str, Any]:
     return side
 
 
-def _not_table(index: int) -> dict:
+def _not_table(index: int) -> NoReturn:
     raise ConfigError(f"mapping.segments[{index}]: a table (label, kind, start_s, stop_s)")
 
 
@@ -360,6 +362,9 @@ def _segments(side: Mapping[str, Any], n: int, rate: float) -> list[tuple[int, s
                               f"the run's {(n - 1) / rate:.6g} s")
         if events and start < end:
             raise ConfigError(f"mapping.segments[{i}].start_s: overlaps the segment before")
+        if not seg["stop_s"] > seg["start_s"]:
+            raise ConfigError(f"mapping.segments[{i}].stop_s: {seg['stop_s']:g} s is not after "
+                              f"its start_s {seg['start_s']:g} s")
         if events and start > end:  # a hole between two segments: a segment of its own
             events.append((end, json.dumps({"label": "between", "kind": "settle"})))
         text = json.dumps({"label": seg["label"] or f"segment {i + 1}", "kind": seg["kind"],
