@@ -7,6 +7,7 @@ analysed and judged; the closure on an imported MDF4 recording."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,7 @@ import pytest
 from feedbench.bench import analyze_file
 from feedbench.cli import main
 from feedbench.closure_io import read_csv_trace, read_recording
+from feedbench.config import ConfigError
 from feedbench.daq.importers import formats, read_foreign
 from feedbench.daq.importers.mapping import load_run
 from feedbench.daq.recording import open_recording
@@ -226,7 +228,7 @@ def test_bad_input_is_one_line_naming_the_field(case, tmp_path, capsys):
     assert main(["import", str(source), "--dir", str(tmp_path / "runs")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1
-    assert __import__("re").search(message, err.removeprefix("feedbench: error: ")), err
+    assert re.search(message, err.removeprefix("feedbench: error: ")), err
     assert not list((tmp_path / "runs").glob("*.h5"))  # nothing written, nothing catalogued
 
 
@@ -241,7 +243,7 @@ def test_a_real_file_s_unusable_channel_is_named(channel, message, tmp_path, cap
     assert main(["analyze", str(PUBLIC_MDF4), "--mapping", str(mapping)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "mapping.channels.force" in err, err
-    assert __import__("re").search(message, err), err
+    assert re.search(message, err), err
 
 
 @pytest.mark.parametrize("path, source_rates", [
@@ -325,7 +327,7 @@ def test_a_damaged_file_is_one_line_naming_it(name, content, message, tmp_path, 
     assert main(["import", str(source), "--dir", str(tmp_path / "runs")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1, err  # the libraries' log lines and __del__ kept quiet
-    assert __import__("re").search(message, err), err
+    assert re.search(message, err), err
 
 
 @pytest.mark.parametrize("experiment, message", [
@@ -340,7 +342,7 @@ def test_the_experiment_is_checked_before_anything_is_written(experiment, messag
         f'[channels]\nposition = "x"\nforce = "F"\n[experiment]\n{experiment}\n')
     assert main(["import", str(source), "--dir", str(tmp_path / "runs")]) == 2
     err = capsys.readouterr().err.strip().removeprefix("feedbench: error: ")
-    assert __import__("re").search(message, err), err
+    assert re.search(message, err), err
     assert not (tmp_path / "runs").exists() or not list((tmp_path / "runs").glob("*.h5"))
 
 
@@ -429,5 +431,5 @@ def test_a_hammer_test_s_daq_channels_stay_a_stream_and_analyse_as_the_run(tmp_p
 def test_bad_segments_are_named(segments, message):
     mapping = {"channels": {"position": "First  Channel", "force": "Second Chan"},
                "units": {"position": "mm", "force": "N"}, "segments": segments}
-    with pytest.raises(__import__("feedbench.config").config.ConfigError, match=message):
+    with pytest.raises(ConfigError, match=message):
         load_run(PUBLIC_TDMS, mapping)
