@@ -1,16 +1,19 @@
 """Lockstep bus cycles per second: the full stack against the bare python-can + canopen loop.
 
-Both loops move the same frames per cycle over python-can's `virtual` bus in one process:
-host → 3 RPDOs + SYNC, device → 2 TPDOs, host waits for the last TPDO. The bare loop has
-only canopen Networks with raw subscriptions on both sides; the full loop is
+Both loops move the same frames per cycle in one process: host → 3 RPDOs + SYNC, device →
+2 TPDOs, host waits for the last TPDO. The bare loop has only canopen Networks with raw
+subscriptions on both sides, on python-can's own `virtual` bus (`can_bus`); the full loop is
 `Cia402Drive` + `LockstepClock` on the host and `SimulatedCia402Drive` (state machine,
-AxisSimulator physics) on the device. Both wait for the last TPDO on the same primitive
-(`CycleSignal`), so the ratio is the cost of driver, simulated drive and physics alone.
+AxisSimulator physics) on the device, on the bus feedbench opens for `virtual`
+(`protocols.canbus.LocalVirtualBus`: python-can's, without its deep copy per frame and
+receiver). Both wait for the last TPDO on the same primitive (`CycleSignal`). The bare loop
+on feedbench's bus is measured too and printed beside it: over that one the ratio is the cost
+of driver, simulated drive and physics alone.
 Rounds alternate between the loops so that load from other processes hits them alike;
-cycles/s are medians over the rounds, each ratio is the median of the rounds' own ratios
-(a round's loops run back to back, so a slow phase of the machine cancels out). CPU time
-per cycle (all threads of the process, `time.process_time`) is reported beside the rates,
-and the load average.
+cycles/s are medians over the rounds; each ratio is printed for 5 repeats (each the median
+of 6 consecutive rounds' own ratios: a round's loops run back to back, so a slow phase of
+the machine cancels out) as min / median / max. CPU time per cycle (all threads of the
+process, `time.process_time`) is reported beside the rates, and the load average.
 
 Why the wall-clock ratio can exceed 1 although the full loop does more work: the three
 threads of a cycle (host, device receive thread, host receive thread) hand over the GIL
@@ -29,8 +32,10 @@ import struct
 import time
 from pathlib import Path
 from contextlib import contextmanager
-from typing import Iterator, NamedTuple
+from functools import partial
+from typing import Callable, Iterator, NamedTuple
 
+import can
 import canopen
 import numpy as np
 
@@ -47,7 +52,8 @@ from feedbench.sim_backends.eds import packaged_eds_path
 
 NODE_ID = 1
 N_CYCLES = 500
-ROUNDS = 30
+REPEATS = 5
+ROUNDS_PER_REPEAT = 6
 RPDO_PAYLOADS = ((0x200 + NODE_ID, bytes(7)), (0x300 + NODE_ID, bytes(8)),
                  (0x400 + NODE_ID, bytes(8)))
 TPDO_COB_IDS = (0x180 + NODE_ID, 0x280 + NODE_ID)
@@ -81,10 +87,18 @@ def driver_sim_physics_cycles_per_s(n_cycles: int = N_CYCLES) -> float:
     return _full_loop(n_cycles).cycles_per_s
 
 
-def _bare_loop(n_cycles: int) -> Timing:
+def can_bus(channel: str) -> can.BusABC:
+    """python-can's own `virtual` bus (`can.interfaces.virtual.VirtualBus`)."""
+    return can.Bus(interface="virtual", channel=channel)
+
+
+def _bare_loop(n_cycles: int, bus: Callable[[str], can.BusABC] = partial(open_bus, "virtual"),
+               ) -> Timing:
+    """The bare loop on `bus(channel)` buses: feedbench's (`open_bus`, a `LocalVirtualBus`)
+    or python-can's own (`can_bus`)."""
     channel = _channel("bare")
-    host = connect(canopen.Network(open_bus("virtual", channel)))
-    device = connect(canopen.Network(open_bus("virtual", channel)))
+    host = connect(canopen.Network(bus(channel)))
+    device = connect(canopen.Network(bus(channel)))
     answered = CycleSignal()
     received: dict[int, bytearray] = {}
     count = [0]
@@ -164,12 +178,6 @@ def _runner_loop(n_cycles: int) -> Timing:
         return Timing(cycles / wall, cpu / cycles * 1e6)
 
 
-def _paired(rounds: list[tuple[Timing, ...]], column: int, over: int = 0) -> list[float]:
-    """Per-round cycles/s of loop `column` over loop `over`'s (the bare loop) in the same
-    round, sorted."""
-    return sorted(r[column].cycles_per_s / r[over].cycles_per_s for r in rounds)
-
-
 def _runner_loop_on_one_core(n_cycles: int) -> Timing:
     """`_runner_loop` with its threads on one CPU, as a simulated `Bench` runs it
     (`bench.one_core`)."""
@@ -179,13 +187,18 @@ def _runner_loop_on_one_core(n_cycles: int) -> Timing:
 
 def run() -> dict[str, float]:
     _full_loop(10)  # compile the physics, import everything: not part of any round
-    rounds = [(_bare_loop(N_CYCLES), _full_loop(N_CYCLES), _runner_loop(N_CYCLES),
-               _runner_loop_on_one_core(N_CYCLES)) for _ in range(ROUNDS)]
-    bare, full, stack, stack_one_core = (
+    _bare_loop(10, can_bus)
+    load = os.getloadavg()[0]
+    rounds = [(_bare_loop(N_CYCLES, can_bus), _full_loop(N_CYCLES), _runner_loop(N_CYCLES),
+               _runner_loop_on_one_core(N_CYCLES), _bare_loop(N_CYCLES))
+              for _ in range(REPEATS * ROUNDS_PER_REPEAT)]
+    load = max(load, os.getloadavg()[0])
+    bare, full, stack, stack_one_core, bare_local = (
         Timing(*(statistics.median(column) for column in zip(*(r[i] for r in rounds))))
-        for i in range(4))
-    full_ratios, stack_ratios = _paired(rounds, 1), _paired(rounds, 2)
-    one_core_ratios = _paired(rounds, 3, over=2)
+        for i in range(5))
+    full_ratios, stack_ratios = _repeats(rounds, 1), _repeats(rounds, 2)
+    one_core_ratios = _repeats(rounds, 3, over=2)
+    local_ratios = _repeats(rounds, 2, over=4)
     figures = {
         "bare_canopen_cycles_per_s": bare.cycles_per_s,
         "driver_sim_physics_cycles_per_s": full.cycles_per_s,
@@ -195,32 +208,49 @@ def run() -> dict[str, float]:
         "driver_sim_physics_cpu_over_bare": bare.cpu_us_per_cycle / full.cpu_us_per_cycle,
         "full_stack_cycles_per_s": stack.cycles_per_s,
         "full_stack_over_bare": statistics.median(stack_ratios),
+        "full_stack_over_bare_min_of_5": min(stack_ratios),
+        "full_stack_over_bare_max_of_5": max(stack_ratios),
         "full_stack_cpu_us_per_cycle": stack.cpu_us_per_cycle,
+        "full_stack_cpu_over_bare": bare.cpu_us_per_cycle / stack.cpu_us_per_cycle,
+        "bare_local_bus_cycles_per_s": bare_local.cycles_per_s,
+        "full_stack_over_bare_local_bus": statistics.median(local_ratios),
         "full_stack_one_core_cycles_per_s": stack_one_core.cycles_per_s,
         "full_stack_one_core_over_all_cpus": statistics.median(one_core_ratios),
+        "canopen_load_average": load,
     }
-    print(f"bare python-can + canopen lockstep loop (SYNC, 3 RPDO, 2 TPDO): "
-          f"{bare.cycles_per_s:7.0f} cycles/s, {bare.cpu_us_per_cycle:5.0f} us CPU/cycle "
-          f"(baseline)")
+    print(f"bare python-can + canopen lockstep loop (SYNC, 3 RPDO, 2 TPDO; python-can's "
+          f"VirtualBus): {bare.cycles_per_s:7.0f} cycles/s, {bare.cpu_us_per_cycle:5.0f} us "
+          f"CPU/cycle (baseline)")
     print(f"Cia402Drive + LockstepClock + SimulatedCia402Drive + physics:   "
           f"{full.cycles_per_s:7.0f} cycles/s, {full.cpu_us_per_cycle:5.0f} us CPU/cycle")
     print(f"full stack (Runner + Recorder + the above):                    "
           f"{stack.cycles_per_s:7.0f} cycles/s, {stack.cpu_us_per_cycle:5.0f} us CPU/cycle")
-    print(f"over bare, median of the {ROUNDS} rounds' own ratios (quartiles): driver + sim + "
-          f"physics {_quartiles(full_ratios)}, full stack {_quartiles(stack_ratios)} "
-          f"(target >= 0.8); in CPU per cycle "
-          f"{figures['driver_sim_physics_cpu_over_bare']:.2f} and "
-          f"{bare.cpu_us_per_cycle / stack.cpu_us_per_cycle:.2f}; rounds of {N_CYCLES} "
-          f"cycles, load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
+    print(f"over bare, {REPEATS} repeats (each the median of {ROUNDS_PER_REPEAT} interleaved "
+          f"rounds' own ratios), min / median / max: driver + sim + physics "
+          f"{_spread(full_ratios)}, full stack {_spread(stack_ratios)} (target: min >= 0.9); "
+          f"in CPU per cycle {figures['driver_sim_physics_cpu_over_bare']:.2f} and "
+          f"{figures['full_stack_cpu_over_bare']:.2f}; rounds of {N_CYCLES} cycles, load "
+          f"average {load:.1f} on {os.cpu_count()} CPUs")
+    print(f"the bare loop on feedbench's own virtual bus (`LocalVirtualBus`, which the stack "
+          f"uses): {bare_local.cycles_per_s:7.0f} cycles/s, {bare_local.cpu_us_per_cycle:5.0f} "
+          f"us CPU/cycle; the full stack over it {_spread(local_ratios)}")
     print(f"full stack on one CPU (bench.one_core, the simulated bench's default):   "
           f"{stack_one_core.cycles_per_s:7.0f} cycles/s, {stack_one_core.cpu_us_per_cycle:5.0f} "
-          f"us CPU/cycle; over the full stack on all CPUs {_quartiles(one_core_ratios)}")
+          f"us CPU/cycle; over the full stack on all CPUs {_spread(one_core_ratios)}")
     return figures
 
 
-def _quartiles(ratios: list[float]) -> str:
-    low, median, high = statistics.quantiles(ratios, n=4)
-    return f"{median:.2f} ({low:.2f}..{high:.2f})"
+def _repeats(rounds: list[tuple[Timing, ...]], column: int, over: int = 0) -> list[float]:
+    """`REPEATS` ratios of loop `column` over loop `over` (the bare loop): each the median
+    of `ROUNDS_PER_REPEAT` consecutive rounds' own ratios of cycles/s."""
+    ratios = [r[column].cycles_per_s / r[over].cycles_per_s for r in rounds]
+    return [statistics.median(ratios[i:i + ROUNDS_PER_REPEAT])
+            for i in range(0, len(ratios), ROUNDS_PER_REPEAT)]
+
+
+def _spread(values: list[float]) -> str:
+    """min / median / max."""
+    return f"{min(values):.2f} / {statistics.median(values):.2f} / {max(values):.2f}"
 
 
 if __name__ == "__main__":
