@@ -12,7 +12,9 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
-from feedbench.analysis.checks import above_floor, measurable_velocity, peak_checks, slid
+from feedbench.analysis.checks import (
+    above_floor, averaged, measurable_velocity, peak_checks, slid,
+)
 from feedbench.analysis.frf import estimate_frf, findings_in_band
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
 from feedbench.experiments.family import TRUTH_TITLE, Example, Experiment, percent_error
@@ -204,7 +206,7 @@ def analyze_recording(recording) -> dict:
     f_t, f_r = mobility_extrema(est.f, est.H1, band)
     inside = (est.f >= band[0]) & (est.f <= band[1])
     warnings, details = findings_in_band(est, (p["f_start_Hz"], p["f_stop_Hz"]))
-    checks = [*sweep_checks(recording, p, windows),
+    checks = [*sweep_checks(recording, p, windows), averaged(len(windows), "sweeps"),
               *peak_checks([(name, f_x, est.f[inside], est.coherence[inside])
                             for name, f_x in (("f_t", f_t), ("f_r", f_r))], MIN_COHERENCE)]
     return {

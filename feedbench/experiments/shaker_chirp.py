@@ -15,6 +15,7 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
+from feedbench.analysis.checks import averaged
 from feedbench.analysis.frf import accelerance_to_receptance, estimate_frf, findings_in_band
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
 from feedbench.experiments.family import Example, Experiment, headline
@@ -161,7 +162,8 @@ class ShakerChirp(Experiment):
         fs = recording.streams["daq"].rate_hz
         records, notes = sweep_records(recording, FORCE_CHANNELS[p["exciter"]])
         feeds = [feed_frf(feed, sweeps, fs, band) for feed, sweeps in sorted(records.items())]
-        checks = feed_checks(feeds, notes) if feeds else []
+        checks = feed_checks(feeds, notes, averaged(min(x["n_averages"] for x in feeds),
+                                                    "sweeps")) if feeds else []
         return {"experiment": NAME, "feeds": feeds, "notes": notes, "checks": checks}
 
     @classmethod
