@@ -8,8 +8,8 @@ PostgreSQL's jsonb ``#>`` and jsonb_typeof; each row's parameters parsed once), 
 number, text, true, false or null and letting an array or object through; every row read is then checked on its
 parameters in Python (`Condition.matches`, the definition), so the SQL only spares reading
 the rows that cannot match. A row whose parameters are not JSON (`damaged`) never matches:
-SQLite checks json_valid first; PostgreSQL refuses the cast, and `Catalog.list` then checks
-the conditions in Python alone (`RunFilter.clauses` with ``in_sql=False``).
+the database refuses to parse them, and `Catalog.list` then checks the conditions in Python
+alone (`RunFilter.clauses` with ``in_sql=False``) until `feedbench catalog rebuild`.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from datetime import date, datetime, time, timedelta, timezone
 from typing import Any
 
 from sqlalchemy import (ColumnElement, Table, and_, case, cast, exists, false, func, literal,
-                        or_, select, true)
+                        or_, select)
 from sqlalchemy.dialects.postgresql import ARRAY, JSONB
 from sqlalchemy.types import Float, Text
 
@@ -78,9 +78,10 @@ class Condition:
         """The SQL condition on the catalog's `runs` table that selects the rows whose
         parameters meet it (`matches`): exact where the run's value is a number, text, true,
         false or null, true where it is an array or an object (`matches` decides those).
-        SQLite: `document` None, the parameters parsed once per row (json_tree) if they are
-        JSON (json_valid); PostgreSQL: `document` the row's parameters as jsonb (parsed once
-        per row: `parsed_parameters`)."""
+        SQLite: `document` None, the parameters parsed once per row (json_tree); PostgreSQL:
+        `document` the row's parameters as jsonb (parsed once per row: `parsed_parameters`).
+        Parameters that are not JSON (a damaged row) make the database refuse the statement
+        (`Catalog.list` then lists with `RunFilter.clauses(in_sql=False)`)."""
         paths = [self.path]
         if len(self.path) > 1:  # led by a family: its runs' own key, others' nested table
             paths.insert(0, self.path[1:])
@@ -120,8 +121,7 @@ class Condition:
                          if compare(shown, self.value)]
         if document is not None:
             return or_(*alternatives)
-        matching = exists().where(node.c.parent.is_(None), or_(*alternatives))
-        return case((func.json_valid(runs.c.params) == 1, matching), else_=false()) == true()
+        return exists().where(node.c.parent.is_(None), or_(*alternatives))
 
 
 def parsed_parameters(runs: Table) -> Any:
