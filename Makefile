@@ -41,7 +41,7 @@ test: $(STAMP)
 # points in its own pyproject.toml) installed beside feedbench, where it stays: its tests
 # (run, analyze, report, sim, demo, campaign), then feedbench's tests of what is registered
 LAB_TESTS := tests/test_bench_tables.py tests/test_testing_kit.py tests/test_device_seam.py \
-	tests/test_sim_serves_all.py
+	tests/test_sim_serves_all.py::test_the_docs_list_both_modbus_devices_and_the_sims_serve_them
 test-lab: $(STAMP)
 	$(BIN)/pip install --quiet --no-deps --no-build-isolation -e examples/lab_extension
 	cd examples/lab_extension && QT_QPA_PLATFORM=offscreen $(abspath $(BIN))/python -m pytest \
