@@ -405,6 +405,11 @@ class RackPinionBench(SimulatedBench):
                  modbus_address: tuple[str, int] = (LOOPBACK, 0)) -> None:
         super().__init__(bench, tables, (), bus_options, modbus_address)
 
+    @property
+    def drives(self) -> dict[str, Any]:
+        """The simulated master and slave drives (`SimulatedCia402Drive`) by name."""
+        return self.drive.drives
+
     def start_axis(self, world: Mapping[str, Any],
                    bus_options: Mapping[str, Any]) -> SimulatedRackPinionAxis:
         bench = self.bench
