@@ -1,11 +1,13 @@
 """A late host never steps the axis (issue 26, item 2): in real time the plan follows the
 drive's cycles, not the host's wall clock. A cycle whose setpoint did not come runs on the
-target the drive extrapolates (CSP, `protocols.cia402.EXTRAPOLATED_CYCLES`); a host back
-from a stall drops the TPDO sets that came meanwhile (`RealtimeClock.catch_up`: a gap) and
-resumes the plan that many cycles on, where the drive is (seen before, with a drive that
-held its last target and a host that sent the missed setpoints one per queued set: 8
-setpoints within 0.1 ms after a 10 ms stall, a 50 µm step in one 1 ms cycle, 1034 N, a
-velocity limit trip).
+target the drive extrapolates (CSP, `protocols.cia402.EXTRAPOLATED_CYCLES`); a host behind
+(`RealtimeClock.behind`: TPDO sets of cycles that ran wait) takes those sets as rows without
+sending and goes on from where the drive extrapolated to, rejoining the plan
+(`Runner._caught_up`). Seen before, with a drive that held its last target and a host that
+sent the missed setpoints one per queued set: 8 setpoints within 0.1 ms after a 10 ms stall,
+a 50 µm step in one 1 ms cycle, 1034 N, a velocity limit trip; and with both CPUs busy (28
+Nov), a drive that extrapolated from targets it had extrapolated itself: steps of 30-47 µm,
+then 91, 433 and 3025 µm, and velocity trips in 2 of 3 runs of this test.
 
 A real-time chirp at 500 mm/min against the simulated drive in this process (SYNC from
 python-can's periodic sender, as on hardware), its host loop asleep 10, 30 and 100 ms
@@ -26,10 +28,10 @@ from feedbench.demo import example_config
 from feedbench.protocols.cia402 import EXTRAPOLATED_CYCLES
 
 pytestmark = pytest.mark.realtime
-"""Run alone (`make test`'s second step): with both cores busy (another xdist worker's
-closure fits) the host loop starves beyond the deliberate stall and steps of 30-47 µm per
-cycle appear (measured 28 Nov, 2 of 3 runs failing): issue 26 item 2 under full CPU load is
-not solved yet."""
+"""Run alone (`make test`'s second step). With two CPU burners beside it (29 Nov) the
+setpoint and position steps stay within the bound; what can still fail a run on a machine
+that busy is the drive's SYNC-loss watchdog (0x8100: python-can's SYNC thread in this
+process starved for more than `bench.sync_loss_ms`, 50 ms)."""
 
 RETURN_FEED_MM_MIN = 1500.0
 """The example chirp's return move, the plan's fastest."""
@@ -70,7 +72,8 @@ def _chirp(channel: str, directory, stall_s: float) -> dict:
 
 @pytest.mark.parametrize("stall_ms", [10, 30, 100])
 def test_a_stalled_host_never_steps_the_axis(can_channel, tmp_path, stall_ms):
-    """10 and 30 ms: the run completes, the stall a gap and a ``timing`` event; 100 ms is
+    """10 and 30 ms: the run completes, the stall repeated cycles (rows the host took without
+    sending) and a ``timing`` event; 100 ms is
     more than the drive extrapolates (50 cycles): the run is aborted "host stalled N ms".
     Never a limit trip; per drive cycle the setpoint and the position move no more than the
     plan's fastest step."""
@@ -78,9 +81,11 @@ def test_a_stalled_host_never_steps_the_axis(can_channel, tmp_path, stall_ms):
     recording = open_recording(row["file"])
     if stall_ms < EXTRAPOLATED_CYCLES:
         assert row["status"] == "complete", row["reason"]
-        late = [int(e.text.split()[3]) for e in recording.events if e.kind == "timing"]
-        assert max(late) >= 0.8 * stall_ms, late
-        assert recording.metadata["timing"]["missed"] >= max(late) - 1
+        away_ms = [int(e.text.split("(")[1].split()[0]) for e in recording.events
+                   if e.kind == "timing"]
+        assert max(away_ms) >= stall_ms, away_ms
+        timing = recording.metadata["timing"]
+        assert timing["missed"] + timing["repeated"] >= 0.8 * stall_ms, timing
     else:
         assert row["status"] == "aborted"
         assert row["reason"].startswith("host stalled ") and row["reason"].endswith(

@@ -29,6 +29,7 @@ full garbage collection (≈ 0.1 s without any thread running) in the middle of 
 from __future__ import annotations
 
 import fcntl
+import math
 import os
 import tempfile
 import threading
@@ -89,8 +90,6 @@ class CycleDrive(Protocol):
     @property
     def sets_waiting(self) -> int: ...
 
-    def drop_waiting(self) -> int: ...
-
     def heartbeat_lost(self, now: float) -> bool: ...
 
 
@@ -131,10 +130,18 @@ class _BenchClock:
     def raise_if_stalled(self) -> None:
         """Nothing stalls in lockstep (see `RealtimeClock`)."""
 
-    def catch_up(self) -> tuple[int, float]:
-        """Before a cycle's setpoints: how many drive cycles the host is late, and the wall
-        time (s) since the last tick (lockstep: never late)."""
-        return 0, 0.0
+    def behind(self) -> bool:
+        """Before a cycle's setpoints: True if TPDO sets of cycles that already ran wait for
+        the host (real time; lockstep: never)."""
+        return False
+
+    def since_tick_s(self) -> float:
+        """Wall time (s) since the last tick ended (lockstep: 0)."""
+        return 0.0
+
+    def answer_age_s(self) -> float:
+        """Wall time (s) since the drives answered the last tick's cycle (lockstep: 0)."""
+        return 0.0
 
     def guarded(self) -> AbstractContextManager[None]:
         """While a run's cycles go: what keeps a hung host from holding the drives enabled
@@ -194,10 +201,11 @@ class LockstepClock(_BenchClock):
         self.timeout_s = timeout_s
         self._beat_every = max(1, round(heartbeat_s / cycle_s))
 
-    def tick(self) -> int:
+    def tick(self, transmit: bool = True) -> int:
         """One bus cycle; returns the unwrapped device cycle counter (BusTimeout if silent,
         NodeLost if a drive's heartbeat is). The host's heartbeat goes out before the SYNC
-        of every `heartbeat_s / cycle_s`-th tick, the first one included."""
+        of every `heartbeat_s / cycle_s`-th tick, the first one included. (`transmit`:
+        always, the real-time clock's argument.)"""
         if self._ticks % self._beat_every == 0:
             self.network.send_message(*HOST_HEARTBEAT)
         self._start_cycle()
@@ -237,13 +245,15 @@ class RealtimeClock(_BenchClock):
         self._stalled = threading.Event()
         self.reset_timing()
 
-    def tick(self) -> int:
+    def tick(self, transmit: bool = True) -> int:
         """Setpoints out, then the next unseen TPDO set of each drive; returns the unwrapped
         device cycle (BusTimeout if a drive stays silent, NodeLost if its heartbeat does,
-        HostStalled if `guarded` found the host loop stalled)."""
+        HostStalled if `guarded` found the host loop stalled). Without `transmit` (the host
+        `behind`) nothing goes out: the row's `rpdo_time` is NaN, the cycle ran without the
+        host's setpoints (`daq.timing`: repeated)."""
         self.raise_if_stalled()
-        rpdo_time = time.time()
-        for drive in self.drives:
+        rpdo_time = time.time() if transmit else math.nan
+        for drive in self.drives if transmit else ():
             drive.transmit()
         for i, drive in enumerate(self.drives):
             self._wait_new_set(i, drive)
@@ -268,19 +278,26 @@ class RealtimeClock(_BenchClock):
             if drive.device_cycle != self._last_raw[i]:
                 return
 
-    def catch_up(self) -> tuple[int, float]:
-        """Before a cycle's setpoints, if the host loop was away for at least half the
-        cycles whose TPDO sets wait (those cycles ran without its setpoints): drop the sets
-        (missed cycles, a gap), so that the next tick answers with the set of the SYNC its
-        setpoints are for. Sets that came in a burst while the host was waiting for them
-        (late on the wire, their cycles ran on its setpoints) are taken one per tick as
-        before. Returns how many drive cycles the host was late (0: none dropped) and the
-        wall time (s) since the last tick."""
-        away_s = time.perf_counter() - self._last_tick
-        waiting = max(drive.sets_waiting for drive in self.drives)
-        if not waiting or away_s < waiting * self.period_s / 2:
-            return 0, away_s
-        return max([drive.drop_waiting() for drive in self.drives]), away_s
+    def behind(self) -> bool:
+        """True if a TPDO set the host has not taken waits: its SYNC ran, and any setpoint
+        sent now comes after it (whether the host was away or the sets came in a burst: the
+        host sent one setpoint per set it took, so a cycle whose set was still waiting ran
+        without one). The runner then takes the waiting sets without sending
+        (`Runner._caught_up`). A set still on its way (a receive path behind) is not
+        waited for: that would leave the drive without setpoints for as long as the receive
+        path stays a cycle behind (measured: 86 and 111 cycles with both CPUs busy); the
+        setpoint then comes late, which the drive takes as the stale one it is."""
+        return any(drive.sets_waiting for drive in self.drives)
+
+    def since_tick_s(self) -> float:
+        """Wall time (s) since the last tick ended."""
+        return time.perf_counter() - self._last_tick
+
+    def answer_age_s(self) -> float:
+        """Wall time (s) since the drives answered the cycle of the last tick (its TPDOs'
+        timestamps, on the wall clock as `daq.timing` assumes); more than a cycle: the next
+        set is on its way."""
+        return time.time() - self.cycle_values[1]
 
     def reset_timing(self) -> None:
         """Forget the cycles ticked so far and the TPDO sets queued meanwhile (the host was

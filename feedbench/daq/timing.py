@@ -6,16 +6,18 @@ cycle the host records two wall-clock times (s, the clock of the CAN frames' tim
 
 - ``tpdo_time``: the receive timestamp of the cycle's last TPDO (python-can's
   ``msg.timestamp``: the adapter's or kernel's receive time on hardware);
-- ``rpdo_time``: when the host sent the setpoints the drive was to apply at that cycle's SYNC.
+- ``rpdo_time``: when the host sent the setpoints the drive was to apply at that cycle's SYNC
+  (NaN: it sent none, it was behind and took the cycle's set when the SYNC had run).
 
 From these, for the cycles ``first … last`` of a run:
 
 - expected: ``last - first + 1`` SYNCs; received: the rows; missed: the cycles without a row
   (their TPDO set never came whole, or the host fell more than `drivers.cia402.SET_QUEUE`
   sets behind), so missed + received = expected;
-- repeated: rows whose setpoints left after the cycle's TPDOs were back: the drive ran that
-  cycle on the previous cycle's setpoints (a lower bound: a setpoint that missed its SYNC by
-  less than the drive's answer time is not seen);
+- repeated: rows whose setpoints left after the cycle's TPDOs were back, or never (NaN): the
+  drive ran that cycle on the previous cycle's setpoints or on its extrapolation of them (a
+  lower bound: a setpoint that missed its SYNC by less than the drive's answer time is not
+  seen);
 - lateness (µs): ``tpdo_time - (t0 + cycle · cycle_s)``, with ``t0`` such that the earliest
   answer of the run is 0: how much later than the run's fastest one a cycle's answer came
   (SYNC jitter + the drive's and the bus's answer jitter + the host's receive path);
@@ -87,7 +89,7 @@ def cycle_timing(cycle: np.ndarray, tpdo_time: np.ndarray, rpdo_time: np.ndarray
     p50, p99 = np.percentile(late_us, [50, 99])
     return CycleTiming(
         cycle_s=cycle_s, expected=expected, received=int(cycle.size),
-        missed=expected - int(cycle.size), repeated=int(np.sum(rpdo_time > tpdo_time)),
+        missed=expected - int(cycle.size), repeated=int(np.sum(~(rpdo_time <= tpdo_time))),
         late=int(np.sum(late_us > LATE_SHARE * cycle_s * 1e6)),
         lateness_p50_us=float(p50), lateness_p99_us=float(p99),
         lateness_max_us=float(late_us.max()), histogram_edges_us=edges,

@@ -722,17 +722,6 @@ class Cia402Drive:
         """Complete TPDO sets received and not taken by `wait_cycle` yet."""
         return len(self._sets)
 
-    def drop_waiting(self) -> int:
-        """Forget the complete TPDO sets received and not taken yet (real time: the host is
-        late); how many drive cycles the newest of them is past the last set taken (by the
-        cycle counter 0x2020 where mapped: also the sets `SET_QUEUE` could not keep)."""
-        if not self._sets:
-            return 0
-        raw, _, received = self._sets[-1]
-        late = (raw.get(CYCLE_COUNTER, received) - self.device_cycle) & 0xFFFF
-        self._sets.clear()
-        return late
-
     def arm_cycle(self) -> None:
         """Before the SYNC (lockstep), or when the host starts anew (real time): forget
         the TPDOs received so far."""

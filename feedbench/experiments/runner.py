@@ -107,6 +107,78 @@ class Standstill:
         return f"|v| < {self.velocity / MM_PER_MIN:g} mm/min for {self.cycles} cycles"
 
 
+REJOIN_SHARE = 0.02
+"""After the host fell behind (real time), the offset by which the targets rejoin the plan
+moves at most about this share of the velocity limit's step per cycle (`Rejoin`)."""
+REJOIN_NOTED = 1e-6
+"""A catch-up is an event in the file (``timing``) when the host loop was away for at least
+half the cycles it missed, or the plan is rejoined from further than this (m); the other
+ones (TPDO sets that came in a burst) are counted in the run's timing as repeated cycles."""
+REJOIN_HORIZON = 5.0
+"""Cycles over which a difference of steps counts as much as a distance when the plan
+index to go on from is chosen (`nearest_index`)."""
+REJOIN_RATE = 0.2
+"""The rejoin's natural frequency at most (rad per cycle): a small offset is gone within
+about 30 cycles."""
+
+
+class Rejoin:
+    """An offset added to the plan's position targets after the host fell behind: it starts
+    at `offset` (m) and `rate` (m per cycle; where and at what step the drive extrapolated
+    to, less the plan's) and decays to zero as a critically damped second-order system,
+    e(t) = (e0 + (r0 + w e0) t) exp(-w t), so the targets go on from where the drive is at
+    its speed and reach the plan at a bounded extra speed and acceleration. The natural
+    frequency w (per cycle) is chosen so that the offset's own step stays near `bound` (m per
+    cycle; the peak of w e0 t exp(-w t) is w e0 / e), at most `REJOIN_RATE`."""
+
+    def __init__(self, offset: float, rate: float, bound: float) -> None:
+        self.offset = offset
+        self.rate = rate
+        self.w = min(REJOIN_RATE, math.e * bound / abs(offset)) if offset else REJOIN_RATE
+
+    def next(self) -> float:
+        """This cycle's offset (m); the next one is a cycle on."""
+        offset, w = self.offset, self.w
+        self.rate -= w * w * offset + 2 * w * self.rate
+        self.offset += self.rate
+        return offset
+
+    @property
+    def done(self) -> bool:
+        """The offset and its step are below a nanometre: the plan's targets again."""
+        return abs(self.offset) < 1e-9 and abs(self.rate) < 1e-9
+
+
+class SentTargets:
+    """The position targets (m) the host sent in real time, as the drive runs on them: the
+    last one and its step (what the drive extrapolates from when none comes,
+    `protocols.cia402.EXTRAPOLATED_CYCLES` at most), and after the host fell behind the
+    `Rejoin` of the plan."""
+
+    def __init__(self, start: float) -> None:
+        self.last = start
+        self.step = 0.0
+        self.rejoin: Rejoin | None = None
+
+    def next(self, planned: float) -> float:
+        """The target to send for the plan's `planned` one (the rejoin's offset added)."""
+        if self.rejoin is None:
+            return planned
+        offset = self.rejoin.next()
+        if self.rejoin.done:
+            self.rejoin = None
+        return planned + offset
+
+    def sent(self, target: float) -> None:
+        """`target` went out for the next SYNC."""
+        self.step = target - self.last
+        self.last = target
+
+    def extrapolated(self, cycles: int) -> float:
+        """The drive's target `cycles` cycles after the last one sent, none sent since."""
+        return self.last + min(cycles, EXTRAPOLATED_CYCLES) * self.step
+
+
 class RunAborted(RuntimeError):
     """Raised inside the cycle loop to leave it; carries the reason recorded in the file."""
 
@@ -282,7 +354,7 @@ class Runner:
         device_recorder = devices_recorder(recorder, self.observers)
         status, reason = "complete", ""
         self.clock.reset_timing()
-        last_target = start
+        sent = SentTargets(start)
         i = 0
         with self._interrupts_request_stop(), self.stack_log.capture():
             try:
@@ -293,19 +365,20 @@ class Runner:
                     starts = segment_starts(plan)
                     segment = 0
                     while True:
-                        late, since_s = self.clock.catch_up()
-                        if late and i < len(targets):
-                            i = self._resumed(recorder, targets, i, last_target, late, since_s,
-                                              plan.cycle_s)
+                        if i < len(targets) and self.clock.behind():
+                            i = self._caught_up(recorder, targets, i, sent, force_offsets,
+                                                velocity_offsets, target_velocities,
+                                                plan.cycle_s)
                         while segment < len(starts) and starts[segment] <= i:
                             self._segment_started(recorder, plan, segment)
                             segment += 1
                         if i == len(targets):
                             break
-                        self._cycle(recorder, targets[i], force_offsets[i],
+                        target = sent.next(targets[i])
+                        self._cycle(recorder, target, force_offsets[i],
                                     velocity_offsets[i], index=i,
                                     velocity=target_velocities[i])
-                        last_target = targets[i]
+                        sent.sent(target)
                         i += 1
             except (RunAborted, NodeLost, HostStalled) as exc:
                 status, reason = "aborted", str(exc)
@@ -314,7 +387,7 @@ class Runner:
             quick = status == "aborted"
             if quick:
                 self._note(recorder, "abort", reason)
-            escalated = self._safe_stop(recorder, last_target, plan.cycle_s, quick)
+            escalated = self._safe_stop(recorder, sent.last, plan.cycle_s, quick)
             if escalated:
                 status, reason = "aborted", f"{reason}; {escalated}" if reason else escalated
             self._stop_devices(device_recorder)
@@ -333,41 +406,84 @@ class Runner:
         for obs in self.observers:
             obs.on_segment(index, segment, self._next_cycle())
 
-    def _resumed(self, recorder, targets: list[float], i: int, last: float, late: int,
-                 since_s: float, cycle_s: float) -> int:
-        """The plan index to send next after the host was `late` drive cycles late (real
-        time, `clock.catch_up`; `since_s` s since its last tick): those cycles ran on the
-        drive's extrapolated setpoint (CSP: on from the last two, `EXTRAPOLATED_CYCLES` at
-        most, then held), so the plan resumes `late` cycles on, where the drive is, and the
-        cycles in between are a gap. A resumed setpoint further from where the drive went
-        than the velocity limit allows in one cycle: "host stalled N ms"."""
+    def _caught_up(self, recorder, targets: list[float], i: int, sent: SentTargets,
+                   force_offsets: list[float], velocity_offsets: list[float],
+                   velocities: list[float], cycle_s: float) -> int:
+        """The host is behind (real time, `clock.behind`): the TPDO sets of cycles that ran
+        without its setpoints wait. Each becomes a row without sending anything (the drive
+        ran it on the target it extrapolates from the last two, `EXTRAPOLATED_CYCLES` at
+        most, then held: `SentTargets.extrapolated`, recorded as x_ref; the offsets it last
+        got); a host loop that was away also waits for the sets of its absence still on
+        their way (at most one per cycle it was away, and only while the last one taken is
+        more than a cycle old). Then the plan goes on from where and at the step the drive
+        extrapolated to: at the plan index nearest that target within the cycles missed
+        either side of the one the drive's cycle count gives (`nearest_index`: an
+        accelerating plan waits for a drive that extrapolated too slowly instead of being
+        caught up at more than its own speed, a standing one starts where it was; the
+        commands of skipped indices served), the rest rejoined by a decaying offset
+        (`Rejoin`) instead of a step (behind before the plan's first target: the plan starts
+        after those rows). A drive that had to hold its target further from the plan than
+        the velocity limit allows in one cycle: "host stalled N ms". Returns the plan index
+        to send next.
+
+        Sending the missed setpoints one per waiting set instead (before) put several of
+        them between two SYNCs; the drive took the last, and stepped."""
+        since_s = self.clock.since_tick_s()
+        first = self.clock.cycle
+        force, velocity_offset, velocity = ((force_offsets[i - 1], velocity_offsets[i - 1],
+                                             velocities[i - 1]) if i else (0.0, 0.0, 0.0))
+        away = int(since_s / cycle_s)
+        rows = 0
+        while self.clock.behind() or (rows < away and self.clock.answer_age_s() > cycle_s):
+            rows += 1
+            self._cycle(recorder, sent.extrapolated(rows), force, velocity_offset,
+                        velocity=velocity, transmit=False)
+        if not i:  # cycles of the hold before the plan: it starts now
+            return 0
+        late = self.clock.cycle - first
         resume = min(i + late, len(targets))
-        step = targets[i - 1] - targets[i - 2] if i >= 2 else 0.0
-        drive_at = last + min(late + 1, EXTRAPOLATED_CYCLES) * step
+        drive_at = sent.extrapolated(late + 1)
+        drive_step = drive_at - sent.extrapolated(late)
+        sent.last, sent.step = sent.extrapolated(late), drive_step
+        if resume == len(targets):
+            return resume
         too_far = self.limits.velocity * cycle_s
-        if resume < len(targets) and abs(targets[resume] - drive_at) > too_far:
-            raise HostStalled(f"host stalled {since_s * 1e3:.0f} ms: the drive ran {late} "
+        if late + 1 > EXTRAPOLATED_CYCLES and abs(drive_at - targets[resume]) > too_far:
+            stalled_ms = max(since_s, late * cycle_s) * 1e3  # away, or starved of its sets
+            raise HostStalled(f"host stalled {stalled_ms:.0f} ms: the drive ran {late} "
                               "cycles without a setpoint, the plan cannot resume where it is")
-        if late > 1:
+        resume = nearest_index(targets, drive_at, drive_step, i, resume, resume + late)
+        for index in range(i, resume):  # the skipped commands, the last of each kind wins
+            for device in self.devices:
+                device.before_sync(index)
+        offset = drive_at - targets[resume]
+        planned_step = targets[resume] - targets[resume - 1] if resume else 0.0
+        sent.rejoin = Rejoin(offset, drive_step - planned_step,
+                             REJOIN_SHARE * self.limits.velocity * cycle_s)
+        if late > 1 and (since_s > late * cycle_s / 2 or abs(offset) > REJOIN_NOTED):
             self._note(recorder, "timing", f"host late by {late} drive cycles "
-                       f"({since_s * 1e3:.0f} ms): the plan resumed where the drive is")
+                       f"({since_s * 1e3:.0f} ms): the plan goes on where the drive is, "
+                       f"{offset * 1e6:+.1f} µm from it, rejoining it")
         return resume
 
     def _next_cycle(self) -> int:
         return self.clock.cycle + 1
 
     def _cycle(self, recorder, target: float, force_offset: float, velocity_offset: float,
-               watch: bool = True, index: int | None = None, velocity: float = 0.0) -> None:
+               watch: bool = True, index: int | None = None, velocity: float = 0.0,
+               transmit: bool = True) -> None:
         """One bus cycle: setpoints out, SYNC, actual values in, limits, record.
 
-        `velocity` is the target velocity (CSV; CSP follows `target` and ignores it).
+        `velocity` is the target velocity (CSV; CSP follows `target` and ignores it); without
+        `transmit` (real time, the host behind) nothing is sent, the row records the cycle
+        of the next waiting TPDO set.
         Runs once per bus cycle beside the bus stack's own work: kept to list operations."""
         for drive, offset in zip(self.drives.values(), self._offsets):
             drive.set_targets(position=target + offset, velocity=velocity,
                               force_offset=force_offset, velocity_offset=velocity_offset)
         for device in self.devices:
             device.before_sync(index)
-        cycle = self.clock.tick()
+        cycle = self.clock.tick() if transmit else self.clock.tick(transmit=False)
         actual = [drive.actual for drive in self.drives.values()]
         row = [target]
         for a in actual:
@@ -629,6 +745,21 @@ def drive_channels(names: Sequence[str]) -> tuple[tuple[str, ...], dict[str, str
 def _where(name: str) -> str:
     """Prefix naming a drive in an abort reason ("" for the only drive)."""
     return f"{name}: " if name else ""
+
+
+def nearest_index(targets: Sequence[float], x: float, step: float, first: int, due: int,
+                  last: int) -> int:
+    """The index in `first`…`last` (clipped to `targets`) whose target is nearest `x` moving
+    by `step` per cycle: the distance plus `REJOIN_HORIZON` cycles of the difference of the
+    steps (so a plan that turns back is not joined on its way back); of equally near ones
+    the one nearest `due`."""
+    last = min(last, len(targets) - 1)
+
+    def cost(j: int) -> tuple[float, int]:
+        planned = targets[j] - targets[j - 1] if j else 0.0
+        return abs(targets[j] - x) + REJOIN_HORIZON * abs(planned - step), abs(j - due)
+
+    return min(range(first, last + 1), key=cost)
 
 
 def segment_starts(plan: Plan) -> list[int]:

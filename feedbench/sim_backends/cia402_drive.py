@@ -250,8 +250,7 @@ class SimulatedCia402Drive:
         self._previous_controlword = 0
         self._following_error = False
         self._stop_velocity = 0.0
-        self._target_step = 0
-        self._missed_setpoints = 0
+        self._forget_setpoints()
         self._stop_complete = False
         self._settling = 0
         self._profile_velocity = 0.0
@@ -470,30 +469,58 @@ class SimulatedCia402Drive:
             self.world_fault(error, tpdos_sent=True)
 
     def _latch_setpoints(self) -> None:
-        """The RPDO data received since the last SYNC; the target extrapolated from the last
-        step where `_extrapolates` says so."""
+        """The RPDO data received since the last SYNC; in CSP with the target in a
+        synchronous RPDO, the cycle's target as `_cyclic_target_of` says."""
         values = self.values
-        target = values[TARGET_POSITION]
-        fresh = bool(self._received)
+        ran = values[TARGET_POSITION]
+        setpoint = self._received.get(TARGET_POSITION)
         values.update(self._received)
         self._received.clear()
-        if self._extrapolates(fresh, target):
-            self._missed_setpoints += 1
-            values[TARGET_POSITION] = _int32_wrapped(target + self._target_step)
-        elif fresh:
-            self._missed_setpoints = 0
-        self._target_step = values[TARGET_POSITION] - target
+        if self._cyclic_target and values[MODES_OF_OPERATION_DISPLAY] == CSP:
+            values[TARGET_POSITION] = self._cyclic_target_of(ran, setpoint)
+        else:
+            self._forget_setpoints()
 
-    def _extrapolates(self, fresh: bool, target: int) -> bool:
-        """True if this cycle runs on its extrapolated target (CSP, the target in a
-        synchronous RPDO): none came, or the one that came is the previous cycle's, late
-        (within half a step of `target`, the one the drive ran on, after it extrapolated);
-        `EXTRAPOLATED_CYCLES` in a row at most, then the target is held."""
-        if not (self._cyclic_target and self.values[MODES_OF_OPERATION_DISPLAY] == CSP
-                and self._missed_setpoints < EXTRAPOLATED_CYCLES):
-            return False
-        late = 2 * abs(self.values[TARGET_POSITION] - target) < abs(self._target_step)
-        return not fresh or bool(self._missed_setpoints) and late
+    def _forget_setpoints(self) -> None:
+        """Start the setpoint stream anew (power-on, a mode without a cyclic target)."""
+        self._target_step = 0.0
+        self._missed_setpoints = 0
+        self._setpoint_lag = 0
+        self._last_setpoint: int | None = None
+
+    def _cyclic_target_of(self, ran: int, setpoint: int | None) -> int:
+        """CSP: this cycle's target (increments), `ran` the last cycle's, `setpoint` the one
+        that came for this SYNC (None: none came).
+
+        No setpoint: the last step again (extrapolated), `EXTRAPOLATED_CYCLES` in a row at
+        most, then the target is held. A setpoint after missed cycles may be late on the
+        wire: one the host meant for a SYNC the drive already ran, `lag` cycles ago (at most
+        the lag before plus the cycles missed since; 0 once one comes on time). The lag is
+        the whole number of steps that puts the setpoint nearest the last target plus one
+        step, and the drive runs on the setpoint plus `lag` steps. The step is the host's:
+        the distance between two setpoints that came for consecutive SYNCs over the cycles
+        they were meant for; after missed cycles the one the drive extrapolated with (0 after
+        it held), as the host assumes (`experiments.runner.SentTargets`); never a distance to
+        a target the drive extrapolated. So a host late by some cycles moves the target by
+        one step per cycle (within half a step) and never by the cycles it was late."""
+        step = self._target_step
+        if setpoint is None:
+            if self._missed_setpoints >= EXTRAPOLATED_CYCLES:
+                return ran
+            self._missed_setpoints += 1
+            return _int32_wrapped(ran + step)
+        missed = self._missed_setpoints
+        if missed >= EXTRAPOLATED_CYCLES:
+            step = 0.0  # it held: the host goes on from there
+        lag = 0
+        if step:
+            lag = max(0, min(round((ran + step - setpoint) / step), self._setpoint_lag + missed))
+        meant = 1 - (lag - self._setpoint_lag)
+        if not missed and meant >= 1 and self._last_setpoint is not None:
+            step = (setpoint - self._last_setpoint) / meant
+        self._target_step = step
+        self._last_setpoint, self._setpoint_lag, self._missed_setpoints = setpoint, lag, 0
+        return _int32_wrapped(setpoint + lag * step)
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Keep a synchronous RPDO's values until the SYNC; an asynchronous one (254/255)
