@@ -72,14 +72,17 @@ def _chirp(channel: str, directory, stall_s: float) -> dict:
 
 @pytest.mark.parametrize("stall_ms", [10, 30, 100])
 def test_a_stalled_host_never_steps_the_axis(can_channel, tmp_path, stall_ms):
-    """10 and 30 ms: the run completes, the stall repeated cycles (rows the host took without
-    sending) and a ``timing`` event; 100 ms is
+    """10 and 30 ms: the run completes (or, on a machine that holds the host process longer
+    than the drive extrapolates, is aborted "host stalled N ms", N ≥ 50), the stall repeated
+    cycles (rows the host took without sending) and a ``timing`` event; 100 ms is
     more than the drive extrapolates (50 cycles): the run is aborted "host stalled N ms".
     Never a limit trip; per drive cycle the setpoint and the position move no more than the
     plan's fastest step."""
     row = _chirp(can_channel, tmp_path, stall_ms * 1e-3)
     recording = open_recording(row["file"])
-    if stall_ms < EXTRAPOLATED_CYCLES:
+    if stall_ms < EXTRAPOLATED_CYCLES and _held(row):
+        pass  # the machine held the host longer than the drive extrapolates: aborted safely
+    elif stall_ms < EXTRAPOLATED_CYCLES:
         assert row["status"] == "complete", row["reason"]
         away_ms = [int(e.text.split("(")[1].split()[0]) for e in recording.events
                    if e.kind == "timing"]
@@ -97,6 +100,15 @@ def test_a_stalled_host_never_steps_the_axis(can_channel, tmp_path, stall_ms):
     for channel in ("x_ref", "position"):
         per_cycle = np.abs(np.diff(recording.channels[channel][moving])) / cycles
         assert per_cycle.max() <= 1.2 * largest, channel
+
+
+def _held(row: dict) -> bool:
+    """The run was aborted "host stalled N ms" with N at least `EXTRAPOLATED_CYCLES` ms:
+    on a busy machine (two CPU burners beside it, load ≈ 10) the host process itself can be
+    starved that long, beside the deliberate stall; the issue allows that end."""
+    words = row["reason"].split()
+    return (row["status"] == "aborted" and row["reason"].startswith("host stalled ")
+            and int(words[2]) >= EXTRAPOLATED_CYCLES)
 
 
 def _stop_cycle(recording) -> int:

@@ -43,7 +43,7 @@ from feedbench.drivers.cia402 import DISABLED_STATES, Actual
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan, Segment
 from feedbench.protocols.canbus import StackLog
-from feedbench.protocols.cia402 import EXTRAPOLATED_CYCLES
+from feedbench.protocols.cia402 import CSP, EXTRAPOLATED_CYCLES
 from feedbench.units import MM_PER_MIN
 
 CHANNELS = ("x_ref", "position", "velocity", "force", "force_offset", "velocity_offset",
@@ -117,9 +117,9 @@ ones (TPDO sets that came in a burst) are counted in the run's timing as repeate
 REJOIN_HORIZON = 5.0
 """Cycles over which a difference of steps counts as much as a distance when the plan
 index to go on from is chosen (`nearest_index`)."""
-REJOIN_RATE = 0.2
+REJOIN_RATE = 0.1
 """The rejoin's natural frequency at most (rad per cycle): a small offset is gone within
-about 30 cycles."""
+about 60 cycles (at 0.2 the axis overshot the rejoining targets by 5 µm per cycle)."""
 
 
 class Rejoin:
@@ -152,7 +152,9 @@ class Rejoin:
 class SentTargets:
     """The position targets (m) the host sent in real time, as the drive runs on them: the
     last one and its step (what the drive extrapolates from when none comes,
-    `protocols.cia402.EXTRAPOLATED_CYCLES` at most), and after the host fell behind the
+    `protocols.cia402.EXTRAPOLATED_CYCLES` at most; in CSP the runner sends the step as the
+    target velocity 0x60FF with each target, so that the drive extrapolates with the step
+    the host assumes whichever of its targets came), and after the host fell behind the
     `Rejoin` of the plan."""
 
     def __init__(self, start: float) -> None:
@@ -375,9 +377,10 @@ class Runner:
                         if i == len(targets):
                             break
                         target = sent.next(targets[i])
+                        velocity = ((target - sent.last) / plan.cycle_s if plan.mode == CSP
+                                    else target_velocities[i])
                         self._cycle(recorder, target, force_offsets[i],
-                                    velocity_offsets[i], index=i,
-                                    velocity=target_velocities[i])
+                                    velocity_offsets[i], index=i, velocity=velocity)
                         sent.sent(target)
                         i += 1
             except (RunAborted, NodeLost, HostStalled) as exc:
@@ -435,6 +438,8 @@ class Runner:
         away = int(since_s / cycle_s)
         rows = 0
         while self.clock.behind() or (rows < away and self.clock.answer_age_s() > cycle_s):
+            since_s = max(since_s, self.clock.since_tick_s())  # an observer may hold a row
+            away = int(since_s / cycle_s)
             rows += 1
             self._cycle(recorder, sent.extrapolated(rows), force, velocity_offset,
                         velocity=velocity, transmit=False)
