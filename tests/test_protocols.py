@@ -1,6 +1,7 @@
 """What both ends of a link share (`feedbench.protocols`): one address parser, one CiA 402
 object table."""
 
+import can
 import pytest
 from canopen.profiles.p402 import State402
 
@@ -8,6 +9,7 @@ from feedbench.config import ConfigError
 from feedbench.drivers.cia402 import PdoConfig, controlword_towards, decode_state
 from feedbench.protocols import cia301, cia402
 from feedbench.protocols.address import split_address
+from feedbench.protocols.canbus import LocalVirtualBus, open_bus
 from feedbench.sim_backends import eds
 
 
@@ -125,3 +127,27 @@ def test_a_port_above_65535_names_the_field(listen):
     with pytest.raises(ConfigError, match=r"^bench\.modbus: port 70000 of '127.0.0.1:70000' is "
                                           r"above 65535$"):
         split_address("127.0.0.1:70000", "bench.modbus", listen=listen)
+
+
+def test_the_local_virtual_bus_shares_python_cans_channels_and_copies_each_frame():
+    """`open_bus("virtual")` (`LocalVirtualBus`) and python-can's own `VirtualBus` on one
+    channel: each receives the other's frames, in order, as a copy of its own (a sender
+    that reuses its buffer does not change a frame already sent), never its own frame."""
+    local = open_bus("virtual", "test-local-virtual-bus")
+    plain = can.Bus(interface="virtual", channel="test-local-virtual-bus")
+    try:
+        assert isinstance(local, LocalVirtualBus)
+        data = bytearray(b"\x01\x02\x03")
+        for n in range(3):
+            data[0] = n
+            local.send(can.Message(arbitration_id=0x181, data=data, is_extended_id=False))
+        plain.send(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False))
+        received = [plain.recv(1.0) for _ in range(3)]
+        assert [bytes(m.data) for m in received] == [bytes([n, 2, 3]) for n in range(3)]
+        assert all(m.is_rx and m.arbitration_id == 0x181 for m in received)
+        assert plain.recv(0.01) is None
+        sync = local.recv(1.0)
+        assert sync.arbitration_id == 0x80 and local.recv(0.01) is None
+    finally:
+        local.shutdown()
+        plain.shutdown()
