@@ -126,8 +126,9 @@ def close(case: Case) -> Outcome:
                        f"{type(exc).__name__}: {exc}")
     return Outcome(case, findings(report), report["error_before"], report["error_after"],
                    unphysical(report["base_params"]), unphysical(report["final_params"]),
-                   time.perf_counter() - start, "", report["base_verdict"]["describes"],
-                   report["final_verdict"]["describes"])
+                   time.perf_counter() - start,
+                   base_describes=report["base_verdict"]["describes"],
+                   final_describes=report["final_verdict"]["describes"])
 
 
 def _physical(flags: tuple[str, ...], describes: bool) -> str:

@@ -79,14 +79,14 @@ def peak_checks(peaks: Sequence[tuple[str, float, np.ndarray, np.ndarray]],
     ]
 
 
-def averaged(records: int, what: str = "records") -> dict[str, Any]:
-    """At least two records averaged: over one record the coherence γ² = |S_xy|²/(S_xx S_yy)
-    is 1 at every line by construction, so a coherence gate passes whatever the response is
-    (noise, another input, a different signal altogether)."""
+def averaged(records: int, what: str = "sweeps") -> dict[str, Any]:
+    """At least two records (`what`: "sweeps", "hits") averaged: over one record the
+    coherence γ² = |S_xy|²/(S_xx S_yy) is 1 at every line by construction, so a coherence
+    gate passes whatever the response is (noise, another input, another signal)."""
     return check(f"{what} averaged", str(records), records >= 2,
-                 f"{records} {what[:-1] if records == 1 else what}: the coherence of one record "
-                 f"is 1 by construction and says nothing about noise or other inputs; repeat "
-                 f"the excitation (at least 2 {what})")
+                 f"{records} of them: the coherence of one record is 1 by construction and "
+                 f"says nothing about noise or other inputs; repeat the excitation (at least "
+                 f"2 {what})")
 
 
 def above_floor(name: str, signal: np.ndarray, floor: float, unit: str,

@@ -194,7 +194,8 @@ def analyze_recording(recording) -> dict:
     records, and the coherence tells how well the repetitions agree. f_t and f_r are
     searched in the configured mobility band; warnings are about the swept band
     (f_start–f_stop) only. Checks (`sweep_checks`): the excitation beat the noise, the axis
-    slid, f_t and f_r are modes with a high coherence, not the band's edges.
+    slid, at least two sweeps averaged (one has a coherence of 1 by construction), f_t and
+    f_r are modes with a high coherence, not the band's edges.
     """
     p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
     band = mobility_band(p)

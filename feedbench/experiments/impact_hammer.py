@@ -18,7 +18,7 @@ from typing import Any, Iterator, Mapping
 
 import numpy as np
 
-from feedbench.analysis.checks import check
+from feedbench.analysis.checks import averaged, check
 from feedbench.analysis.frf import HammerFrf, accelerance_to_receptance, quasi_frf
 from feedbench.config import ConfigError, Field, positive, validate_table
 from feedbench.experiments.family import Example, Experiment, headline
@@ -245,7 +245,8 @@ class ImpactHammer(Experiment):
             "invariant_from_mm_min": invariant_from(
                 feeds, [x["distance_to_highest_feed"] for x in summaries], tolerance),
             "notes": notes,
-            "checks": feed_checks(summaries, notes, hits_check(summaries)),
+            "checks": feed_checks(summaries, notes, hits_check(summaries),
+                                  averaged(min(x["hits_used"] for x in summaries), "hits")),
         }
 
     @classmethod

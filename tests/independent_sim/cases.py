@@ -193,7 +193,8 @@ deflection (m): k d (1 + stiffening (d / d_ref)²)."""
 def world(case: CaseSpec) -> tuple[Plant, Drive]:
     """The simulated axis and drive of a case. A backlash load and a second mode's mass are
     carved out of the motor side, the backlash load's friction out of the motor's Coulomb
-    level: as declared, the axis's mass and friction include them, and only the play or the
+    level, the table's guideway friction (F_table_N) too: as declared, the axis's mass and
+    friction include them, and only the play or the
     second mode is undeclared."""
     s, w = STRUCTURES[case.structure], case.truth
     load_N, table_N = w.get("F_load_N", 0.0), w.get("F_table_N", 0.0)

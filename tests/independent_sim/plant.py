@@ -117,6 +117,8 @@ class Plant:
         `friction`): the table's guideways' on mass 1, the backlash load's; 0 elsewhere."""
         levels = np.zeros(len(self.all_masses))
         if self.table_coulomb:
+            if len(self.masses) < 2:
+                raise ValueError("table friction needs a table: a mass 1 on the motor's spring")
             levels[1] = self.table_coulomb
         if self.backlash:
             levels[-1] = self.backlash[1]

@@ -204,7 +204,9 @@ def close_the_loop(model: Model, fit_kin: Kinematics, holdout_kin: Kinematics,
 
 
 ONE_WAY_SHARE = 0.05
-"""Below this share of the used samples moving the other way, the axis moved one way only."""
+"""Below this share of the distance travelled the other way, the axis moved one way only."""
+DIRECTIONAL = frozenset({"coulomb", "stribeck", "direction_dependent"})
+"""Friction terms that change with the direction of motion."""
 
 
 def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ...],
@@ -229,36 +231,38 @@ def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ..
 
 
 def one_way(model: Model, kin: Kinematics) -> list[str]:
-    """Why friction terms that change with the direction cannot be told apart on `kin` (the
-    axis moved one way only: a Coulomb level, a Stribeck decay and an offset are then one
-    constant and a slope), or nothing."""
+    """Why the directional friction terms of `model` cannot be told apart on `kin`, or
+    nothing (`one_way_reason`)."""
     terms = sorted(model.names & DIRECTIONAL)
-    other_way = other_way_share(kin)
-    if not terms or other_way >= ONE_WAY_SHARE:
-        return []
-    return [f"the axis moved one way only ({other_way:.1%} of the used samples the other "
-            f"way): {', '.join(terms)} cannot be told from an offset and a slope"]
+    reason = one_way_reason(kin)
+    return [f"{reason}: {', '.join(terms)} cannot be told from an offset and a slope"
+            ] if terms and reason else []
 
 
-DIRECTIONAL = frozenset({"coulomb", "stribeck", "direction_dependent"})
-"""Friction terms that change with the direction of motion."""
-
-
-def other_way_share(kin: Kinematics) -> float:
-    """Share of the used samples of `kin` moving in the direction less travelled."""
+def one_way_reason(kin: Kinematics) -> str | None:
+    """"the axis moved one way only (…)" when less than `ONE_WAY_SHARE` of the distance
+    travelled on the used samples went the other way (a Coulomb level, a Stribeck decay
+    and an offset are then one constant and a slope); None otherwise. Weighted by distance,
+    not counted in samples: the jitter of a cogging motor run one way is not a reversal."""
     used = kin.v[kin.rows]
-    return float(min(np.mean(used > 0.0), np.mean(used < 0.0)))
+    travel = float(np.sum(np.abs(used)))
+    if travel == 0.0:
+        return None
+    other_way = min(float(np.sum(used[used > 0.0])), float(-np.sum(used[used < 0.0]))) / travel
+    if other_way >= ONE_WAY_SHARE:
+        return None
+    return (f"the axis moved one way only ({other_way:.1%} of the distance travelled the "
+            f"other way)")
 
 
-def refused_one_way(candidate: Candidate, kin: Kinematics) -> Candidate:
-    """`candidate` rejected if it is a directional friction term and the axis moved one way
-    only on `kin`: its level is then an offset and its decay a slope (`one_way`)."""
-    other_way = other_way_share(kin)
-    if candidate.name not in DIRECTIONAL or other_way >= ONE_WAY_SHARE:
-        return candidate
-    return replace(candidate, rejected=(
-        f"the axis moved one way only ({other_way:.1%} of the used samples the other way): "
-        f"it cannot be told from an offset and a slope"))
+def refused_one_way(effect: Effect, kin: Kinematics) -> Candidate | None:
+    """A directional friction term, rejected before it is fitted, on a record where the axis
+    moved one way only (`one_way_reason`); None for any other effect or record."""
+    reason = one_way_reason(kin) if effect.name in DIRECTIONAL else None
+    if reason is None:
+        return None
+    return Candidate(effect.name, 0.0, "not screened", None, 0.0, 0.0,
+                     f"{reason}: it cannot be told from an offset and a slope")
 
 
 def at_bounds(model: Model) -> tuple[str, ...]:
@@ -410,8 +414,8 @@ def rank_candidates(current: Fit, kin: Kinematics, options: ClosureOptions) -> l
     context = Context(current.residual, current.acting,
                       {t.name: t.values for t in current.model.terms})
     basis = _free_basis(current, kin)
-    tried = [refused_one_way(try_effect(EFFECTS[name], current, kin, context, basis,
-                                        options.starts), kin)
+    tried = [refused_one_way(EFFECTS[name], kin)
+             or try_effect(EFFECTS[name], current, kin, context, basis, options.starts)
              for name in options.candidates if EFFECTS[name].applicable(present, fixed)]
     return sorted(tried, key=_order)
 
