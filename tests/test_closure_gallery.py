@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from feedbench.analysis.closure import report_dict
-from feedbench.analysis.closure.report import unphysical
+from feedbench.analysis.closure.report import DAMPING, NON_NEGATIVE, POSITIVE, unphysical
 from feedbench.cli import main
 from feedbench.closure_command import closure_report
 from feedbench.closure_io import read_csv_trace
@@ -85,16 +85,31 @@ def test_the_closure_runs_on_every_dataset(dataset):
 def test_no_unphysical_model_is_called_describing(dataset):
     """Issue 24's bar on every real dataset: the base and the final model are physical (no
     mass ≤ 0, friction < 0, a mode's ζ outside (0, 1)), or the closure declares them not
-    describing the data; and no final parameter is negative, whatever the verdict (a mass
-    on its bound 0 is allowed there: the data cannot resolve it, and the verdict says so)."""
+    describing the data; and no final mass, friction level or damping is negative, whatever
+    the verdict (a mass on its bound 0 is allowed there: the data cannot resolve it, and the
+    verdict says so; a ripple's sine and cosine parts have either sign)."""
     report = _closed(dataset.name)
     for which in ("base", "final"):
         flags = unphysical(report[f"{which}_params"])
         assert not flags or not report[f"{which}_verdict"]["describes"], (which, flags)
     negative = [f"{term}.{key} = {entry['value']:.4g}"
                 for term, values in report["final_params"].items()
-                for key, entry in values.items() if entry["value"] < 0.0]
+                for key, entry in values.items()
+                if key in POSITIVE | NON_NEGATIVE | DAMPING and entry["value"] < 0.0]
     assert negative == []
+
+
+def test_directional_friction_is_refused_where_the_axis_moved_one_way_only():
+    """odrive-pull turns one way (a string pulled at 1 rev/s): Coulomb is refused before it
+    is fitted, saying why, and not named as the diagnosis; on the pneumatic seal, driven
+    both ways, it is the finding."""
+    pulled = _closed("odrive-pull")
+    reasons = {r["effect"]: r["reason"] for r in pulled["rejected"]}
+    assert reasons["coulomb"].startswith("the axis moved one way only (0.0% of the distance")
+    assert "coulomb" not in pulled["final_verdict"]["diagnosis"]
+    assert "coulomb" not in [s["effect"] for s in pulled["steps"]]
+    seal = _closed("pneumatic-seal")
+    assert seal["steps"][0]["effect"] == "coulomb"
 
 
 KEY_MISSED = {

@@ -248,7 +248,8 @@ def one_way_reason(kin: Kinematics) -> str | None:
     travel = float(np.sum(np.abs(used)))
     if travel == 0.0:
         return None
-    other_way = min(float(np.sum(used[used > 0.0])), float(-np.sum(used[used < 0.0]))) / travel
+    other_way = min(float(np.sum(used[used > 0.0])), float(np.sum(np.abs(used[used < 0.0])))
+                    ) / travel
     if other_way >= ONE_WAY_SHARE:
         return None
     return (f"the axis moved one way only ({other_way:.1%} of the distance travelled the "
