@@ -16,15 +16,27 @@ new setpoint every cycle:
 Each: % missed, repeated and late cycles and p50/p99/max lateness (`daq.timing`: missed +
 received = expected; the same definitions for both loops, the baseline's "cycle" being its
 SYNC slot). The load average beside them: other processes share the 2 CPUs.
+
+``python benchmarks/bench_realtime.py --loaded [N]`` (not part of `make bench`): N real-time
+chirps (20 by default; the example chirp, shortened as `tests/test_late_host.py` runs it)
+through the runner against one `feedbench sim` process while one CPU-burning process per CPU
+runs beside them (started and stopped here; issue 26 item 2): per chirp its status, the
+largest setpoint (x_ref) and position step in one cycle, the largest following error
+|x_ref - position| while the plan ran, the host's catch-ups (``timing`` events: cycles and
+ms) and the cycles it took without sending; then the limit trips, completed and aborted.
 """
 
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import tempfile
 import time
 import uuid
 from pathlib import Path
+
+import numpy as np
 
 from bench_sim_process import cycles_per_s, start_bench_process
 
@@ -211,5 +223,108 @@ def run() -> dict[str, float]:
     return figures
 
 
+CHIRP_FASTEST_M_PER_CYCLE = 1500 / 60e3 * CYCLE_S
+"""The example chirp's fastest planned step (its 1500 mm/min return move), m per cycle."""
+
+
+def burners() -> list[subprocess.Popen]:
+    """One busy-looping Python process per CPU this process may use."""
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+            for _ in os.sched_getaffinity(0)]
+
+
+def loaded_chirp(info: dict, directory: Path) -> dict:
+    """One real-time example chirp against the sim process; its figures (µm, ms)."""
+    from feedbench.bench import parse_run_config
+    from feedbench.daq.catalog import Catalog
+    from feedbench.daq.recording import open_recording
+    from feedbench.demo import example_config
+
+    raw = example_config("chirp")
+    raw["bench"].update(host_bench(info, "realtime"), output_dir=str(directory))
+    raw["experiment"].update(duration_s=1.0, repetitions=1, settle_s=0.3, tail_s=0.3)
+    config = parse_run_config(raw)
+    with Bench(config.bench, config.plan, config.experiment.devices()) as bench:
+        row = bench.run(config, Catalog(directory / "catalog.sqlite"), directory,
+                        progress=False)
+    recording = open_recording(row["file"])
+    stop = min((e.cycle for e in recording.events
+                if e.kind == "segment" and '"disable"' in e.text), default=np.inf)
+    moving = recording.cycle < stop
+    cycles = np.diff(recording.cycle[moving])
+    x_ref, position = (np.asarray(recording.channels[c])[moving] for c in ("x_ref", "position"))
+    catch_ups = [e.text.split("(")[1].split(")")[0] for e in recording.events
+                 if e.kind == "timing"]
+    unsent = ~(np.asarray(recording.channels["rpdo_time"]) <= np.asarray(
+        recording.channels["tpdo_time"]))
+    return {"status": row["status"], "reason": row["reason"],
+            "trip": "limit tripped" in row["reason"],
+            "x_ref_step_um": 1e6 * float(np.max(np.abs(np.diff(x_ref)) / cycles)),
+            "position_step_um": 1e6 * float(np.max(np.abs(np.diff(position)) / cycles)),
+            "following_error_um": 1e6 * float(np.max(np.abs(x_ref - position))),
+            "catch_ups": catch_ups, "unsent_cycles": int(unsent.sum()),
+            "longest_unsent": _longest_run(unsent),
+            "missed": recording.metadata["timing"]["missed"]}
+
+
+def _longest_run(flags: np.ndarray) -> int:
+    """The longest run of True in `flags`."""
+    longest = current = 0
+    for flag in flags:
+        current = current + 1 if flag else 0
+        longest = max(longest, current)
+    return longest
+
+
+def loaded(n: int) -> dict:
+    """`n` real-time chirps against `feedbench sim` with every CPU busy (see the module)."""
+    results = []
+    with tempfile.TemporaryDirectory() as directory:
+        process, info = start_bench_process(Path(directory))
+        hogs = burners()
+        try:
+            time.sleep(SETTLE_S)
+            print(f"{n} real-time chirps against `feedbench sim`, {len(hogs)} CPU burners "
+                  f"(load {os.getloadavg()[0]:.1f}):", flush=True)
+            for k in range(n):
+                chirp = loaded_chirp(info, Path(directory))
+                results.append(chirp)
+                print(f"  {k + 1:2d} {chirp['status']:<8s} steps x_ref "
+                      f"{chirp['x_ref_step_um']:5.1f} / position {chirp['position_step_um']:5.1f}"
+                      f" µm, following error {chirp['following_error_um']:6.1f} µm, "
+                      f"{chirp['unsent_cycles']:4d} cycles without a setpoint (longest "
+                      f"{chirp['longest_unsent']:3d}), missed {chirp['missed']:3d}, "
+                      f"catch-ups noted {len(chirp['catch_ups'])} (longest away "
+                      f"{max([int(c.split()[0]) for c in chirp['catch_ups']], default=0)} ms)"
+                      f"{'; ' + chirp['reason'] if chirp['reason'] else ''}"
+                      f" (load {os.getloadavg()[0]:.1f})", flush=True)
+        finally:
+            for hog in hogs:
+                hog.kill()
+                hog.wait()
+            process.terminate()
+            process.wait(timeout=20)
+    figures = {
+        "chirps": n, "limit_trips": sum(c["trip"] for c in results),
+        "complete": sum(c["status"] == "complete" for c in results),
+        "aborted": sum(c["status"] != "complete" for c in results),
+        "max_x_ref_step_um": max(c["x_ref_step_um"] for c in results),
+        "max_position_step_um": max(c["position_step_um"] for c in results),
+        "max_following_error_um": max(c["following_error_um"] for c in results),
+        "longest_unsent_cycles": max(c["longest_unsent"] for c in results),
+        "planned_fastest_step_um": 1e6 * CHIRP_FASTEST_M_PER_CYCLE,
+    }
+    print("  " + ", ".join(f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}"
+                           for k, v in figures.items()))
+    reasons = sorted({c["reason"] for c in results if c["reason"]})
+    for reason in reasons:
+        print(f"  aborted: {reason}")
+    return figures
+
+
 if __name__ == "__main__":
-    run()
+    if "--loaded" in sys.argv[1:]:
+        rest = [a for a in sys.argv[1:] if a != "--loaded"]
+        loaded(int(rest[0]) if rest else 20)
+    else:
+        run()

@@ -43,7 +43,7 @@ from feedbench.drivers.cia402 import DISABLED_STATES, Actual
 from feedbench.experiments.limits import Limits
 from feedbench.experiments.plan import Plan, Segment
 from feedbench.protocols.canbus import StackLog
-from feedbench.protocols.cia402 import CSP, EXTRAPOLATED_CYCLES
+from feedbench.protocols.cia402 import EXTRAPOLATED_CYCLES
 from feedbench.units import MM_PER_MIN
 
 CHANNELS = ("x_ref", "position", "velocity", "force", "force_offset", "velocity_offset",
@@ -152,9 +152,7 @@ class Rejoin:
 class SentTargets:
     """The position targets (m) the host sent in real time, as the drive runs on them: the
     last one and its step (what the drive extrapolates from when none comes,
-    `protocols.cia402.EXTRAPOLATED_CYCLES` at most; in CSP the runner sends the step as the
-    target velocity 0x60FF with each target, so that the drive extrapolates with the step
-    the host assumes whichever of its targets came), and after the host fell behind the
+    `protocols.cia402.EXTRAPOLATED_CYCLES` at most), and after the host fell behind the
     `Rejoin` of the plan."""
 
     def __init__(self, start: float) -> None:
@@ -377,10 +375,9 @@ class Runner:
                         if i == len(targets):
                             break
                         target = sent.next(targets[i])
-                        velocity = ((target - sent.last) / plan.cycle_s if plan.mode == CSP
-                                    else target_velocities[i])
                         self._cycle(recorder, target, force_offsets[i],
-                                    velocity_offsets[i], index=i, velocity=velocity)
+                                    velocity_offsets[i], index=i,
+                                    velocity=target_velocities[i])
                         sent.sent(target)
                         i += 1
             except (RunAborted, NodeLost, HostStalled) as exc:

@@ -474,11 +474,10 @@ class SimulatedCia402Drive:
         values = self.values
         ran = values[TARGET_POSITION]
         setpoint = self._received.get(TARGET_POSITION)
-        velocity = self._received.get(TARGET_VELOCITY)
         values.update(self._received)
         self._received.clear()
         if self._cyclic_target and values[MODES_OF_OPERATION_DISPLAY] == CSP:
-            values[TARGET_POSITION] = self._cyclic_target_of(ran, setpoint, velocity)
+            values[TARGET_POSITION] = self._cyclic_target_of(ran, setpoint)
         else:
             self._forget_setpoints()
 
@@ -489,11 +488,9 @@ class SimulatedCia402Drive:
         self._setpoint_lag = 0
         self._last_setpoint: int | None = None
 
-    def _cyclic_target_of(self, ran: int, setpoint: int | None,
-                          velocity: int | None = None) -> int:
+    def _cyclic_target_of(self, ran: int, setpoint: int | None) -> int:
         """CSP: this cycle's target (increments), `ran` the last cycle's, `setpoint` the one
-        that came for this SYNC (None: none came), `velocity` the target velocity 0x60FF
-        (nm/s) that came with it, where the host maps it (None: not sent).
+        that came for this SYNC (None: none came).
 
         No setpoint: the last step again (extrapolated), `EXTRAPOLATED_CYCLES` in a row at
         most, then the target is held. A setpoint after missed cycles may be late on the
@@ -504,12 +501,8 @@ class SimulatedCia402Drive:
         the distance between two setpoints that came for consecutive SYNCs over the cycles
         they were meant for; after missed cycles the one the drive extrapolated with (0 after
         it held), as the host assumes (`experiments.runner.SentTargets`); never a distance to
-        a target the drive extrapolated. Where the host sends 0x60FF with its setpoints (in
-        CSP the drive's position loop has no use for it), that velocity times the cycle is
-        the step instead: the host's own, whichever of its setpoints came (feedbench's host
-        sends its targets' step; `experiments.runner.SentTargets`). So a host late by some
-        cycles moves the target by one step per cycle (within half a step) and never by the
-        cycles it was late."""
+        a target the drive extrapolated. So a host late by some cycles moves the target by
+        one step per cycle (within half a step) and never by the cycles it was late."""
         step = self._target_step
         if setpoint is None:
             if self._missed_setpoints >= EXTRAPOLATED_CYCLES:
@@ -523,9 +516,7 @@ class SimulatedCia402Drive:
         if step:
             lag = max(0, min(round((ran + step - setpoint) / step), self._setpoint_lag + missed))
         meant = 1 - (lag - self._setpoint_lag)
-        if velocity is not None:
-            step = velocity * self.simulator.timing.cycle
-        elif not missed and meant >= 1 and self._last_setpoint is not None:
+        if not missed and meant >= 1 and self._last_setpoint is not None:
             step = (setpoint - self._last_setpoint) / meant
         self._target_step = step
         self._last_setpoint, self._setpoint_lag, self._missed_setpoints = setpoint, lag, 0
