@@ -21,12 +21,13 @@ from feedbench.cli import main
 from feedbench.config import ConfigError
 from feedbench.daq.recording import open_recording, printable_json
 from feedbench.demo import describe_analysis, example_config
+from feedbench.experiments.smfe import DAQ_CHANNELS as SMFE_CHANNELS
 from feedbench.report import run_section, verdict
 from feedbench.units import MM_PER_MIN
-from feedbench.testing import live_replay
+from feedbench.testing import live_replay, synthetic_recording
 from test_report import (
-    COLUMN, DAQ_RATE, K_P, T_I, bode_steps, chirp_steps, friction_steps, hammer_steps, record,
-    record_with_daq, shaker_chirp_steps, sine_stream_steps,
+    COLUMN, DAQ_RATE, K_P, PER_CYCLE, T_I, bode_steps, chirp_steps, friction_steps,
+    hammer_steps, record, record_with_daq, shaker_chirp_steps, sine_stream_steps, smfe_steps,
 )
 
 pytestmark = [pytest.mark.filterwarnings("ignore:Data has no positive values:UserWarning"),
@@ -207,6 +208,26 @@ def bode_run(steps) -> Callable:
                                metadata={"drive_gains": {"K_p": K_P, "T_i": T_I}})
 
 
+STOPPED = "stopped by the operator (Ctrl-C)"
+SMFE = ({"type": "smfe", "segment_s": 2.0, "ramp_s": 12.0}, SMFE_CHANNELS)
+SMFE_STEPS = smfe_steps()
+
+
+def aborted_daq_run(family: tuple[dict, tuple[str, ...]], steps) -> Callable:
+    """A DAQ recording of `steps` whose run was stopped (Ctrl-C) after the last of them."""
+    experiment, channels = family
+    return lambda path: synthetic_recording(path, experiment, steps, daq_channels=channels,
+                                            daq_rate_hz=DAQ_RATE, status="aborted",
+                                            reason=STOPPED)
+
+
+def cut_short(step, share: float):
+    """A DAQ step stopped after `share` of its cycles (the stop came inside it)."""
+    label, kind, info, rows, daq = step
+    n = max(1, int(len(rows) * share))
+    return label, kind, info, rows[:n], daq[:n * PER_CYCLE]
+
+
 def feed_moves(x: np.ndarray) -> np.ndarray:
     """The chirp's velocity with its 500 mm/min feed taken out: the axis stood still."""
     return x - 500 * MM_PER_MIN
@@ -287,6 +308,31 @@ NOT_VALID = {
     "shaker chirp: force channel swapped for noise": (
         daq_run(SHAKER[0], with_daq(shaker_chirp_steps(), 0, noise(20.0)), SHAKER[1]),
         "min coherence in the band", "below 0.9"),
+    "hammer: run aborted inside a hit (mid-feed)": (
+        aborted_daq_run(HAMMER, hammer_steps()[:6] + [cut_short(hammer_steps()[6], 0.5)]),
+        "status", "the run stopped before its plan ended"),
+    "hammer: run aborted inside a feed's first hit (none of it whole)": (
+        aborted_daq_run(HAMMER, hammer_steps()[:5] + [cut_short(hammer_steps()[5], 0.5)]),
+        "notes", "records were left out"),
+    "hammer: run aborted before its first hit": (
+        aborted_daq_run(HAMMER, hammer_steps()[:1]),
+        "hits analysed", "no usable hits recorded (no excite segment)"),
+    "shaker chirp: run aborted inside the second sweep": (
+        aborted_daq_run(SHAKER, shaker_chirp_steps()[:1]
+                        + [cut_short(shaker_chirp_steps()[1], 0.5)]),
+        "notes", "records were left out"),
+    "shaker chirp: run aborted early in its first sweep": (
+        aborted_daq_run(SHAKER, [cut_short(shaker_chirp_steps()[0], 0.002)]),
+        "sweeps analysed", "records of 0.005 s hold no frequency line in 20–100 Hz"),
+    "smfe: run aborted inside the last cut": (
+        aborted_daq_run(SMFE, SMFE_STEPS[:5] + [cut_short(SMFE_STEPS[5], 0.5)]),
+        "status", "the run stopped before its plan ended"),
+    "smfe: run aborted inside the second cut": (
+        aborted_daq_run(SMFE, SMFE_STEPS[:3] + [cut_short(SMFE_STEPS[3], 0.5)]),
+        "cuts recorded", "the receptances (Eq. 6.13) need all 3 cuts"),
+    "smfe: run aborted before its first cut": (
+        aborted_daq_run(SMFE, SMFE_STEPS[:1]),
+        "cuts recorded", "the receptances (Eq. 6.13) need all 3 cuts"),
     "closed-loop Bode: response in the noise at high frequencies": (
         bode_run(bode_steps()[:90] + with_column(bode_steps()[90:], "velocity", noise(1e-3))),
         "frequencies flagged", "110 Hz: R²"),
@@ -328,6 +374,19 @@ def assert_not_valid_everywhere(path, name: str, fragment: str) -> None:
 def test_result_marked_not_valid_with_its_reason_in_terminal_json_and_report(mistake, analysed):
     _, name, fragment = NOT_VALID[mistake]
     assert_not_valid_everywhere(analysed[mistake], name, fragment)
+
+
+@pytest.mark.parametrize("mistake, cut", [
+    ("hammer: run aborted inside a feed's first hit (none of it whole)",
+     "hit 1: cut short by the stop (500 of 1000 cycles), left out"),
+    ("shaker chirp: run aborted inside the second sweep",
+     "sweep 2: cut short by the stop (1250 of 2500 cycles), left out")])
+def test_a_record_cut_short_by_the_stop_is_left_out_and_named(mistake, cut, analysed):
+    """The stop cuts the run's last record: it is not averaged with the whole ones (its
+    frequency lines are not theirs), and the notes say which and why."""
+    result = analyze_file(analysed[mistake])
+    notes = next(c for c in result["checks"] if c["name"] == "notes")
+    assert notes["value"] == cut and result["notes"] == [cut]
 
 
 @pytest.mark.parametrize("mistake", ["hammer: double hit", "chirp: velocity channel unplugged"])

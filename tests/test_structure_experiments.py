@@ -67,6 +67,7 @@ def test_hammer_quasi_frf_changes_with_feed_and_is_invariant_above_500_mm_min(tm
     for feed in feeds.values():
         assert feed["min_coherence"] > 0.95
         assert feed["hits_used"] >= 2
+        assert feed["hits"] == 3  # a complete run: no record taken as cut short by a stop
     assert recording.streams["daq"].n_dropped == 0
 
 
@@ -91,6 +92,7 @@ def test_sine_stream_agrees_with_shaker_chirp_h1_within_2_percent(tmp_path):
     assert resonance.sum() >= 10
     assert np.max(np.abs(sine[resonance] / h1[resonance] - 1.0)) < 0.02
     assert chirp["feeds"][0]["min_coherence"] > 0.99
+    assert chirp["feeds"][0]["n_averages"] == 2 and not chirp["notes"]  # none cut short
 
 
 def test_closed_velocity_loop_bode_gives_the_flexure_frequencies_through_eq_4_20(tmp_path):

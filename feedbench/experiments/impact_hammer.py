@@ -23,12 +23,12 @@ from feedbench.analysis.frf import HammerFrf, accelerance_to_receptance, quasi_f
 from feedbench.config import ConfigError, Field, positive, validate_table
 from feedbench.experiments.family import Example, Experiment, headline
 from feedbench.experiments.preflight import check_feeds
-from feedbench.experiments.plan import Plan, recorded_windows
+from feedbench.experiments.plan import Plan
 from feedbench.experiments.tool_tip import (
     FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, TIP_ACCELERATION,
     ExcitationWindow, compliance_plot, daq_needs, feed_frf_panels, feed_frf_summary,
-    feed_checks, feed_lobes, feed_text, full_scale, overloaded, plan_over_feeds, tip_force,
-    window_samples,
+    feed_checks, feed_lobes, feed_text, full_scale, overloaded, plan_over_feeds, records_check,
+    tip_force, whole_windows, window_samples,
 )
 from feedbench.protocols.cia402 import CSP
 from feedbench.views.frfs import ExchangeFrf, polar
@@ -80,10 +80,11 @@ def hit_windows(p: Mapping[str, Any], cycle_s: float) -> list[ExcitationWindow]:
 
 def feed_records(recording) -> tuple[dict[float, tuple[np.ndarray, np.ndarray]], list[str]]:
     """|feed| (mm/min) → (forces, accelerations), hits × samples; records with an overloaded
-    accelerometer or lost samples are left out (noted)."""
+    accelerometer or lost samples, or cut short by a stop (`whole_windows`), are left out
+    (noted)."""
     grouped: dict[float, list[np.ndarray]] = {}
-    notes: list[str] = []
-    for window in recorded_windows(recording, "excite"):
+    windows, notes = whole_windows(recording)
+    for window in windows:
         samples, lost = window_samples(recording, window, (FORCE_CHANNEL, RESPONSE_CHANNEL))
         notes += lost
         if overloaded(samples[1:], (RESPONSE_CHANNEL,)):
@@ -225,10 +226,12 @@ class ImpactHammer(Experiment):
         """Quasi-FRF per feed (Eq. 5.3), its compliance, coherence, and the feed comparison:
         each feed's distance to the highest feed's compliance (the in-motion reference) and to
         the lowest's (idle). SI: frequencies Hz, compliance m/N; feeds in mm/min (as
-        configured). The hits so far (live) are analysed the same way."""
+        configured). The hits so far (live) are analysed the same way; a run stopped before
+        its first usable hit gives a result without feeds, not valid (`records_check`), a
+        complete one a `ConfigError`."""
         p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
         summaries, notes = feed_summaries(recording, p)
-        if not summaries:
+        if not summaries and (not final or recording.status == "complete"):
             raise ConfigError(f"{recording.path}: no usable hammer hit recorded "
                               f"({'; '.join(notes) or 'no excite segment'})")
         compliances = [np.array(x["frf"]["compliance_abs"]) for x in summaries]
@@ -240,13 +243,14 @@ class ImpactHammer(Experiment):
         return {
             "experiment": NAME,
             "feeds": summaries,
-            "reference_feed_mm_min": feeds[-1],
+            "reference_feed_mm_min": feeds[-1] if feeds else None,
             "invariance_tolerance": tolerance,
             "invariant_from_mm_min": invariant_from(
                 feeds, [x["distance_to_highest_feed"] for x in summaries], tolerance),
             "notes": notes,
             "checks": feed_checks(summaries, notes, hits_check(summaries),
-                                  averaged(min(x["hits_used"] for x in summaries), "hits")),
+                                  averaged(min(x["hits_used"] for x in summaries), "hits"))
+            if summaries else [records_check("hits", 0, notes)],
         }
 
     @classmethod
@@ -254,6 +258,8 @@ class ImpactHammer(Experiment):
         """Quasi-FRF per feed (Eq. 5.3) as compliance with coherence, the feed comparison
         (Fig. 5.12) and the stability lobes of the lowest and highest feed (Fig. 5.25)."""
         feeds = result["feeds"]
+        if not feeds:  # a run stopped before its first usable hit: its checks say so
+            return
         section.plots.append(compliance_plot(feeds, "quasi-FRF, Eq. 5.3"))
         section.tables.append(Table("impact hammer per feed", (
             "feed (mm/min)", "peak (Hz)", "peak |x/F| (µm/N)", "hits used", "min coherence",
@@ -267,6 +273,8 @@ class ImpactHammer(Experiment):
     @classmethod
     def headline(cls, result: Mapping[str, Any]) -> str:
         """The feed from which the FRF is invariant."""
+        if not result["feeds"]:
+            return "no hit analysed"
         invariant = result["invariant_from_mm_min"]
         return (f"invariant from {invariant:g} mm/min" if invariant is not None
                 else "no feed range invariant")

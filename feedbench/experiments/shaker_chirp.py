@@ -20,13 +20,14 @@ from feedbench.analysis.frf import accelerance_to_receptance, estimate_frf, find
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
 from feedbench.experiments.family import Example, Experiment, headline
 from feedbench.experiments.preflight import check_feeds
-from feedbench.experiments.plan import Plan, recorded_windows
+from feedbench.experiments.plan import Plan
 from feedbench.experiments.signals import chirp
 from feedbench.experiments.tool_tip import (
     FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, TIP_ACCELERATION,
     ExcitationWindow, exciter_channel, tip_force,
     compliance_plot, daq_needs, feed_frf_panels, feed_frf_summary, feed_lobes,
-    feed_checks, feed_text, overloaded, plan_over_feeds, window_samples,
+    feed_checks, feed_text, overloaded, plan_over_feeds, records_check, whole_windows,
+    window_samples,
 )
 from feedbench.protocols.cia402 import CSP
 from feedbench.views.frfs import ExchangeFrf, polar
@@ -53,12 +54,12 @@ SCHEMA = {
 
 def sweep_records(recording, force_channel: str) -> tuple[dict[float, np.ndarray], list[str]]:
     """|feed| (mm/min) → its sweeps as records × (force, acceleration) × n, each record
-    zero-mean and cut to the shortest; sweeps with an overloaded channel or lost samples are
-    left out (noted)."""
+    zero-mean and cut to the shortest; sweeps with an overloaded channel or lost samples, or
+    cut short by a stop (`whole_windows`), are left out (noted)."""
     grouped: dict[float, list[np.ndarray]] = {}
-    notes: list[str] = []
+    windows, notes = whole_windows(recording)
     channels = (force_channel, RESPONSE_CHANNEL)
-    for window in recorded_windows(recording, "excite"):
+    for window in windows:
         samples, lost = window_samples(recording, window, channels)
         notes += lost
         if overloaded(samples, channels):
@@ -75,11 +76,15 @@ def sweep_records(recording, force_channel: str) -> tuple[dict[float, np.ndarray
 
 def feed_frf(feed: float, sweeps: np.ndarray, fs: float, band: tuple[float, float]) -> dict:
     """One feed's tool-tip FRF from its sweeps (records × (force, acceleration) × n, fs Hz):
-    H1, H2 (accelerance, (m/s²)/N), compliance H1 / (jω)² (m/N) and coherence in `band`."""
+    H1, H2 (accelerance, (m/s²)/N), compliance H1 / (jω)² (m/N) and coherence in `band`;
+    `ValueError` when records that short hold no frequency line in it."""
     force, response = np.concatenate(sweeps, axis=1)
     est = estimate_frf(force, response, fs, nperseg=sweeps.shape[2], overlap=0.0,
                        window="boxcar")
     inside = (est.f >= band[0]) & (est.f <= band[1])
+    if not inside.any():
+        raise ValueError(f"records of {sweeps.shape[2] / fs:.3g} s hold no frequency line in "
+                         f"{band[0]:g}–{band[1]:g} Hz, sweeps left out")
     f = est.f[inside]
     compliance = accelerance_to_receptance(f, est.H1[inside])
     warnings, details = findings_in_band(est, band)
@@ -156,20 +161,29 @@ class ShakerChirp(Experiment):
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
         """Tool-tip FRF per feed (`feed_frf`) in the swept range; the sweeps so far (live)
-        are analysed the same way."""
+        are analysed the same way; none usable (a run stopped before its first whole sweep):
+        a result without feeds, not valid (`records_check`)."""
         p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
         band = (p["f_start_Hz"], p["f_stop_Hz"])
         fs = recording.streams["daq"].rate_hz
         records, notes = sweep_records(recording, FORCE_CHANNELS[p["exciter"]])
-        feeds = [feed_frf(feed, sweeps, fs, band) for feed, sweeps in sorted(records.items())]
+        feeds = []
+        for feed, sweeps in sorted(records.items()):
+            try:
+                feeds.append(feed_frf(feed, sweeps, fs, band))
+            except ValueError as error:  # the only sweep was cut short by a stop
+                notes.append(f"{feed:g} mm/min: {error}")
         checks = feed_checks(feeds, notes, averaged(min(x["n_averages"] for x in feeds),
-                                                    "sweeps")) if feeds else []
+                                                    "sweeps")) if feeds else [
+            records_check("sweeps", 0, notes)]
         return {"experiment": NAME, "feeds": feeds, "notes": notes, "checks": checks}
 
     @classmethod
     def report(cls, recording, result: Mapping[str, Any], section: RunSection) -> None:
         """Tool-tip compliance per feed (H1 over the sweeps) with coherence, and its lobes."""
         feeds = result["feeds"]
+        if not feeds:  # a run stopped before its first usable sweep: its checks say so
+            return
         section.plots.append(compliance_plot(feeds, "H1 over the sweeps"))
         section.tables.append(Table("shaker chirp per feed", (
             "feed (mm/min)", "sweeps averaged", "peak (Hz)", "min coherence", "warnings"), tuple(
@@ -183,7 +197,7 @@ class ShakerChirp(Experiment):
     def headline(cls, result: Mapping[str, Any]) -> str:
         """The compliance peak of each feed."""
         return ", ".join(f"{x['feed_mm_min']:g} mm/min: peak {x['peak_hz']:.1f} Hz"
-                         for x in result["feeds"])
+                         for x in result["feeds"]) or "no sweep analysed"
 
     @classmethod
     def live_view(cls, result: Mapping[str, Any]) -> ResultView:

@@ -276,6 +276,21 @@ def cut_records(recording, d: int) -> tuple[Records, Records, Records, list[str]
             notes)
 
 
+def cuts_check(recording, p: Mapping[str, Any]) -> dict[str, Any]:
+    """Every planned cut recorded (the receptances, Eq. 6.13, solve one equation per
+    direction), each at least one Welch segment of `segment_s` long (`p` validated)."""
+    stream = recording.streams["daq"]
+    lengths = [int(np.count_nonzero((stream.cycle >= recording.cycle[w.start])
+                                    & (stream.cycle <= recording.cycle[w.stop - 1])))
+               for w in recorded_windows(recording, "measure")]
+    d, shortest = len(p["cuts"]), min(lengths, default=0) / stream.rate_hz
+    return check("cuts recorded", f"{len(lengths)} of {d}"
+                 + (f", the shortest {shortest:.2f} s" if lengths else ""),
+                 len(lengths) == d and shortest >= p["segment_s"],
+                 f"the receptances (Eq. 6.13) need all {d} cuts (one per direction), each at "
+                 f"least one Welch segment of {p['segment_s']:g} s: none computed")
+
+
 def _direct_peaks(result: SmfeResult, band: tuple[float, float]) -> list[dict[str, float]]:
     """Largest |Φ_ii| in `band` and its frequency, per direction."""
     inside = (result.f >= band[0]) & (result.f <= band[1])
@@ -590,7 +605,8 @@ class Smfe(Experiment):
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
         """The spindle speed and force spectrogram of the run, and once every cut is
-        recorded the receptances (`receptances`; `final`: `ConfigError` before that).
+        recorded the receptances (`receptances`; `final`: `ConfigError` before that, but a
+        run stopped before its cuts were recorded gives the sweep, not valid: `cuts_check`).
         SI (m/N, Hz, s), speeds rpm."""
         p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
         cuts = len(recorded_windows(recording, "measure"))
@@ -600,6 +616,9 @@ class Smfe(Experiment):
                  "spectrogram": force_spectrogram(recording, p)}
         if not final and cuts < len(p["cuts"]):
             return sweep
+        recorded = cuts_check(recording, p)
+        if not recorded["ok"] and recording.status != "complete":  # stopped before the end
+            return {**sweep, "checks": [recorded]}
         result = {**sweep, **receptances(recording, p)}
         return {**result, "checks": receptance_checks(result)}
 
@@ -609,12 +628,16 @@ class Smfe(Experiment):
         force-spectrum matrix (Eq. 6.14) against the planned C_th, the coherence of every
         direct response/force pair per cut (Eq. 6.15), and the sweep: spindle speed and
         force spectrogram."""
+        sweep = Plot("spindle speed and force spectrogram with the tooth-passing harmonics",
+                     png_of(sweep_figure(result)))
+        if "f_hz" not in result:  # a run stopped before its cuts were recorded: the sweep
+            section.plots.append(sweep)
+            return
         section.plots += [
             *(receptance_plot(result, side, name) for side, name in zip(SIDES, SIDE_NAMES)),
             Plot("condition number (Eq. 6.14) against the planned C_th",
                  png_of(condition_figure(result))),
-            Plot("spindle speed and force spectrogram with the tooth-passing harmonics",
-                 png_of(sweep_figure(result))),
+            sweep,
         ]
         section.tables.append(Table("SMFE peaks", ("side", "direction", "peak (Hz)",
                                                    "|Φ| (m/N)", "min coherence at the peak"),
@@ -626,6 +649,8 @@ class Smfe(Experiment):
     @classmethod
     def headline(cls, result: Mapping[str, Any]) -> str:
         """The direct receptance peaks of both sides."""
+        if "f_hz" not in result:
+            return f"{result['cuts_recorded']} of {len(result['cuts'])} cuts: no receptances"
         return peaks_text(result)
 
     @classmethod
@@ -659,6 +684,8 @@ class Smfe(Experiment):
     @classmethod
     def details(cls, result: Mapping[str, Any]) -> list[str]:
         """Peaks, condition number and warnings of an SMFE analysis."""
+        if "f_hz" not in result:
+            return []
         lines = [f"  cuts {', '.join(result['cuts'])} at a_e "
                  f"{', '.join(f'{a:.1f}' for a in result['a_e_mm'])} mm, band "
                  f"{result['band_hz'][0]:g}-{result['band_hz'][1]:g} Hz, "

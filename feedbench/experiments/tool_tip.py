@@ -22,7 +22,7 @@ from feedbench.analysis.checks import check, peak_checks
 from feedbench.analysis.stability import Lobes, zoa_lobes
 from feedbench.config import Field, non_negative, positive, validate_table
 from feedbench.daq.recorder import StreamSpec
-from feedbench.experiments.plan import Plan, Segment, Window
+from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
 from feedbench.models.milling import engagement_angles
 from feedbench.protocols import cia401
@@ -166,6 +166,27 @@ def window_samples(recording, window: Window, channels: Sequence[str]
     if np.any(np.diff(stream.sequence[inside]) != 1):
         notes.append(f"{window.label}: DAQ samples lost inside the window")
     return np.vstack([stream.channels[c][inside] for c in channels]), notes
+
+
+def whole_windows(recording, kind: str = "excite") -> tuple[list[Window], list[str]]:
+    """The recorded windows of `kind` spanning as many bus cycles as the longest (every
+    record of a hammer or shaker plan does) and notes on the others: cut short by a stop
+    (an aborted run's last window), they are left out."""
+    windows = recorded_windows(recording, kind)
+    spans = [int(recording.cycle[w.stop - 1]) - int(recording.cycle[w.start]) + 1
+             for w in windows]
+    whole = max(spans, default=0)
+    notes = [f"{w.label}: cut short by the stop ({n} of {whole} cycles), left out"
+             for w, n in zip(windows, spans) if n < whole]
+    return [w for w, n in zip(windows, spans) if n == whole], notes
+
+
+def records_check(what: str, count: int, notes: Sequence[str]) -> dict:
+    """At least one record (`what`: "hits", "sweeps") analysed; none (a run stopped before
+    its first whole one, or every one left out) leaves nothing to analyse."""
+    return check(f"{what} analysed", str(count), count > 0,
+                 f"no usable {what} recorded ({'; '.join(notes) or 'no excite segment'}): "
+                 "nothing to analyse")
 
 
 def overloaded(samples: np.ndarray, channels: Sequence[str], share: float = 0.98) -> bool:
