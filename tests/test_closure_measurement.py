@@ -196,6 +196,6 @@ def test_a_model_with_direction_dependent_friction_on_a_one_way_record_does_not_
                                          "coulomb": {"F_c_N": F_C_N}}})
     verdict = run_closure(spec, Trace(t, x, force, name="one way")).result.final_verdict
     assert not verdict.describes
-    assert any(r.startswith("the axis moved one way only (0.0% of the used samples")
+    assert any(r.startswith("the axis moved one way only (0.0% of the distance travelled")
                and r.endswith("coulomb cannot be told from an offset and a slope")
                for r in verdict.reasons), verdict.reasons

@@ -618,7 +618,9 @@ def test_hammer_quasi_frf_of_the_hits_so_far_equals_the_analysis_on_the_same_hit
                      daq=np.concatenate([np.zeros((13 * PER_CYCLE, 2)), *daq]),
                      daq_channels=("hammer_force", "acc_tool_x"))
     assert result.version == 5 and len(views) == 5
-    assert views[0].summary.startswith("0 mm/min: 1 of 1 hits, peak")
+    assert views[0].summary.startswith("NOT VALID: hits averaged: 1 of them")  # γ² ≡ 1
+    assert "| 0 mm/min: 1 of 1 hits, peak" in views[0].summary
+    assert "NOT VALID" not in views[-1].summary
     magnitude, phase, coherence = result.view().panels
     assert [c.name for c in magnitude.curves] == ["0 mm/min", "500 mm/min"]
     for curve, angle, (feed, records), f_n in zip(magnitude.curves, phase.curves, hits.items(),
