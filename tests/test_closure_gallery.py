@@ -101,13 +101,14 @@ def test_no_unphysical_model_is_called_describing(dataset):
 
 def test_directional_friction_is_refused_where_the_axis_moved_one_way_only():
     """odrive-pull turns one way (a string pulled at 1 rev/s): Coulomb is refused before it
-    is fitted, saying why, and not named as the diagnosis; on the pneumatic seal, driven
-    both ways, it is the finding."""
+    is fitted, saying why, and not named as the diagnosis; so is a play (nothing to cross
+    without a reversal); on the pneumatic seal, driven both ways, Coulomb is the finding."""
     pulled = _closed("odrive-pull")
     reasons = {r["effect"]: r["reason"] for r in pulled["rejected"]}
     assert reasons["coulomb"].startswith("the axis moved one way only (0.0% of the distance")
     assert "coulomb" not in pulled["final_verdict"]["diagnosis"]
     assert "coulomb" not in [s["effect"] for s in pulled["steps"]]
+    assert reasons["backlash"].endswith("its signature follows a reversal, and there is none")
     seal = _closed("pneumatic-seal")
     assert seal["steps"][0]["effect"] == "coulomb"
 

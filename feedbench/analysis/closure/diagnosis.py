@@ -207,6 +207,9 @@ ONE_WAY_SHARE = 0.05
 """Below this share of the distance travelled the other way, the axis moved one way only."""
 DIRECTIONAL = frozenset({"coulomb", "stribeck", "direction_dependent"})
 """Friction terms that change with the direction of motion."""
+AFTER_REVERSALS = frozenset({"backlash", "presliding", "gms"})
+"""Effects whose signature follows a motion reversal (a play crossed, a contact's
+pre-sliding loop): nothing to see where the axis never turned back."""
 
 
 def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ...],
@@ -248,8 +251,8 @@ def one_way_reason(kin: Kinematics) -> str | None:
     travel = float(np.sum(np.abs(used)))
     if travel == 0.0:
         return None
-    other_way = min(float(np.sum(used[used > 0.0])), float(np.sum(np.abs(used[used < 0.0])))
-                    ) / travel
+    forward = float(np.sum(used[used > 0.0]))
+    other_way = min(forward, travel - forward) / travel
     if other_way >= ONE_WAY_SHARE:
         return None
     return (f"the axis moved one way only ({other_way:.1%} of the distance travelled the "
@@ -257,13 +260,16 @@ def one_way_reason(kin: Kinematics) -> str | None:
 
 
 def refused_one_way(effect: Effect, kin: Kinematics) -> Candidate | None:
-    """A directional friction term, rejected before it is fitted, on a record where the axis
-    moved one way only (`one_way_reason`); None for any other effect or record."""
-    reason = one_way_reason(kin) if effect.name in DIRECTIONAL else None
+    """A directional friction term or an effect seen after reversals, rejected before it
+    is fitted, on a record where the axis moved one way only (`one_way_reason`); None for
+    any other effect or record."""
+    why = ("it cannot be told from an offset and a slope" if effect.name in DIRECTIONAL else
+           "its signature follows a reversal, and there is none" if effect.name in
+           AFTER_REVERSALS else None)
+    reason = one_way_reason(kin) if why else None
     if reason is None:
         return None
-    return Candidate(effect.name, 0.0, "not screened", None, 0.0, 0.0,
-                     f"{reason}: it cannot be told from an offset and a slope")
+    return Candidate(effect.name, 0.0, "not screened", None, 0.0, 0.0, f"{reason}: {why}")
 
 
 def at_bounds(model: Model) -> tuple[str, ...]:
