@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from feedbench.campaign import parse_campaign, run_campaign
-from feedbench.demo import example_config
+from feedbench.commands.campaign import parse_campaign, run_campaign
+from feedbench.commands.demo import example_config
 
 N_RUNS = int(os.environ.get("FEEDBENCH_CAMPAIGN_RUNS", "200"))
 SHORT_BODE = {"f_start_Hz": 20.0, "f_stop_Hz": 120.0, "f_step_Hz": 10.0,

@@ -43,9 +43,9 @@ from feedbench.daq.clock import LockstepClock, one_core
 from feedbench.protocols.canbus import connect, open_bus, open_network
 from feedbench.drivers.cia402 import Cia402Drive, CycleSignal
 from feedbench.daq.recorder import Recorder
-from feedbench.experiments.limits import Limits
-from feedbench.experiments.plan import Plan, Segment
-from feedbench.experiments.runner import CHANNELS, UNITS, Runner
+from feedbench.engine.limits import Limits
+from feedbench.engine.plan import Plan, Segment
+from feedbench.engine.runner import CHANNELS, UNITS, Runner
 from feedbench.models.axis import CSP, CSV
 from feedbench.sim_backends.bench import start_simulated_axis
 from feedbench.sim_backends.eds import packaged_eds_path

@@ -31,7 +31,7 @@ from scipy.optimize import least_squares
 from feedbench.analysis.closure import fit_model, kinematics, new_term, run_closure
 from feedbench.analysis.closure.model import Model, predict
 from feedbench.analysis.closure.trace import standstill_speed
-from feedbench.closure_command import (
+from feedbench.commands.closure import (
     EXAMPLES, closure_report, load_model_spec, simulated_trace, single_blas_thread,
 )
 

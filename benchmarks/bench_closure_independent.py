@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 
 from feedbench.analysis.closure import report_dict
-from feedbench.closure_command import closure_report
+from feedbench.commands.closure import closure_report
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from independent_sim import CASES, write_case  # noqa: E402  (tests/independent_sim)

@@ -32,7 +32,7 @@ from typing import Any, Callable
 
 from feedbench.analysis.closure import report_dict
 from feedbench.analysis.closure.report import unphysical
-from feedbench.closure_command import closure_report
+from feedbench.commands.closure import closure_report
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from gallery import datasets  # noqa: E402  (tests/gallery.py)

@@ -18,7 +18,7 @@ import sys
 import tempfile
 
 from _timing import best_of  # benchmarks/_timing.py
-from feedbench.demo import numbers_of
+from feedbench.commands.demo import numbers_of
 
 TARGET_S = 25.0
 """The issue's goal for the quick demo on 2 cores."""
@@ -32,7 +32,7 @@ def demo(workers: int | None) -> tuple[dict, float]:
     before = children_cpu_s()
     with tempfile.TemporaryDirectory() as directory:
         extra = ["--workers", str(workers)] if workers else []
-        proc = subprocess.run([sys.executable, "-m", "feedbench.cli", "demo", "--quick", "--json",
+        proc = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "demo", "--quick", "--json",
                                "--dir", directory, *extra],
                               capture_output=True, text=True, check=True)
     return json.loads(proc.stdout), children_cpu_s() - before

@@ -35,7 +35,7 @@ import numpy as np  # noqa: E402
 from feedbench.daq.live import Decimator, LiveStream  # noqa: E402
 from feedbench.daq.recorder import Recorder, StreamSpec  # noqa: E402
 from feedbench.daq.recording import open_recording  # noqa: E402
-from feedbench.experiments.plan import Plan, Segment  # noqa: E402
+from feedbench.engine.plan import Plan, Segment  # noqa: E402
 from feedbench.gui.live_window import LiveWindow, qt_app  # noqa: E402
 from feedbench.protocols.canbus import frozen_heap  # noqa: E402
 

@@ -20,10 +20,10 @@ import numpy as np
 from feedbench.axes import axis_kind
 from feedbench.bench import bench_table
 from feedbench.daq.clock import LockstepClock
-from feedbench.experiments.devices import device_tables
+from feedbench.devices import device_tables
 from feedbench.drivers.cia402 import Cia402Drive
 from feedbench.drivers.modbus_devices import LoadCellAmplifier, connect_tcp
-from feedbench.rack_pinion_bench import AXIS_PDOS
+from feedbench.axes.rack_pinion import AXIS_PDOS
 from feedbench.models.axis import CSP, AxisSimulator
 from feedbench.models.rack_pinion import RackPinionSimulator
 from feedbench.protocols.canbus import open_network

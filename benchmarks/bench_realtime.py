@@ -238,7 +238,7 @@ def loaded_chirp(info: dict, directory: Path) -> dict:
     from feedbench.bench import parse_run_config
     from feedbench.daq.catalog import Catalog
     from feedbench.daq.recording import open_recording
-    from feedbench.demo import example_config
+    from feedbench.commands.demo import example_config
 
     raw = example_config("chirp")
     raw["bench"].update(host_bench(info, "realtime"), output_dir=str(directory))

@@ -38,7 +38,7 @@ import numpy as np
 from can.interfaces import virtual
 
 from feedbench.bench import Bench, bench_table
-from feedbench.experiments.devices import device_tables
+from feedbench.devices import device_tables
 from feedbench.daq.clock import one_core
 from feedbench.models.milling import SMFE_TOOL, TABLE_6_1, simulate_smfe_cut, spindle_ramp
 from feedbench.models.structure import SMFE_TOOL_STRUCTURE
@@ -75,7 +75,7 @@ def start_bench_process(directory: Path) -> tuple[subprocess.Popen, dict]:
     config.write_text('[bench]\nsimulated = true\ninterface = "socketcand"\n'
                       'socketcand = "127.0.0.1:0"\n'
                       f'channel = "bench-{uuid.uuid4().hex[:8]}"\n')
-    process = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "sim", str(config)],
+    process = subprocess.Popen([sys.executable, "-m", "feedbench.commands.cli", "sim", str(config)],
                                stdout=subprocess.PIPE, text=True)
     line = process.stdout.readline()
     if not line.startswith(READY):

@@ -21,7 +21,7 @@ import numpy as np
 
 from feedbench.bench import parse_run_config, run_config
 from feedbench.daq.recording import open_recording
-from feedbench.experiments.family import families
+from feedbench.engine.family import families
 from feedbench.models.axis import CSP, AxisSimulator
 from feedbench.protocols import cia401
 from feedbench.sim_backends.structure_world import StructureWorld, parse_structure

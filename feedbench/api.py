@@ -11,7 +11,7 @@
         sweep = bench.run("friction_sweep", feeds_mm_min=[50, 100, 200, 400, 800])
         print(sweep.result["positive"]["identified"]["F_c"])
 
-Everything that moves is a plan run by the CLI's `experiments.runner.Runner` (through
+Everything that moves is a plan run by the CLI's `engine.runner.Runner` (through
 `bench.Bench.run`): a move, a jog and an ad-hoc `BenchSession.record` as much as an
 experiment, so the limits are checked on the whole trajectory before the drive is enabled,
 every sample is recorded to HDF5 and catalogued, and a limit trip, a drive fault, a bus
@@ -38,10 +38,10 @@ from feedbench.bench import (
 from feedbench.config import ConfigError, Field, interval, read_toml, validate_table
 from feedbench.daq.catalog import Catalog, open_catalog
 from feedbench.daq.recording import Recording, open_recording
-from feedbench.experiments.family import Experiment, families
-from feedbench.experiments.limits import LimitError, Limits
-from feedbench.experiments.plan import Plan, Segment
-from feedbench.experiments.runner import StopRequest
+from feedbench.engine.family import Experiment, families
+from feedbench.engine.limits import LimitError, Limits
+from feedbench.engine.plan import Plan, Segment
+from feedbench.engine.runner import StopRequest
 from feedbench.experiments.signals import constant_feed_move, move_to
 from feedbench.protocols.cia402 import CSP
 from feedbench.report import write_report

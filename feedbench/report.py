@@ -7,7 +7,7 @@ matplotlib's Agg canvas (no pyplot state, no display) and embedded as base64, so
 needs no network and no other file to be viewed.
 
 Each run's results are its experiment family's: `Experiment.analyze` computes them and
-`Experiment.report` draws them into the run's section (`feedbench.experiments.family`); this
+`Experiment.report` draws them into the run's section (`feedbench.engine.family`); this
 module lays the sections out and knows no family by name. A closure result (`feedbench closure …
 --report FILE`) gets a section of its own (`closure_section`): held-out residual before and
 after, the effects found, the replay errors.
@@ -26,9 +26,9 @@ from matplotlib.figure import Figure as MplFigure
 from feedbench.daq.live import bucket_size, minmax_decimate
 from feedbench.daq.recording import Recording, open_recording
 from feedbench.daq.timing import MISSED_TARGET, CycleTiming, recorded_timing
-from feedbench.experiments.family import families, judged_analysis
-from feedbench.experiments.limits import Limits
-from feedbench.experiments.plan import recorded_windows
+from feedbench.engine.family import families, judged_analysis
+from feedbench.engine.limits import Limits
+from feedbench.engine.plan import recorded_windows
 from feedbench.units import MM_PER_MIN, RPM
 from feedbench.views.sections import Indicator, Plot, RunSection, Table, new_figure, png_of
 

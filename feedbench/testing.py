@@ -14,7 +14,7 @@ and device kind the same way (docs/ARCHITECTURE.md, "Extending feedbench: the te
 
 A lab's ``conftest.py`` gets the fixture with ``from feedbench.testing import
 simulated_bench``. The per-cycle device base (failure rule, every-n-cycles reading) is
-`experiments.devices.PerCycleDevice`.
+`devices.PerCycleDevice`.
 """
 
 from __future__ import annotations
@@ -35,11 +35,11 @@ import pytest
 from feedbench.bench import Bench, RunConfig, analyze_file, parse_run_config, run_config
 from feedbench.daq.recorder import Recorder, StreamSpec
 from feedbench.daq.recording import open_recording
-from feedbench.experiments.cycle_io import DaqDevice
-from feedbench.experiments.family import families
-from feedbench.experiments.incremental import LiveAnalysis
-from feedbench.experiments.replay import replay
-from feedbench.experiments.runner import CHANNELS, UNITS
+from feedbench.devices.cycle_io import DaqDevice
+from feedbench.engine.family import families
+from feedbench.engine.incremental import LiveAnalysis
+from feedbench.engine.replay import replay
+from feedbench.engine.runner import CHANNELS, UNITS
 from feedbench.protocols.serial_frames import CHANNEL_INDEX
 from feedbench.protocols.serial_frames import CHANNELS as DAQ_CHANNELS
 
@@ -93,7 +93,7 @@ GAP_CYCLES = 5
 
 class Step(NamedTuple):
     """One plan segment of a synthetic recording: its event's `label`, `kind` and `info`
-    (`experiments.plan.Segment`), its per-cycle `rows` (n × `runner.CHANNELS`, `cycle_rows`)
+    (`engine.plan.Segment`), its per-cycle `rows` (n × `runner.CHANNELS`, `cycle_rows`)
     and, with a DAQ stream, its samples (n·samples-per-cycle × DAQ channels)."""
 
     label: str

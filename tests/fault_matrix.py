@@ -35,8 +35,8 @@ from feedbench.bench import Bench, parse_run_config
 from feedbench.config import OWN_DISTRIBUTION
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import Recording, open_recording
-from feedbench.demo import campaign_config
-from feedbench.experiments.family import families
+from feedbench.commands.demo import campaign_config
+from feedbench.engine.family import families
 from feedbench.protocols.cia402 import CYCLE_COUNTER, OPERATION_ENABLED
 from feedbench.testing import virtual_channel
 

@@ -22,7 +22,7 @@ def start_sim(directory: Path, prefix: str = "sim", config: Path | None = None,
         config.write_text('[bench]\nsimulated = true\ninterface = "socketcand"\n'
                           'socketcand = "127.0.0.1:0"\n'
                           f'channel = "{prefix}-{uuid.uuid4().hex[:8]}"\n')
-    process = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "sim", str(config),
+    process = subprocess.Popen([sys.executable, "-m", "feedbench.commands.cli", "sim", str(config),
                                 *options], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                text=True)
     line = process.stdout.readline()

@@ -14,7 +14,7 @@ import pytest
 
 import feedbench
 from feedbench import api
-from feedbench.experiments.family import family
+from feedbench.engine.family import family
 from feedbench.units import MM_PER_MIN
 
 ROOT = Path(__file__).parents[1]

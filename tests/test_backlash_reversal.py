@@ -13,10 +13,10 @@ import pytest
 from feedbench.bench import analyze_file, parse_run_config, run_config
 from feedbench.config import ConfigError
 from feedbench.daq.recording import open_recording
-from feedbench.demo import example_config, example_truth
-from feedbench.experiments.family import families
-from feedbench.experiments.incremental import LiveAnalysis
-from feedbench.experiments.replay import replay
+from feedbench.commands.demo import example_config, example_truth
+from feedbench.engine.family import families
+from feedbench.engine.incremental import LiveAnalysis
+from feedbench.engine.replay import replay
 from feedbench.report import run_section
 from feedbench.testing import assert_live_equals_offline
 

@@ -3,7 +3,7 @@ channel and what is wrong, exit status 2, never a traceback — and nothing alre
 or catalogued is touched (issue 12, item 3). `--debug` shows the traceback instead.
 
 Each case builds its bad input in a copy of a small run directory (one good recording and
-its catalog row, made once per module) and runs `feedbench.cli.main` in-process.
+its catalog row, made once per module) and runs `feedbench.commands.cli.main` in-process.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import h5py
 import numpy as np
 import pytest
 
-from feedbench.cli import main
+from feedbench.commands.cli import main
 from feedbench.closure_io import write_csv_trace
 from feedbench.analysis.closure import Trace
 from feedbench.daq.catalog import Catalog
@@ -448,7 +448,7 @@ def test_bad_input_is_one_line_and_corrupts_nothing(case, runs, template, capsys
 def test_the_command_line_prints_one_line_too(runs):
     """As the user of issue 12 saw it: the console script's whole stderr is the one line."""
     make, expected = CASES["analyze friction with 3 feeds"]
-    proc = subprocess.run([sys.executable, "-m", "feedbench.cli", *make(runs)],
+    proc = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", *make(runs)],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and expected in proc.stderr, proc.stderr
@@ -476,12 +476,12 @@ def test_debug_shows_the_traceback(runs):
 
 def test_an_unexpected_error_is_one_line_naming_its_type(runs, capsys, monkeypatch):
     """The last resort: any other exception is one line with its type and the hint."""
-    import feedbench.cli
+    import feedbench.commands.cli
 
     def broken(args):
         raise ZeroDivisionError("float division by zero")
 
-    monkeypatch.setattr(feedbench.cli, "cmd_runs", broken)
+    monkeypatch.setattr(feedbench.commands.cli, "cmd_runs", broken)
     status, lines = run_main(["runs", "--dir", str(runs)], capsys)
     assert (status, lines) == (2, ["feedbench: error: ZeroDivisionError: float division by "
                                    "zero (run with --debug for the traceback)"])
@@ -490,7 +490,7 @@ def test_an_unexpected_error_is_one_line_naming_its_type(runs, capsys, monkeypat
 def test_ctrl_c_outside_a_run_is_one_line_and_status_130(capsys, monkeypatch):
     """Ctrl-C (a real SIGINT to this process) as the closure's first simulated case starts:
     deterministic, whatever numba's cache holds."""
-    import feedbench.closure_command as command
+    import feedbench.commands.closure as command
 
     first_case = command.run_case
 
@@ -504,13 +504,13 @@ def test_ctrl_c_outside_a_run_is_one_line_and_status_130(capsys, monkeypatch):
 
 CTRL_C_WHILE_IMPORTING = """
 import builtins, os, signal, sys
-from feedbench.console import run
+from feedbench.commands.console import run
 
 real_import = builtins.__import__
 
 
 def import_then_ctrl_c(name, *args, **kwargs):
-    if name == "feedbench.cli":
+    if name == "feedbench.commands.cli":
         os.kill(os.getpid(), signal.SIGINT)
     return real_import(name, *args, **kwargs)
 
@@ -525,7 +525,7 @@ sys.exit(status)
 
 @pytest.mark.parametrize("moment, status", [("importing", 130), ("exiting", 0)])
 def test_ctrl_c_before_and_after_the_command_is_one_line_or_none(tmp_path, moment, status):
-    """The console script (`feedbench.console.run`): a real SIGINT while Python imports the
+    """The console script (`feedbench.commands.console.run`): a real SIGINT while Python imports the
     command's modules ends with one line and status 130; one after the command, while the
     interpreter exits, changes nothing (no 'Exception ignored', no traceback)."""
     done = subprocess.run([sys.executable, "-c", CTRL_C_WHILE_IMPORTING, moment, str(tmp_path)],

@@ -21,8 +21,8 @@ import feedbench
 from feedbench.axes import axes
 from feedbench.bench import Bench, bench_table, parse_run_config
 from feedbench.config import OWN_DISTRIBUTION, ConfigError, read_toml, registered
-from feedbench.experiments.devices import device_tables, devices, hardware_gaps
-from feedbench.experiments.family import families
+from feedbench.devices import device_tables, devices, hardware_gaps
+from feedbench.engine.family import families
 from feedbench.sim_backends.process import SIM_PEER_GROUP, simulated_peers
 
 PACKAGE = Path(feedbench.__file__).parent
@@ -32,7 +32,7 @@ LAB_MODULE = '''
 """A lab's Modbus thermometer (one INT16 register, 0.1 °C) and its simulated peer."""
 from feedbench.config import Field
 from feedbench.drivers.modbus_devices import ModbusDevice
-from feedbench.experiments.devices import Device, PerCycleDevice
+from feedbench.devices import Device, PerCycleDevice
 from feedbench.protocols.modbus_registers import Register, RegisterMap
 from feedbench.sim_backends.modbus_devices import InvalidWrite, SimulatedModbusDevice
 from feedbench.sim_backends.process import SimulatedPeer

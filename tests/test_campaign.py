@@ -16,7 +16,7 @@ import tomllib
 import pytest
 from dask.distributed import Client
 
-from feedbench.campaign import (NOISE_SEED, dask_client, describe_campaign, parse_campaign,
+from feedbench.commands.campaign import (NOISE_SEED, dask_client, describe_campaign, parse_campaign,
                                 run_campaign, run_task, write_summary)
 from feedbench.config import ConfigError
 from feedbench.daq.catalog import Catalog
@@ -127,7 +127,7 @@ def test_cli_reports_a_failed_run_and_keeps_the_others(scheduler, tmp_path):
     reported in one progress line; the other run completes; status 1."""
     config = tmp_path / "campaign.toml"
     config.write_text(GRID_WITH_A_FAILING_RUN.format(out=tmp_path / "runs"))
-    done = subprocess.run([sys.executable, "-m", "feedbench.cli", "campaign", str(config),
+    done = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "campaign", str(config),
                            "--scheduler", scheduler],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 1, done.stderr
@@ -152,7 +152,7 @@ def test_cli_reports_a_failed_run_and_keeps_the_others(scheduler, tmp_path):
 def test_ctrl_c_cancels_the_futures_with_one_line(scheduler, tmp_path):
     config = tmp_path / "campaign.toml"
     config.write_text(MONTE_CARLO.replace("n = 4", "n = 3").format(out=tmp_path))
-    command = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "campaign", str(config),
+    command = subprocess.Popen([sys.executable, "-m", "feedbench.commands.cli", "campaign", str(config),
                                 "--scheduler", scheduler],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     first = command.stderr.readline()

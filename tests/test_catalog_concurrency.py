@@ -29,7 +29,7 @@ WRITER = textwrap.dedent("""
     import numpy as np
     from feedbench.daq.catalog import Catalog
     from feedbench.daq.recorder import Recorder
-    from feedbench.experiments.runner import CHANNELS, UNITS
+    from feedbench.engine.runner import CHANNELS, UNITS
 
     location, directory, bench = sys.argv[1:4]
     runs, cycles = int(sys.argv[4]), int(sys.argv[5])
@@ -55,7 +55,7 @@ directory argv 2, as bench argv 3 (empty: the host's name): argv 4 runs of argv 
 each; a line per run: id, file, status, reason."""
 LISTER = textwrap.dedent("""
     import contextlib, io, pathlib, sys
-    from feedbench.cli import main
+    from feedbench.commands.cli import main
 
     directory, stop = sys.argv[1], pathlib.Path(sys.argv[2])
     listed = 0

@@ -25,7 +25,7 @@ def stored_files(catalog: Path) -> dict[str, str]:
 
 
 def feedbench(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "feedbench.cli", *args], cwd=cwd,
+    return subprocess.run([sys.executable, "-m", "feedbench.commands.cli", *args], cwd=cwd,
                           capture_output=True, text=True, timeout=120)
 
 

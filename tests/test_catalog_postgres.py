@@ -18,7 +18,7 @@ import pytest
 from sqlalchemy import text
 
 from feedbench.bench import parse_run_config, run_config
-from feedbench.cli import main
+from feedbench.commands.cli import main
 from feedbench.config import ConfigError
 from feedbench.daq.catalog import Catalog, RunRow, open_catalog
 from feedbench.daq.recording import open_recording

@@ -17,7 +17,7 @@ import time
 from importlib import resources
 from pathlib import Path
 
-from feedbench.cli import main
+from feedbench.commands.cli import main
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording
 from feedbench.daq.run_filter import RunFilter
@@ -87,7 +87,7 @@ def test_a_catalog_that_goes_away_mid_run_never_stops_the_recording(
     monkeypatch.setenv("PGPASSWORD", own_server.password)
     directory = tmp_path / "runs"
     config = sweep_config(tmp_path / "sweep.toml", directory, can_channel, own_server.url)
-    run = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "run", str(config)],
+    run = subprocess.Popen([sys.executable, "-m", "feedbench.commands.cli", "run", str(config)],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while not _flushed(directory, at_least=2000) and time.monotonic() < deadline:

@@ -27,11 +27,11 @@ import pytest
 
 import feedbench
 from feedbench.bench import parse_run_config, run_config
-from feedbench.cli import main
+from feedbench.commands.cli import main
 from feedbench.config import ConfigError
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording, read_summary
-from feedbench.demo import example_config
+from feedbench.commands.demo import example_config
 from test_report import friction_steps, record
 
 CHUNK_ROWS = 100
@@ -41,7 +41,7 @@ WRITER = textwrap.dedent("""
     import numpy as np
     from feedbench.daq.catalog import Catalog
     from feedbench.daq.recorder import Recorder
-    from feedbench.experiments.runner import CHANNELS, UNITS
+    from feedbench.engine.runner import CHANNELS, UNITS
 
     directory, chunk, ready_after = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
     catalog = Catalog(f"{directory}/catalog.sqlite")
@@ -134,7 +134,7 @@ def test_a_simulated_run_killed_mid_run_is_listed_crashed(tmp_path, can_channel,
     config = tmp_path / "sweep.toml"
     config.write_text(text.replace('output_dir = "runs"', f'output_dir = "{tmp_path}"')
                       .replace('channel = "feedbench-demo"', f'channel = "{can_channel}"'))
-    run = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "run", str(config)],
+    run = subprocess.Popen([sys.executable, "-m", "feedbench.commands.cli", "run", str(config)],
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 120
     while not _flushed(tmp_path, at_least=2000) and time.monotonic() < deadline:
@@ -209,7 +209,7 @@ def test_runs_on_a_corrupt_catalog_says_so_in_one_line_and_lists_the_recordings(
     record(tmp_path / "20261125-101010-friction_sweep-1.h5", "friction_sweep", friction_steps())
     (tmp_path / "other.h5").write_bytes(b"not hdf5")
     (tmp_path / "catalog.sqlite").write_text("not a database\n" * 20)
-    proc = subprocess.run([sys.executable, "-m", "feedbench.cli", "runs", "--dir", str(tmp_path)],
+    proc = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "runs", "--dir", str(tmp_path)],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0
     [aside] = tmp_path.glob("catalog.sqlite.corrupt-*")
@@ -302,7 +302,7 @@ def test_runs_on_a_read_only_directory_is_one_line(capsys):
             path.unlink(missing_ok=True)
         directory.chmod(0o555)
         (directory / "catalog.sqlite").chmod(0o444)
-        proc = subprocess.run([sys.executable, "-m", "feedbench.cli", "runs", "--dir",
+        proc = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "runs", "--dir",
                                str(directory)], capture_output=True, text=True, timeout=60,
                               preexec_fn=_without_root_file_access)
     finally:
@@ -324,7 +324,7 @@ def test_runs_on_a_full_disk_is_one_line(tmp_path):
         catalog.add(catalog.new_run_id("chirp"), "chirp", tmp_path / "gone.h5", {})
     with sqlite3.connect(tmp_path / "catalog.sqlite") as connection:
         connection.execute("UPDATE runs SET pid = NULL, file = ?", (str(tmp_path / "gone.h5"),))
-    proc = subprocess.run([sys.executable, "-m", "feedbench.cli", "runs", "--dir",
+    proc = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "runs", "--dir",
                            str(tmp_path)], capture_output=True, text=True, timeout=60,
                           preexec_fn=_file_size_limit)
     assert proc.returncode == 2
@@ -357,7 +357,7 @@ def two_recordings(directory: Path) -> list[str]:
 
 def feedbench_runs(directory: Path, stdout: int = subprocess.PIPE) -> subprocess.CompletedProcess:
     """`feedbench runs --dir DIRECTORY` in a process of its own, its output into `stdout`."""
-    return subprocess.run([sys.executable, "-m", "feedbench.cli", "runs", "--dir",
+    return subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "runs", "--dir",
                            str(directory)], stdout=stdout, stderr=subprocess.PIPE, text=True,
                           timeout=60)
 

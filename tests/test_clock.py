@@ -17,7 +17,7 @@ from feedbench.daq import clock
 from feedbench.daq.clock import BusTimeout, LockstepClock, one_core
 from feedbench.protocols.canbus import frozen_heap
 from feedbench.daq.recording import open_recording
-from feedbench.demo import example_config
+from feedbench.commands.demo import example_config
 from feedbench.protocols.canbus import open_network
 from feedbench.drivers.cia402 import Cia402Drive
 from feedbench.models.axis import CSV

@@ -18,7 +18,7 @@ from feedbench.analysis.closure import (
 )
 from feedbench.analysis.closure.model import predict
 from feedbench.analysis.closure.trace import lowpass, standstill_speed
-from feedbench.closure_command import single_blas_thread
+from feedbench.commands.closure import single_blas_thread
 from feedbench.config import ConfigError
 
 FS = 1000.0

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from feedbench.closure_command import cases_table, read_cases, run_case
+from feedbench.commands.closure import cases_table, read_cases, run_case
 
 TRUTH = {  # case: (effect, parameter, value in config units, relative tolerance)
     "coulomb": ("coulomb", "F_c_N", 40.0, 0.05),

@@ -11,7 +11,7 @@ from __future__ import annotations
 import pytest
 
 from feedbench.analysis.closure import report_text
-from feedbench.closure_command import closure_report
+from feedbench.commands.closure import closure_report
 from prerequisites import SHARED_DATA, requires
 
 EMPS = SHARED_DATA / "emps"

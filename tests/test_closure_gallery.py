@@ -16,8 +16,8 @@ import pytest
 
 from feedbench.analysis.closure import report_dict
 from feedbench.analysis.closure.report import DAMPING, NON_NEGATIVE, POSITIVE, unphysical
-from feedbench.cli import main
-from feedbench.closure_command import closure_report
+from feedbench.commands.cli import main
+from feedbench.commands.closure import closure_report
 from feedbench.closure_io import read_csv_trace
 from gallery import Dataset, datasets
 

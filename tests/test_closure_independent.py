@@ -20,7 +20,7 @@ import scipy.optimize
 from feedbench.analysis.closure import report_dict
 from feedbench.analysis.closure.effects import follower_force
 from feedbench.analysis.closure.trace import kinematics, lowpass
-from feedbench.closure_command import closure_report
+from feedbench.commands.closure import closure_report
 from feedbench.closure_io import read_csv_trace
 from independent_sim import CASES, write_case
 from independent_sim.cases import FIT_PROGRAM, STRUCTURES, record, world

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from feedbench.analysis.closure import Trace
-from feedbench.cli import main
+from feedbench.commands.cli import main
 from feedbench.closure_io import read_csv_trace, read_emps, write_csv_trace
 from feedbench.config import ConfigError
 from feedbench.daq.recording import printable_json

@@ -15,8 +15,8 @@ from feedbench.analysis.closure import Trace, parse_model_config, run_closure
 from feedbench.analysis.closure.model import Model, new_term
 from feedbench.analysis.closure.replay import replay_axis, replay_effects
 from feedbench.analysis.closure.trace import kinematics, nrmse
-from feedbench.cli import main
-from feedbench.closure_command import closure_report
+from feedbench.commands.cli import main
+from feedbench.commands.closure import closure_report
 from feedbench.closure_io import kuka_parameters, read_csv_trace, read_kuka, write_csv_trace
 from feedbench.config import ConfigError
 from feedbench.models.axis import CSP, AxisSimulator, CascadeGains, ServoTiming

@@ -13,7 +13,7 @@ import pytest
 from feedbench.analysis.closure import parse_model_config, report_dict
 from feedbench.analysis.closure.run import run_closure
 from feedbench.analysis.closure.trace import Trace
-from feedbench.closure_command import closure_report
+from feedbench.commands.closure import closure_report
 from feedbench.closure_io import declared_force_lag
 from feedbench.config import ConfigError
 

@@ -19,7 +19,7 @@ from feedbench.analysis.closure.diagnosis import try_effect, _free_basis
 from feedbench.analysis.closure.effects import EFFECTS, Context, Offset, Ripple
 from feedbench.analysis.closure.model import predict
 from feedbench.analysis.closure.report import _step_dict
-from feedbench.closure_command import single_blas_thread
+from feedbench.commands.closure import single_blas_thread
 from feedbench.config import ConfigError
 from test_closure import BASE, K_TANH, base_model, kin_of, synthetic_trace
 

@@ -10,7 +10,7 @@ import pytest
 
 from feedbench.bench import parse_run_config
 from feedbench.config import ConfigError
-from feedbench.demo import example_config
+from feedbench.commands.demo import example_config
 
 BAD_CASES = {
     "unknown key": ("[experiment]\ntype = 'friction_sweep'\nfeeds = [100]\n",
@@ -35,7 +35,7 @@ def test_bad_config_prints_one_line_and_exits_2(tmp_path: Path, case: str) -> No
     config = tmp_path / "bad.toml"
     config.write_text(text + f"[bench]\noutput_dir = '{tmp_path}'\n" if "[bench]" not in text
                       else text)
-    proc = subprocess.run([sys.executable, "-m", "feedbench.cli", "run", str(config)],
+    proc = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "run", str(config)],
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()

@@ -13,8 +13,8 @@ import pytest
 
 from feedbench.config import OWN_DISTRIBUTION
 from feedbench.daq.recording import printable_json
-from feedbench.demo import campaign_config, describe_analysis, measure, numbers_of
-from feedbench.experiments.family import examples, families
+from feedbench.commands.demo import campaign_config, describe_analysis, measure, numbers_of
+from feedbench.engine.family import examples, families
 
 FRICTION_TOL = {"F_c": 0.02, "F_s": 0.02, "sigma": 0.02, "v_s": 0.05}
 F_T_HZ, F_R_HZ = 61.4, 74.9
@@ -33,7 +33,7 @@ pytestmark = pytest.mark.timeout(DEMO_TIMEOUT_S + 60)
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory) -> dict:
     out = tmp_path_factory.mktemp("demo")
-    proc = subprocess.run([sys.executable, "-m", "feedbench.cli", "demo", "--json", "--quick",
+    proc = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "demo", "--json", "--quick",
                            "--distribution", OWN_DISTRIBUTION, "--dir", str(out)],
                           capture_output=True, text=True, timeout=DEMO_TIMEOUT_S)
     assert proc.returncode == 0, proc.stderr

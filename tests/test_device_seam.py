@@ -1,4 +1,4 @@
-"""The device seam (issue 14): a device kind is one registered class (`experiments.devices`)
+"""The device seam (issue 14): a device kind is one registered class (`devices`)
 with its simulated peer registered under the same name (`sim_backends.process`);
 `open_cycle_devices` and `SimulatedBench` iterate over a run's needs and know no kind by
 name. The proof: the bumper's load-cell kind of the rack-and-pinion axis, asked for by a
@@ -19,10 +19,10 @@ from feedbench.bench import Bench, parse_run_config
 from feedbench.config import OWN_DISTRIBUTION, ConfigError, read_toml, registered
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording
-from feedbench.experiments.devices import (
+from feedbench.devices import (
     Device, DeviceLinks, device_tables, devices, open_cycle_devices,
 )
-from feedbench.experiments.plan import segment_event
+from feedbench.engine.plan import segment_event
 from feedbench.sim_backends.process import simulated_peers
 
 EXAMPLES = Path(feedbench.__file__).parent / "examples"

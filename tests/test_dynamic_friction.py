@@ -16,7 +16,7 @@ from scipy.integrate import solve_ivp
 from feedbench.analysis.closure import Model, Trace, close_the_loop, kinematics, new_term
 from feedbench.analysis.closure.effects import K_TANH_DEFAULT_MIN_MM
 from feedbench.analysis.closure.trace import standstill_speed
-from feedbench.closure_command import single_blas_thread
+from feedbench.commands.closure import single_blas_thread
 from feedbench.models.dynamic_friction import (
     ElastoPlastic, LuGre, dahl_force, dahl_normalised,
 )

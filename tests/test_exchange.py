@@ -11,9 +11,9 @@ import pytest
 import pyuff
 
 from feedbench.bench import analyze_file
-from feedbench.cli import main
+from feedbench.commands.cli import main
 from feedbench.closure_io import read_csv_trace, read_recording
-from feedbench.exchange import HEADER_BYTES_FIELD, read_uff58, write_uff58
+from feedbench.commands.exchange import HEADER_BYTES_FIELD, read_uff58, write_uff58
 from feedbench.views.frfs import Dof, ExchangeFrf
 from test_report import (
     K_P, SDOF, T_I, bode_steps, chirp_steps, friction_steps, hammer_steps, record,

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from feedbench.cli import main
+from feedbench.commands.cli import main
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording, read_summary
 from feedbench.drivers.cia402 import SAFE_STATES, Cia402Drive, decode_state
@@ -93,7 +93,7 @@ def kill_mid_run(family: str, info: dict, directory: Path) -> float:
     config.write_text(host_bench_table({**info, "directory": directory})
                       + f'\noutput_dir = "{directory}"\n'
                       + tables_after_bench(example_text(family)))
-    run = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "run", str(config)],
+    run = subprocess.Popen([sys.executable, "-m", "feedbench.commands.cli", "run", str(config)],
                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 90
     while flushed(directory) < 1000 and time.monotonic() < deadline:
@@ -139,7 +139,7 @@ def test_feedbench_sim_injects_the_faults_of_its_command_line(tmp_path):
         config = tmp_path / "run.toml"
         config.write_text(host_bench_table(info) + f'\noutput_dir = "{tmp_path}"\n'
                           + tables_after_bench(example_text("friction_sweep")))
-        run = subprocess.run([sys.executable, "-m", "feedbench.cli", "run", str(config)],
+        run = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "run", str(config)],
                              capture_output=True, text=True, timeout=120)
         assert run.returncode == 1, run.stderr
         [row] = Catalog(tmp_path / "catalog.sqlite").list()

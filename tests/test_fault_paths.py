@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from feedbench.bench import BENCH_SCHEMA, Bench
-from feedbench.cli import main
+from feedbench.commands.cli import main
 from feedbench.config import validate_table
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording
@@ -119,7 +119,7 @@ def test_disk_full_mid_run_stops_the_drive_and_keeps_the_samples(sim, tmp_path):
     failure is one line on stderr (no traceback, no HDF5 noise, no SIGBUS)."""
     process, info = sim
     host = subprocess.Popen(
-        [sys.executable, "-m", "feedbench.cli", "run", str(_host_config(info, tmp_path, CHIRP))],
+        [sys.executable, "-m", "feedbench.commands.cli", "run", str(_host_config(info, tmp_path, CHIRP))],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_file_limit)
     out, err = host.communicate(timeout=120)
     assert host.returncode == 1, err

@@ -44,7 +44,7 @@ from feedbench.daq.hdf5_check import DamagedHdf5, check_global_heaps
 from feedbench.daq.recorder import Recorder
 from feedbench.daq.recording import open_recording
 from feedbench.drivers.serial_daq import FrameParser
-from feedbench.exchange import analyze_uff58, describe_uff58, write_uff58
+from feedbench.commands.exchange import analyze_uff58, describe_uff58, write_uff58
 from feedbench.protocols import cia301
 from feedbench.protocols.serial_frames import TYPE_REPLY, data_frame_bytes
 from feedbench.sim_backends.modbus_devices import (

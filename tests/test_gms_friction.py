@@ -290,7 +290,7 @@ def gms_closure():
 
     from feedbench.analysis.closure import Model, Trace, close_the_loop, kinematics, new_term
     from feedbench.analysis.closure.trace import standstill_speed
-    from feedbench.closure_command import single_blas_thread
+    from feedbench.commands.closure import single_blas_thread
 
     traces = []
     for motion, seed, seconds in ((Motion(), 1, 12.0), (VALIDATION_MOTION, 2, 8.0)):

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 
 from feedbench.bench import analyze_file
-from feedbench.cli import main
+from feedbench.commands.cli import main
 from feedbench.closure_io import read_csv_trace, read_recording
 from feedbench.config import ConfigError
 from feedbench.daq.importers import formats, read_foreign
 from feedbench.daq.importers.mapping import load_run
 from feedbench.daq.recording import open_recording
-from feedbench.experiments.plan import segment_event
+from feedbench.engine.plan import segment_event
 from test_report import DAQ_RATE, chirp_steps, hammer_steps, record, record_with_daq
 
 DATA = Path(__file__).parent / "data"

@@ -24,7 +24,7 @@ import pytest
 from feedbench.bench import Bench, parse_run_config
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording
-from feedbench.demo import example_config
+from feedbench.commands.demo import example_config
 from feedbench.protocols.cia402 import EXTRAPOLATED_CYCLES
 
 pytestmark = pytest.mark.realtime

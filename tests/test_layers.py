@@ -30,22 +30,28 @@ LAYERS = (
     ("analysis", "views"),
     ("drivers", "sim_backends"),
     ("daq",),
-    ("experiments",),
-    ("axes",),  # the axis kinds' seam (`feedbench.axes`), over the plans it runs
-    ("closure_io", "rack_pinion_bench"),  # readers of recordings; the rack-and-pinion wiring
-    ("bench", "exchange"),  # the composition root; UFF58 / CSV export of a run
+    ("engine",),  # the run engine: the family seam, plans, limits, runner, replay
+    ("devices",),  # the host device kinds' seam and the built-in per-cycle devices
+    ("experiments",),  # the families, over the engine
+    ("axes",),  # the axis kinds' seam (`feedbench.axes`) and the lab and rack-and-pinion axes
+    ("closure_io",),  # readers of recordings (CSV + sidecar, .mat, HDF5) for the closure
+    ("bench",),  # the composition root
     ("report", "gui", "testing"),  # testing: the kit over the bench (`feedbench.testing`)
-    ("closure_command", "demo", "api"),  # api: the scripting face (issue 17), reports too
-    ("campaign", "tune"),  # Dask runs against the demo's truth; the tuning workflow (issue 15)
-    ("cli",),
-    ("console",),  # the console script: cli.main with Ctrl-C one line around it
+    ("api",),  # the scripting face (issue 17)
+    # the commands (`feedbench.commands`), one room each, over the library
+    ("commands.exchange", "commands.closure", "commands.demo"),
+    ("commands.campaign", "commands.tune"),  # Dask runs against the demo's truth; tuning
+    ("commands.cli",),
+    ("commands.console", "commands"),  # the console script: cli.main, Ctrl-C one line
 )
 LAYER = {room: level for level, rooms in enumerate(LAYERS) for room in rooms}
 
 NEVER = {
     "drivers": {"models", "sim_backends"},  # the host side does not know the peer is simulated
     "daq": {"sim_backends"},
-    "experiments": {"sim_backends"},
+    "engine": {"sim_backends"},
+    "devices": {"sim_backends"},
+    "experiments": {"sim_backends", "devices"},  # a family asks for devices by name
 }
 """Rooms a room may not import although they lie below it (docs/ARCHITECTURE.md)."""
 
@@ -90,15 +96,17 @@ GRAPH = {name: imports(name) for name in MODULES}
 
 
 def room(name: str) -> str:
-    """``feedbench.models.axis`` → ``models``; ``feedbench.cli`` → ``cli``."""
-    return name.split(".")[1]
+    """``feedbench.models.axis`` → ``models``; a command is a room of its own:
+    ``feedbench.commands.cli`` → ``commands.cli``."""
+    parts = name.split(".")
+    return ".".join(parts[1:3]) if parts[1] == "commands" else parts[1]
 
 
 def test_the_graph_is_read():
     assert len(GRAPH) > 80
     assert "feedbench.drivers.cia402" in GRAPH["feedbench.bench"]
     assert "feedbench.models.axis" in GRAPH["feedbench.analysis.tuning"]
-    assert "feedbench.bench" in GRAPH["feedbench.cli"]  # a function-level import counts
+    assert "feedbench.bench" in GRAPH["feedbench.commands.cli"]  # a function-level import counts
     rooms = {room(name) for name in GRAPH if name != "feedbench"}
     assert rooms == set(LAYER), "every room has its place in LAYERS"
 

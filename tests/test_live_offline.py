@@ -16,9 +16,9 @@ import pytest
 from feedbench.bench import analyze_file
 from feedbench.config import OWN_DISTRIBUTION
 from feedbench.daq.recording import open_recording
-from feedbench.demo import example_config
-from feedbench.experiments.family import families
-from feedbench.experiments.incremental import LiveAnalysis
+from feedbench.commands.demo import example_config
+from feedbench.engine.family import families
+from feedbench.engine.incremental import LiveAnalysis
 from feedbench.testing import assert_live_equals_offline, same
 from test_report import (
     K_P, T_I, bode_steps, chirp_steps, friction_steps, hammer_steps, record,

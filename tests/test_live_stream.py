@@ -14,11 +14,11 @@ import scipy.signal
 from feedbench.daq.live import Decimator, LiveStream, RingBuffer, bucket_size, minmax_decimate
 from feedbench.daq.recorder import Recorder
 from feedbench.daq.recording import open_recording
-from feedbench.experiments.family import families
-from feedbench.experiments.incremental import LiveAnalysis
-from feedbench.experiments.plan import Plan, Segment
-from feedbench.experiments.replay import recorded_plan, replay
-from feedbench.experiments.runner import BLOCK_CYCLES, StopRequest
+from feedbench.engine.family import families
+from feedbench.engine.incremental import LiveAnalysis
+from feedbench.engine.plan import Plan, Segment
+from feedbench.engine.replay import recorded_plan, replay
+from feedbench.engine.runner import BLOCK_CYCLES, StopRequest
 from feedbench.daq.recorder import StreamSpec
 from feedbench.gui.live_window import live_result_for
 from feedbench.models.friction import AnderssonFriction
@@ -295,7 +295,7 @@ def test_replay_hands_over_each_stream_sample_before_the_rows_of_its_cycle(tmp_p
 def test_stream_tap_records_first_and_drops_a_watcher_that_fails(tmp_path):
     """What the cycle devices write through (`runner.StreamTap`): every block reaches the
     file whatever the watchers do; a watcher that raises is dropped with a fault event."""
-    from feedbench.experiments.runner import devices_recorder
+    from feedbench.engine.runner import devices_recorder
 
     class Broken(CollectStreams):
         def on_stream(self, name, cycles, sequence, samples):

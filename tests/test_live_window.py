@@ -26,16 +26,16 @@ import pytest
 from feedbench.bench import analyze_file, parse_run_config, run_config
 from feedbench.config import OWN_DISTRIBUTION
 from feedbench.daq.recording import open_recording
-from feedbench.demo import example_config
+from feedbench.commands.demo import example_config
 from feedbench.drivers.cia402 import decode_state
 from feedbench.daq.live import ROWS, LiveStream
 from feedbench.experiments.sine_stream import SineStream
-from feedbench.experiments.runner import StopRequest
+from feedbench.engine.runner import StopRequest
 from feedbench.gui.live_window import (
     CLOSED_REASON, SIGINT_REASON, STOP_REASON, LiveWindow, Worker, bench_session, qt_app,
     replay_session, sticky_range,
 )
-from feedbench.experiments.family import families
+from feedbench.engine.family import families
 from feedbench.report import run_section
 from feedbench.units import MM_PER_MIN
 from feedbench.views.panels import FLAGGED
@@ -265,7 +265,7 @@ def test_ctrl_c_during_run_live_ends_the_process_after_the_safe_stop(tmp_path):
     status 1 and prints the record line `feedbench run` prints (issue 25: it stayed alive
     with the window open and a second Ctrl-C was ignored)."""
     path = chirp_toml(tmp_path)
-    command = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "run", path, "--live"],
+    command = subprocess.Popen([sys.executable, "-m", "feedbench.commands.cli", "run", path, "--live"],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                env={**os.environ, "QT_QPA_PLATFORM": "offscreen"})
     for line in command.stderr:  # the progress lines: the run is going
@@ -318,7 +318,7 @@ def test_run_live_from_the_command_line(app, tmp_path, capsys):
     window returns the run's record (a timer closes it once the run is over)."""
     from PySide6.QtCore import QTimer
 
-    from feedbench.cli import main
+    from feedbench.commands.cli import main
 
     path = chirp_toml(tmp_path, **{"repetitions = 4": "repetitions = 1",
                                    "duration_s = 4.0": "duration_s = 1.0"})
@@ -693,7 +693,7 @@ def test_live_without_a_display_says_so_in_one_line(replays):
                                                            "WAYLAND_DISPLAY")}
     for extra, message in (({}, "no display for the live window (DISPLAY is not set)"),
                            ({"DISPLAY": ":97"}, display_problem({"DISPLAY": ":97"}))):
-        done = subprocess.run([sys.executable, "-m", "feedbench.cli", "live", path],
+        done = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "live", path],
                               env={**env, **extra}, capture_output=True, text=True, timeout=60)
         assert done.returncode == 2 and done.stdout == ""
         assert done.stderr.count("\n") == 1 and done.stderr.startswith(

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from feedbench.bench import analyze_file, parse_run_config, run_config
-from feedbench.cli import main
+from feedbench.commands.cli import main
 from feedbench.config import ConfigError
 from feedbench.daq.recording import open_recording, printable_json
-from feedbench.demo import describe_analysis, example_config
+from feedbench.commands.demo import describe_analysis, example_config
 from feedbench.experiments.smfe import DAQ_CHANNELS as SMFE_CHANNELS
 from feedbench.report import run_section, verdict
 from feedbench.units import MM_PER_MIN

@@ -11,9 +11,9 @@ import pytest
 from feedbench.bench import analyze_file, parse_run_config, run_config
 from feedbench.daq.clock import LockstepClock
 from feedbench.daq.recording import open_recording
-from feedbench.demo import example_config
+from feedbench.commands.demo import example_config
 from feedbench.drivers.cia402 import Cia402Drive
-from feedbench.rack_pinion_bench import AXIS_PDOS, AxisController, load_position, motor_position
+from feedbench.axes.rack_pinion import AXIS_PDOS, AxisController, load_position, motor_position
 from feedbench.models.axis import CSP
 from feedbench.protocols.canbus import open_network
 from feedbench.sim_backends.rack_pinion import (

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from feedbench.cli import build_parser, main
+from feedbench.commands.cli import build_parser, main
 from feedbench.config import OWN_DISTRIBUTION
-from feedbench.experiments.family import examples
+from feedbench.engine.family import examples
 
 README = (Path(__file__).parents[1] / "README.md").read_text(encoding="utf-8")
 

@@ -16,7 +16,7 @@ import pytest
 import feedbench
 from feedbench.api import RunError
 from feedbench.bench import BENCH_SCHEMA, Bench
-from feedbench.cli import main
+from feedbench.commands.cli import main
 from feedbench.config import validate_table
 from feedbench.daq.clock import BusTimeout, RealtimeClock
 from feedbench.daq.recording import open_recording

@@ -25,7 +25,7 @@ from feedbench.daq.recording import open_recording
 from feedbench.experiments import chirp, smfe
 from feedbench.experiments.impact_hammer import ImpactHammer
 from feedbench.experiments.friction_sweep import FrictionSweep
-from feedbench.experiments.runner import CHANNELS
+from feedbench.engine.runner import CHANNELS
 from feedbench.models.friction import AnderssonFriction
 from feedbench.models.milling import engagement_angles
 from feedbench.models.structure import SMFE_TOOL_STRUCTURE, ModalStructure
@@ -573,7 +573,7 @@ def stepped_loading_run(tmp_path_factory):
     """A short stepped loading on the simulated rack-and-pinion axis (≈ 8 s): master only,
     one backlash stroke, single-motor loading, coupled loading at 20 % preload."""
     from feedbench.bench import parse_run_config, run_config
-    from feedbench.demo import example_config
+    from feedbench.commands.demo import example_config
 
     raw = example_config("stepped_loading")
     raw["bench"].update(output_dir=str(tmp_path_factory.mktemp("stepped")),
@@ -608,7 +608,7 @@ def test_stepped_loading_section_shows_stiffness_backlash_and_preload_loss(stepp
 
 @pytest.fixture(scope="module")
 def closure_result():
-    from feedbench.closure_command import EXAMPLES, closure_report
+    from feedbench.commands.closure import EXAMPLES, closure_report
 
     return closure_report(EXAMPLES / "sample_axis.csv", EXAMPLES / "bench_coulomb_viscous.toml")
 
@@ -634,7 +634,7 @@ def test_closure_section_shows_the_residual_before_and_after(closure_result):
 def test_closure_section_shows_a_recalibration(tmp_path):
     """The independent simulator's axis declared 10 % heavy (44 kg, true 40 kg): the one
     finding is the declared mass recalibrated, declared → fitted ± σ in the table."""
-    from feedbench.closure_command import closure_report
+    from feedbench.commands.closure import closure_report
     from independent_sim import write_case
 
     files = write_case("recal_mass", tmp_path)
@@ -836,8 +836,8 @@ def test_report_as_read_in_chromium_has_no_nan_warnings_in_band_and_bode_phases(
 def test_closure_command_writes_its_report(tmp_path, capsys):
     """``feedbench closure DATA --model M --report FILE --json``: the JSON names the report,
     which holds the closure's section and its residual plot."""
-    from feedbench.cli import main
-    from feedbench.closure_command import EXAMPLES
+    from feedbench.commands.cli import main
+    from feedbench.commands.closure import EXAMPLES
 
     path = tmp_path / "closure.html"
     assert main(["closure", str(EXAMPLES / "sample_axis.csv"), "--model",

@@ -13,9 +13,9 @@ import pytest
 from feedbench.bench import parse_run_config, run_config
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording
-from feedbench.demo import example_config
+from feedbench.commands.demo import example_config
 from feedbench.drivers.cia402 import decode_state
-from feedbench.experiments.limits import LimitError
+from feedbench.engine.limits import LimitError
 
 OPERATION_ENABLED_MASK, OPERATION_ENABLED = 0x6F, 0x27
 
@@ -48,7 +48,7 @@ def _assert_stopped_safely(recording) -> None:
 def test_sigint_mid_run_ramps_down_disables_and_keeps_every_sample(tmp_path, can_channel):
     config = tmp_path / "sweep.toml"
     _write_toml(_config(tmp_path, can_channel), config)
-    proc = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "run", str(config)],
+    proc = subprocess.Popen([sys.executable, "-m", "feedbench.commands.cli", "run", str(config)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     for line in proc.stderr:
         if "%" in line:  # the first progress line: about a wall second into the run

@@ -18,9 +18,9 @@ from feedbench.bench import Bench, parse_run_config
 from feedbench.config import ConfigError
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording
-from feedbench.demo import example_config
+from feedbench.commands.demo import example_config
 from feedbench.drivers.cia402 import StopSettings, decode_state
-from feedbench.experiments.runner import StopRequest
+from feedbench.engine.runner import StopRequest
 from feedbench.units import MM_PER_MIN
 from test_cia402_sim import loopback
 

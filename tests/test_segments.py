@@ -8,10 +8,10 @@ import json
 
 import numpy as np
 
-from feedbench.experiments.cycle_io import spindle_commands
-from feedbench.experiments.plan import Plan, Segment, segment_event
-from feedbench.rack_pinion_bench import SETTING_KEYS
-from feedbench.experiments.runner import segment_text
+from feedbench.devices.cycle_io import spindle_commands
+from feedbench.engine.plan import Plan, Segment, segment_event
+from feedbench.axes.rack_pinion import SETTING_KEYS
+from feedbench.engine.runner import segment_text
 from feedbench.protocols.cia402 import CSP
 
 

@@ -18,13 +18,13 @@ import numpy as np
 import pytest
 
 from feedbench.bench import BENCH_SCHEMA, Bench
-from feedbench.cli import main
+from feedbench.commands.cli import main
 from feedbench.config import validate_table
 from feedbench.daq.recording import open_recording
 from feedbench.drivers.modbus_devices import SpindleInverter, connect_tcp
 from feedbench.drivers.serial_daq import SerialDaq
 from feedbench.experiments.friction_sweep import friction_points
-from feedbench.experiments.plan import recorded_windows
+from feedbench.engine.plan import recorded_windows
 from feedbench.models.milling import SMFE_SENSOR_NOISE
 from feedbench.models.friction import LAB_BENCH_FRICTION
 from feedbench.protocols.canbus import open_bus
@@ -60,7 +60,7 @@ def test_friction_sweep_runs_across_processes_with_true_values(bench_process):
     host = bench_process["directory"] / "host.toml"
     host.write_text(_host_bench(bench_process) + '\n[experiment]\ntype = "friction_sweep"\n'
                     "feeds_mm_min = [100, 250, 500, 750, 1000]\nsettle_s = 0.4\nmeasure_s = 0.2\n")
-    proc = subprocess.run([sys.executable, "-m", "feedbench.cli", "run", str(host), "--json"],
+    proc = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "run", str(host), "--json"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     recording = open_recording(json.loads(proc.stdout)["file"])

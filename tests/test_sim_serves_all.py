@@ -59,7 +59,7 @@ class SimProcess:
 
     def __init__(self, config: Path) -> None:
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "feedbench.cli", "sim", str(config)],
+            [sys.executable, "-m", "feedbench.commands.cli", "sim", str(config)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.stderr: list[str] = []
         self._reader = threading.Thread(target=self._read_stderr, daemon=True)

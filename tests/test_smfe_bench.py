@@ -19,8 +19,8 @@ from scipy.integrate import cumulative_trapezoid
 from feedbench.bench import analyze_file, parse_run_config, run_config
 from feedbench.config import ConfigError
 from feedbench.daq.recording import open_recording
-from feedbench.demo import example_config
-from feedbench.experiments.plan import recorded_windows
+from feedbench.commands.demo import example_config
+from feedbench.engine.plan import recorded_windows
 from feedbench.experiments.smfe import Smfe, SmfePlanningWarning
 from feedbench.models.milling import (
     SMFE_FEED_PER_TOOTH,

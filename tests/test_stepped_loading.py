@@ -19,9 +19,9 @@ import pytest
 from feedbench.bench import analyze_file, parse_run_config, run_config
 from feedbench.config import ConfigError
 from feedbench.daq.recording import open_recording
-from feedbench.demo import example_config
+from feedbench.commands.demo import example_config
 from feedbench.experiments import stepped_loading
-from feedbench.experiments.plan import segment_event
+from feedbench.engine.plan import segment_event
 from feedbench.testing import assert_live_equals_offline
 
 K_MASTER, K_SLAVE = 81e6, 100e6

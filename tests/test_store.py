@@ -19,8 +19,8 @@ from fsspec.implementations.local import LocalFileSystem
 from fsspec.implementations.memory import MemoryFileSystem
 
 from feedbench.bench import analyze_file, parse_run_config, run_config
-from feedbench.cli import main, resolve_run
-from feedbench.closure_command import run_file
+from feedbench.commands.cli import main, resolve_run
+from feedbench.commands.closure import run_file
 from feedbench.config import ConfigError
 from feedbench.daq.catalog import SCHEMA_VERSION, Catalog
 from feedbench.daq.store import (COPIED, PENDING, copy_recording, copy_url, fetched,

@@ -17,9 +17,9 @@ from feedbench.config import ConfigError
 from feedbench.daq.recording import open_recording
 from feedbench.experiments import sine_stream
 from feedbench.experiments.closed_loop_bode import bandwidth
-from feedbench.experiments.family import families
+from feedbench.engine.family import families
 from feedbench.experiments.impact_hammer import frf_distance, invariant_from
-from feedbench.experiments.limits import LimitError
+from feedbench.engine.limits import LimitError
 from feedbench.experiments.tool_tip import ExcitationWindow, overloaded, windows_at_feed
 from feedbench.analysis.sinefit import stepped_sine_frf
 from feedbench.models.axis import CSP, TwoMassAxis

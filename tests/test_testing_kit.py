@@ -1,5 +1,5 @@
 """The testing kit (`feedbench.testing`), the per-cycle device base
-(`experiments.devices.PerCycleDevice`) and the registry by distribution (issue 27 items 3, 4):
+(`devices.PerCycleDevice`) and the registry by distribution (issue 27 items 3, 4):
 a lab's package installed beside feedbench joins the demo and stays out of feedbench's own
 lists."""
 
@@ -13,11 +13,11 @@ import pytest
 
 from feedbench.config import OWN_DISTRIBUTION, distribution_name, registered
 from feedbench.daq.recording import open_recording
-from feedbench.demo import campaign_config, example_config
-from feedbench.experiments.cycle_io import DaqStream, SpindleCommands
-from feedbench.experiments.devices import PerCycleDevice
-from feedbench.experiments.family import LAB_RANK, examples, families
-from feedbench.rack_pinion_bench import AxisEncoders, AxisSettings, LoadCellForce
+from feedbench.commands.demo import campaign_config, example_config
+from feedbench.devices.cycle_io import DaqStream, SpindleCommands
+from feedbench.devices import PerCycleDevice
+from feedbench.engine.family import LAB_RANK, examples, families
+from feedbench.axes.rack_pinion import AxisEncoders, AxisSettings, LoadCellForce
 from feedbench.testing import GAP_CYCLES, LIMITS, Step, cycle_rows, same, synthetic_recording
 
 FEEDBENCH_FAMILIES = {"friction_sweep", "chirp", "closed_loop_bode", "impact_hammer",
@@ -28,7 +28,7 @@ FEEDBENCH_FAMILIES = {"friction_sweep", "chirp", "closed_loop_bode", "impact_ham
 # -- a lab's distribution, installed at runtime -----------------------------------------------
 
 LAB_MODULE = '''
-from feedbench.experiments.family import Example, Experiment
+from feedbench.engine.family import Example, Experiment
 
 
 class Reversals(Experiment):

@@ -19,11 +19,11 @@ from typing import Iterator
 
 import pytest
 
-from feedbench.cli import main
+from feedbench.commands.cli import main
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.recording import open_recording
 from feedbench.drivers.modbus_devices import DeviceError, SpindleInverter, connect_tcp
-from feedbench.experiments.family import families
+from feedbench.engine.family import families
 from sim_peer import start_sim
 from test_fault_paths import SWEEP, _end, _host_config, _run_with_fault
 
@@ -98,7 +98,7 @@ def test_a_hung_peers_stack_log_lines_go_to_the_runs_file(tmp_path, capsys):
 def test_the_host_exits_within_2_s_of_its_final_line_after_a_killed_sim(tmp_path):
     process, info = _start_sim(tmp_path)
     config = _host_config(info, tmp_path, SWEEP)
-    host = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "run", str(config)],
+    host = subprocess.Popen([sys.executable, "-m", "feedbench.commands.cli", "run", str(config)],
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     try:
         deadline = time.monotonic() + 60.0

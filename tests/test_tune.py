@@ -23,11 +23,11 @@ import numpy as np
 import pytest
 
 from feedbench.api import open_bench
-from feedbench import cli
-from feedbench.cli import main
+from feedbench.commands import cli
+from feedbench.commands.cli import main
 from feedbench.sim_backends.process import host_bench_table
 from feedbench.config import ConfigError, read_toml
-from feedbench.tune import (
+from feedbench.commands.tune import (
     COMPARED, apply_candidate, comparison_text, fit_tool_tip_mode, interrupts_deferred,
     parse_tune_config, read_result, recommendation_text, rollback, run_tune,
 )
@@ -354,7 +354,7 @@ def _interrupted(tmp_path: Path, info: dict, options: list[str], line: str, **tu
                                "io_node_id": info["devices"]["exciter"]["node_id"]}
     path = tmp_path / "tune.toml"
     path.write_text(_toml(raw), encoding="utf-8")
-    command = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "tune", str(path),
+    command = subprocess.Popen([sys.executable, "-m", "feedbench.commands.cli", "tune", str(path),
                                 *options], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                text=True)
     for text in command.stdout:

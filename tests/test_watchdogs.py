@@ -193,7 +193,7 @@ def test_both_rack_and_pinion_drives_stop_one_world_when_the_host_dies(can_chann
     """Master and slave on one bus (`drive_bus`), host gone mid-move: both fault with EMCY
     0x8130, and the shared world runs one cycle per 1 ms period while they ramp down (not one
     per drive), both power stages off and the world still afterwards."""
-    from feedbench.rack_pinion_bench import AXIS_PDOS
+    from feedbench.axes.rack_pinion import AXIS_PDOS
     from feedbench.sim_backends.rack_pinion import (
         SimulatedRackPinionAxis, build_simulator, packaged_eds_path,
     )
@@ -319,7 +319,7 @@ def test_a_host_killed_mid_chirp_leaves_the_drive_stopped_and_the_run_readable(
     0x8130 within the consumer time (3 s, + `LATE_S`) of the kill and ends in FAULT with its
     power stage off; the recording reads back to its last flushed cycle and `feedbench runs`
     lists it crashed with that many samples, and marks the file crashed too."""
-    from feedbench.cli import main
+    from feedbench.commands.cli import main
 
     host, port = sim_process["socketcand"].split(":")
     config = tmp_path / "chirp.toml"
@@ -328,7 +328,7 @@ def test_a_host_killed_mid_chirp_leaves_the_drive_stopped_and_the_run_readable(
         f'socketcand = "{sim_process["socketcand"]}"\nchannel = "{sim_process["channel"]}"\n'
         f'output_dir = "{tmp_path}"\n[experiment]\ntype = "chirp"\nrepetitions = 20\n')
     listener = open_bus("socketcand", sim_process["channel"], host=host, port=int(port))
-    run = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "run", str(config)],
+    run = subprocess.Popen([sys.executable, "-m", "feedbench.commands.cli", "run", str(config)],
                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         deadline = time.monotonic() + 120

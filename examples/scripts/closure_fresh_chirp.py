@@ -15,7 +15,7 @@ from pathlib import Path
 
 import feedbench
 from feedbench.analysis.closure import report_dict
-from feedbench.closure_command import closure_report
+from feedbench.commands.closure import closure_report
 
 HERE = Path(__file__).parent
 MODEL = HERE.parents[1] / "feedbench" / "examples" / "closure" / "bench_coulomb_viscous.toml"

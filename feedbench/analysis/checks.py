@@ -4,7 +4,7 @@ Each check is a JSON-able dict ``{"name", "value", "ok", "reason"}``: what was c
 the measured value as text, the verdict (True passed, False failed) and, for a failed
 check, why in one line a person can act on ("hit 2 at 0.050 s: double hit"). A result
 holding a failed check is not valid (`verdict`). These are pure functions of arrays and
-numbers; `experiments.family.judged_analysis` puts them into every family's result, and
+numbers; `engine.family.judged_analysis` puts them into every family's result, and
 the terminal, ``--json``, the report and the live view read them from there.
 
 Display convention (docs/results.md): SI with engineering prefixes (Hz, N, µm/N, kg),

@@ -10,7 +10,7 @@ decimation to a few thousand points per channel so a one-sample spike stays visi
 reader copies before it reduces and drops any bucket the producer overwrote meanwhile, so a
 slow reader skips frames, never corrupts them, and the recorder keeps every sample.
 
-`experiments.replay` feeds a recording, streams included, through the same observer calls
+`engine.replay` feeds a recording, streams included, through the same observer calls
 (``feedbench live RUN``).
 """
 
@@ -37,7 +37,7 @@ UNIT_SUFFIXES = {"_rpm_s": "rpm/s", "_rpm": "rpm", "_mm_min": "mm/min", "_Hz": "
 
 
 class PlanView(Protocol):
-    """What the live stream reads of the plan a run executes (`experiments.plan.Plan`)."""
+    """What the live stream reads of the plan a run executes (`engine.plan.Plan`)."""
 
     experiment: str
     segments: Sequence[Any]
@@ -46,7 +46,7 @@ class PlanView(Protocol):
 
 
 class SegmentView(Protocol):
-    """What it reads of a step of the plan (`experiments.plan.Segment`)."""
+    """What it reads of a step of the plan (`engine.plan.Segment`)."""
 
     label: str
     kind: str

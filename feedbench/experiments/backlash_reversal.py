@@ -22,8 +22,8 @@ import numpy as np
 from feedbench.analysis.checks import check, positive_parameters
 from feedbench.analysis.stiffness import backlash_from_reversals
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
-from feedbench.experiments.family import Example, Experiment, headline, percent_error
-from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
+from feedbench.engine.family import Example, Experiment, headline, percent_error
+from feedbench.engine.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import constant_feed_move
 from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN, N_PER_UM
@@ -138,7 +138,7 @@ class BacklashReversal(Experiment):
 
     def plan(self) -> Plan:
         """Per motor: uncouple (the segment's ``coupling`` command sets the axis controller,
-        `rack_pinion_bench.AxisSettings`), then strokes (measured) and dwells, alternating."""
+        `axes.rack_pinion.AxisSettings`), then strokes (measured) and dwells, alternating."""
         p, dt = self.settings, self.cycle_s
         segments: list[Segment] = []
         for motor in p["motors"]:

@@ -17,9 +17,9 @@ from feedbench.analysis.checks import (
 )
 from feedbench.analysis.frf import estimate_frf, findings_in_band
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
-from feedbench.experiments.family import TRUTH_TITLE, Example, Experiment, percent_error
-from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
-from feedbench.experiments.preflight import check_amplitude_below_feed, check_feed
+from feedbench.engine.family import TRUTH_TITLE, Example, Experiment, percent_error
+from feedbench.engine.plan import Plan, Segment, Window, recorded_windows
+from feedbench.engine.preflight import check_amplitude_below_feed, check_feed
 from feedbench.experiments.signals import chirp, integrate_velocity, move_to, ramp_to_feed
 from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN

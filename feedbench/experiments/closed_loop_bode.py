@@ -29,9 +29,9 @@ from feedbench.analysis.sinefit import stepped_sine_frf
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
 from feedbench.experiments.chirp import SCHEMA as CHIRP_SCHEMA
 from feedbench.experiments.chirp import extrema_text, mobility_band, mobility_extrema
-from feedbench.experiments.family import Example, Experiment, headline
-from feedbench.experiments.preflight import check_amplitude_below_feed, check_feed
-from feedbench.experiments.plan import Plan, Segment, recorded_windows
+from feedbench.engine.family import Example, Experiment, headline
+from feedbench.engine.preflight import check_amplitude_below_feed, check_feed
+from feedbench.engine.plan import Plan, Segment, recorded_windows
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
 from feedbench.protocols.cia402 import CSP, CSV
 from feedbench.units import MM_PER_MIN

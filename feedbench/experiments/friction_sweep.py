@@ -17,9 +17,9 @@ import numpy as np
 from feedbench.analysis.checks import check, positive_parameters
 from feedbench.analysis.friction import FrictionFit, fit_andersson
 from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
-from feedbench.experiments.family import TRUTH_TITLE, Example, Experiment, headline, percent_error
-from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
-from feedbench.experiments.preflight import check_feeds
+from feedbench.engine.family import TRUTH_TITLE, Example, Experiment, headline, percent_error
+from feedbench.engine.plan import Plan, Segment, Window, recorded_windows
+from feedbench.engine.preflight import check_feeds
 from feedbench.experiments.signals import constant_feed_move
 from feedbench.models.friction import AnderssonFriction
 from feedbench.protocols.cia402 import CSP

@@ -21,9 +21,9 @@ import numpy as np
 from feedbench.analysis.checks import averaged, check
 from feedbench.analysis.frf import HammerFrf, accelerance_to_receptance, quasi_frf
 from feedbench.config import ConfigError, Field, positive, validate_table
-from feedbench.experiments.family import Example, Experiment, headline
-from feedbench.experiments.preflight import check_feeds
-from feedbench.experiments.plan import Plan
+from feedbench.engine.family import Example, Experiment, headline
+from feedbench.engine.preflight import check_feeds
+from feedbench.engine.plan import Plan
 from feedbench.experiments.tool_tip import (
     FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, TIP_ACCELERATION,
     ExcitationWindow, compliance_plot, daq_needs, feed_frf_panels, feed_frf_summary,

@@ -18,9 +18,9 @@ import numpy as np
 from feedbench.analysis.checks import averaged
 from feedbench.analysis.frf import accelerance_to_receptance, estimate_frf, findings_in_band
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
-from feedbench.experiments.family import Example, Experiment, headline
-from feedbench.experiments.preflight import check_feeds
-from feedbench.experiments.plan import Plan
+from feedbench.engine.family import Example, Experiment, headline
+from feedbench.engine.preflight import check_feeds
+from feedbench.engine.plan import Plan
 from feedbench.experiments.signals import chirp
 from feedbench.experiments.tool_tip import (
     FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, TIP_ACCELERATION,

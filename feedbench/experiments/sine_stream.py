@@ -25,9 +25,9 @@ from feedbench.analysis.checks import check, peak_checks
 from feedbench.analysis.frf import accelerance_to_receptance
 from feedbench.analysis.sinefit import stepped_sine_frf
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
-from feedbench.experiments.family import Example, Experiment, demo_examples, headline
-from feedbench.experiments.preflight import check_feeds
-from feedbench.experiments.plan import Plan, Window, recorded_windows
+from feedbench.engine.family import Example, Experiment, demo_examples, headline
+from feedbench.engine.preflight import check_feeds
+from feedbench.engine.plan import Plan, Window, recorded_windows
 from feedbench.experiments.tool_tip import (
     COMPLIANCE_LABEL, FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL,
     TIP_ACCELERATION, ExcitationWindow, daq_needs, exciter_channel, feed_label, feed_text,

@@ -42,8 +42,8 @@ from feedbench.analysis.smfe import (
     smfe_estimate,
 )
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
-from feedbench.experiments.family import Example, Experiment, headline, percent_error
-from feedbench.experiments.plan import Plan, Segment, recorded_windows
+from feedbench.engine.family import Example, Experiment, headline, percent_error
+from feedbench.engine.plan import Plan, Segment, recorded_windows
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
 from feedbench.models.milling import (
     MAX_STEP_ROTATION,

@@ -1,7 +1,7 @@
 """Stepped loading and backlash of the rack-and-pinion axis (thesis Ch. 3.4, Figs. 3.8–3.12).
 
 The axis stands near a rigid bumper with a load cell. One run holds a sequence of tests,
-each set up by the axis controller's objects at its first segment (`rack_pinion_bench.AxisSettings`):
+each set up by the axis controller's objects at its first segment (`axes.rack_pinion.AxisSettings`):
 - backlash, one motor at a time (the other off): back-and-forth moves of 1 mm away from
   the bumper at a constant feed (Ch. 3.4.2, Fig. 3.9);
 - loading, one motor at a time: a stepped position command into the bumper and back
@@ -31,8 +31,8 @@ from feedbench.analysis.stiffness import (
     torque_sharing,
 )
 from feedbench.config import ConfigError, Field, one_of, positive, validate_table
-from feedbench.experiments.family import Example, Experiment, headline
-from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
+from feedbench.engine.family import Example, Experiment, headline
+from feedbench.engine.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import constant_feed_move
 from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN, N_PER_UM
@@ -98,7 +98,7 @@ def _samples(n_s: float, cycle_s: float) -> int:
 def _setup(test: str, settings: dict[str, Any], p: Mapping[str, Any], x: float,
            cycle_s: float) -> Segment:
     """Hold while the axis controller takes the test's settings (the segment's commands,
-    `rack_pinion_bench.AxisSettings`)."""
+    `axes.rack_pinion.AxisSettings`)."""
     return Segment(f"setup {test}", "settle", np.full(_samples(p["setup_s"], cycle_s), x),
                    info={"test": test}, commands=settings)
 

@@ -21,11 +21,9 @@ import numpy as np
 from feedbench.analysis.checks import check, peak_checks
 from feedbench.analysis.stability import Lobes, zoa_lobes
 from feedbench.config import Field, non_negative, positive, validate_table
-from feedbench.daq.recorder import StreamSpec
-from feedbench.experiments.plan import Plan, Segment, Window, recorded_windows
+from feedbench.engine.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
 from feedbench.models.milling import engagement_angles
-from feedbench.protocols import cia401
 from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
 from feedbench.units import MM_PER_MIN
 from feedbench.views.frfs import Dof
@@ -281,49 +279,6 @@ def feed_checks(feeds: Sequence[Mapping[str, Any]], notes: Sequence[str],
             *peak_checks(peaks, MIN_COHERENCE), *more,
             check("notes", "; ".join(notes) or "none", not notes,
                   "records were left out: the averages hold fewer of them")]
-
-
-class ExciterOutputs:
-    """The plan's exciter commands, sent every cycle through the CiA 401 I/O module
-    (`drivers.io_module.IoModule`); a runner `CycleDevice`. Records the command sent as
-    ``excitation`` (N). Outside the plan (enable, disable, safe stop) the outputs are zero.
-    """
-
-    channels = ("excitation",)
-    units = {"excitation": "N"}
-    streams: dict[str, StreamSpec] = {}
-
-    def __init__(self, io) -> None:
-        self.io = io
-        self._commands = np.zeros(0)
-        self._exciter: str | None = None
-        self._value = 0.0
-
-    def start(self, plan: Plan, recorder) -> None:
-        self._commands = plan.concatenated("excitation")
-        self._exciter = plan.exciter
-        self.io.zero()
-
-    def before_sync(self, index: int | None) -> None:
-        value = float(self._commands[index]) if index is not None and self._exciter else 0.0
-        if self._exciter == "hammer":
-            self.io.set_force(cia401.HAMMER_LEVEL, value)
-            self.io.set_digital(cia401.HAMMER_FIRE if value > 0.0 else 0)
-        elif self._exciter is not None:
-            self.io.set_force(cia401.EXCITER_CHANNELS[self._exciter], value)
-        self.io.transmit()
-        self._value = value
-
-    def after_sync(self, cycle: int) -> tuple[float]:
-        return (self._value,)
-
-    def stop(self, recorder) -> None:
-        """All outputs off."""
-        self.io.zero()
-
-    def safe_torque_off(self) -> str:
-        """The drives' safe torque off through the module (`IoModule.safe_torque_off`)."""
-        return self.io.safe_torque_off()
 
 
 # stability lobes from a measured tool-tip FRF (drawn in the hammer's and the shaker chirp's

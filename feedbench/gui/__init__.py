@@ -1,6 +1,6 @@
 """Live window (pyqtgraph + PySide6): traces, progress and the experiment family's result
 while a run acquires. The result itself is the family's own analysis
-(`feedbench.experiments.incremental.LiveAnalysis`) drawn from its `views.panels`.
+(`feedbench.engine.incremental.LiveAnalysis`) drawn from its `views.panels`.
 
 This package's own module body needs no Qt: `display_problem` tells, before Qt is loaded,
 what would make Qt abort the process (no display, a system library of its xcb plugin

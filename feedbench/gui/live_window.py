@@ -27,11 +27,11 @@ from PySide6 import QtCore, QtWidgets
 
 from feedbench.gui import require_display
 from feedbench.daq.live import ROWS, Decimator, LiveFrame, LiveState, LiveStream
-from feedbench.experiments.limits import Limits
-from feedbench.experiments.replay import replay
-from feedbench.experiments.runner import StopRequest
-from feedbench.experiments.family import families
-from feedbench.experiments.incremental import LiveAnalysis
+from feedbench.engine.limits import Limits
+from feedbench.engine.replay import replay
+from feedbench.engine.runner import StopRequest
+from feedbench.engine.family import families
+from feedbench.engine.incremental import LiveAnalysis
 from feedbench.views.panels import FLAGGED, Curve, Image, Panel, ResultView, has_data, series_color
 from feedbench.units import MM_PER_MIN, RPM
 

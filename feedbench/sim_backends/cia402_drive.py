@@ -500,7 +500,7 @@ class SimulatedCia402Drive:
         step, and the drive runs on the setpoint plus `lag` steps. The step is the host's:
         the distance between two setpoints that came for consecutive SYNCs over the cycles
         they were meant for; after missed cycles the one the drive extrapolated with (0 after
-        it held), as the host assumes (`experiments.runner.SentTargets`); never a distance to
+        it held), as the host assumes (`engine.runner.SentTargets`); never a distance to
         a target the drive extrapolated. So a host late by some cycles moves the target by
         one step per cycle (within half a step) and never by the cycles it was late."""
         step = self._target_step

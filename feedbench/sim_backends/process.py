@@ -2,7 +2,7 @@
 
 `SimulatedBench` starts the CiA 402 drive of a lab-axis ``[bench]`` table on its CAN bus
 and the simulated peer of each device a run needs (`SimulatedPeer`, entry points
-``feedbench.sim_devices``, the kind's name: `experiments.devices`), each on its real
+``feedbench.sim_devices``, the kind's name: `devices`), each on its real
 transport with the settings of its ``[bench.devices.<name>]`` table: the Modbus devices
 (spindle inverter, load-cell amplifier, each at its table's unit id) on one Modbus TCP
 server on 127.0.0.1, the streaming DAQ on a pseudo-terminal, the exciters'
@@ -89,12 +89,12 @@ class DaqInputs:
 
 
 class SimulatedPeer:
-    """The simulated peer of one device kind (`experiments.devices.Device` of the same
+    """The simulated peer of one device kind (`devices.Device` of the same
     `name`), registered under that name in the entry-point group ``feedbench.sim_devices``.
 
     `SimulatedBench` constructs the peer of each device a run needs (`settings`: its checked
     ``[bench.devices.<name>]`` table with the family's settings over it, ``name`` included,
-    `experiments.devices.device_table`) on the bench `sim`: it starts its device and
+    `devices.device_table`) on the bench `sim`: it starts its device and
     transport there (`SimulatedBench.serve_modbus`, a pseudo-terminal, a node on
     `sim.drive`'s network) and puts its address under the device's name in `sim.addresses`.
     Once every peer exists, `attach()` hooks it into the world (the drive's `before_physics`
@@ -267,7 +267,7 @@ class ExciterPeer(SimulatedPeer):
 class SimulatedBench:
     """The simulated axis of a validated ``[bench]`` table (the lab axis; another kind
     overrides `start_axis`) and the simulated peers of the devices a run needs (`tables`:
-    name → checked table, `experiments.devices.device_table`;
+    name → checked table, `devices.device_table`;
     kinds without a registered peer are left to the drive); `close()` stops them.
 
     The drive (CiA 402 on its CAN bus, `bus_options` to python-can: ``host``, ``port`` of a

@@ -1,4 +1,4 @@
-"""The simulated peer of the rack-and-pinion axis (`rack_pinion_bench.RackPinionAxis`): two
+"""The simulated peer of the rack-and-pinion axis (`axes.rack_pinion.RackPinionAxis`): two
 CiA 402 drives on the bus, one world, and the registered peers of the devices a run needs.
 
 `RackPinionWorld` holds the `RackPinionSimulator` and one `MotorPort` per motor: each

@@ -1,6 +1,6 @@
 """The FRFs of a result as other tools exchange them: each with its two ends (the recorded
 channel, its node and direction, its quantity) and SI values. A family lists its own
-(`Experiment.frfs`); `feedbench.exchange` writes them as UFF58.
+(`Experiment.frfs`); `feedbench.commands.exchange` writes them as UFF58.
 """
 
 from __future__ import annotations

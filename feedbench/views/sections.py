@@ -1,7 +1,7 @@
 """What a report section is made of: plots, tables, quality indicators, and the figure
 helpers every experiment family draws its results with (matplotlib's Agg canvas: no pyplot
 state, no display). `feedbench.report` assembles the sections; each family's
-`Experiment.report` fills its own (`feedbench.experiments.family`).
+`Experiment.report` fills its own (`feedbench.engine.family`).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The host side of the ``linear_scale`` device kind: a linear-scale reader over Modbus TCP.
 
-`LinearScaleDevice` is the kind (`feedbench.experiments.devices.Device`): the schema of its
+`LinearScaleDevice` is the kind (`feedbench.devices.Device`): the schema of its
 own ``[bench.devices.<name>]`` table and how to open it. `ScaleReading` is the runner's
 per-cycle device: it derives from `PerCycleDevice`, so it reads every ``every_cycles`` bus
 cycles (NaN between) and follows feedbench's failure rule (its first failure is raised and
@@ -16,7 +16,7 @@ from typing import Any, Mapping
 
 from feedbench.config import Field, positive
 from feedbench.drivers.modbus_devices import ModbusDevice
-from feedbench.experiments.devices import Device, DeviceLinks, PerCycleDevice
+from feedbench.devices import Device, DeviceLinks, PerCycleDevice
 
 from lab_extension.protocol import SCALE_MAP, STATUS_SIGNAL_OK
 

@@ -28,8 +28,8 @@ import numpy as np
 
 from feedbench.analysis.checks import check
 from feedbench.config import ConfigError, Field, positive, validate_table
-from feedbench.experiments.family import Example, Experiment, headline, percent_error
-from feedbench.experiments.plan import Plan, Segment, recorded_windows
+from feedbench.engine.family import Example, Experiment, headline, percent_error
+from feedbench.engine.plan import Plan, Segment, recorded_windows
 from feedbench.experiments.signals import move_to
 from feedbench.protocols.cia402 import CSP
 from feedbench.units import MM_PER_MIN

@@ -18,13 +18,13 @@ import pytest
 
 import feedbench
 from feedbench.bench import parse_run_config, run_axis
-from feedbench.campaign import parse_campaign, run_task
-from feedbench.cli import main
+from feedbench.commands.campaign import parse_campaign, run_task
+from feedbench.commands.cli import main
 from feedbench.config import OWN_DISTRIBUTION, ConfigError
-from feedbench.demo import campaign_config, measure
+from feedbench.commands.demo import campaign_config, measure
 from feedbench.drivers.modbus_devices import ModbusDevice, connect_tcp
-from feedbench.experiments.devices import devices
-from feedbench.experiments.family import LAB_RANK, examples, families
+from feedbench.devices import devices
+from feedbench.engine.family import LAB_RANK, examples, families
 from feedbench.sim_backends.process import READY, simulated_peers
 from feedbench.testing import assert_live_equals_offline, virtual_channel
 
@@ -139,7 +139,7 @@ def test_feedbench_sim_serves_its_peer(tmp_path):
         'socketcand = "127.0.0.1:0"', f'channel = "{virtual_channel("lab-sim")}"',
         "[bench.devices.linear_scale]", f'address = "127.0.0.1:{port}"', "unit_id = 12",
         "[bench.world.linear_scale]", "resolution_nm = 100.0"]) + "\n")
-    process = subprocess.Popen([sys.executable, "-m", "feedbench.cli", "sim", str(config)],
+    process = subprocess.Popen([sys.executable, "-m", "feedbench.commands.cli", "sim", str(config)],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     stderr: list[str] = []
     reader = threading.Thread(target=lambda: stderr.extend(process.stderr), daemon=True)

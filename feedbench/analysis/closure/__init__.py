@@ -2,7 +2,7 @@
 error before and after, on data the model was not fitted to.
 
 Pure functions, arrays in, typed results out; the I/O (CSV + sidecar, EMPS .mat, HDF5
-recordings, plots) lives in `feedbench.closure_io`, the command in `feedbench.closure_command`.
+recordings, plots) lives in `feedbench.closure_io`, the command in `feedbench.commands.closure`.
 
 - `trace`: `Trace` (a recording in SI) and `Kinematics` (zero-phase band-limited derivatives).
 - `effects`: the vocabulary of terms and candidate effects (`LIBRARY`, `CANDIDATES`).

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from feedbench.config import ConfigError
-from feedbench.experiments.limits import LimitError
+from feedbench.engine.limits import LimitError
 from feedbench.gui import DisplayError, require_display
 from feedbench.protocols.address import split_address
 
@@ -159,7 +159,7 @@ def open_catalog(directory: str | Path, url: str = ""):
 
 def cmd_analyze(args: argparse.Namespace) -> int:
     """Analyse one recorded run, or the FRFs of a UFF58 file."""
-    from feedbench.exchange import UFF_SUFFIXES, analyze_uff58, describe_uff58
+    from feedbench.commands.exchange import UFF_SUFFIXES, analyze_uff58, describe_uff58
 
     if Path(args.run).suffix.lower() in UFF_SUFFIXES:
         result, describe = analyze_uff58(args.run), describe_uff58
@@ -167,7 +167,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         from feedbench.bench import analyze_file
         from feedbench.daq.importers import is_foreign
         from feedbench.daq.importers.mapping import imported_copy
-        from feedbench.demo import describe_analysis
+        from feedbench.commands.demo import describe_analysis
 
         if args.mapping and not is_foreign(args.run):
             raise ConfigError("--mapping: for the recordings of other DAQ systems (.mf4, .tdms)")
@@ -187,7 +187,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
 
 def cmd_export(args: argparse.Namespace) -> int:
     """Export a run: its FRFs as UFF58, its drive channels as CSV + closure sidecar."""
-    from feedbench import exchange
+    from feedbench.commands import exchange
     from feedbench.bench import analyze_file
 
     if not (args.uff58 or args.csv):
@@ -249,7 +249,7 @@ def checked_experiment(table: Mapping[str, Any]) -> dict[str, Any]:
     """A mapping's [experiment] table checked against its family's schema (each key named in
     the error as ``mapping.experiment.<key>``); ``imported`` (no family) as it is."""
     from feedbench.config import validate_table
-    from feedbench.experiments.family import families
+    from feedbench.engine.family import families
 
     kind = table.get("type", "imported")
     if kind == "imported":
@@ -264,7 +264,7 @@ def checked_experiment(table: Mapping[str, Any]) -> dict[str, Any]:
 def cmd_demo(args: argparse.Namespace) -> int:
     """The campaign on the simulated bench (every experiment family), identified vs true."""
     t0 = time.monotonic()
-    from feedbench.demo import describe_demo, run_demo
+    from feedbench.commands.demo import describe_demo, run_demo
 
     imported = time.monotonic()
     result = run_demo(output_directory(args.dir), quiet=args.json, quick=args.quick,
@@ -282,7 +282,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_campaign(args: argparse.Namespace) -> int:
     """Run a campaign config's runs as Dask tasks (progress on stderr), write its summary
     table (JSON + CSV) and print it."""
-    from feedbench.campaign import (describe_campaign, load_campaign, progress_line,
+    from feedbench.commands.campaign import (describe_campaign, load_campaign, progress_line,
                                     run_campaign, write_summary)
 
     campaign = load_campaign(args.config)
@@ -298,10 +298,10 @@ def cmd_campaign(args: argparse.Namespace) -> int:
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
-    """`feedbench tune CONFIG [--apply NAME | --rollback]` (`feedbench.tune`): progress and
+    """`feedbench tune CONFIG [--apply NAME | --rollback]` (`feedbench.commands.tune`): progress and
     results on stdout (on stderr with --json, which prints the outcome)."""
     from feedbench.daq.recording import printable_json
-    from feedbench.tune import (apply_candidate, damping_text, load_tune_config,
+    from feedbench.commands.tune import (apply_candidate, damping_text, load_tune_config,
                                 recommendation_text, rollback, run_tune)
 
     def say(text: str) -> None:
@@ -537,7 +537,7 @@ def build_parser() -> argparse.ArgumentParser:
         command.add_argument("--catalog", metavar="URL", default="", help="the run catalog: "
                              "postgresql://user@host/database or an SQLite file (default: "
                              "$FEEDBENCH_CATALOG, else bench.catalog, else DIR/catalog.sqlite)")
-    from feedbench.closure_command import add_closure_parser
+    from feedbench.commands.closure import add_closure_parser
 
     add_closure_parser(sub)
     for command in [*sub.choices.values(), *catalog_sub.choices.values()]:  # and after it

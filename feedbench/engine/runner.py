@@ -40,8 +40,8 @@ import numpy as np
 from feedbench.daq.clock import HostStalled, NodeLost
 from feedbench.daq.recorder import RecordingError
 from feedbench.drivers.cia402 import DISABLED_STATES, Actual
-from feedbench.experiments.limits import Limits
-from feedbench.experiments.plan import Plan, Segment
+from feedbench.engine.limits import Limits
+from feedbench.engine.plan import Plan, Segment
 from feedbench.protocols.canbus import StackLog
 from feedbench.protocols.cia402 import EXTRAPOLATED_CYCLES
 from feedbench.units import MM_PER_MIN

@@ -7,7 +7,7 @@ its own ``[bench.devices.<name>]`` table (`Device.table_schema`: ``kind``, its `
 if it has one, its Modbus ``unit_id``, its own settings, `Device.schema`), and `open`, which
 connects its driver at that address (or on the drives' CAN network) and returns the
 runner's `CycleDevice`. A family asks for devices by name with settings
-(`Experiment.devices`); an axis kind adds its own (`rack_pinion_bench.RackPinionAxis`);
+(`Experiment.devices`); an axis kind adds its own (`axes.rack_pinion.RackPinionAxis`);
 `device_tables` checks their tables (unknown keys, address and unit-id collisions) before
 anything opens and `open_cycle_devices` opens them; both know no kind by name. The
 registry is the entry-point group ``feedbench.devices``, as for the families
@@ -34,8 +34,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar, Mapping, TypeVar
 
 from feedbench.config import ConfigError, Field, positive, registered, validate_table
-from feedbench.experiments.plan import Plan
-from feedbench.experiments.runner import CycleDevice
+from feedbench.engine.plan import Plan
+from feedbench.engine.runner import CycleDevice
 from feedbench.protocols.address import split_address
 
 ENTRY_POINT_GROUP = "feedbench.devices"

@@ -18,7 +18,7 @@ INTERRUPTED = 130
 def run() -> int:
     """Import and run `cli.main`; a Ctrl-C before it is one line; SIGINT ignored after it."""
     try:
-        from feedbench.cli import main
+        from feedbench.commands.cli import main
 
         status = main()
     except KeyboardInterrupt:

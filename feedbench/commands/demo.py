@@ -6,7 +6,7 @@ serial DAQ) against the simulated devices. Each recording is analysed and summar
 the simulated world's truth (`example_truth`: its axis kind's, `axes.Axis.truth`) or the
 thesis's figures; the runs go into one HTML report (those of axis kinds it draws,
 `axes.Axis.reported`).
-The campaign is what the registered families declare (`experiments.family.Example`), so an
+The campaign is what the registered families declare (`engine.family.Example`), so an
 installed lab family joins it; `quick=True` shortens each run as its `Example.quick` says, so
 the campaign takes a few minutes.
 
@@ -30,8 +30,8 @@ from typing import Any, Mapping
 
 from feedbench.bench import analyze_file, parse_run_config, run_axis, run_config
 from feedbench.config import ConfigError, read_toml
-from feedbench.experiments.family import HEADLINE_SEPARATOR, Example, examples, families, family
-from feedbench.experiments.limits import LimitError
+from feedbench.engine.family import HEADLINE_SEPARATOR, Example, examples, families, family
+from feedbench.engine.limits import LimitError
 from feedbench.daq.recording import open_recording
 from feedbench.report import run_section, write_sections
 from feedbench.views.sections import RunSection

@@ -6,7 +6,7 @@ A family is everything feedbench knows about one kind of test, in one class: its
 frozen dataclass), the devices it needs besides the drive, `plan()` (the segments the
 runner executes), `analyze` (the recording → a JSON-able result; the same function runs on
 a finished recording and, in the live window, on the windows completed so far:
-`experiments.incremental.LiveAnalysis`), and how a person sees the result: `report`
+`engine.incremental.LiveAnalysis`), and how a person sees the result: `report`
 (its report section), `live_view` (its live panels), `headline` (what it measured, in one
 line), `summary` (the demo's line against the simulated world's truth) and `details`
 (`feedbench analyze`'s lines beyond the headline).
@@ -41,7 +41,7 @@ from typing import Any, ClassVar, Iterator, Mapping
 
 from feedbench.analysis.checks import check, check_line, verdict, verdict_line
 from feedbench.config import ConfigError, Field, read_toml, registered, validate_table
-from feedbench.experiments.plan import Plan
+from feedbench.engine.plan import Plan
 from feedbench.views.frfs import ExchangeFrf
 from feedbench.views.panels import ResultView
 from feedbench.views.sections import RunSection, Table

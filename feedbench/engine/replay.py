@@ -13,8 +13,8 @@ from typing import Sequence
 import numpy as np
 
 from feedbench.daq.recorder import StreamSpec
-from feedbench.experiments.plan import Plan, Segment, segment_event
-from feedbench.experiments.runner import BLOCK_CYCLES, Observer, StopRequest
+from feedbench.engine.plan import Plan, Segment, segment_event
+from feedbench.engine.runner import BLOCK_CYCLES, Observer, StopRequest
 
 
 def recorded_plan(recording) -> tuple[Plan, list[int]]:

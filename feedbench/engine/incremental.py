@@ -21,9 +21,9 @@ import numpy as np
 from feedbench.analysis.checks import verdict_line
 from feedbench.config import ConfigError
 from feedbench.daq.recording import Event, Recording, Stream, missing_cycles
-from feedbench.experiments.family import Experiment, judged_analysis
-from feedbench.experiments.plan import Plan, Segment
-from feedbench.experiments.runner import segment_text
+from feedbench.engine.family import Experiment, judged_analysis
+from feedbench.engine.plan import Plan, Segment
+from feedbench.engine.runner import segment_text
 from feedbench.views.panels import ResultView
 
 END_OF_PLAN = segment_text(None, "disable")

@@ -13,9 +13,9 @@
 Either raises on its first failure (the runner aborts the run) and goes silent afterwards,
 so the drive's safe stop never waits on a broken link (`devices.PerCycleDevice`).
 
-Their device kinds (`experiments.devices.Device`, entry points ``feedbench.devices``):
+Their device kinds (`devices.Device`, entry points ``feedbench.devices``):
 `SpindleDevice` (``spindle``), `DaqDevice` (``daq``) and `ExciterDevice` (``exciter``, the
-tool-tip exciters' I/O module driving `tool_tip.ExciterOutputs`).
+tool-tip exciters' I/O module driving `ExciterOutputs`).
 """
 
 from __future__ import annotations
@@ -24,11 +24,14 @@ import math
 import time
 from typing import Any, Mapping
 
+import numpy as np
+
 from feedbench.config import Field, positive
 from feedbench.daq.recorder import StreamSpec
-from feedbench.experiments.devices import Device, DeviceLinks, PerCycleDevice
-from feedbench.experiments.plan import Plan
-from feedbench.experiments.runner import CycleDevice
+from feedbench.devices import Device, DeviceLinks, PerCycleDevice
+from feedbench.engine.plan import Plan
+from feedbench.engine.runner import CycleDevice
+from feedbench.protocols import cia401
 from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
 from feedbench.units import RPM
 
@@ -224,7 +227,7 @@ class DaqDevice(Device):
 
 class ExciterDevice(Device):
     """The tool-tip exciters' CiA 401 I/O module, node ``node_id`` on the drives' CAN
-    network, checked and started; the runner's `tool_tip.ExciterOutputs`."""
+    network, checked and started; the runner's `ExciterOutputs`."""
 
     name = "exciter"
     schema = {"node_id": Field(int, 10, "CANopen node id of the CiA 401 I/O module (a "
@@ -234,8 +237,50 @@ class ExciterDevice(Device):
     @classmethod
     def open(cls, settings: Mapping[str, Any], links: DeviceLinks) -> CycleDevice:
         from feedbench.drivers.io_module import IoModule
-        from feedbench.experiments.tool_tip import ExciterOutputs
 
         io = IoModule(links.network, settings["node_id"])
         io.configure()
         return ExciterOutputs(io)
+
+
+class ExciterOutputs:
+    """The plan's exciter commands, sent every cycle through the CiA 401 I/O module
+    (`drivers.io_module.IoModule`); a runner `CycleDevice`. Records the command sent as
+    ``excitation`` (N). Outside the plan (enable, disable, safe stop) the outputs are zero.
+    """
+
+    channels = ("excitation",)
+    units = {"excitation": "N"}
+    streams: dict[str, StreamSpec] = {}
+
+    def __init__(self, io) -> None:
+        self.io = io
+        self._commands = np.zeros(0)
+        self._exciter: str | None = None
+        self._value = 0.0
+
+    def start(self, plan: Plan, recorder) -> None:
+        self._commands = plan.concatenated("excitation")
+        self._exciter = plan.exciter
+        self.io.zero()
+
+    def before_sync(self, index: int | None) -> None:
+        value = float(self._commands[index]) if index is not None and self._exciter else 0.0
+        if self._exciter == "hammer":
+            self.io.set_force(cia401.HAMMER_LEVEL, value)
+            self.io.set_digital(cia401.HAMMER_FIRE if value > 0.0 else 0)
+        elif self._exciter is not None:
+            self.io.set_force(cia401.EXCITER_CHANNELS[self._exciter], value)
+        self.io.transmit()
+        self._value = value
+
+    def after_sync(self, cycle: int) -> tuple[float]:
+        return (self._value,)
+
+    def stop(self, recorder) -> None:
+        """All outputs off."""
+        self.io.zero()
+
+    def safe_torque_off(self) -> str:
+        """The drives' safe torque off through the module (`IoModule.safe_torque_off`)."""
+        return self.io.safe_torque_off()

@@ -36,7 +36,7 @@ from feedbench.analysis.modal import fit_modes
 from feedbench.closure_io import read_recording, sidecar_path, write_csv_trace
 from feedbench.config import ConfigError
 from feedbench.daq.recording import open_recording
-from feedbench.experiments.family import families
+from feedbench.engine.family import families
 from feedbench.views.frfs import Dof, ExchangeFrf
 
 UFF_SUFFIXES = (".uff", ".unv", ".uf")

@@ -7,7 +7,7 @@ the device kinds::
 
 An axis kind says what differs between benches: its drives (`nodes`, the PDO maps, the EDS
 of its simulated drives), the devices it needs whatever the family (`devices`, opened as a
-family's are: `experiments.devices`), its own ``[bench]`` keys (`schema`, added to the
+family's are: `devices`), its own ``[bench]`` keys (`schema`, added to the
 bench schema, `axis_schema`), its simulated peer (`start_simulated`) and where that peer's
 devices listen (`addresses`); for the demo and a campaign, the truth of its simulated world
 (`truth`), whether the report draws its recordings (`reported`) and the key of its
@@ -20,7 +20,7 @@ from __future__ import annotations
 from typing import Any, ClassVar, Mapping
 
 from feedbench.config import ConfigError, Field, registered
-from feedbench.experiments.plan import Plan
+from feedbench.engine.plan import Plan
 
 ENTRY_POINT_GROUP = "feedbench.axes"
 
@@ -71,7 +71,7 @@ class Axis:
     def start_simulated(self, cycle_s: float, bus_options: Mapping[str, Any],
                         tables: Mapping[str, Mapping[str, Any]], listen: bool = False) -> Any:
         """Its simulated drives and the peers of the devices of `tables` (name → checked
-        table, `experiments.devices.device_tables`) on the bench's bus; `listen`: where the
+        table, `devices.device_tables`) on the bench's bus; `listen`: where the
         tables' addresses say (`feedbench sim`), else on free loopback ports. The returned
         object's `close()` stops them; its `modbus_devices` are the Modbus peers served."""
         raise NotImplementedError

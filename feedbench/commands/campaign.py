@@ -33,8 +33,8 @@ import numpy as np
 from feedbench.bench import analyze_file, parse_run_config, run_axis, run_config
 from feedbench.config import ConfigError, Field, one_of, positive, read_toml, validate_table
 from feedbench.daq.recording import printable_json
-from feedbench.demo import example_truth
-from feedbench.experiments.family import families
+from feedbench.commands.demo import example_truth
+from feedbench.engine.family import families
 
 NOISE_SEED = "bench.world.noise_seed"
 """The lab world's measurement-noise seed (`sim_backends.world.WORLD_SCHEMA`)."""

@@ -18,7 +18,7 @@ two CiA 402 drives, the axis controller, the per-cycle devices and their kinds, 
   `LoadCellForce`, the bumper's load cell over Modbus every `every_cycles` (NaN between
   readings, so no value is ever stale), recorded as ``load_cell.force`` (N), a reading
   beyond the amplifier's range aborts the run (`LoadCellOverload`).
-- Their device kinds (`experiments.devices.Device`: ``axis_settings``, ``encoders``,
+- Their device kinds (`devices.Device`: ``axis_settings``, ``encoders``,
   ``load_cell``) and the axis kind (`axes.Axis`, entry point ``rack_pinion`` of
   ``feedbench.axes``): `feedbench.bench.Bench` runs the same steps for every axis kind and
   asks `RackPinionAxis` what differs; its own ``[bench]`` key is ``slave_node_id``.
@@ -38,8 +38,8 @@ from feedbench.axes import Axis
 from feedbench.config import Field, positive
 from feedbench.drivers.cia402 import Cia402Drive, DriveError, PdoConfig
 from feedbench.drivers.modbus_devices import LoadCellAmplifier
-from feedbench.experiments.devices import Device, DeviceLinks, PerCycleDevice
-from feedbench.experiments.plan import Plan
+from feedbench.devices import Device, DeviceLinks, PerCycleDevice
+from feedbench.engine.plan import Plan
 from feedbench.protocols import rack_pinion as objects
 from feedbench.protocols.cia402 import (
     CONTROLWORD, CYCLE_COUNTER, FORCE_ACTUAL, POSITION_ACTUAL, STATUSWORD, TARGET_POSITION,
