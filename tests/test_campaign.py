@@ -16,8 +16,9 @@ import tomllib
 import pytest
 from dask.distributed import Client
 
-from feedbench.commands.campaign import (NOISE_SEED, dask_client, describe_campaign, parse_campaign,
-                                run_campaign, run_task, write_summary)
+from feedbench.axes.lab import LabAxis
+from feedbench.commands.campaign import (dask_client, describe_campaign, parse_campaign,
+                                          run_campaign, run_task, write_summary)
 from feedbench.config import ConfigError
 from feedbench.daq.catalog import Catalog
 
@@ -89,7 +90,7 @@ def test_monte_carlo_friction_on_two_workers(scheduler, tmp_path):
     assert [row["index"] for row in runs] == [0, 1, 2, 3]
     assert summary["complete"] == 4 and summary["scheduler"] == scheduler
     assert len({row["params"][F_C] for row in runs}) == 4  # each run its own draw
-    assert len({row["params"][NOISE_SEED] for row in runs}) == 4
+    assert len({row["params"][LabAxis.noise_seed] for row in runs}) == 4
     for row in runs:
         assert row["status"] == "complete"
         r = row["results"]
@@ -176,7 +177,7 @@ def test_grid_points_and_draws(tmp_path):
         "bench": {"gains": {"K_p_Ns_m": [8000.0, 9000.0, 10000.0], "T_i_ms": [4.0, 8.0]}}}}})
     assert len(grid.tasks) == 12
     assert grid.tasks[7].params == {"bench.gains.K_p_Ns_m": 9000.0, "bench.gains.T_i_ms": 8.0,
-                                    NOISE_SEED: 1}
+                                    LabAxis.noise_seed: 1}
     assert grid.tasks[7].raw["bench"]["gains"] == {"K_p_Ns_m": 9000.0, "T_i_ms": 8.0}
     monte_carlo = campaign_of(MONTE_CARLO, tmp_path)
     draws = [parse_campaign(monte_carlo).tasks for _ in range(2)]

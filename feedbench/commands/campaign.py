@@ -36,10 +36,6 @@ from feedbench.daq.recording import printable_json
 from feedbench.commands.demo import example_truth
 from feedbench.engine.family import families
 
-NOISE_SEED = "bench.world.noise_seed"
-"""The lab world's measurement-noise seed (`sim_backends.world.WORLD_SCHEMA`)."""
-
-
 def _seeds(value: list) -> str | None:
     if not value or not all(isinstance(v, int) and v >= 0 for v in value):
         return f": must be a non-empty list of integers ≥ 0 (got {value!r})"
