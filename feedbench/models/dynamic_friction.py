@@ -4,9 +4,12 @@ The static law of the thesis, Eq. (5.2), makes friction a function of velocity. 
 motion reversal the contact first deforms elastically over a few µm ("pre-sliding", Ch. 2.3,
 Fig. 2.9) before it slips, so the force follows the displacement since the reversal, not
 the velocity: a hysteresis loop in the force–displacement plane. The thesis names the
-dynamic models that capture it (§2.3, §5.2: LuGre and GMS, its refs. [105], [106], which
-are entries [106], [107] of its reference list: the list is shifted by one) and leaves them
-out of its own model. Four laws, each from its paper, SI units (m, s, N):
+dynamic models that capture it (§2.3.1: "LuGre [105] or GMS [106]"; §5.3.1, beside
+Eq. (5.2), names them again without numbers) and leaves them out of its own model. Its
+in-text numbers there run one behind its reference list (its "Hagman [107]" is list entry
+[108]): list [107] is the GMS paper; list [106] is Canudas de Wit's 1998 "Comments on 'A
+new model for control of systems with friction'", not the 1995 LuGre paper cited below.
+Four laws, each from its paper, SI units (m, s, N):
 
 - Dahl (P. R. Dahl, "A solid friction model", Aerospace Corp. TOR-0158(3107-18)-1, 1968;
   "Solid friction damping of mechanical vibrations", AIAA J. 14 (1976) 1675–1682):
@@ -29,22 +32,27 @@ out of its own model. Four laws, each from its paper, SI units (m, s, N):
   Autom. Control 50 (2005) 1883–1887, the thesis's [107]; V. Lampaert, F. Al-Bender,
   J. Swevers, "A generalized Maxwell-slip friction model appropriate for control purposes",
   PhysCon 2003): N blocks in parallel, block i a spring k_i whose force F_i = k_i z_i
-  cannot exceed W_i = α_i s(v), Σ α_i = 1. Sliding obeys the single-state law (1)
+  cannot exceed W_i = α_i s(v), Σ α_i = 1. Sliding obeys the single-state law
       dF/dt = sgn(v) C (1 − F/s(v)),
-      s(v) = sgn(v) (F_c + (F_s − F_c) e^{−|v/v_s|^δ})          (2)
-  C (N/s) the attraction parameter. Block i sticks,
-      dF_i/dt = k_i v                                           (3)
-  until |F_i| reaches W_i, then slips,
-      dF_i/dt = sgn(v) C (α_i − F_i/s(v))                       (4)
+  with the Stribeck curve
+      s(v) = sgn(v) (F_c + (F_s − F_c) e^{−|v/v_s|^δ}),
+  C (N/s) the attraction parameter. Block i sticks (the sticking-block state equation)
+      dF_i/dt = k_i v
+  until |F_i| reaches W_i, then slips (the slipping-block state equation)
+      dF_i/dt = sgn(v) C (α_i − F_i/s(v))
   until the velocity reverses (or stops); the friction force is
-      F = Σ F_i + σ2 v                                          (5)
-  or, with the blocks' damping, Σ (k_i z_i + σ_i dz_i/dt) + σ2 v (6) (`GMS.force`;
+      F = Σ F_i + σ2 v
+  or, with the blocks' damping, Σ (k_i z_i + σ_i dz_i/dt) + σ2 v (`GMS.force`;
   stick exact, slip exact over each substep at constant v: F_i → α_i s + (F_i − α_i s)
-  e^{−C t/|s|}). The α_i inside (4) makes the sum of slipping blocks obey (1). The
-  equation numbers are the 2005 note's as recalled: the PDF was not at hand when this was
-  written, check them against it. With F_s = F_c a slipping block stays at W_i whatever C:
-  the model is rate independent, Iwan's parallel elastic-perfectly-plastic blocks
-  (`maxwell_slip_normalised`): Masing's rule and non-local memory hold exactly.
+  e^{−C t/|s|}). The α_i inside the slip law makes the sum of slipping blocks obey the
+  single-state law. The laws are cited by content, not by the paper's equation numbers:
+  its text was not at hand, so the numbers could not be confirmed. The forms were checked
+  against open reproductions (github.com/jchristopherson/friction README, which cites
+  it; jchristopherson/FrictionModels.jl, src/GeneralizedMaxwellSlipModels.jl): dz_i/dt = v
+  sticking, sgn(v) ν_i C (1 − z_i/(ν_i s(v))) slipping, F = Σ (k_i z_i + b_i dz_i/dt) +
+  b_v v, Σ ν_i = 1, which agree with the above. With F_s = F_c a slipping block stays at
+  W_i whatever C: the model is rate independent, Iwan's parallel elastic-perfectly-plastic
+  blocks (`maxwell_slip_normalised`): Masing's rule and non-local memory hold exactly.
 
 With F_s = F_c and σ1 = σ2 = 0, LuGre is Dahl with α = 1: F_c w(x) where w follows
 dw/dx = (1 − w sgn ẋ)/x_p, x_p = F_c/σ0 the pre-sliding displacement; its steady state is
@@ -368,13 +376,13 @@ def _gms(v: np.ndarray, dt: float, k: np.ndarray, alpha: np.ndarray, p: np.ndarr
 
 @dataclass(frozen=True)
 class GMS:
-    """The generalized Maxwell-slip model (Al-Bender, Lampaert, Swevers 2005, Eqs. (1)–(6)
-    in the module docstring), SI: stiffness k_i (N/m) and weights α_i (–, Σ α_i = 1) of the N
-    blocks, F_c, F_s (N) Coulomb and static levels and v_s (m/s), δ (–) of the Stribeck
-    curve s(v), C (N/s) the attraction parameter (how fast a slipping block's force
-    follows α_i s(v): the frictional lag), sigma1 (N·s/m) the blocks' damping (block i
-    gets σ1 k_i / Σk, so σ1 v while every block sticks, as LuGre's σ1), sigma2 (N·s/m)
-    the viscous coefficient."""
+    """The generalized Maxwell-slip model (Al-Bender, Lampaert, Swevers 2005; its laws
+    are written out in the module docstring), SI: stiffness k_i (N/m) and weights α_i
+    (–, Σ α_i = 1) of the N blocks, F_c, F_s (N) Coulomb and static levels and v_s (m/s),
+    δ (–) of the Stribeck curve s(v), C (N/s) the attraction parameter (how fast a
+    slipping block's force follows α_i s(v): the frictional lag), sigma1 (N·s/m) the
+    blocks' damping (block i gets σ1 k_i / Σk, so σ1 v while every block sticks, as
+    LuGre's σ1), sigma2 (N·s/m) the viscous coefficient."""
 
     stiffness: tuple[float, ...]
     weights: tuple[float, ...]
@@ -435,8 +443,9 @@ class GMS:
                     np.ascontiguousarray(F0))
 
     def force(self, v: np.ndarray, dt: float, F0: np.ndarray | None = None) -> np.ndarray:
-        """Friction force (N) Σ_i (F_i + σ_i dz_i/dt) + σ2 v, Eq. (6) with F_i = k_i z_i
-        and σ_i = σ1 k_i/Σk, at each sample of v (m/s, every dt s)."""
+        """Friction force (N) Σ_i (F_i + σ_i dz_i/dt) + σ2 v, the GMS output with the
+        blocks' damping (module docstring), F_i = k_i z_i and σ_i = σ1 k_i/Σk, at each
+        sample of v (m/s, every dt s)."""
         forces, rate = self.block_forces(v, dt, F0)
         return (forces.sum(axis=1) + self.sigma1 / float(np.sum(self.stiffness)) * rate
                 + self.sigma2 * np.asarray(v, dtype=float))
