@@ -113,6 +113,18 @@ def test_directional_friction_is_refused_where_the_axis_moved_one_way_only():
     assert seal["steps"][0]["effect"] == "coulomb"
 
 
+def test_a_residual_no_signature_explains_is_called_unexplained_not_dominated():
+    """odrive-pull: the declared model's residual is the constant pull (the offset explains
+    99 % of it); what the final model leaves, no candidate's signature explains 15 % of (the
+    largest, a delay, about 0 %), and the verdict says so instead of naming it."""
+    pulled = _closed("odrive-pull")
+    assert pulled["base_verdict"]["diagnosis"].startswith("dominated by offset (")
+    final = pulled["final_verdict"]["diagnosis"]
+    assert final.startswith("unexplained: no candidate's signature explains 15% of it (the "
+                            "largest, "), final
+    assert "dominated" not in final
+
+
 KEY_MISSED = {
     "odrive-pull": ("the current follows the active motor's speed loop (i ≈ 9 A − 4 A·s/rev "
                     "× speed, r = −0.96): the passive motor's cogging reaches the closure "

@@ -218,7 +218,7 @@ def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ..
     `describes_below`, and no mass (kg) on the lower bound of its range (a moving axis, a
     mode, a load behind a play has one). The parameters on a bound are listed either way;
     the diagnosis is the candidate whose signature explains most of what the model leaves
-    (from `ranking`, tried on it)."""
+    (from `ranking`, tried on it), if it explains at least `min_explained` of it."""
     bounds = at_bounds(fit.model)
     reasons = []
     if not error <= options.describes_below:
@@ -228,8 +228,14 @@ def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ..
     reasons += one_way(fit.model, kin)
     screened = [c for c in ranking if c.freed is None and np.isfinite(c.screened)]
     best = max(screened, key=lambda c: c.screened, default=None)
-    diagnosis = ("no candidate signature in the residual" if best is None or best.screened <= 0
-                 else f"{best.name} ({best.evidence})")
+    if best is None or best.screened <= 0:
+        diagnosis = "unexplained: no candidate's signature is in it"
+    elif best.screened < options.min_explained:
+        diagnosis = (f"unexplained: no candidate's signature explains "
+                     f"{options.min_explained:.0%} of it (the largest, {best.name}: "
+                     f"{best.evidence})")
+    else:
+        diagnosis = f"dominated by {best.name} ({best.evidence})"
     return Verdict(not reasons, tuple(reasons), bounds, diagnosis)
 
 

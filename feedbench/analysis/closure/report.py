@@ -142,7 +142,7 @@ def verdict_text(which: str, verdict: Verdict) -> list[str]:
         lines = [f"{which} model describes the data"]
     else:
         lines = [f"{which} model does not describe this data: {'; '.join(verdict.reasons)}; "
-                 f"the residual is dominated by {verdict.diagnosis}"]
+                 f"the residual is {verdict.diagnosis}"]
     if verdict.bounds:
         lines.append(f"    on a bound of its range: {', '.join(verdict.bounds)}")
     return lines
