@@ -185,7 +185,8 @@ def test_a_model_with_direction_dependent_friction_on_a_one_way_record_does_not_
     """An axis that only moves forward (20 mm/s plus a 2 Hz wobble that never reverses it):
     a Coulomb level there is a constant, so the model describes the force to the noise but
     not the friction; the verdict says the axis moved one way only (odrive-pull of the
-    gallery ended with σ and F_c on 0 and a Stribeck decay as "describes")."""
+    gallery ended with σ and F_c on 0 and a Stribeck decay as "describes"), and the declared
+    level is not recalibrated there (its new value would be the offset's)."""
     t = np.arange(0.0, 10.0, 1e-3)
     w = 2 * np.pi * 2.0
     v = 20e-3 + 10e-3 * np.cos(w * t)
@@ -194,8 +195,14 @@ def test_a_model_with_direction_dependent_friction_on_a_one_way_record_does_not_
     spec = parse_model_config({"terms": {"inertia": {"M_kg": "free"},
                                          "viscous": {"F_v_Ns_m": "free"},
                                          "coulomb": {"F_c_N": F_C_N}}})
-    verdict = run_closure(spec, Trace(t, x, force, name="one way")).result.final_verdict
+    result = run_closure(spec, Trace(t, x, force, name="one way")).result
+    verdict = result.final_verdict
     assert not verdict.describes
     assert any(r.startswith("the axis moved one way only (0.0% of the distance travelled")
                and r.endswith("coulomb cannot be told from an offset and a slope")
                for r in verdict.reasons), verdict.reasons
+    assert result.steps == ()
+    refused = {c.name: c.rejected for c in result.final_ranking}
+    assert refused["coulomb.F_c_N"] == ("the axis moved one way only (0.0% of the distance "
+                                        "travelled the other way): it cannot be told from an "
+                                        "offset and a slope"), "declared level not recalibrated"

@@ -265,17 +265,24 @@ def one_way_reason(kin: Kinematics) -> str | None:
             f"other way)")
 
 
-def refused_one_way(effect: Effect, kin: Kinematics) -> Candidate | None:
-    """A directional friction term or an effect seen after reversals, rejected before it
-    is fitted, on a record where the axis moved one way only (`one_way_reason`); None for
-    any other effect or record."""
-    why = ("it cannot be told from an offset and a slope" if effect.name in DIRECTIONAL else
-           "its signature follows a reversal, and there is none" if effect.name in
+def one_way_refusal(effect: str, kin: Kinematics) -> str | None:
+    """Why `effect` (a name) cannot be fitted, or recalibrated, on `kin`: a directional
+    friction term or an effect seen after reversals where the axis moved one way only
+    (`one_way_reason`); None for any other effect or record."""
+    why = ("it cannot be told from an offset and a slope" if effect in DIRECTIONAL else
+           "its signature follows a reversal, and there is none" if effect in
            AFTER_REVERSALS else None)
     reason = one_way_reason(kin) if why else None
+    return f"{reason}: {why}" if reason else None
+
+
+def refused_one_way(effect: Effect, kin: Kinematics) -> Candidate | None:
+    """The candidate `effect`, rejected before it is fitted (`one_way_refusal`); None where
+    it may be tried."""
+    reason = one_way_refusal(effect.name, kin)
     if reason is None:
         return None
-    return Candidate(effect.name, 0.0, "not screened", None, 0.0, 0.0, f"{reason}: {why}")
+    return Candidate(effect.name, 0.0, "not screened", None, 0.0, 0.0, reason)
 
 
 def at_bounds(model: Model) -> tuple[str, ...]:
@@ -436,12 +443,19 @@ def rank_candidates(current: Fit, kin: Kinematics, options: ClosureOptions) -> l
 def rank_recalibrations(current: Fit, kin: Kinematics,
                         options: ClosureOptions) -> list[Candidate]:
     """Every declared (fixed) parameter of `current` freed alone from its declared value,
-    the model's other nonlinear parameters held; best first."""
+    the model's other nonlinear parameters held; best first. A directional friction term's
+    or a reversal effect's parameter on a one-way record is rejected unfitted
+    (`one_way_refusal`): its new value would be an offset's."""
     held = _hold_nonlinear(current.model)
     tried = []
     for i, term in enumerate(current.model.terms):
+        refusal = one_way_refusal(term.effect.name, kin)
         for p in term.effect.parameters:
             if p.setting or p.key in term.free:
+                continue
+            if refusal:
+                tried.append(Candidate(f"{term.name}.{p.key}", 0.0, "not freed", None, 0.0,
+                                       0.0, refusal, (i, p.key)))
                 continue
             terms = list(held.terms)
             terms[i] = replace(term, free=terms[i].free | {p.key})
