@@ -26,7 +26,7 @@ from feedbench.config import ConfigError, Field, read_toml, validate_table
 if TYPE_CHECKING:
     from feedbench.analysis.closure import ClosureReport, ModelSpec, Trace
 
-EXAMPLES = Path(__file__).parent / "examples" / "closure"
+EXAMPLES = Path(__file__).parents[1] / "examples" / "closure"
 CASES_PATH = EXAMPLES / "cases.toml"
 EMPS_MODEL = EXAMPLES / "emps_rigid_viscous.toml"
 KUKA_MODEL = EXAMPLES / "kuka_joint.toml"
