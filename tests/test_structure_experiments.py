@@ -9,6 +9,8 @@ What they must show (thesis Ch. 4.3.1, 5.3.2, 5.5.3):
   anti-resonance and resonance are the flexure's f_t, f_r (Eqs. 4.13, 4.14).
 """
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -125,7 +127,7 @@ def test_structure_plans_are_checked_before_anything_moves():
 # -- plans and analysis steps (no bus) -----------------------------------------------------
 
 def test_windows_run_in_passes_within_the_stroke_and_never_across_a_reversal():
-    p = {"stroke_mm": 50.0, "settle_s": 0.2, "accel_m_s2": 1.0}
+    p = SimpleNamespace(stroke_mm=50.0, settle_s=0.2, accel_m_s2=1.0)
     windows = [ExcitationWindow(f"w{i}", np.full(1000, float(i + 1)), {"i": i}) for i in range(5)]
     segments, _, _ = windows_at_feed(windows, 1000.0, 0.0, p, 1e-3)
     excited = [s for s in segments if s.kind == "excite"]
@@ -144,8 +146,8 @@ def test_windows_run_in_passes_within_the_stroke_and_never_across_a_reversal():
 def test_sine_stream_holds_the_amplitude_where_the_actuator_allows():
     """Command = force / |F/u(f)|; below 15.9 Hz the ±1 mm stroke of the 2 kg mass bounds the
     force (m ω² stroke < 20 N): those steps are limited to what the actuator can give."""
-    p = sine_stream.SineStream.check({"f_start_Hz": 10.0, "f_stop_Hz": 20.0, "f_step_Hz": 1.0,
-                                      "actuator_stroke_mm": 1.0}, 1e-3)
+    p = sine_stream.SineStream({"f_start_Hz": 10.0, "f_stop_Hz": 20.0, "f_step_Hz": 1.0,
+                                "actuator_stroke_mm": 1.0}, 1e-3).params
     windows = sine_stream.step_windows(p, 20.0, 1e-3)
     actuator = InertialActuator(stroke=1e-3)
     limited = [w.info["frequency_hz"] for w in windows if w.info["limited"]]

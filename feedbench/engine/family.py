@@ -37,7 +37,7 @@ import dataclasses
 from dataclasses import dataclass
 from functools import cache
 from importlib import resources
-from typing import Any, ClassVar, Iterator, Mapping
+from typing import Any, ClassVar, Iterator, Mapping, Union
 
 from feedbench.analysis.checks import check, check_line, verdict, verdict_line
 from feedbench.config import ConfigError, Field, read_toml, registered, validate_table
@@ -105,16 +105,36 @@ class Experiment:
 
     def __init__(self, params: Mapping[str, Any], cycle_s: float) -> None:
         """Check `params` (the config's [experiment] table) for a bus cycle of `cycle_s` s;
-        raises `ConfigError` naming the field."""
+        raises `ConfigError` naming the field. The checked parameters are `self.params`,
+        typed (`typed`): what `plan` and `devices` read (``self.params.f_stop_Hz``), and
+        `self.settings`, the same as a dict: what the plan records (`Plan.params`, the
+        catalog's row) and a script re-runs (`api`)."""
         self.cycle_s = cycle_s
         self.settings: dict[str, Any] = self.check(params, cycle_s)
-        self.params = params_type(type(self))(**self.settings)
+        self.params = self.typed(self.settings)
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict[str, Any]:
         """The validated parameters with defaults filled in; a family adds its cross-field
         checks (a frequency below Nyquist, a start below a stop)."""
         return validate_table(params, cls.schema, "experiment")
+
+    @classmethod
+    def typed(cls, checked: Mapping[str, Any]) -> Any:
+        """Checked parameters (a dict as `check` returns it) as the family's frozen dataclass
+        (`params_type`)."""
+        return params_type(cls)(**checked)
+
+    @classmethod
+    def stored_params(cls, recording) -> Any:
+        """The typed parameters a recording ran with, what `analyze` reads: its stored
+        [experiment] table validated once against the schema (defaults filled in; a
+        `ConfigError` names ``experiment.<key>``). Not `check`'s cross-field checks: those
+        decide whether a run may start; a recorded run is analysed as it ran and judged by
+        its own checks (a friction sweep of 3 feeds: "3 feeds measured", not a refused
+        config)."""
+        return cls.typed(validate_table(recording.config["experiment"], cls.schema,
+                                        "experiment"))
 
     def plan(self) -> Plan:
         """The segments the runner executes, every setpoint computed before anything moves."""
@@ -247,9 +267,12 @@ def scalar_text(result: Mapping[str, Any]) -> str:
 
 @cache
 def params_type(family: type[Experiment]) -> type:
-    """The frozen dataclass of a family's parameters, one field per schema entry."""
-    return dataclasses.make_dataclass(f"{family.__name__}Params",
-                                      [(key, Any) for key in family.schema], frozen=True)
+    """The frozen dataclass of a family's parameters, one field per schema entry, typed as
+    the entry's `Field.kind` (a tuple of kinds: their union)."""
+    return dataclasses.make_dataclass(
+        f"{family.__name__}Params",
+        [(key, field.kind if isinstance(field.kind, type) else Union[field.kind])
+         for key, field in family.schema.items()], frozen=True)
 
 
 def families(distribution: str | None = None) -> dict[str, type[Experiment]]:

@@ -21,7 +21,7 @@ import numpy as np
 
 from feedbench.analysis.checks import check, positive_parameters
 from feedbench.analysis.stiffness import backlash_from_reversals
-from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
+from feedbench.config import ConfigError, Field, non_negative, one_of, positive
 from feedbench.engine.family import Example, Experiment, headline, percent_error
 from feedbench.engine.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import constant_feed_move
@@ -122,56 +122,56 @@ class BacklashReversal(Experiment):
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
         """The schema's checks, at least one motor, and a stroke that reaches the feed."""
-        p = validate_table(params, SCHEMA, "experiment")
+        p = super().check(params, cycle_s)
         if not p["motors"]:
             raise ConfigError("experiment.motors: must name at least one of master, slave")
-        if cls._cruise_s(p) <= 0.0:
+        if cls._cruise_s(cls.typed(p)) <= 0.0:
             raise ConfigError("experiment.stroke_um: too short to reach feed_mm_min at "
                               "accel_m_s2 (no constant-feed part)")
         return p
 
     @staticmethod
-    def _cruise_s(p: Mapping[str, Any]) -> float:
-        """Time at constant feed in one stroke (s)."""
-        feed = p["feed_mm_min"] * MM_PER_MIN
-        return p["stroke_um"] * 1e-6 / feed - feed / p["accel_m_s2"]
+    def _cruise_s(p: Any) -> float:
+        """Time at constant feed in one stroke (s) of the typed parameters `p`."""
+        feed = p.feed_mm_min * MM_PER_MIN
+        return p.stroke_um * 1e-6 / feed - feed / p.accel_m_s2
 
     def plan(self) -> Plan:
         """Per motor: uncouple (the segment's ``coupling`` command sets the axis controller,
         `axes.rack_pinion.AxisSettings`), then strokes (measured) and dwells, alternating."""
-        p, dt = self.settings, self.cycle_s
+        p, dt = self.params, self.cycle_s
         segments: list[Segment] = []
-        for motor in p["motors"]:
+        for motor in p.motors:
             segments.append(Segment(f"setup {motor}", "settle",
-                                    np.zeros(_cycles(p["setup_s"], dt)),
+                                    np.zeros(_cycles(p.setup_s, dt)),
                                     info={"motor": motor}, commands={"coupling": motor}))
             segments += self._strokes(motor)
-        return Plan(NAME, CSP, segments, p, dt)
+        return Plan(NAME, CSP, segments, self.settings, dt)
 
     def _strokes(self, motor: str) -> list[Segment]:
-        p, dt = self.settings, self.cycle_s
-        feed = SIGNS[p["direction"]] * p["feed_mm_min"] * MM_PER_MIN
+        p, dt = self.params, self.cycle_s
+        feed = SIGNS[p.direction] * p.feed_mm_min * MM_PER_MIN
         segments, x = [], 0.0
-        for i in range(p["reversals"] + 1):
-            path, _, _ = constant_feed_move(x, feed if i % 2 == 0 else -feed, p["accel_m_s2"],
+        for i in range(p.reversals + 1):
+            path, _, _ = constant_feed_move(x, feed if i % 2 == 0 else -feed, p.accel_m_s2,
                                             self._cruise_s(p), dt)
             x = float(path[-1])
             info = {"motor": motor, "stroke": i + 1}
             segments += [Segment(f"{motor} stroke {i + 1}", "measure", path, info=info),
                          Segment(f"{motor} dwell {i + 1}", "settle",
-                                 np.full(_cycles(p["dwell_s"], dt), x), info=info)]
+                                 np.full(_cycles(p.dwell_s, dt), x), info=info)]
         return segments
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
         """Backlash per motor: per reversal, mean and spread (m), and the strokes' loop of
         load against motor position (m). Live, the reversals completed so far."""
-        p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+        p = cls.stored_params(recording)
         windows = recorded_windows(recording, "measure", at_least=1 if final else 0)
         motors = {motor: [w for w in windows if w.info["motor"] == motor]
-                  for motor in p["motors"]}
+                  for motor in p.motors}
         result = {motor: _result_of_motor(recording, found, motor,
-                                          p[f"k_{motor}_N_um"] * N_PER_UM, final)
+                                          getattr(p, f"k_{motor}_N_um") * N_PER_UM, final)
                   for motor, found in motors.items() if found}
         return {"experiment": NAME, "motors": result, "checks": backlash_checks(result)}
 

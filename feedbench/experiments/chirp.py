@@ -8,6 +8,7 @@ a return move between repetitions keeps every sweep in one direction.
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from typing import Any, Iterator, Mapping
 
 import numpy as np
@@ -16,7 +17,7 @@ from feedbench.analysis.checks import (
     above_floor, averaged, measurable_velocity, peak_checks, slid,
 )
 from feedbench.analysis.frf import estimate_frf, findings_in_band
-from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
+from feedbench.config import ConfigError, Field, non_negative, one_of, positive
 from feedbench.engine.family import TRUTH_TITLE, Example, Experiment, percent_error
 from feedbench.engine.plan import Plan, Segment, Window, recorded_windows
 from feedbench.engine.preflight import check_amplitude_below_feed, check_feed
@@ -61,78 +62,77 @@ SCHEMA = {
 }
 
 
-def _validated(params: Mapping[str, Any], cycle_s: float) -> dict:
-    p = validate_table(params, SCHEMA, "experiment")
+def cross_checks(p: Any, cycle_s: float) -> None:
+    """The checks across fields of typed parameters `p` for a bus cycle of `cycle_s` s."""
     nyquist = 0.5 / cycle_s
-    if p["f_stop_Hz"] >= nyquist:
+    if p.f_stop_Hz >= nyquist:
         raise ConfigError(
             f"experiment.f_stop_Hz: must be below the bus Nyquist frequency {nyquist:g} Hz "
-            f"(got {p['f_stop_Hz']:g})"
+            f"(got {p.f_stop_Hz:g})"
         )
-    if p["f_start_Hz"] >= p["f_stop_Hz"]:
+    if p.f_start_Hz >= p.f_stop_Hz:
         raise ConfigError(
-            f"experiment.f_start_Hz: must be below f_stop_Hz ({p['f_stop_Hz']:g} Hz)"
+            f"experiment.f_start_Hz: must be below f_stop_Hz ({p.f_stop_Hz:g} Hz)"
         )
     mobility_band(p)
-    check_feed("experiment.feed_mm_min", p["feed_mm_min"], cycle_s)
+    check_feed("experiment.feed_mm_min", p.feed_mm_min, cycle_s)
     check_sweep_resolves(p)
-    if p["inject"] == "velocity":
-        check_amplitude_below_feed("experiment.amplitude_mm_min", p["amplitude_mm_min"],
-                                   p["feed_mm_min"])
-    return p
+    if p.inject == "velocity":
+        check_amplitude_below_feed("experiment.amplitude_mm_min", p.amplitude_mm_min,
+                                   p.feed_mm_min)
 
 
 MIN_PERIODS = 5
 """Periods of the lowest frequency a sweep record must hold for it to be resolved."""
 
 
-def check_sweep_resolves(p: Mapping[str, Any]) -> None:
+def check_sweep_resolves(p: Any) -> None:
     """A record (sweep and tail) holding `MIN_PERIODS` periods of ``f_start_Hz``, else a
     `ConfigError` naming ``experiment.duration_s``."""
-    record_s = p["duration_s"] + p["tail_s"]
-    if record_s * p["f_start_Hz"] < MIN_PERIODS:
+    record_s = p.duration_s + p.tail_s
+    if record_s * p.f_start_Hz < MIN_PERIODS:
         raise ConfigError(
-            f"experiment.duration_s = {p['duration_s']:g}: a {record_s:g} s record holds "
-            f"{record_s * p['f_start_Hz']:.2g} periods of f_start_Hz = {p['f_start_Hz']:g} Hz; "
+            f"experiment.duration_s = {p.duration_s:g}: a {record_s:g} s record holds "
+            f"{record_s * p.f_start_Hz:.2g} periods of f_start_Hz = {p.f_start_Hz:g} Hz; "
             f"it needs {MIN_PERIODS} to resolve the lowest frequency")
 
 
-def mobility_band(p: Mapping[str, Any]) -> tuple[float, float]:
-    """The band (Hz) searched for f_t and f_r, from validated params ``band_low_Hz`` and
+def mobility_band(p: Any) -> tuple[float, float]:
+    """The band (Hz) searched for f_t and f_r, from typed params ``band_low_Hz`` and
     ``band_high_Hz``; a low end not below the high end is a `ConfigError`."""
-    if p["band_low_Hz"] >= p["band_high_Hz"]:
+    if p.band_low_Hz >= p.band_high_Hz:
         raise ConfigError(
-            f"experiment.band_low_Hz: must be below band_high_Hz ({p['band_high_Hz']:g} Hz)"
+            f"experiment.band_low_Hz: must be below band_high_Hz ({p.band_high_Hz:g} Hz)"
         )
-    return p["band_low_Hz"], p["band_high_Hz"]
+    return p.band_low_Hz, p.band_high_Hz
 
 
-def build_plan(p: Mapping[str, Any], cycle_s: float) -> Plan:
-    """Accelerate, settle, sweep, stop, return — `repetitions` times (`p` validated).
+def build_plan(p: Any, cycle_s: float) -> Plan:
+    """Accelerate, settle, sweep, stop, return — `repetitions` times (`p` typed, checked).
 
     Every sweep runs in the same direction: direction-dependent friction (Fig. 5.11) makes
     the in-motion response direction-dependent, so alternating sweeps would not average.
     """
-    if p["inject"] == "force":
-        sweep = chirp(p["amplitude_N"], p["f_start_Hz"], p["f_stop_Hz"], p["duration_s"],
-                      cycle_s, p["sweep"])
+    if p.inject == "force":
+        sweep = chirp(p.amplitude_N, p.f_start_Hz, p.f_stop_Hz, p.duration_s,
+                      cycle_s, p.sweep)
     else:
-        sweep = chirp(p["amplitude_mm_min"] * MM_PER_MIN, p["f_start_Hz"], p["f_stop_Hz"],
-                      p["duration_s"], cycle_s, p["sweep"])
-    sweep = np.concatenate([sweep, np.zeros(int(round(p["tail_s"] / cycle_s)))])
-    n_settle = int(round(p["settle_s"] / cycle_s))
-    feed = SIGNS[p["direction"]] * p["feed_mm_min"] * MM_PER_MIN
-    up = ramp_to_feed(0.0, feed, p["accel_m_s2"], cycle_s) if feed else np.zeros(0)
-    down = ramp_to_feed(feed, 0.0, p["accel_m_s2"], cycle_s) if feed else np.zeros(0)
+        sweep = chirp(p.amplitude_mm_min * MM_PER_MIN, p.f_start_Hz, p.f_stop_Hz,
+                      p.duration_s, cycle_s, p.sweep)
+    sweep = np.concatenate([sweep, np.zeros(int(round(p.tail_s / cycle_s)))])
+    n_settle = int(round(p.settle_s / cycle_s))
+    feed = SIGNS[p.direction] * p.feed_mm_min * MM_PER_MIN
+    up = ramp_to_feed(0.0, feed, p.accel_m_s2, cycle_s) if feed else np.zeros(0)
+    down = ramp_to_feed(feed, 0.0, p.accel_m_s2, cycle_s) if feed else np.zeros(0)
     cruise = np.full(n_settle + len(sweep), feed)
     path = integrate_velocity(np.concatenate([up, cruise, down]), 0.0, cycle_s)
-    back = move_to(float(path[-1]), 0.0, p["return_feed_mm_min"] * MM_PER_MIN,
-                   p["accel_m_s2"], cycle_s)
+    back = move_to(float(path[-1]), 0.0, p.return_feed_mm_min * MM_PER_MIN,
+                   p.accel_m_s2, cycle_s)
     a, b = len(up), len(up) + n_settle
     c = b + len(sweep)
-    offset = {"force_offset" if p["inject"] == "force" else "velocity_offset": sweep}
+    offset = {"force_offset" if p.inject == "force" else "velocity_offset": sweep}
     segments: list[Segment] = []
-    for rep in range(p["repetitions"]):
+    for rep in range(p.repetitions):
         info = {"repetition": rep, "feed_mm_min": feed / MM_PER_MIN}
         segments += [
             Segment(f"accelerate sweep {rep + 1}", "move", path[:a], info=info),
@@ -141,7 +141,7 @@ def build_plan(p: Mapping[str, Any], cycle_s: float) -> Plan:
             Segment(f"stop sweep {rep + 1}", "move", path[c:], info=info),
             Segment(f"return after sweep {rep + 1}", "move", back, info=info),
         ]
-    return Plan(NAME, CSP, [s for s in segments if s.n_cycles], p, cycle_s)
+    return Plan(NAME, CSP, [s for s in segments if s.n_cycles], asdict(p), cycle_s)
 
 
 def sweep_records(recording, windows: list[Window]) -> tuple[np.ndarray, np.ndarray]:
@@ -197,7 +197,7 @@ def analyze_recording(recording) -> dict:
     slid, at least two sweeps averaged (one has a coherence of 1 by construction), f_t and
     f_r are modes with a high coherence, not the band's edges.
     """
-    p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+    p = Chirp.stored_params(recording)
     band = mobility_band(p)
     windows = recorded_windows(recording, "excite", at_least=1)
     force, velocity = sweep_records(recording, windows)
@@ -206,7 +206,7 @@ def analyze_recording(recording) -> dict:
     est = estimate_frf(force, velocity, fs, nperseg=n, overlap=0.0, window="boxcar")
     f_t, f_r = mobility_extrema(est.f, est.H1, band)
     inside = (est.f >= band[0]) & (est.f <= band[1])
-    warnings, details = findings_in_band(est, (p["f_start_Hz"], p["f_stop_Hz"]))
+    warnings, details = findings_in_band(est, (p.f_start_Hz, p.f_stop_Hz))
     checks = [*sweep_checks(recording, p, windows), averaged(len(windows), "sweeps"),
               *peak_checks([(name, f_x, est.f[inside], est.coherence[inside])
                             for name, f_x in (("f_t", f_t), ("f_r", f_r))], MIN_COHERENCE)]
@@ -226,7 +226,7 @@ def analyze_recording(recording) -> dict:
     }
 
 
-def sweep_checks(recording, p: Mapping[str, Any], windows: list[Window]) -> list[dict]:
+def sweep_checks(recording, p: Any, windows: list[Window]) -> list[dict]:
     """The excitation reached the axis: the motor force of the sweeps not constant (a
     channel read), their motor velocity above the measurable one (the axis moved under the
     excitation), and at a feed the axis slid through every sweep (`slid`)."""
@@ -237,8 +237,8 @@ def sweep_checks(recording, p: Mapping[str, Any], windows: list[Window]) -> list
               above_floor("motor velocity", velocity, slowest, "m/s",
                           "the axis did not move under the excitation (stuck in its stiction "
                           "band, or the amplitude too small)")]
-    if p["feed_mm_min"]:
-        checks.append(slid(velocity, SIGNS[p["direction"]] * p["feed_mm_min"] * MM_PER_MIN,
+    if p.feed_mm_min:
+        checks.append(slid(velocity, SIGNS[p.direction] * p.feed_mm_min * MM_PER_MIN,
                            slowest))
     return checks
 
@@ -278,10 +278,12 @@ class Chirp(Experiment):
 
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
-        return _validated(params, cycle_s)
+        p = super().check(params, cycle_s)
+        cross_checks(cls.typed(p), cycle_s)
+        return p
 
     def plan(self) -> Plan:
-        return build_plan(self.settings, self.cycle_s)
+        return build_plan(self.params, self.cycle_s)
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:

@@ -26,7 +26,7 @@ import numpy as np
 from feedbench.analysis.checks import check, peak_checks
 from feedbench.analysis.servo import open_loop_mobility
 from feedbench.analysis.sinefit import stepped_sine_frf
-from feedbench.config import ConfigError, Field, one_of, positive, validate_table
+from feedbench.config import ConfigError, Field, one_of, positive
 from feedbench.experiments.chirp import SCHEMA as CHIRP_SCHEMA
 from feedbench.experiments.chirp import extrema_text, mobility_band, mobility_extrema
 from feedbench.engine.family import Example, Experiment, headline
@@ -68,16 +68,16 @@ MIN_BAND_POINTS = 3
 """Frequencies the mobility's extrema need in the band: a resonance with a point below it."""
 
 
-def frequencies(p: Mapping[str, Any]) -> np.ndarray:
+def frequencies(p: Any) -> np.ndarray:
     """The discrete frequencies (Hz), start to stop inclusive."""
-    count = int(np.floor((p["f_stop_Hz"] - p["f_start_Hz"]) / p["f_step_Hz"] + 1e-9)) + 1
-    return p["f_start_Hz"] + p["f_step_Hz"] * np.arange(count)
+    count = int(np.floor((p.f_stop_Hz - p.f_start_Hz) / p.f_step_Hz + 1e-9)) + 1
+    return p.f_start_Hz + p.f_step_Hz * np.arange(count)
 
 
-def _sine_steps(p: Mapping[str, Any], cycle_s: float) -> list[tuple[float, np.ndarray]]:
+def _sine_steps(p: Any, cycle_s: float) -> list[tuple[float, np.ndarray]]:
     """Per frequency the velocity excitation (m/s) per cycle, phase-continuous."""
-    amplitude = p["amplitude_mm_min"] * MM_PER_MIN
-    periods = p["settle_cycles"] + p["cycles_per_frequency"]
+    amplitude = p.amplitude_mm_min * MM_PER_MIN
+    periods = p.settle_cycles + p.cycles_per_frequency
     steps, phase = [], 0.0
     for f in frequencies(p):
         n = int(round(periods / (f * cycle_s)))
@@ -102,10 +102,10 @@ def _pass_groups(steps: list[tuple[float, np.ndarray]], travel_per_cycle: float,
 
 
 def _pass(group: list[tuple[float, np.ndarray]], velocity: float, x0: float, n_settle: int,
-          p: Mapping[str, Any], cycle_s: float) -> tuple[list[Segment], float]:
+          p: Any, cycle_s: float) -> tuple[list[Segment], float]:
     """One pass at `velocity` (m/s) from x0 (m); returns its segments and end position."""
-    up = ramp_to_feed(0.0, velocity, p["accel_m_s2"], cycle_s)
-    down = ramp_to_feed(velocity, 0.0, p["accel_m_s2"], cycle_s)
+    up = ramp_to_feed(0.0, velocity, p.accel_m_s2, cycle_s)
+    down = ramp_to_feed(velocity, 0.0, p.accel_m_s2, cycle_s)
     feed = np.concatenate([up, np.full(n_settle + sum(len(s) for _, s in group), velocity), down])
     path = integrate_velocity(feed, x0, cycle_s)
     cuts = np.cumsum([0, len(up), n_settle] + [len(s) for _, s in group])
@@ -117,7 +117,7 @@ def _pass(group: list[tuple[float, np.ndarray]], velocity: float, x0: float, n_s
     for (f, sine), a, b in zip(group, cuts[2:-1], cuts[3:]):
         target = path[a:b]
         offset = None
-        if p["loop"] == "velocity":
+        if p.loop == "velocity":
             offset = sine
         else:
             target = target + integrate_velocity(sine, 0.0, cycle_s)
@@ -140,17 +140,17 @@ def loop_signals(recording, window, loop: str) -> tuple[np.ndarray, np.ndarray]:
     return np.diff(channels["x_ref"][rows]), np.diff(channels["position"][rows])
 
 
-def measured_loop(recording, p: Mapping[str, Any]) -> dict:
+def measured_loop(recording, p: Any) -> dict:
     """FRF points of every frequency with R² (Ch. 5.5.3, `analysis.sinefit`); points below
     the quality gate are flagged: listed with their |H|, phase (rad) and R², not used."""
     fs = 1.0 / float(recording.metadata["cycle_s"])
     f, H, r2, flagged = [], [], [], []
     for window in recorded_windows(recording, "excite"):
-        reference, response = loop_signals(recording, window, p["loop"])
+        reference, response = loop_signals(recording, window, p.loop)
         frequency = float(window.info["frequency_hz"])
         fit = stepped_sine_frf(reference, response, fs, [(frequency, 0, len(reference))],
-                               p["settle_cycles"])
-        if fit.r_squared[0] < p["r_squared_min"]:
+                               p.settle_cycles)
+        if fit.r_squared[0] < p.r_squared_min:
             flagged.append({"frequency_hz": frequency, "r_squared": float(fit.r_squared[0]),
                             "abs": float(np.abs(fit.H[0])),
                             "phase_rad": float(np.angle(fit.H[0]))})
@@ -201,10 +201,10 @@ def bandwidth_text(result: Mapping[str, Any]) -> str:
     return f"bandwidth {result['bandwidth_hz']:.1f} Hz"
 
 
-def loop_checks(result: Mapping[str, Any], p: Mapping[str, Any]) -> list[dict]:
+def loop_checks(result: Mapping[str, Any], p: Any) -> list[dict]:
     """The points' sine fits at least the gate (R², Ch. 5.5.3), none flagged, and the
     mobility's f_t and f_r inside the band with a good fit at each."""
-    gate, low = p["r_squared_min"], result["min_r_squared"]
+    gate, low = p.r_squared_min, result["min_r_squared"]
     flagged = result["flagged"]
     checks = [
         check("min R² of the points used", "none" if low is None else f"{low:.5f}",
@@ -271,36 +271,38 @@ class ClosedLoopBode(Experiment):
         """A measurable feed the excitation stays below (`preflight`), frequencies below a
         quarter of the bus rate; the velocity loop needs `MIN_BAND_POINTS` of them in the
         mobility band."""
-        p = validate_table(params, SCHEMA, "experiment")
-        check_feed("experiment.feed_mm_min", p["feed_mm_min"], cycle_s)
-        check_amplitude_below_feed("experiment.amplitude_mm_min", p["amplitude_mm_min"],
-                                   p["feed_mm_min"])
-        if not p["f_start_Hz"] <= p["f_stop_Hz"] < 0.25 / cycle_s:
+        settings = super().check(params, cycle_s)
+        p = cls.typed(settings)
+        check_feed("experiment.feed_mm_min", p.feed_mm_min, cycle_s)
+        check_amplitude_below_feed("experiment.amplitude_mm_min", p.amplitude_mm_min,
+                                   p.feed_mm_min)
+        if not p.f_start_Hz <= p.f_stop_Hz < 0.25 / cycle_s:
             raise ConfigError(f"experiment.f_stop_Hz: must lie at or above f_start_Hz and below "
                               f"{0.25 / cycle_s:g} Hz (4 samples per period at the bus cycle)")
         low, high = mobility_band(p)
         f = frequencies(p)
         in_band = int(np.sum((f >= low) & (f <= high)))
-        if p["loop"] == "velocity" and in_band < MIN_BAND_POINTS:
+        if p.loop == "velocity" and in_band < MIN_BAND_POINTS:
             raise ConfigError(f"experiment.f_start_Hz: the open-loop mobility (Eq. 4.20) is read "
                               f"in {low:g}–{high:g} Hz and needs at least {MIN_BAND_POINTS} "
                               f"frequencies there (f_start_Hz … f_stop_Hz by f_step_Hz give "
                               f"{in_band})")
-        return p
+        return settings
 
     def plan(self) -> Plan:
         """Passes at the feed, each: accelerate, settle, frequencies back to back, stop."""
-        p, cycle_s = self.settings, self.cycle_s
-        speed = p["feed_mm_min"] * MM_PER_MIN
-        n_settle = int(round(p["settle_s"] / cycle_s))
-        stroke = p["stroke_mm"] * 1e-3 - n_settle * speed * cycle_s
+        p, cycle_s = self.params, self.cycle_s
+        speed = p.feed_mm_min * MM_PER_MIN
+        n_settle = int(round(p.settle_s / cycle_s))
+        stroke = p.stroke_mm * 1e-3 - n_settle * speed * cycle_s
         segments: list[Segment] = []
         x, direction = 0.0, 1.0
         for group in _pass_groups(_sine_steps(p, cycle_s), speed * cycle_s, stroke):
             more, x = _pass(group, direction * speed, x, n_settle, p, cycle_s)
             segments += more
             direction = -direction
-        return Plan(NAME, CSV if p["loop"] == "velocity" else CSP, segments, p, cycle_s)
+        return Plan(NAME, CSV if p.loop == "velocity" else CSP, segments, self.settings,
+                    cycle_s)
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
@@ -310,19 +312,19 @@ class ClosedLoopBode(Experiment):
         SI: frequencies Hz, mobility m/(N·s); gains from `metadata.drive_gains` (K_p N·s/m,
         T_i s).
         """
-        p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+        p = cls.stored_params(recording)
         loop = measured_loop(recording, p)
         f, H = loop["f"], loop["H"]
         band_hz, why = bandwidth_and_reason(f, H)
-        result = {"experiment": NAME, "loop": p["loop"], "feed_mm_min": p["feed_mm_min"],
+        result = {"experiment": NAME, "loop": p.loop, "feed_mm_min": p.feed_mm_min,
                   "frequencies_planned": len(frequencies(p)),
-                  "r_squared_min": p["r_squared_min"], "flagged": loop["flagged"],
+                  "r_squared_min": p.r_squared_min, "flagged": loop["flagged"],
                   "min_r_squared": min(loop["r_squared"], default=None),
                   "bandwidth_hz": band_hz, "bandwidth_note": why,
                   "frf": {"f_hz": f.tolist(), "abs": np.abs(H).tolist(),
                           "phase_rad": np.angle(H).tolist(), "r_squared": loop["r_squared"]}}
         gains = recording.metadata.get("drive_gains")
-        if p["loop"] == "velocity" and gains:
+        if p.loop == "velocity" and gains:
             try:
                 result["mobility"] = open_loop(f, H, gains, mobility_band(p))
             except ValueError:

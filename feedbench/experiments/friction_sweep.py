@@ -16,7 +16,7 @@ import numpy as np
 
 from feedbench.analysis.checks import check, positive_parameters
 from feedbench.analysis.friction import FrictionFit, fit_andersson
-from feedbench.config import ConfigError, Field, non_negative, one_of, positive, validate_table
+from feedbench.config import ConfigError, Field, non_negative, one_of, positive
 from feedbench.engine.family import TRUTH_TITLE, Example, Experiment, headline, percent_error
 from feedbench.engine.plan import Plan, Segment, Window, recorded_windows
 from feedbench.engine.preflight import check_feeds
@@ -94,10 +94,10 @@ def steady_windows(velocity: np.ndarray, force: np.ndarray, windows: list[Window
     return np.array(steady, dtype=bool)
 
 
-def settle_cycles(p: Mapping[str, Any], feed_mm_min: float, cycle_s: float) -> int:
+def settle_cycles(p: Any, feed_mm_min: float, cycle_s: float) -> int:
     """Bus cycles at a feed before its measure window: the longer of ``settle_s`` and
     ``settle_mm`` travelled at the feed."""
-    return int(round(max(p["settle_s"], p["settle_mm"] / feed_mm_min * 60.0) / cycle_s))
+    return int(round(max(p.settle_s, p.settle_mm / feed_mm_min * 60.0) / cycle_s))
 
 
 def axis_signals(channels: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -294,7 +294,7 @@ class FrictionSweep(Experiment):
         """The schema's checks, then what the analysis needs, before anything moves: every
         feed measurable (`preflight.check_feeds`), at least `MIN_FEEDS` different feeds and
         both directions."""
-        p = validate_table(params, SCHEMA, "experiment")
+        p = super().check(params, cycle_s)
         check_feeds("experiment.feeds_mm_min", p["feeds_mm_min"], cycle_s)
         feeds = len(set(p["feeds_mm_min"]))
         if feeds < MIN_FEEDS:
@@ -308,15 +308,15 @@ class FrictionSweep(Experiment):
 
     def plan(self) -> Plan:
         """Back-and-forth constant-feed moves, one pair per feed, each measured after settling."""
-        p, cycle_s = self.settings, self.cycle_s
+        p, cycle_s = self.params, self.cycle_s
         segments: list[Segment] = []
         x = 0.0
-        for feed_mm_min in p["feeds_mm_min"]:
+        for feed_mm_min in p.feeds_mm_min:
             settle = settle_cycles(p, feed_mm_min, cycle_s)
             for direction, sign in SIGNS.items():
                 path, cruise_start, cruise_stop = constant_feed_move(
-                    x, sign * feed_mm_min * MM_PER_MIN, p["accel_m_s2"],
-                    settle * cycle_s + p["measure_s"], cycle_s)
+                    x, sign * feed_mm_min * MM_PER_MIN, p.accel_m_s2,
+                    settle * cycle_s + p.measure_s, cycle_s)
                 settle_stop = cruise_start + settle
                 info = {"feed_mm_min": sign * feed_mm_min}
                 label = f"{direction} {feed_mm_min:g} mm/min"
@@ -329,7 +329,7 @@ class FrictionSweep(Experiment):
                     Segment(f"stop {label}", "move", path[cruise_stop:], info=info),
                 ]
                 x = float(path[-1])
-        return Plan(NAME, CSP, segments, p, cycle_s)
+        return Plan(NAME, CSP, segments, self.settings, cycle_s)
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
@@ -340,7 +340,7 @@ class FrictionSweep(Experiment):
         are fitted; ``points.steady`` tells which; R² is over the points fitted. `final` False
         (live): a direction with fewer than `MIN_FEEDS` points is left out instead of refused.
         """
-        params = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+        p = cls.stored_params(recording)
         windows = recorded_windows(recording, "measure")
         signals = axis_signals(recording.channels)
         v, f = friction_points(*signals, windows)
@@ -349,7 +349,7 @@ class FrictionSweep(Experiment):
         sides = {direction: (np.sign(v) == sign) & steady for direction, sign in SIGNS.items()}
         if final:
             _check_feeds(recording, sides)
-        k_tanh = params["k_tanh_min_mm"] * MIN_PER_MM
+        k_tanh = p.k_tanh_min_mm * MIN_PER_MM
         fits = {direction: _fit_summary(fit_andersson(v[side], f[side], k_tanh=k_tanh))
                 for direction, side in sides.items() if side.sum() >= MIN_FEEDS}
         result = {"experiment": NAME, "points": {"velocity_m_s": v.tolist(), "force_N": f.tolist(),

@@ -20,7 +20,7 @@ import numpy as np
 
 from feedbench.analysis.checks import averaged, check
 from feedbench.analysis.frf import HammerFrf, accelerance_to_receptance, quasi_frf
-from feedbench.config import ConfigError, Field, positive, validate_table
+from feedbench.config import ConfigError, Field, positive
 from feedbench.engine.family import Example, Experiment, headline
 from feedbench.engine.preflight import check_feeds
 from feedbench.engine.plan import Plan
@@ -68,14 +68,14 @@ THESIS_INVARIANT_FEED_MM_MIN = 500.0
 """Fig. 5.12: the in-motion FRF becomes invariant above ≈ 500 mm/min (DIGEST §3)."""
 
 
-def hit_windows(p: Mapping[str, Any], cycle_s: float) -> list[ExcitationWindow]:
+def hit_windows(p: Any, cycle_s: float) -> list[ExcitationWindow]:
     """One record per hit: the hit fires `pretrigger_s` after the record starts."""
-    n = int(round(p["record_s"] / cycle_s))
-    fire = int(round(p["pretrigger_s"] / cycle_s))
+    n = int(round(p.record_s / cycle_s))
+    fire = int(round(p.pretrigger_s / cycle_s))
     command = np.zeros(n)
-    command[fire] = p["hit_force_N"]
+    command[fire] = p.hit_force_N
     return [ExcitationWindow(f"hit {i + 1}", command, {"hit": i})
-            for i in range(p["hits_per_feed"])]
+            for i in range(p.hits_per_feed)]
 
 
 def feed_records(recording) -> tuple[dict[float, tuple[np.ndarray, np.ndarray]], list[str]]:
@@ -130,17 +130,17 @@ def _feed_summary(feed: float, frf: HammerFrf, band: tuple[float, float]) -> dic
     }
 
 
-def feed_summaries(recording, p: Mapping[str, Any]) -> tuple[list[dict], list[str]]:
+def feed_summaries(recording, p: Any) -> tuple[list[dict], list[str]]:
     """The quasi-FRF (Eq. 5.3) of each feed's hits, lowest feed first, read in the band of
     `p` (validated parameters); feeds whose every hit is flagged are noted instead."""
     fs = recording.streams["daq"].rate_hz
-    band = (p["band_low_Hz"], p["band_high_Hz"])
+    band = (p.band_low_Hz, p.band_high_Hz)
     records, notes = feed_records(recording)
     summaries = []
     for feed in sorted(records):
         forces, responses = records[feed]
         try:
-            frf = quasi_frf(forces, responses, fs, p["force_window_s"], p["exp_decay_s"],
+            frf = quasi_frf(forces, responses, fs, p.force_window_s, p.exp_decay_s,
                             force_range=full_scale(FORCE_CHANNEL))
         except ValueError as error:  # every hit of the feed flagged
             notes.append(f"{feed:g} mm/min: {error}")
@@ -195,7 +195,7 @@ class ImpactHammer(Experiment):
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
         """The schema's checks, measurable feeds, a pre-trigger inside the record, a feed,
         and enough frequency lines (1/record_s apart) in the band for a peak."""
-        p = validate_table(params, SCHEMA, "experiment")
+        p = super().check(params, cycle_s)
         check_feeds("experiment.feeds_mm_min", p["feeds_mm_min"], cycle_s)
         if p["pretrigger_s"] >= p["record_s"]:
             raise ConfigError("experiment.pretrigger_s: must be shorter than record_s")
@@ -213,13 +213,13 @@ class ImpactHammer(Experiment):
 
     def plan(self) -> Plan:
         """Hits at each feed in turn (CSP), passes within the stroke."""
-        windows = hit_windows(self.settings, self.cycle_s)
-        return plan_over_feeds(NAME, CSP, self.settings["feeds_mm_min"], lambda feed: windows,
-                               self.settings, self.cycle_s, EXCITER)
+        windows = hit_windows(self.params, self.cycle_s)
+        return plan_over_feeds(NAME, CSP, self.params.feeds_mm_min, lambda feed: windows,
+                               self.params, self.cycle_s, EXCITER)
 
     def devices(self) -> dict[str, dict[str, Any]]:
         """The DAQ (hammer force, tool-tip acceleration) and the I/O module firing the hammer."""
-        return daq_needs(self.settings, EXCITER)
+        return daq_needs(self.params, EXCITER)
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
@@ -229,7 +229,7 @@ class ImpactHammer(Experiment):
         configured). The hits so far (live) are analysed the same way; a run stopped before
         its first usable hit gives a result without feeds, not valid (`records_check`), a
         complete one a `ConfigError`."""
-        p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+        p = cls.stored_params(recording)
         summaries, notes = feed_summaries(recording, p)
         if not summaries and (not final or recording.status == "complete"):
             raise ConfigError(f"{recording.path}: no usable hammer hit recorded "
@@ -239,7 +239,7 @@ class ImpactHammer(Experiment):
             summary["distance_to_highest_feed"] = frf_distance(compliances[-1], compliance)
             summary["distance_to_lowest_feed"] = frf_distance(compliances[0], compliance)
         feeds = [x["feed_mm_min"] for x in summaries]
-        tolerance = p["invariance_tolerance"]
+        tolerance = p.invariance_tolerance
         return {
             "experiment": NAME,
             "feeds": summaries,

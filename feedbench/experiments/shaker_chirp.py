@@ -17,14 +17,14 @@ import numpy as np
 
 from feedbench.analysis.checks import averaged
 from feedbench.analysis.frf import accelerance_to_receptance, estimate_frf, findings_in_band
-from feedbench.config import ConfigError, Field, one_of, positive, validate_table
+from feedbench.config import ConfigError, Field, one_of, positive
 from feedbench.engine.family import Example, Experiment, headline
 from feedbench.engine.preflight import check_feeds
 from feedbench.engine.plan import Plan
 from feedbench.experiments.signals import chirp
 from feedbench.experiments.tool_tip import (
     FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL, TIP_ACCELERATION,
-    ExcitationWindow, exciter_channel, tip_force,
+    ExcitationWindow, tip_force,
     compliance_plot, daq_needs, feed_frf_panels, feed_frf_summary, feed_lobes,
     feed_checks, feed_text, overloaded, plan_over_feeds, records_check, whole_windows,
     window_samples,
@@ -134,7 +134,7 @@ class ShakerChirp(Experiment):
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
         """The schema's checks, measurable feeds and a sweep of at least 4 commands per
         period."""
-        p = validate_table(params, SCHEMA, "experiment")
+        p = super().check(params, cycle_s)
         check_feeds("experiment.feeds_mm_min", p["feeds_mm_min"], cycle_s)
         if not p["f_start_Hz"] < p["f_stop_Hz"] < 0.25 / cycle_s:
             raise ConfigError(f"experiment.f_stop_Hz: must lie above f_start_Hz and below "
@@ -144,29 +144,29 @@ class ShakerChirp(Experiment):
     def plan(self) -> Plan:
         """`repetitions` sweeps, each followed by `tail_s` at zero, at each feed (CSP),
         passes within the stroke."""
-        p = self.settings
-        sweep = chirp(p["amplitude_N"], p["f_start_Hz"], p["f_stop_Hz"], p["duration_s"],
-                      self.cycle_s, p["sweep"])
-        sweep = np.concatenate([sweep, np.zeros(int(round(p["tail_s"] / self.cycle_s)))])
+        p = self.params
+        sweep = chirp(p.amplitude_N, p.f_start_Hz, p.f_stop_Hz, p.duration_s,
+                      self.cycle_s, p.sweep)
+        sweep = np.concatenate([sweep, np.zeros(int(round(p.tail_s / self.cycle_s)))])
         windows = [ExcitationWindow(f"sweep {i + 1}", sweep, {"repetition": i})
-                   for i in range(p["repetitions"])]
-        return plan_over_feeds(NAME, CSP, p["feeds_mm_min"], lambda feed: windows, p,
-                               self.cycle_s, p["exciter"])
+                   for i in range(p.repetitions)]
+        return plan_over_feeds(NAME, CSP, p.feeds_mm_min, lambda feed: windows, p,
+                               self.cycle_s, p.exciter)
 
     def devices(self) -> dict[str, dict[str, Any]]:
         """The DAQ (exciter force, tool-tip acceleration) and the I/O module driving the
         exciter."""
-        return daq_needs(self.settings, self.settings["exciter"])
+        return daq_needs(self.params, self.params.exciter)
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
         """Tool-tip FRF per feed (`feed_frf`) in the swept range; the sweeps so far (live)
         are analysed the same way; none usable (a run stopped before its first whole sweep):
         a result without feeds, not valid (`records_check`)."""
-        p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
-        band = (p["f_start_Hz"], p["f_stop_Hz"])
+        p = cls.stored_params(recording)
+        band = (p.f_start_Hz, p.f_stop_Hz)
         fs = recording.streams["daq"].rate_hz
-        records, notes = sweep_records(recording, FORCE_CHANNELS[p["exciter"]])
+        records, notes = sweep_records(recording, FORCE_CHANNELS[p.exciter])
         feeds = []
         for feed, sweeps in sorted(records.items()):
             try:
@@ -210,7 +210,7 @@ class ShakerChirp(Experiment):
     @classmethod
     def frfs(cls, result: Mapping[str, Any], recording) -> Iterator[ExchangeFrf]:
         """The tool-tip accelerance H1 of each feed, over the exciter's force."""
-        force = tip_force(exciter_channel(recording, SCHEMA))
+        force = tip_force(FORCE_CHANNELS[cls.stored_params(recording).exciter])
         for feed in result["feeds"]:
             frf = feed["frf"]
             yield ExchangeFrf("shaker_chirp: tool-tip accelerance H1",

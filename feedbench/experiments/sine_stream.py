@@ -24,13 +24,13 @@ import numpy as np
 from feedbench.analysis.checks import check, peak_checks
 from feedbench.analysis.frf import accelerance_to_receptance
 from feedbench.analysis.sinefit import stepped_sine_frf
-from feedbench.config import ConfigError, Field, one_of, positive, validate_table
+from feedbench.config import ConfigError, Field, one_of, positive
 from feedbench.engine.family import Example, Experiment, demo_examples, headline
 from feedbench.engine.preflight import check_feeds
 from feedbench.engine.plan import Plan, Window, recorded_windows
 from feedbench.experiments.tool_tip import (
     COMPLIANCE_LABEL, FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL,
-    TIP_ACCELERATION, ExcitationWindow, daq_needs, exciter_channel, feed_label, feed_text,
+    TIP_ACCELERATION, ExcitationWindow, daq_needs, feed_label, feed_text,
     overloaded, plan_over_feeds, tip_force, window_samples,
 )
 from feedbench.experiments.shaker_chirp import ShakerChirp
@@ -74,19 +74,19 @@ SCHEMA = {
 }
 
 
-def frequencies(p: Mapping[str, Any]) -> np.ndarray:
+def frequencies(p: Any) -> np.ndarray:
     """The step frequencies (Hz), start to stop inclusive."""
-    count = int(np.floor((p["f_stop_Hz"] - p["f_start_Hz"]) / p["f_step_Hz"] + 1e-9)) + 1
-    return p["f_start_Hz"] + p["f_step_Hz"] * np.arange(count)
+    count = int(np.floor((p.f_stop_Hz - p.f_start_Hz) / p.f_step_Hz + 1e-9)) + 1
+    return p.f_start_Hz + p.f_step_Hz * np.arange(count)
 
 
-def exciter_model(p: Mapping[str, Any]) -> tuple[ExciterDynamics, Any]:
+def exciter_model(p: Any) -> tuple[ExciterDynamics, Any]:
     """The exciter's force transfer and its force capability f → largest amplitude (N)."""
-    if p["exciter"] == "shaker":
-        dynamics = shaker(p["shaker_corner_Hz"], p["shaker_limit_N"])
-        return dynamics, lambda f: p["shaker_limit_N"] * np.abs(dynamics.response(f))
-    actuator = InertialActuator(p["actuator_mass_kg"], p["actuator_f_Hz"], p["actuator_zeta"],
-                                p["actuator_limit_N"], p["actuator_stroke_mm"] * 1e-3)
+    if p.exciter == "shaker":
+        dynamics = shaker(p.shaker_corner_Hz, p.shaker_limit_N)
+        return dynamics, lambda f: p.shaker_limit_N * np.abs(dynamics.response(f))
+    actuator = InertialActuator(p.actuator_mass_kg, p.actuator_f_Hz, p.actuator_zeta,
+                                p.actuator_limit_N, p.actuator_stroke_mm * 1e-3)
     return actuator.dynamics(), actuator.max_force
 
 
@@ -98,21 +98,21 @@ def fade_in(n_cycles: int, n_total: int) -> np.ndarray:
     return gain
 
 
-def step_windows(p: Mapping[str, Any], amplitude: float, cycle_s: float) -> list[ExcitationWindow]:
+def step_windows(p: Any, amplitude: float, cycle_s: float) -> list[ExcitationWindow]:
     """The phase-continuous stream at one force amplitude: a window per step (and repeat);
     the first step fades in over its settle periods."""
     dynamics, capability = exciter_model(p)
     windows, phase = [], 0.0
-    periods = p["settle_cycles"] + p["cycles_per_step"]
+    periods = p.settle_cycles + p.cycles_per_step
     for i, f in enumerate(frequencies(p)):
         force = min(amplitude, float(capability(f)))
         command_amplitude = force / float(np.abs(dynamics.response(f)))
         n = int(round(periods / (f * cycle_s)))
-        for repeat in range(p["repeats_per_step"]):
+        for repeat in range(p.repeats_per_step):
             t = np.arange(1, n + 1) * cycle_s
             command = command_amplitude * np.sin(phase + 2.0 * np.pi * f * t)
             if not windows:
-                command *= fade_in(int(round(p["settle_cycles"] / (f * cycle_s))), n)
+                command *= fade_in(int(round(p.settle_cycles / (f * cycle_s))), n)
             phase += 2.0 * np.pi * f * n * cycle_s
             info = {"step": i, "repeat": repeat, "frequency_hz": float(f),
                     "amplitude_N": amplitude, "held_N": force, "limited": force < amplitude}
@@ -309,7 +309,7 @@ class SineStream(Experiment):
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
         """The schema's checks, measurable feeds, a stop not below the start, 4 commands per
         period at the bus cycle and a quality gate below 1."""
-        p = validate_table(params, SCHEMA, "experiment")
+        p = super().check(params, cycle_s)
         check_feeds("experiment.feeds_mm_min", p["feeds_mm_min"], cycle_s)
         if p["f_stop_Hz"] < p["f_start_Hz"]:
             raise ConfigError("experiment.f_stop_Hz: must not be below f_start_Hz")
@@ -322,15 +322,15 @@ class SineStream(Experiment):
 
     def plan(self) -> Plan:
         """The stream at every amplitude at each feed in turn (CSP)."""
-        p, cycle_s = self.settings, self.cycle_s
-        streams = [w for a in p["amplitudes_N"] for w in step_windows(p, a, cycle_s)]
-        return plan_over_feeds(NAME, CSP, p["feeds_mm_min"], lambda feed: streams, p, cycle_s,
-                               p["exciter"])
+        p, cycle_s = self.params, self.cycle_s
+        streams = [w for a in p.amplitudes_N for w in step_windows(p, a, cycle_s)]
+        return plan_over_feeds(NAME, CSP, p.feeds_mm_min, lambda feed: streams, p, cycle_s,
+                               p.exciter)
 
     def devices(self) -> dict[str, dict[str, Any]]:
         """The DAQ (exciter force, tool-tip acceleration) and the I/O module driving the
         exciter."""
-        return daq_needs(self.settings, self.settings["exciter"])
+        return daq_needs(self.params, self.params.exciter)
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
@@ -339,20 +339,20 @@ class SineStream(Experiment):
 
         SI: accelerance (m/s²)/N, compliance m/N, frequencies Hz; feeds mm/min, amplitudes N.
         """
-        p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+        p = cls.stored_params(recording)
         fs = recording.streams["daq"].rate_hz
-        force_channel = FORCE_CHANNELS[p["exciter"]]
+        force_channel = FORCE_CHANNELS[p.exciter]
         grouped: dict[tuple[float, float, int], list[tuple[dict, dict]]] = {}
         for window in recorded_windows(recording, "excite"):
-            fit = fit_step(recording, window, force_channel, fs, p["settle_cycles"],
-                           p["r_squared_min"])
+            fit = fit_step(recording, window, force_channel, fs, p.settle_cycles,
+                           p.r_squared_min)
             key = (abs(float(window.info["feed_mm_min"])), float(window.info["amplitude_N"]),
                    int(window.info["step"]))
             grouped.setdefault(key, []).append((fit, window.info))
         streams: dict[tuple[float, float], list[dict]] = {}
         for (feed, amplitude, _), fits in sorted(grouped.items()):
             step = _combine_repeats([fit for fit, _ in fits], fits[0][1],
-                                    p["amplitude_tolerance"])
+                                    p.amplitude_tolerance)
             streams.setdefault((feed, amplitude), []).append(step)
         summaries = [_stream_summary(feed, amplitude, steps)
                      for (feed, amplitude), steps in streams.items()]
@@ -363,11 +363,11 @@ class SineStream(Experiment):
             "amplitude_spread": {f"{feed:g}": amplitude_spread(
                 [s for s in summaries if s["feed_mm_min"] == feed]) for feed in feeds},
             "steps_flagged": sum(len(s["flagged"]) for s in summaries),
-            "steps_planned": (len(frequencies(p)) * len(p["amplitudes_N"])
-                              * len(p["feeds_mm_min"])),
-            "r_squared_min": p["r_squared_min"],
+            "steps_planned": (len(frequencies(p)) * len(p.amplitudes_N)
+                              * len(p.feeds_mm_min)),
+            "r_squared_min": p.r_squared_min,
             "min_r_squared": min((s["min_r_squared"] for s in summaries), default=float("nan")),
-            "checks": stream_checks(summaries, p["r_squared_min"]),
+            "checks": stream_checks(summaries, p.r_squared_min),
         }
 
     @classmethod
@@ -426,7 +426,7 @@ class SineStream(Experiment):
     @classmethod
     def frfs(cls, result: Mapping[str, Any], recording) -> Iterator[ExchangeFrf]:
         """The tool-tip accelerance of each stream (feed, amplitude), from the sine fits."""
-        force = tip_force(exciter_channel(recording, SCHEMA))
+        force = tip_force(FORCE_CHANNELS[cls.stored_params(recording).exciter])
         for stream in result["streams"]:
             frf = stream["frf"]
             yield ExchangeFrf("sine_stream: tool-tip accelerance (sine fits)",

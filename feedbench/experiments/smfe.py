@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import asdict
 from typing import Any, Mapping
 
 import numpy as np
@@ -41,7 +42,7 @@ from feedbench.analysis.smfe import (
     optimal_radial_engagement,
     smfe_estimate,
 )
-from feedbench.config import ConfigError, Field, one_of, positive, validate_table
+from feedbench.config import ConfigError, Field, one_of, positive
 from feedbench.engine.family import Example, Experiment, headline, percent_error
 from feedbench.engine.plan import Plan, Segment, recorded_windows
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
@@ -135,32 +136,32 @@ class SmfePlanningWarning(UserWarning):
     """The planned set of cuts is badly conditioned (C_th above `max_condition_number`)."""
 
 
-def planned_tool(p: Mapping[str, Any]) -> Tool:
+def planned_tool(p: Any) -> Tool:
     """The tool of the validated parameters."""
-    return Tool(D=p["tool_diameter_mm"] * 1e-3, Z=p["teeth"],
-                kappa=math.radians(p["lead_angle_deg"]))
+    return Tool(D=p.tool_diameter_mm * 1e-3, Z=p.teeth,
+                kappa=math.radians(p.lead_angle_deg))
 
 
-def planned_coefficients(p: Mapping[str, Any]) -> CuttingCoefficients:
+def planned_coefficients(p: Any) -> CuttingCoefficients:
     """The cutting coefficients the plan expects (SI), Eq. (6.3)."""
     return CuttingCoefficients(
-        K_tc=p["K_tc_N_mm2"] * 1e6, K_rc=p["K_rc_N_mm2"] * 1e6, K_ac=p["K_ac_N_mm2"] * 1e6,
-        K_te=p["K_te_N_mm"] * 1e3, K_re=p["K_re_N_mm"] * 1e3, K_ae=p["K_ae_N_mm"] * 1e3)
+        K_tc=p.K_tc_N_mm2 * 1e6, K_rc=p.K_rc_N_mm2 * 1e6, K_ac=p.K_ac_N_mm2 * 1e6,
+        K_te=p.K_te_N_mm * 1e3, K_re=p.K_re_N_mm * 1e3, K_ae=p.K_ae_N_mm * 1e3)
 
 
-def plan_engagement(p: Mapping[str, Any]) -> dict[str, Any]:
+def plan_engagement(p: Any) -> dict[str, Any]:
     """The planning step: radial engagements (mm) and the set's C_th, Sec. 6.3.1.
 
     Given engagements are checked; none given: `optimal_radial_engagement` with one
     engagement for every cut (Fig. 6.7). Raises `ConfigError` for a singular set, warns
     (`SmfePlanningWarning`) above `max_condition_number`.
     """
-    tool, coeffs, cuts = planned_tool(p), planned_coefficients(p), tuple(p["cuts"])
-    optimum = optimal_radial_engagement(tool, coeffs, cuts, p["f_z_mm"] * 1e-3)
-    if p["a_e_mm"]:
-        a_e = np.broadcast_to(np.asarray(p["a_e_mm"], dtype=float) * 1e-3, (len(cuts),))
+    tool, coeffs, cuts = planned_tool(p), planned_coefficients(p), tuple(p.cuts)
+    optimum = optimal_radial_engagement(tool, coeffs, cuts, p.f_z_mm * 1e-3)
+    if p.a_e_mm:
+        a_e = np.broadcast_to(np.asarray(p.a_e_mm, dtype=float) * 1e-3, (len(cuts),))
         condition = cut_set_condition_number(tuple(a_e / tool.D), tool, coeffs, cuts,
-                                             p["f_z_mm"] * 1e-3)
+                                             p.f_z_mm * 1e-3)
     else:
         a_e = np.asarray(optimum.a_e_over_D) * tool.D
         condition = optimum.condition_number
@@ -170,9 +171,9 @@ def plan_engagement(p: Mapping[str, Any]) -> dict[str, Any]:
     planning = {"a_e_mm": (a_e * 1e3).tolist(), "condition_number": condition,
                 "optimal_a_e_mm": (np.asarray(optimum.a_e_over_D) * tool.D * 1e3).tolist(),
                 "optimal_condition_number": optimum.condition_number, "warnings": []}
-    if condition > p["max_condition_number"]:
+    if condition > p.max_condition_number:
         message = (f"SMFE cuts {cuts} at a_e {np.round(a_e * 1e3, 2).tolist()} mm: C_th = "
-                   f"{condition:.1f} > {p['max_condition_number']:g}; the search gives "
+                   f"{condition:.1f} > {p.max_condition_number:g}; the search gives "
                    f"{planning['optimal_a_e_mm'][0]:.1f} mm (C_th {optimum.condition_number:.1f})")
         planning["warnings"].append(message)
         warnings.warn(message, SmfePlanningWarning, stacklevel=3)
@@ -202,30 +203,30 @@ def _point_to_point(x0: float, x1: float, v_max: float, accel: float, cycle_s: f
     return x0 + math.copysign(1.0, x1 - x0) * covered
 
 
-def build_plan(p: Mapping[str, Any], cycle_s: float) -> Plan:
+def build_plan(p: Any, cycle_s: float) -> Plan:
     """Spindle start, then per cut: approach, ramp cut, stop, spindle back; spindle stop,
     return (`p` validated)."""
     planning = plan_engagement(p)
-    f_z, Z = p["f_z_mm"] * 1e-3, p["teeth"]
-    n0, n1 = p["spindle_rpm_start"], p["spindle_rpm_stop"]
-    accel, spin = p["accel_m_s2"], p["spindle_accel_rpm_s"]
+    f_z, Z = p.f_z_mm * 1e-3, p.teeth
+    n0, n1 = p.spindle_rpm_start, p.spindle_rpm_stop
+    accel, spin = p.accel_m_s2, p.spindle_accel_rpm_s
     segments = [Segment("spindle start", "settle", _hold(0.0, n0 / spin + 0.5, cycle_s),
                         commands={"spindle_rpm": n0, "spindle_ramp_rpm_s": spin})]
     workpiece, x = [], 0.0
-    for k, (mode, a_e) in enumerate(zip(p["cuts"], planning["a_e_mm"])):
+    for k, (mode, a_e) in enumerate(zip(p.cuts, planning["a_e_mm"])):
         info = {"cut": k, "mode": mode, "a_e_mm": a_e}
         v0 = feed_for_speed(n0, f_z, Z)
         up = ramp_to_feed(0.0, v0, accel, cycle_s)
-        cruise = np.full(int(round(p["approach_mm"] * 1e-3 / v0 / cycle_s)), v0)
+        cruise = np.full(int(round(p.approach_mm * 1e-3 / v0 / cycle_s)), v0)
         approach = integrate_velocity(np.concatenate([up, cruise]), x, cycle_s)
-        n_ramp = int(round(p["ramp_s"] / cycle_s))
+        n_ramp = int(round(p.ramp_s / cycle_s))
         rpm = n0 + (n1 - n0) * np.arange(1, n_ramp + 1) / n_ramp
         cut = integrate_velocity(feed_for_speed(rpm, f_z, Z), float(approach[-1]), cycle_s)
         stop = integrate_velocity(ramp_to_feed(feed_for_speed(n1, f_z, Z), 0.0, accel, cycle_s),
                                   float(cut[-1]), cycle_s)
-        workpiece.append({"mode": mode, "a_e_mm": a_e, "a_p_mm": p["a_p_mm"],
+        workpiece.append({"mode": mode, "a_e_mm": a_e, "a_p_mm": p.a_p_mm,
                           "start_mm": float(approach[-1]) * 1e3, "stop_mm": float(cut[-1]) * 1e3})
-        ramp = {"spindle_rpm": n1, "spindle_ramp_rpm_s": (n1 - n0) / p["ramp_s"]}
+        ramp = {"spindle_rpm": n1, "spindle_ramp_rpm_s": (n1 - n0) / p.ramp_s}
         segments += [
             Segment(f"approach {mode}", "move", approach, info=info),
             Segment(f"{mode} milling ramp", "measure", cut, info=info, commands=ramp),
@@ -236,9 +237,10 @@ def build_plan(p: Mapping[str, Any], cycle_s: float) -> Plan:
         ]
         x = float(stop[-1])
     segments.append(Segment("return", "move", _point_to_point(
-        x, 0.0, p["return_feed_mm_min"] * MM_PER_MIN, accel, cycle_s),
+        x, 0.0, p.return_feed_mm_min * MM_PER_MIN, accel, cycle_s),
         commands={"spindle_rpm": 0.0, "spindle_ramp_rpm_s": spin}))
-    return Plan(NAME, CSP, segments, {**p, "planning": planning, "workpiece": workpiece}, cycle_s)
+    return Plan(NAME, CSP, segments, {**asdict(p), "planning": planning, "workpiece": workpiece},
+                cycle_s)
 
 
 Records = list[np.ndarray]
@@ -276,19 +278,19 @@ def cut_records(recording, d: int) -> tuple[Records, Records, Records, list[str]
             notes)
 
 
-def cuts_check(recording, p: Mapping[str, Any]) -> dict[str, Any]:
+def cuts_check(recording, p: Any) -> dict[str, Any]:
     """Every planned cut recorded (the receptances, Eq. 6.13, solve one equation per
     direction), each at least one Welch segment of `segment_s` long (`p` validated)."""
     stream = recording.streams["daq"]
     lengths = [int(np.count_nonzero((stream.cycle >= recording.cycle[w.start])
                                     & (stream.cycle <= recording.cycle[w.stop - 1])))
                for w in recorded_windows(recording, "measure")]
-    d, shortest = len(p["cuts"]), min(lengths, default=0) / stream.rate_hz
+    d, shortest = len(p.cuts), min(lengths, default=0) / stream.rate_hz
     return check("cuts recorded", f"{len(lengths)} of {d}"
                  + (f", the shortest {shortest:.2f} s" if lengths else ""),
-                 len(lengths) == d and shortest >= p["segment_s"],
+                 len(lengths) == d and shortest >= p.segment_s,
                  f"the receptances (Eq. 6.13) need all {d} cuts (one per direction), each at "
-                 f"least one Welch segment of {p['segment_s']:g} s: none computed")
+                 f"least one Welch segment of {p.segment_s:g} s: none computed")
 
 
 def _direct_peaks(result: SmfeResult, band: tuple[float, float]) -> list[dict[str, float]]:
@@ -317,21 +319,21 @@ def _side(result: SmfeResult, band: tuple[float, float]) -> dict[str, Any]:
                               for i, a in enumerate(axes)}}
 
 
-def analysis_band(p: Mapping[str, Any]) -> tuple[float, float]:
+def analysis_band(p: Any) -> tuple[float, float]:
     """Where the second harmonic of the tooth-passing frequency swept, 2·Z·N0/60 … 2·Z·N1/60
     (Hz; the first harmonic covers its lower half): below it only the start of the first
     harmonic excites."""
-    return (2.0 * p["teeth"] * p["spindle_rpm_start"] / 60.0,
-            2.0 * p["teeth"] * p["spindle_rpm_stop"] / 60.0)
+    return (2.0 * p.teeth * p.spindle_rpm_start / 60.0,
+            2.0 * p.teeth * p.spindle_rpm_stop / 60.0)
 
 
-def receptances(recording, p: Mapping[str, Any]) -> dict[str, Any]:
+def receptances(recording, p: Any) -> dict[str, Any]:
     """Φ_tt, Φ_ww (Eq. 6.13), condition number (6.14) per frequency and coherence (6.15) of
     the recorded cuts in the analysis band (SI: m/N, Hz); `ConfigError` unless every cut
     was recorded."""
     fs = recording.streams["daq"].rate_hz
-    forces, tools, works, notes = cut_records(recording, len(p["cuts"]))
-    nfft = int(round(p["segment_s"] * fs))
+    forces, tools, works, notes = cut_records(recording, len(p.cuts))
+    nfft = int(round(p.segment_s * fs))
     band = analysis_band(p)
     tool = smfe_estimate(list(zip(forces, tools)), fs, nfft, OVERLAP, f_max=band[1])
     workpiece = smfe_estimate([(-f, a) for f, a in zip(forces, works)], fs, nfft, OVERLAP,
@@ -354,7 +356,7 @@ def receptances(recording, p: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
-def plan_engagement_quietly(p: Mapping[str, Any]) -> dict[str, Any]:
+def plan_engagement_quietly(p: Any) -> dict[str, Any]:
     """`plan_engagement` without re-issuing its warning (the analysis reports it in its result)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SmfePlanningWarning)
@@ -379,7 +381,7 @@ def spindle_trace(recording) -> dict[str, list[float]]:
     return {"t_s": t[keep].tolist(), "rpm": (sums[keep] / counts[keep] / RPM).tolist()}
 
 
-def force_spectrogram(recording, p: Mapping[str, Any]) -> dict[str, Any]:
+def force_spectrogram(recording, p: Any) -> dict[str, Any]:
     """Σ PSD of the dynamometer's F_x, F_y, F_z (dB re 1 N²/Hz, `SPECTROGRAM_DB_DECIMALS`) over
     the run: Hann segments of `SPECTROGRAM_SEGMENT_S` every `SPECTROGRAM_HOP_S`
     (`scipy.signal.spectrogram`), bins 0 < f ≤ (last harmonic + ½)·Z·N1/60. Column k (one
@@ -389,7 +391,7 @@ def force_spectrogram(recording, p: Mapping[str, Any]) -> dict[str, Any]:
     fs = stream.rate_hz
     n_segment, hop = int(round(SPECTROGRAM_SEGMENT_S * fs)), int(round(SPECTROGRAM_HOP_S * fs))
     f = np.fft.rfftfreq(n_segment, 1.0 / fs)
-    f_max = (max(SPECTROGRAM_HARMONICS) + 0.5) * p["teeth"] * p["spindle_rpm_stop"] / 60.0
+    f_max = (max(SPECTROGRAM_HARMONICS) + 0.5) * p.teeth * p.spindle_rpm_stop / 60.0
     keep = (f > 0) & (f <= f_max)
     grid = {"dt_s": hop / fs, "f0_hz": float(f[1]), "df_hz": float(f[1]), "f_max_hz": f_max}
     if len(stream.cycle) < n_segment:
@@ -569,7 +571,7 @@ class Smfe(Experiment):
         """The schema's checks, 2 or 3 cuts with their engagements, a rising ramp, at most
         `MAX_STEP_ROTATION` per DAQ sample, a Welch segment within a cut's record, whole DAQ
         samples per bus cycle."""
-        p = validate_table(params, SCHEMA, "experiment")
+        p = super().check(params, cycle_s)
         if len(p["cuts"]) not in (2, 3):
             raise ConfigError(f"experiment.cuts: give 2 or 3 cuts (one per direction), "
                               f"got {p['cuts']}")
@@ -593,14 +595,14 @@ class Smfe(Experiment):
         return p
 
     def plan(self) -> Plan:
-        return build_plan(self.settings, self.cycle_s)
+        return build_plan(self.params, self.cycle_s)
 
     def devices(self) -> dict[str, dict[str, Any]]:
         """The spindle inverter (read back every `spindle_readback_ms`) and the DAQ."""
-        p = self.settings
-        readback = max(1, round(p["spindle_readback_ms"] * 1e-3 / self.cycle_s))
+        p = self.params
+        readback = max(1, round(p.spindle_readback_ms * 1e-3 / self.cycle_s))
         return {"spindle": {"readback_cycles": readback},
-                "daq": {"channels": DAQ_CHANNELS, "rate_hz": p["daq_rate_Hz"]}}
+                "daq": {"channels": DAQ_CHANNELS, "rate_hz": p.daq_rate_Hz}}
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
@@ -608,13 +610,13 @@ class Smfe(Experiment):
         recorded the receptances (`receptances`; `final`: `ConfigError` before that, but a
         run stopped before its cuts were recorded gives the sweep, not valid: `cuts_check`).
         SI (m/N, Hz, s), speeds rpm."""
-        p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+        p = cls.stored_params(recording)
         cuts = len(recorded_windows(recording, "measure"))
-        sweep = {"experiment": NAME, "cuts": list(p["cuts"]), "cuts_recorded": cuts,
-                 "band_hz": list(analysis_band(p)), "teeth": p["teeth"],
+        sweep = {"experiment": NAME, "cuts": list(p.cuts), "cuts_recorded": cuts,
+                 "band_hz": list(analysis_band(p)), "teeth": p.teeth,
                  "spindle": spindle_trace(recording),
                  "spectrogram": force_spectrogram(recording, p)}
-        if not final and cuts < len(p["cuts"]):
+        if not final and cuts < len(p.cuts):
             return sweep
         recorded = cuts_check(recording, p)
         if not recorded["ok"] and recording.status != "complete":  # stopped before the end

@@ -30,7 +30,7 @@ from feedbench.analysis.stiffness import (
     backlash_from_reversals, equivalent_stiffness, preload_loss_force, stiffness_while_lost,
     torque_sharing,
 )
-from feedbench.config import ConfigError, Field, one_of, positive, validate_table
+from feedbench.config import ConfigError, Field, one_of, positive
 from feedbench.engine.family import Example, Experiment, headline
 from feedbench.engine.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import constant_feed_move
@@ -95,23 +95,23 @@ def _samples(n_s: float, cycle_s: float) -> int:
     return max(1, int(round(n_s / cycle_s)))
 
 
-def _setup(test: str, settings: dict[str, Any], p: Mapping[str, Any], x: float,
+def _setup(test: str, settings: dict[str, Any], p: Any, x: float,
            cycle_s: float) -> Segment:
     """Hold while the axis controller takes the test's settings (the segment's commands,
     `axes.rack_pinion.AxisSettings`)."""
-    return Segment(f"setup {test}", "settle", np.full(_samples(p["setup_s"], cycle_s), x),
+    return Segment(f"setup {test}", "settle", np.full(_samples(p.setup_s, cycle_s), x),
                    info={"test": test}, commands=settings)
 
 
-def _staircase(test: str, depth: float, step: float, p: Mapping[str, Any],
+def _staircase(test: str, depth: float, step: float, p: Any,
                cycle_s: float) -> list[Segment]:
     """Steps of `step` (m) into the bumper to `depth` (m, signed) and, if `unload`, back to 0
     the same way (otherwise one ramp back, not measured)."""
     n = max(1, math.ceil(abs(depth) / step))
     levels = np.linspace(0.0, depth, n + 1)
-    path = np.concatenate([levels, levels[-2::-1]]) if p["unload"] else levels
-    ramp, settle = _samples(p["ramp_s"], cycle_s), _samples(p["settle_s"], cycle_s)
-    measure = _samples(p["measure_s"], cycle_s)
+    path = np.concatenate([levels, levels[-2::-1]]) if p.unload else levels
+    ramp, settle = _samples(p.ramp_s, cycle_s), _samples(p.settle_s, cycle_s)
+    measure = _samples(p.measure_s, cycle_s)
     segments = []
     for i, (start, stop) in enumerate(zip(path[:-1], path[1:])):
         info = {"test": test, "phase": "load" if i < n else "unload",
@@ -122,27 +122,27 @@ def _staircase(test: str, depth: float, step: float, p: Mapping[str, Any],
             Segment(f"{test} settle {i + 1}", "settle", np.full(settle, stop), info=info),
             Segment(f"{test} measure {i + 1}", "measure", np.full(measure, stop), info=info),
         ]
-    if not p["unload"]:
-        back = _samples(n * p["ramp_s"], cycle_s)
+    if not p.unload:
+        back = _samples(n * p.ramp_s, cycle_s)
         segments.append(Segment(f"{test} back", "move", np.linspace(depth, 0.0, back + 1)[1:],
                                 info={"test": test}))
     return segments
 
 
-def _strokes(test: str, p: Mapping[str, Any], away: float, cycle_s: float) -> list[Segment]:
+def _strokes(test: str, p: Any, away: float, cycle_s: float) -> list[Segment]:
     """Back-and-forth moves of `stroke_mm` away from the bumper (measured), dwell at each
     end (not measured: the carriage coasts on while the motor stops)."""
-    feed = p["feed_mm_min"] * MM_PER_MIN
-    stroke = p["stroke_mm"] * 1e-3
-    cruise = stroke / feed - feed / p["accel_m_s2"]
+    feed = p.feed_mm_min * MM_PER_MIN
+    stroke = p.stroke_mm * 1e-3
+    cruise = stroke / feed - feed / p.accel_m_s2
     if cruise <= 0.0:
         raise ConfigError("experiment.stroke_mm: too short to reach feed_mm_min at "
                           "accel_m_s2 (no constant-feed part to measure)")
     segments, x = [], 0.0
-    dwell = _samples(p["dwell_s"], cycle_s)
-    for i in range(2 * p["strokes"]):
+    dwell = _samples(p.dwell_s, cycle_s)
+    for i in range(2 * p.strokes):
         sign = away if i % 2 == 0 else -away
-        path, _, _ = constant_feed_move(x, sign * feed, p["accel_m_s2"], cruise, cycle_s)
+        path, _, _ = constant_feed_move(x, sign * feed, p.accel_m_s2, cruise, cycle_s)
         x = float(path[-1])
         info = {"test": test, "stroke": i + 1}
         segments += [Segment(f"{test} stroke {i + 1}", "measure", path, info=info),
@@ -150,24 +150,24 @@ def _strokes(test: str, p: Mapping[str, Any], away: float, cycle_s: float) -> li
     return segments
 
 
-def _segments(p: Mapping[str, Any], cycle_s: float) -> list[Segment]:
+def _segments(p: Any, cycle_s: float) -> list[Segment]:
     """Backlash strokes, single-motor loadings, then coupled loadings per preload level
-    (`p` validated)."""
-    toward = SIGNS[p["direction"]]
+    (`p` typed, checked)."""
+    toward = SIGNS[p.direction]
     segments: list[Segment] = []
-    for motor in p["backlash"]:
+    for motor in p.backlash:
         test = f"backlash {motor}"
         segments += [_setup(test, {"coupling": motor}, p, 0.0, cycle_s),
                      *_strokes(test, p, -toward, cycle_s)]
-    for motor in p["single_motor"]:
+    for motor in p.single_motor:
         test = f"single {motor}"
         segments += [_setup(test, {"coupling": motor}, p, 0.0, cycle_s),
-                     *_staircase(test, toward * p["single_depth_um"] * 1e-6,
-                                 p["single_step_um"] * 1e-6, p, cycle_s)]
-    for level in p["preload_pct"]:
+                     *_staircase(test, toward * p.single_depth_um * 1e-6,
+                                 p.single_step_um * 1e-6, p, cycle_s)]
+    for level in p.preload_pct:
         test = f"coupled {level:g} %"
         segments += [_setup(test, {"coupling": "coupled", "preload_pct": level}, p, 0.0, cycle_s),
-                     *_staircase(test, toward * p["depth_um"] * 1e-6, p["step_um"] * 1e-6,
+                     *_staircase(test, toward * p.depth_um * 1e-6, p.step_um * 1e-6,
                                  p, cycle_s)]
     return segments
 
@@ -442,7 +442,7 @@ class SteppedLoading(Experiment):
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
         """Every staircase the run holds has at least `MIN_LEVELS` load levels."""
-        p = validate_table(params, SCHEMA, "experiment")
+        p = super().check(params, cycle_s)
         if not (p["backlash"] or p["single_motor"] or p["preload_pct"]):
             raise ConfigError("experiment: no test selected (backlash, single_motor, "
                               "preload_pct are all empty)")
@@ -456,7 +456,7 @@ class SteppedLoading(Experiment):
         return p
 
     def plan(self) -> Plan:
-        return Plan(NAME, CSP, _segments(self.settings, self.cycle_s), self.settings,
+        return Plan(NAME, CSP, _segments(self.params, self.cycle_s), self.settings,
                     self.cycle_s)
 
     @classmethod
@@ -469,8 +469,8 @@ class SteppedLoading(Experiment):
         goes on (`final` False), so are the fits its steps do not allow yet and the stiffness
         fits below `MIN_R_SQUARED` (the backlash take-up: no load yet).
         """
-        params = validate_table(recording.config["experiment"], SCHEMA, "experiment")
-        toward = SIGNS[params["direction"]]
+        p = cls.stored_params(recording)
+        toward = SIGNS[p.direction]
         tests = _tests(recording)
         steps = {test: _step_points(recording, windows, loaded_motor(test), toward)
                  for test, windows in tests.items() if "phase" in windows[0].info}
@@ -485,7 +485,7 @@ class SteppedLoading(Experiment):
                             for motor in MOTORS if f"backlash {motor}" in tests}, final)
         preload = [_coupled(_test_samples(recording, tests[f"coupled {level:g} %"], toward),
                             level)
-                   for level in params["preload_pct"] if f"coupled {level:g} %" in tests]
+                   for level in p.preload_pct if f"coupled {level:g} %" in tests]
         result = {"experiment": NAME, "stiffness": stiffness, "backlash": backlash,
                   "preload": preload, "steps": steps}
         return {**result, "checks": loading_checks(result)}
@@ -495,8 +495,7 @@ class SteppedLoading(Experiment):
         """Load against displacement with the fitted stiffness (Eq. 3.26, Fig. 3.8), the
         backlash strokes (Fig. 3.9), the coupled loadings with the preload loss per level
         (Figs. 3.10–3.11) and their table."""
-        params = validate_table(recording.config["experiment"], SCHEMA, "experiment")
-        toward = SIGNS[params["direction"]]
+        toward = SIGNS[cls.stored_params(recording).direction]
         tests = _tests(recording)
         if result["stiffness"] or result["backlash"]:
             section.plots.append(Plot("single-motor loading and backlash", png_of(

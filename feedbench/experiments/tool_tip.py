@@ -13,14 +13,14 @@ are never split by a reversal.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
 from feedbench.analysis.checks import check, peak_checks
 from feedbench.analysis.stability import Lobes, zoa_lobes
-from feedbench.config import Field, non_negative, positive, validate_table
+from feedbench.config import Field, non_negative, positive
 from feedbench.engine.plan import Plan, Segment, Window, recorded_windows
 from feedbench.experiments.signals import integrate_velocity, ramp_to_feed
 from feedbench.models.milling import engagement_angles
@@ -46,11 +46,6 @@ def tip_force(channel: str) -> Dof:
     return Dof(channel, "tool_tip", 2, 1, "force")
 
 
-def exciter_channel(recording, schema: Mapping[str, Field]) -> str:
-    """The force channel of the exciter a recorded run used (its config, the family's
-    defaults filled in)."""
-    return FORCE_CHANNELS[validate_table(recording.config["experiment"], schema,
-                                         "experiment")["exciter"]]
 COMPLIANCE_LABEL = "|x/F| (m/N)"
 """Axis label of the tool-tip compliance x_tip / F_tip, live and in the report."""
 
@@ -84,20 +79,21 @@ class ExcitationWindow:
 
 
 def windows_at_feed(windows: Sequence[ExcitationWindow], feed_mm_min: float, x0: float,
-                    p: dict[str, Any], cycle_s: float, direction: float = 1.0
+                    p: Any, cycle_s: float, direction: float = 1.0
                     ) -> tuple[list[Segment], float, float]:
-    """Segments running `windows` at a feed (mm/min) from position x0 (m).
+    """Segments running `windows` at a feed (mm/min) from position x0 (m); `p`: typed
+    parameters with `MOTION_SCHEMA`'s ``settle_s``, ``stroke_mm``, ``accel_m_s2``.
 
     Returns the segments, the end position and the direction of the next pass. Each pass:
     accelerate, settle, windows (kind ``excite``, info with ``feed_mm_min``), stop.
     """
     speed = feed_mm_min * MM_PER_MIN
-    n_settle = int(round(p["settle_s"] / cycle_s))
+    n_settle = int(round(p.settle_s / cycle_s))
     segments: list[Segment] = []
-    for group in _passes(windows, speed * cycle_s, p["stroke_mm"] * 1e-3, n_settle):
+    for group in _passes(windows, speed * cycle_s, p.stroke_mm * 1e-3, n_settle):
         velocity = direction * speed
-        up = ramp_to_feed(0.0, velocity, p["accel_m_s2"], cycle_s) if speed else np.zeros(0)
-        down = ramp_to_feed(velocity, 0.0, p["accel_m_s2"], cycle_s) if speed else np.zeros(0)
+        up = ramp_to_feed(0.0, velocity, p.accel_m_s2, cycle_s) if speed else np.zeros(0)
+        down = ramp_to_feed(velocity, 0.0, p.accel_m_s2, cycle_s) if speed else np.zeros(0)
         cruise = np.full(n_settle + sum(w.n_cycles for w in group), velocity)
         path = integrate_velocity(np.concatenate([up, cruise, down]), x0, cycle_s)
         info = {"feed_mm_min": direction * feed_mm_min}
@@ -131,23 +127,24 @@ def _passes(windows: Sequence[ExcitationWindow], step: float, stroke: float,
 
 
 def plan_over_feeds(name: str, mode: int, feeds: Sequence[float],
-                    windows_of_feed, p: dict[str, Any], cycle_s: float, exciter: str) -> Plan:
-    """A plan running `windows_of_feed(feed)` at each feed in turn, passes alternating."""
+                    windows_of_feed, p: Any, cycle_s: float, exciter: str) -> Plan:
+    """A plan running `windows_of_feed(feed)` at each feed in turn, passes alternating (`p`
+    typed; the plan's `Plan.params` its dict)."""
     segments: list[Segment] = []
     x, direction = 0.0, 1.0
     for feed in feeds:
         more, x, direction = windows_at_feed(windows_of_feed(feed), feed, x, p, cycle_s,
                                              direction)
         segments += more
-    return Plan(name, mode, segments, p, cycle_s, exciter=exciter)
+    return Plan(name, mode, segments, asdict(p), cycle_s, exciter=exciter)
 
 
-def daq_needs(p: dict[str, Any], exciter: str) -> dict[str, dict[str, Any]]:
-    """The devices a tool-tip experiment needs: the DAQ (response and exciter force) and the
-    I/O module commanding the exciter."""
+def daq_needs(p: Any, exciter: str) -> dict[str, dict[str, Any]]:
+    """The devices a tool-tip experiment needs (`p` typed): the DAQ (response and exciter
+    force) and the I/O module commanding the exciter."""
     return {"daq": {"channels": [RESPONSE_CHANNEL, FORCE_CHANNELS[exciter]],
-                    "rate_hz": p["daq_rate_Hz"]},
-            "exciter": {"node_id": p["io_node_id"]}}
+                    "rate_hz": p.daq_rate_Hz},
+            "exciter": {"node_id": p.io_node_id}}
 
 
 def window_samples(recording, window: Window, channels: Sequence[str]

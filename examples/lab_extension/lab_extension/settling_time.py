@@ -27,7 +27,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from feedbench.analysis.checks import check
-from feedbench.config import ConfigError, Field, positive, validate_table
+from feedbench.config import ConfigError, Field, positive
 from feedbench.engine.family import Example, Experiment, headline, percent_error
 from feedbench.engine.plan import Plan, Segment, recorded_windows
 from feedbench.experiments.signals import move_to
@@ -153,7 +153,7 @@ class SettlingTime(Experiment):
     @classmethod
     def check(cls, params: Mapping[str, Any], cycle_s: float) -> dict:
         """The schema's checks, and a dwell long enough to tell a final value."""
-        p = validate_table(params, SCHEMA, "experiment")
+        p = super().check(params, cycle_s)
         if p["dwell_s"] * FINAL_SHARE < 10 * p["every_cycles"] * cycle_s:
             raise ConfigError(f"experiment.dwell_s: {p['dwell_s']:g} s leaves fewer than 10 "
                               f"scale readings for the final value (its last "
@@ -162,29 +162,29 @@ class SettlingTime(Experiment):
 
     def devices(self) -> dict[str, dict[str, Any]]:
         """The linear scale, read every ``every_cycles``."""
-        return {SCALE: {"every_cycles": self.settings["every_cycles"]}}
+        return {SCALE: {"every_cycles": self.params.every_cycles}}
 
     def plan(self) -> Plan:
         """A rest, then per move: the move, then its dwell (measured), alternating."""
-        p, dt = self.settings, self.cycle_s
-        segments = [Segment("rest", "settle", np.zeros(_cycles(p["rest_s"], dt)))]
-        x, stroke = 0.0, p["stroke_mm"] * 1e-3
-        for i in range(p["moves"]):
+        p, dt = self.params, self.cycle_s
+        segments = [Segment("rest", "settle", np.zeros(_cycles(p.rest_s, dt)))]
+        x, stroke = 0.0, p.stroke_mm * 1e-3
+        for i in range(p.moves):
             target = x + stroke if i % 2 == 0 else x - stroke
             info = {"move": i + 1, "stroke_m": target - x}
             segments += [Segment(f"move {i + 1}", "move",
-                                 move_to(x, target, p["feed_mm_min"] * MM_PER_MIN,
-                                         p["accel_m_s2"], dt), info=info),
+                                 move_to(x, target, p.feed_mm_min * MM_PER_MIN,
+                                         p.accel_m_s2, dt), info=info),
                          Segment(f"dwell {i + 1}", "measure",
-                                 np.full(_cycles(p["dwell_s"], dt), target), info=info)]
+                                 np.full(_cycles(p.dwell_s, dt), target), info=info)]
             x = target
-        return Plan(NAME, CSP, segments, p, dt)
+        return Plan(NAME, CSP, segments, self.settings, dt)
 
     @classmethod
     def analyze(cls, recording, final: bool = True) -> dict:
         """Per move: settling time (s), overshoot (m), residual vibration; the worst and
         the median over the moves. Live: the moves completed so far."""
-        p = validate_table(recording.config["experiment"], SCHEMA, "experiment")
+        p = cls.stored_params(recording)
         cycle_s = float(recording.metadata["cycle_s"])
         x = recording.channels[CHANNEL]
         moves = {w.info["move"]: w for w in recorded_windows(recording, "move")}
@@ -196,10 +196,10 @@ class SettlingTime(Experiment):
             t = np.arange(w.stop - w.start) * cycle_s
             found.append(settling_of_move(t, x[w.start:w.stop],
                                           float(before.mean()) if before.size else math.nan,
-                                          w.info["stroke_m"], p["band_um"] * 1e-6))
+                                          w.info["stroke_m"], p.band_um * 1e-6))
         if not found and not final:
             raise ConfigError(f"{recording.path}: waiting for the first move to settle")
-        return {"experiment": NAME, "band_m": p["band_um"] * 1e-6, "moves": found,
+        return {"experiment": NAME, "band_m": p.band_um * 1e-6, "moves": found,
                 "settling_s_max": max(m["settling_s"] for m in found),
                 "settling_s_median": _median([m["settling_s"] for m in found]),
                 "overshoot_m_max": max(m["overshoot_m"] for m in found),
