@@ -130,3 +130,52 @@ def test_a_listed_row_has_every_field_of_a_run_row(catalog):
     assert tuple(field.name for field in fields(RunRow)) == COLUMN_NAMES
     row = catalog.list()[0]
     assert row == RunRow(**{name: getattr(row, name) for name in COLUMN_NAMES})
+
+
+LINE_FILTERS = [RunFilter(), RunFilter(status="complete"), RunFilter(status="damaged"),
+                RunFilter(experiment="chirp")] + [
+    RunFilter(where=tuple(map(Condition.parse, conditions))) for conditions in (
+        ("f_stop_Hz>150",), ("chirp.f_stop_Hz>150",), ("mode=open",), ("seed=None",),
+        ("feeds_mm_min=[100, 200]",), ("window=true",), ("f_stop_Hz>100", "mode!=closed"),
+        ("settle_s<0.001",))] + [
+    RunFilter(status="complete", where=(Condition.parse("f_stop_Hz>100"),))]
+
+
+def test_the_lines_of_runs_are_those_of_the_rows_listed(catalog):
+    """`Catalog.lines` (what `feedbench runs` prints, decoding only what it must) gives what
+    `Catalog.list` gives of each row, damaged rows (parameters naming a condition's key among
+    them, a damaged timing) and limits included."""
+    rows = catalog.list()
+    damage = DAMAGED + ['["f_stop_Hz", 300]', '{"f_stop_Hz": 300, "x": NaN']
+    with catalog._engine.begin() as connection:
+        for row, params in zip(rows, damage):
+            connection.execute(text("UPDATE runs SET params = :p WHERE id = :id"),
+                               {"p": params, "id": row.id})
+        connection.execute(text("UPDATE runs SET timing = :t WHERE id = :id"),
+                           {"t": "{not json", "id": rows[-1].id})
+    for where in LINE_FILTERS:
+        expected = [(row.id, row.status, row.n_samples, row.file, row.reason)
+                    for row in catalog.list(where=where)]
+        assert [tuple(line) for line in catalog.lines(where=where)] == expected, where
+        assert [tuple(line) for line in catalog.lines(limit=1, where=where)] == expected[:1]
+    [line] = [line for line in catalog.lines(where=RunFilter(where=(
+        Condition.parse("chirp.f_stop_Hz>100"),))) if line.id == rows[-1].id]
+    assert line.status == "damaged" and "timing is not JSON" in line.reason
+
+
+def test_a_postgresql_catalog_of_version_2_gets_its_parsed_parameters(postgres_url, tmp_path):
+    """Schema version 3 (PostgreSQL's parameters parsed when a row is written): a version-2
+    catalog upgrades in place and lists with --where as before."""
+    catalog = Catalog(postgres_url, directory=tmp_path)
+    for family, params in PARAMS:
+        run_id = catalog.new_run_id(family)
+        catalog.add(run_id, family, f"{run_id}.h5", params)
+    with catalog._engine.begin() as connection:
+        connection.execute(text("ALTER TABLE runs DROP COLUMN document"))
+        connection.execute(text("DROP FUNCTION feedbench_parameters"))
+        connection.execute(text("UPDATE catalog_schema SET version = 2"))
+    where = RunFilter(where=(Condition.parse("f_stop_Hz>150"),))
+    catalog = Catalog(postgres_url, directory=tmp_path)
+    assert [row.id for row in catalog.list(where=where)] == by_definition(catalog, where.where)
+    with catalog._engine.begin() as connection:
+        assert connection.execute(text("SELECT version FROM catalog_schema")).scalar_one() == 3

@@ -80,18 +80,19 @@ def cmd_runs(args: argparse.Namespace) -> int:
 
     catalog = open_catalog(args.dir, args.catalog)
     catalog.reconcile()
-    rows = catalog.list(where=RunFilter(
+    where = RunFilter(
         bench=args.bench, experiment=args.family, status=args.status,
         since=args.since and day_bound(args.since, "--since"),
         until=args.until and day_bound(args.until, "--until", end=True),
-        where=tuple(map(Condition.parse, args.where))))
+        where=tuple(map(Condition.parse, args.where)))
     if args.json:
-        _print_json({"runs": [vars(r) for r in rows]})
+        _print_json({"runs": [vars(r) for r in catalog.list(where=where)]})
         return 0
-    for r in rows:
+    listed = 0
+    for listed, r in enumerate(catalog.lines(where=where), 1):  # one line at a time
         print(f"{r.id:<42s} {r.status:<9s} {r.n_samples or 0:>8d}  {r.file}"
               + (f"  ({r.reason})" if r.reason else ""))
-    if not rows:
+    if not listed:
         print(f"no runs in {catalog.name}")
     return 0
 

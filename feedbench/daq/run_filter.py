@@ -4,12 +4,14 @@ parameter (``--where 'chirp.f_stop_Hz>150'``).
 The bench, family, status and dates become SQL conditions on the catalog's columns (the same
 on SQLite and PostgreSQL: text comparisons, ISO 8601 UTC times sort as text). A `--where`
 condition becomes SQL too (`Condition.clause`, through SQLAlchemy Core: SQLite's json_tree,
-PostgreSQL's jsonb ``#>`` and jsonb_typeof; each row's parameters parsed once), exact for a
-number, text, true, false or null and letting an array or object through; every row read is then checked on its
-parameters in Python (`Condition.matches`, the definition), so the SQL only spares reading
-the rows that cannot match. A row whose parameters are not JSON (`damaged`) never matches:
-the database refuses to parse them, and `Catalog.list` then checks the conditions in Python
-alone (`RunFilter.clauses` with ``in_sql=False``) until `feedbench catalog rebuild`.
+PostgreSQL's jsonb ``#>`` and jsonb_typeof on the parameters parsed when the row was written),
+exact for a number, text, true, false or null and letting an array or object through; a row
+read is then checked on its parameters in Python (`Condition.matches`, the definition) unless
+SQL has decided alone (`Condition.decided_in_sql`, `Catalog.lines`), so the SQL spares
+reading the rows that cannot match. A row whose parameters are not JSON (`damaged`) never
+matches: PostgreSQL's parsed parameters are NULL; SQLite refuses to parse them, and
+`Catalog.list` then checks the conditions in Python alone (`RunFilter.clauses` with
+``in_sql=False``) until `feedbench catalog rebuild`.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from datetime import date, datetime, time, timedelta, timezone
 from typing import Any
 
 from sqlalchemy import (ColumnElement, Table, and_, case, cast, exists, false, func, literal,
-                        or_, select)
+                        literal_column, or_)
 from sqlalchemy.dialects.postgresql import ARRAY, JSONB
 from sqlalchemy.types import Float, Text
 
@@ -74,14 +76,20 @@ class Condition:
             return False
 
 
+    @property
+    def decided_in_sql(self) -> bool:
+        """Whether `clause` decides alone every run whose value is no array or table (the
+        condition's value a finite number; else it lets a number through to `matches`)."""
+        return _number(self.value) is not None
+
     def clause(self, runs: Table, document: Any = None) -> ColumnElement[bool]:
         """The SQL condition on the catalog's `runs` table that selects the rows whose
         parameters meet it (`matches`): exact where the run's value is a number, text, true,
         false or null, true where it is an array or an object (`matches` decides those).
-        SQLite: `document` None, the parameters parsed once per row (json_tree); PostgreSQL:
-        `document` the row's parameters as jsonb (parsed once per row: `parsed_parameters`).
-        Parameters that are not JSON (a damaged row) make the database refuse the statement
-        (`Catalog.list` then lists with `RunFilter.clauses(in_sql=False)`)."""
+        SQLite: `document` None, the parameters parsed once per row (json_tree); parameters
+        that are not JSON (a damaged row) make it refuse the statement (`Catalog.list` then
+        lists with `RunFilter.clauses(in_sql=False)`). PostgreSQL: `document` the row's
+        parameters as jsonb (`parsed_parameters`: NULL for a damaged row, never matched)."""
         paths = [self.path]
         if len(self.path) > 1:  # led by a family: its runs' own key, others' nested table
             paths.insert(0, self.path[1:])
@@ -125,11 +133,10 @@ class Condition:
 
 
 def parsed_parameters(runs: Table) -> Any:
-    """PostgreSQL: the rows' parameters as jsonb, parsed once per row (a lateral subquery
-    the planner keeps apart: OFFSET 0) for the `Condition.clause` of each ``--where``; join
-    it to `runs` on true."""
-    return (select(cast(runs.c.params, JSONB).label("document")).correlate(runs).offset(0)
-            .lateral("parsed"))
+    """PostgreSQL: the rows' parameters as jsonb for the `Condition.clause` of each
+    ``--where``: the catalog's column ``document``, parsed when the row was written, NULL
+    where they are no JSON object (a damaged row: never matches; catalog schema version 3)."""
+    return literal_column(f"{runs.name}.document", JSONB)
 
 
 def _number(value: str) -> float | None:
