@@ -269,6 +269,43 @@ def test_public_recordings_analyse_and_judge_themselves(path, source_rates, caps
                if check["name"] in ("status", "missing samples (gaps)"))
 
 
+@pytest.mark.parametrize("path, started, said", [
+    (PUBLIC_MDF4, "2018-11-22T14:26:35.439737+00:00", "MDF header start time"),
+    (PUBLIC_TDMS, "2016-12-15T22:35:21+00:00", "wf_start_time of First  Channel"),
+])
+def test_an_imported_run_starts_when_its_recording_did(path, started, said, tmp_path, capsys):
+    """The catalog's and the recording's start are the file's own (an MDF4 header's start
+    time, a TDMS waveform's wf_start_time; each moved on by the first sample of the time
+    base), its stop that plus its samples; the import's time is kept apart (`imported_at`);
+    `runs --since/--until` find the run on the day it was recorded."""
+    from datetime import datetime, timedelta, timezone
+
+    from feedbench.daq.catalog import Catalog
+
+    runs = tmp_path / "runs"
+    before = datetime.now(timezone.utc)
+    assert main(["import", str(path), "--dir", str(runs), "--json"]) == 0
+    row = json.loads(capsys.readouterr().out)
+    run = load_run(path)
+    first = datetime.fromisoformat(started) + timedelta(seconds=run.t0_s)
+    assert run.metadata["source_started_from"].startswith(said)
+    [listed] = Catalog(runs / "catalog.sqlite").list()
+    recording = open_recording(row["file"])
+    for start, stop in ((listed.started_at, listed.stopped_at),
+                        (row["started_at"], row["stopped_at"]),
+                        (recording.started_at, recording.stopped_at)):
+        assert datetime.fromisoformat(start) == first
+        assert datetime.fromisoformat(stop) - first == pytest.approx(
+            timedelta(seconds=run.n_samples * run.cycle_s), abs=timedelta(microseconds=1))
+    imported_at = datetime.fromisoformat(recording.metadata["imported_at"])
+    assert before <= imported_at <= datetime.now(timezone.utc)
+    day = started[:10]
+    assert main(["runs", "--dir", str(runs), "--since", day, "--until", day]) == 0
+    assert row["id"] in capsys.readouterr().out
+    assert main(["runs", "--dir", str(runs), "--since", before.date().isoformat()]) == 0
+    assert row["id"] not in capsys.readouterr().out
+
+
 def test_the_formats_are_one_seam():
     assert set(formats()) >= {"mdf4", "tdms"}
     tdms = read_foreign(PUBLIC_TDMS)

@@ -329,9 +329,10 @@ class Catalog:
         return run_id
 
     def add(self, run_id: str, experiment: str, file: str | Path,
-            params: Mapping[str, Any]) -> None:
-        """Register the start of run `run_id` (status `running`, started now, recorded by
-        this process on this host for this bench)."""
+            params: Mapping[str, Any], started_at: str | None = None) -> None:
+        """Register the start of run `run_id` (status `running`, started now or at
+        `started_at`: an imported recording's own start, recorded by this process on this
+        host for this bench)."""
         with self._transaction() as connection:
             connection.execute(
                 text("INSERT INTO runs (id, experiment, started_at, status, file, params, pid,"
@@ -341,7 +342,8 @@ class Catalog:
                      " started_at = excluded.started_at, status = excluded.status,"
                      " file = excluded.file, params = excluded.params, pid = excluded.pid,"
                      " host = excluded.host, bench = excluded.bench"),
-                {"id": run_id, "experiment": experiment, "started_at": utc_now_iso(),
+                {"id": run_id, "experiment": experiment,
+                 "started_at": started_at or utc_now_iso(),
                  "file": self._stored(file), "params": to_json(dict(params)),
                  **self._recorder()},
             )
@@ -351,9 +353,10 @@ class Catalog:
         return {"pid": os.getpid(), "host": socket.gethostname(), "bench": self.bench}
 
     def finish(self, run_id: str, status: str, reason: str, n_samples: int,
-               timing: Mapping[str, Any] | None = None) -> None:
-        """Record the end of run `run_id`: status (complete / aborted), reason, sample count,
-        a real-time run's cycle timing. A catalog gone since the run started (a server
+               timing: Mapping[str, Any] | None = None, stopped_at: str | None = None) -> None:
+        """Record the end of run `run_id` (now, or `stopped_at`: an imported recording's own
+        end): status (complete / aborted), reason, sample count, a real-time run's cycle
+        timing. A catalog gone since the run started (a server
         stopped) raises `CatalogError` saying that the run is kept in its recording and
         `feedbench catalog sync` registers it once the catalog is back."""
         try:
@@ -362,8 +365,9 @@ class Catalog:
                     text("UPDATE runs SET stopped_at = :stopped_at, status = :status,"
                          " reason = :reason, n_samples = :n_samples, timing = :timing"
                          " WHERE id = :id"),
-                    {"stopped_at": utc_now_iso(), "status": status, "reason": reason,
-                     "n_samples": int(n_samples), "timing": _timing_json(timing),
+                    {"stopped_at": stopped_at or utc_now_iso(), "status": status,
+                     "reason": reason, "n_samples": int(n_samples),
+                     "timing": _timing_json(timing),
                      "id": run_id},
                 ).rowcount
         except CatalogError as exc:

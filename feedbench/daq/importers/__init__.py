@@ -19,6 +19,7 @@ import logging
 import sys
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from datetime import datetime
 from functools import cache
 from importlib import metadata as importlib_metadata
 from pathlib import Path
@@ -39,13 +40,15 @@ class ForeignChannel:
     """One channel of a foreign file: sample times (s, increasing, float64), physical
     values (float64) and the unit text the file gives ('' if none); `regular` is True when
     the file declares a constant sample period `increment` (s; a TDMS waveform's: times =
-    start + i · increment)."""
+    start + i · increment); `origin` the moment (UTC) its time 0 is, where the file says
+    (an MDF4 header's start time, a TDMS waveform's wf_start_time)."""
 
     name: str
     time: np.ndarray
     values: np.ndarray
     unit: str = ""
     increment: float = 0.0
+    origin: datetime | None = None
 
     @property
     def period(self) -> float:
@@ -77,6 +80,10 @@ class ForeignFile:
     """Channels the format could not offer as numbers, with why (text, arrays, …)."""
     listing: tuple[str, ...] = ()
     """Every channel name of the file, read or not (`Format.read`'s `names`)."""
+    origin: datetime | None = None
+    """The file's own time (UTC) of time 0 where its channels give none (a TDMS file's
+    time property), and what said so (`origin_source`)."""
+    origin_source: str = ""
 
     def channel(self, name: str, field_name: str) -> ForeignChannel:
         """The channel `name`; one missing is a ConfigError naming `field_name`, the file and

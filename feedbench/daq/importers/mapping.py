@@ -37,10 +37,12 @@ import math
 import tempfile
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from datetime import datetime, timedelta
 from fractions import Fraction
 from pathlib import Path
 from typing import Any, Iterator, Mapping, NoReturn
 
+import h5py
 import numpy as np
 import scipy.signal
 
@@ -49,6 +51,7 @@ from feedbench.config import (
 )
 from feedbench.daq.importers import ForeignChannel, ForeignFile, read_foreign
 from feedbench.daq.recorder import Recorder, StreamSpec
+from feedbench.daq.recording import to_json, utc_now_iso
 from feedbench.units import SI_UNITS
 
 GAP_FACTOR = 1.5
@@ -226,14 +229,34 @@ def build_run(foreign: ForeignFile, side: Mapping[str, Any]) -> ImportedRun:
               "import": {"source": foreign.path.name, "format": foreign.format,
                          "channels": dict(side["channels"]),
                          "streams": {k: dict(v) for k, v in side["streams"].items()}}}
+    started, started_from = _started(foreign, picked["position"], t0)
     metadata = {"cycle_s": cycle_s, "source_file": str(foreign.path),
                 "source_format": foreign.format, "source_t0_s": t0,
+                "source_started_at": started, "source_started_from": started_from,
                 "source_metadata": foreign.metadata, "import_channels": notes,
                 "force_lag_s": side["force_lag_ms"] * 1e-3, "sampling": dict(side["sampling"]),
                 "import_versions": _versions()}
     return ImportedRun(side["name"] or foreign.path.name, cycle_s, t0, channels, units,
                        streams, _segments(side, n, rate), experiment, config, metadata,
                        dict(side["controller"]))
+
+
+def _started(foreign: ForeignFile, position: ForeignChannel, t0: float) -> tuple[str, str]:
+    """When the run's first sample was taken, as ISO 8601 UTC text, and what said so: the
+    time 0 of the position channel's clock (an MDF4 header's start time, its TDMS
+    wf_start_time), else the file's own time (a TDMS file property), moved on by the first
+    sample's time `t0`; ('', why) when the file says none (the run then starts when it is
+    imported)."""
+    if position.origin is not None:
+        origin = position.origin
+        said = ("MDF header start time" if foreign.format == "mdf4" else
+                f"wf_start_time of {position.name}" if foreign.format == "tdms" else
+                f"time 0 of {position.name}")
+    elif foreign.origin is not None:
+        origin, said = foreign.origin, foreign.origin_source or "the file's time"
+    else:
+        return "", f"no start time in {foreign.path.name}: the time of import"
+    return (origin + timedelta(seconds=t0)).isoformat(), f"{said} + {t0:.6g} s"
 
 
 def _spans(picked: Mapping[str, ForeignChannel]) -> str:
@@ -406,7 +429,20 @@ def write_recording(run: ImportedRun, path: str | Path, run_id: str = "") -> Pat
         for name, (spec, cycle, sequence, values) in run.streams.items():
             recorder.append_stream(name, cycle, sequence,
                                    np.column_stack([values[c] for c in spec.channels]))
+    with h5py.File(path, "r+") as file:  # the recording's own times; the import's apart
+        imported_at = str(file.attrs["started_at"])
+        started, stopped = recorded_times(run, imported_at)
+        file.attrs.update(started_at=started, stopped_at=stopped,
+                          imported_at=to_json(imported_at))
     return path
+
+
+def recorded_times(run: ImportedRun, imported_at: str) -> tuple[str, str]:
+    """The start and end (ISO 8601 UTC) of what `run` recorded: from its file's start time
+    (`_started`) over its samples; without one, from `imported_at` on."""
+    started = run.metadata.get("source_started_at") or imported_at
+    stopped = datetime.fromisoformat(started) + timedelta(seconds=run.n_samples * run.cycle_s)
+    return started, stopped.isoformat()
 
 
 def _versions() -> dict[str, str | None]:
@@ -431,14 +467,16 @@ def import_recording(run: ImportedRun, directory: str | Path, catalog: Any,
     directory.mkdir(parents=True, exist_ok=True)
     run_id = catalog.new_run_id(run.experiment)
     path = directory / f"{run_id}.h5"
-    catalog.add(run_id, run.experiment, str(path), dict(params or {}))
+    started, stopped = recorded_times(run, utc_now_iso())
+    catalog.add(run_id, run.experiment, str(path), dict(params or {}), started_at=started)
     try:
         write_recording(run, path, run_id)
     except BaseException as exc:
         catalog.finish(run_id, "aborted", f"import failed: {exc}", 0)
         raise
-    catalog.finish(run_id, "complete", "", run.n_samples)
+    catalog.finish(run_id, "complete", "", run.n_samples, stopped_at=stopped)
     return {"id": run_id, "file": str(path), "status": "complete", "reason": "",
+            "started_at": started, "stopped_at": stopped,
             "n_samples": run.n_samples, "experiment": run.experiment,
             "rate_Hz": 1.0 / run.cycle_s,
             "channels": {k: v.get("resampled", "") for k, v in

@@ -4,6 +4,7 @@ read by asammdf: every numeric channel with the time of its channel group's mast
 from __future__ import annotations
 
 import warnings
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, ClassVar, Collection
 
@@ -53,6 +54,8 @@ def _read(path: Path, mdf: Any, names: Collection[str] | None) -> ForeignFile:
     channels: dict[str, ForeignChannel] = {}
     skipped: dict[str, str] = {}
     listing = []
+    header = mdf.header
+    origin = _utc(getattr(header, "start_time", None))  # the masters' time 0
     for name, places in occurrences.items():
         for group_index, index in places:
             key = name if len(places) == 1 else f"{name}@{group_index}"
@@ -65,9 +68,19 @@ def _read(path: Path, mdf: Any, names: Collection[str] | None) -> ForeignFile:
                 skipped[key] = f"{samples.dtype} samples of shape {samples.shape[1:] or '()'}"
                 continue
             channels[key] = ForeignChannel(key, np.asarray(signal.timestamps, dtype=np.float64),
-                                           samples.astype(np.float64), str(signal.unit or ""))
-    header = mdf.header
+                                           samples.astype(np.float64), str(signal.unit or ""),
+                                           origin=origin)
     metadata = {"version": str(mdf.version),
                 "start_time": str(getattr(header, "start_time", "")),
                 "comment": str(getattr(header, "comment", "") or "")[:2000]}
-    return ForeignFile(path, Mdf4.name, channels, metadata, skipped, tuple(listing))
+    return ForeignFile(path, Mdf4.name, channels, metadata, skipped, tuple(listing),
+                       origin, "MDF header start time" if origin else "")
+
+
+def _utc(moment: Any) -> datetime | None:
+    """An MDF header's start time in UTC (one without zone: UTC, as MDF4 stores it)."""
+    if not isinstance(moment, datetime):
+        return None
+    if moment.tzinfo is None:
+        return moment.replace(tzinfo=timezone.utc)
+    return moment.astimezone(timezone.utc)

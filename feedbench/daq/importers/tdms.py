@@ -3,6 +3,7 @@ channel, DAQmx raw data scaled, times from the waveform properties."""
 
 from __future__ import annotations
 
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any, ClassVar, Collection
 
@@ -65,9 +66,13 @@ def _read(path: Path, tdms: Any, names: Collection[str] | None) -> ForeignFile:
                     skipped[key] = read
                 else:
                     channels[key] = ForeignChannel(key, read.time, read.values, read.unit,
-                                                   read.increment)
+                                                   read.increment, read.origin)
     metadata = {key: _plain(value) for key, value in tdms.properties.items()}
-    return ForeignFile(path, Tdms.name, channels, metadata, skipped, tuple(listing))
+    times = [(key, _utc(value)) for key, value in tdms.properties.items()
+             if _utc(value) is not None]
+    origin, source = (times[0][1], f"TDMS file property {times[0][0]}") if times else (None, "")
+    return ForeignFile(path, Tdms.name, channels, metadata, skipped, tuple(listing), origin,
+                       source)
 
 
 def _channel(channel: Any, clock: Any) -> ForeignChannel | str:
@@ -83,13 +88,28 @@ def _channel(channel: Any, clock: Any) -> ForeignChannel | str:
             return f"wf_increment {step:g} s is not > 0"
         start = float(properties.get("wf_start_offset", 0.0))
         return ForeignChannel(channel.name, start + np.arange(len(values)) * step,
-                              values.astype(np.float64), unit, increment=step)
+                              values.astype(np.float64), unit, increment=step,
+                              origin=_utc(properties.get("wf_start_time")))
     if clock is None or clock is channel:
         return "no waveform timing (wf_increment) and no time channel in its group"
     time = np.asarray(clock[:], dtype=np.float64)
     if len(time) != len(values):
         return f"{len(values)} samples beside the group's {len(time)} times"
     return ForeignChannel(channel.name, time, values.astype(np.float64), unit)
+
+
+def _utc(value: Any) -> datetime | None:
+    """A TDMS time (npTDMS: numpy datetime64, UTC) as a UTC datetime; None for anything
+    else, and for LabVIEW's zero time (1904-01-01: no time set)."""
+    if isinstance(value, datetime):
+        moment = value if value.tzinfo else value.replace(tzinfo=timezone.utc)
+    elif isinstance(value, np.datetime64) and not np.isnat(value):
+        microseconds = int(value.astype("datetime64[us]").astype(np.int64))
+        moment = datetime(1970, 1, 1, tzinfo=timezone.utc) + timedelta(
+            microseconds=microseconds)
+    else:
+        return None
+    return moment if moment.year > 1904 else None
 
 
 def _plain(value: Any) -> Any:
