@@ -148,6 +148,37 @@ def test_an_imported_run_is_reported_like_a_measured_one(chirp_run, tmp_path, ca
     assert run_id in html and "servo mobility" in html
 
 
+def test_a_campaign_summary_takes_imported_runs_as_measured_ones(chirp_run, tmp_path, capsys):
+    """`feedbench campaign --runs`: the summary table of recorded runs — a run as the runner
+    records it, the same run written as MDF4 and imported, and a public TDMS file imported
+    on the fly — each analysed by its family: the imported chirp's row equals the measured
+    one's (headline and every result), its source named."""
+    original = open_recording(chirp_run)
+    names = {key: f"X_{key}" for key in MAPPED}
+    source = tmp_path / "chirp.mf4"
+    write_mdf4(original, source, names)
+    source.with_suffix(".toml").write_text(mapping_text(original, names))
+    runs = tmp_path / "runs"
+    assert main(["import", str(source), "--dir", str(runs), "--json"]) == 0
+    run_id = json.loads(capsys.readouterr().out)["id"]
+    assert main(["campaign", "--runs", str(chirp_run), run_id, str(PUBLIC_TDMS),
+                 "--dir", str(runs), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    measured, imported, public = summary["runs"]
+    assert [row["index"] for row in summary["runs"]] == [0, 1, 2]
+    assert [row["status"] for row in summary["runs"]] == ["complete"] * 3
+    assert imported["run_id"] == run_id and imported["imported_from"] == "chirp.mf4"
+    assert public["file"] == str(PUBLIC_TDMS) and public["imported_from"] == "raw1.tdms"
+    assert imported["headline"] == measured["headline"] and "f_r" in measured["headline"]
+    assert imported["results"] == measured["results"]
+    assert measured["results"]["resonance_hz"] == analyze_file(chirp_run)["resonance_hz"]
+    assert public["headline"].startswith("f_t ") and summary["complete"] == 3
+    for path in summary["files"]:
+        assert Path(path).parent == runs and Path(path).exists()
+    csv_text = Path(summary["files"][1]).read_text()
+    assert run_id in csv_text and "resonance_hz" in csv_text
+
+
 def test_rates_meet_on_one_time_base(tmp_path):
     """Position at 1 kHz (the base), a reference at 100 Hz (interpolated), a force at 4 kHz
     (low-passed, then taken at the base's times), an accelerometer at 10 kHz kept as a

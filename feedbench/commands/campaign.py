@@ -198,16 +198,69 @@ def run_task(task: Task, campaign_id: str) -> dict[str, Any]:
     config = replace(config, plan=replace(config.plan, params={**config.plan.params, **tag}))
     t0 = time.monotonic()
     record = run_config(config, progress=False)
-    row = {"index": task.index, "params": task.params, "run_id": record["id"],
+    row = summary_row(task.index, task.params, {**record, "experiment": config.plan.experiment},
+                      example_truth(raw))
+    return {**row, "elapsed_s": time.monotonic() - t0}
+
+
+def summary_row(index: int, params: Mapping[str, Any], record: Mapping[str, Any],
+                truth: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The summary row of a recorded run (`record`: id, file, status, reason, experiment):
+    a complete one analysed by its family, its headline and results (numbers, SI) against
+    the simulated world's `truth` (the family's `summary`) or, for a run on a real bench or
+    one imported from another DAQ system (no truth), as the report's "what it measured"
+    (the family's `headline`); a family without analysis says so."""
+    row = {"index": index, "params": dict(params), "run_id": record["id"],
            "file": record["file"], "status": record["status"], "reason": record["reason"],
            "headline": "", "results": {}}
-    if record["status"] == "complete":
-        analysis = analyze_file(record["file"])
-        summary = families()[config.plan.experiment].summary(analysis, example_truth(raw))
-        analysis.pop("run")
-        row["headline"] = summary.pop("headline")
-        row["results"] = {**numbers(analysis), **numbers(summary)}
-    return {**row, "elapsed_s": time.monotonic() - t0}
+    family = families().get(record["experiment"])
+    if record["status"] != "complete":
+        return row
+    if family is None:
+        return {**row, "headline": f"no analysis for experiment {record['experiment']!r}"}
+    analysis = analyze_file(record["file"])
+    analysis.pop("run")
+    if truth is None:
+        return {**row, "headline": family.headline(analysis), "results": numbers(analysis)}
+    summary = family.summary(analysis, truth)
+    return {**row, "headline": summary.pop("headline"),
+            "results": {**numbers(analysis), **numbers(summary)}}
+
+
+def recorded_summary(files: Mapping[str, str]) -> dict[str, Any]:
+    """The campaign summary (as `run_campaign`'s) of recorded runs, measured on a bench or
+    imported from another DAQ system (`files`: as given → the recording), in that order:
+    each analysed by its family (`summary_row`, no truth); its parameters the varied ones of
+    the campaign that ran it, else its key parameters (``[experiment]``, dotted, without
+    ``type``); a run whose analysis fails is ``failed`` with why, the others kept."""
+    from feedbench.daq.recording import open_recording
+
+    t0 = time.monotonic()
+    rows, kinds = [], []
+    for index, file in enumerate(files.values()):
+        recording = open_recording(file)
+        kinds.append(recording.experiment)
+        table = dict(recording.config.get("experiment", {}))
+        tag = table.pop("campaign", None)
+        params = tag["params"] if isinstance(tag, Mapping) and "params" in tag else {
+            key: value for key, value in dotted(table).items() if key != "type"}
+        record = {"id": recording.metadata.get("run_id", recording.path.stem), "file": file,
+                  "status": recording.status, "reason": recording.reason,
+                  "experiment": recording.experiment}
+        try:
+            rows.append(summary_row(index, params, record))
+        except ConfigError as exc:
+            rows.append(summary_row(index, params, {**record, "status": "failed",
+                                                    "reason": str(exc)}))
+        rows[-1]["elapsed_s"] = None
+        if "source_file" in recording.metadata:
+            rows[-1]["imported_from"] = Path(recording.metadata["source_file"]).name
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+    return {"campaign": f"{stamp}-{uuid.uuid4().hex[:6]}-recorded",
+            "experiment": ", ".join(dict.fromkeys(kinds)),
+            "settings": {"runs": list(files)}, "scheduler": "recorded runs", "runs": rows,
+            "complete": sum(row["status"] == "complete" for row in rows),
+            "elapsed_s": time.monotonic() - t0}
 
 
 def failed_row(task: Task, exc: BaseException) -> dict[str, Any]:

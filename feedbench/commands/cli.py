@@ -281,15 +281,32 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_campaign(args: argparse.Namespace) -> int:
-    """Run a campaign config's runs as Dask tasks (progress on stderr), write its summary
-    table (JSON + CSV) and print it."""
+    """Run a campaign config's runs as Dask tasks (progress on stderr), or take recorded
+    runs (``--runs``: measured, imported, or MDF4/TDMS files imported as `report` does),
+    write its summary table (JSON + CSV) and print it."""
     from feedbench.commands.campaign import (describe_campaign, load_campaign, progress_line,
-                                    run_campaign, write_summary)
+                                             recorded_summary, run_campaign, write_summary)
+    from feedbench.daq.importers import is_foreign
+    from feedbench.daq.importers.mapping import imported_copy
 
-    campaign = load_campaign(args.config)
-    summary = run_campaign(campaign, args.scheduler, args.workers, progress=None if args.json
-                           else lambda *done: print(progress_line(*done), file=sys.stderr))
-    files = write_summary(summary, campaign.output_dir)
+    if bool(args.config) == bool(args.runs):
+        raise ConfigError("campaign: give a campaign config or --runs RUN… (recorded runs)")
+    if args.runs:
+        with contextlib.ExitStack() as stack:
+            recordings = {run: str(stack.enter_context(imported_copy(run, args.mapping)))
+                          if is_foreign(run) else resolve_run(run, args.dir, args.catalog)
+                          for run in args.runs}
+            summary = recorded_summary(recordings)
+        for row, run in zip(summary["runs"], args.runs):
+            row["file"] = run if is_foreign(run) else row["file"]  # not the copy, now gone
+        directory = Path(args.dir)
+    else:
+        campaign = load_campaign(args.config)
+        summary = run_campaign(campaign, args.scheduler, args.workers, progress=None
+                               if args.json else lambda *done: print(progress_line(*done),
+                                                                      file=sys.stderr))
+        directory = campaign.output_dir
+    files = write_summary(summary, directory)
     if args.json:
         _print_json({**summary, "files": [str(f) for f in files]})
     else:
@@ -498,7 +515,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     campaign = sub.add_parser("campaign", help="a grid or Monte-Carlo set of simulated runs "
                               "as Dask tasks ([campaign] table + a run config)")
-    campaign.add_argument("config")
+    campaign.add_argument("config", nargs="?", help="the campaign config (or --runs)")
+    campaign.add_argument("--runs", nargs="+", metavar="RUN", help="instead of a config: "
+                          "the summary of recorded runs, measured or imported (run ids, "
+                          "recordings, or MDF4/TDMS files with their mapping)")
+    campaign.add_argument("--dir", default="runs", help="--runs: output directory holding "
+                          "the catalog; the summary goes there")
+    campaign.add_argument("--mapping", help="--runs: the mapping of the MDF4/TDMS files "
+                          "(default: FILE.toml beside each)")
     campaign.add_argument("--workers", type=int, help="worker processes of the local Dask "
                           "cluster (default: campaign.workers)")
     campaign.add_argument("--scheduler", metavar="ADDRESS", help="use the Dask cluster at "
@@ -534,7 +558,8 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--csv", metavar="FILE", help="CSV file (FILE.toml: its sidecar)")
     export.set_defaults(func=cmd_export)
 
-    for command in (run, runs, rebuild, sync, analyze, live, report, export, importer):
+    for command in (run, runs, rebuild, sync, analyze, live, report, export, importer,
+                    campaign):
         command.add_argument("--catalog", metavar="URL", default="", help="the run catalog: "
                              "postgresql://user@host/database or an SQLite file (default: "
                              "$FEEDBENCH_CATALOG, else bench.catalog, else DIR/catalog.sqlite)")
