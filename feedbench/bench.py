@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from feedbench.axes import Axis, axis_kind, axis_schema
+from feedbench.axes import Axis, axis_kind, axis_schema, default_axis
 from feedbench.config import ConfigError, Field, one_of, positive, read_toml, validate_table
 from feedbench.daq.catalog import Catalog, CatalogError, open_catalog, url_problem
 from feedbench.daq.clock import LockstepClock, RealtimeClock, one_core
@@ -87,8 +87,8 @@ BENCH_SCHEMA = {
     "world": Field(dict, {}, "simulated world (simulated = true only); never read by the host"),
     "socketcand": Field(str, "127.0.0.1:29536", "host:port of the socketcand server "
                         "(interface = socketcand; `feedbench sim` listens there)"),
-    "axis": Field(str, "lab", "the axis kind (feedbench.axes: lab, one linear drive, or a "
-                  "registered one such as rack_pinion)"),
+    "axis": Field(str, default_axis(), "the axis kind: a name registered under feedbench.axes "
+                  "(default: the kind that declares itself the default, one linear drive)"),
     "devices": Field(dict, {}, "one [bench.devices.<name>] table per device: kind, address, "
                      "unit id, its own settings (devices.Device.table_schema)"),
 }

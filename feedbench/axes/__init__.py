@@ -48,6 +48,8 @@ class Axis:
     noise_seed: ClassVar[str | None] = None
     """The dotted config key of its simulated measurement noise's seed, which a campaign
     draws per run (``bench.world.noise_seed``; None: no seeded noise)."""
+    default: ClassVar[bool] = False
+    """The kind a ``[bench]`` table without ``axis`` runs (one registered kind says so)."""
 
     def __init__(self, cfg: Mapping[str, Any], plan: Plan | None,
                  needs: Mapping[str, Mapping[str, Any]]) -> None:
@@ -102,6 +104,16 @@ def axis_kind(name: str) -> type[Axis]:
         raise ConfigError(f"bench.axis: must be one of {', '.join(sorted(known))} "
                           f"(got {name!r})")
     return known[name]
+
+
+def default_axis() -> str:
+    """The name of the registered kind that declares itself the `Axis.default`; none or
+    several are a `TypeError` naming them."""
+    named = sorted(name for name, cls in axes().items() if cls.default)
+    if len(named) != 1:
+        raise TypeError(f"one registered axis kind must be the default (Axis.default), "
+                        f"not {len(named)}: {', '.join(named) or 'none'}")
+    return named[0]
 
 
 def axis_schema() -> dict[str, Field]:

@@ -14,6 +14,7 @@ class LabAxis(Axis):
     (`sim_backends.process.SimulatedBench`, the workpiece prepared as planned)."""
 
     name = "lab"
+    default = True
     reported = True
     noise_seed = "bench.world.noise_seed"
     stop_margin_s = 0.25
