@@ -37,10 +37,12 @@ import time
 from array import array
 from contextlib import AbstractContextManager, contextmanager, nullcontext
 from pathlib import Path
-from typing import Iterator, Protocol, Sequence
+from typing import Callable, Iterator, Protocol, Sequence
 
+import can
 import canopen
 import numpy as np
+from can.broadcastmanager import ThreadBasedCyclicSendTask
 
 from feedbench.daq.timing import TIMING_CHANNELS, TIMING_UNITS, cycle_timing
 from feedbench.protocols.canbus import frozen_heap
@@ -71,6 +73,53 @@ class NodeLost(RuntimeError):
     """A drive's heartbeat stopped; the text is the run's abort reason."""
 
 
+class SyncSender:
+    """SYNC every `period_s` from python-can's thread-based periodic sender (the sender
+    python-can uses on `virtual`, `socketcand` and every interface without cyclic
+    transmission of its own), counted as it goes onto the bus: `sent` SYNCs so far.
+
+    Each SYNC is sent and counted under `lock`; frames sent under it too
+    (`RealtimeClock.tick`'s setpoints) come after SYNC `sent` and before SYNC `sent + 1` in
+    the one order of the bus (a CAN controller's queue, a socketcand TCP stream), however
+    far behind the receiver works through that order: a drive applies them at SYNC
+    `sent + 1`, the one they were computed for. A host that counted the drive's TPDO sets
+    instead took the next SYNC to be the one after the newest set: with the SYNC thread
+    starved and catching up in bursts, or the peer working through a backlog, 20 setpoints
+    landed between two SYNCs (the drive took the last: a 175 µm step in one cycle) or none
+    between several."""
+
+    def __init__(self, bus: can.BusABC, period_s: float) -> None:
+        self.lock = threading.Lock()
+        self.sent = 0
+        self.period_s = period_s
+        self._bus = bus
+        self._task: ThreadBasedCyclicSendTask | None = None
+
+    def start(self) -> None:
+        """SYNC from now on (the count goes on from where it was)."""
+        self._task = ThreadBasedCyclicSendTask(
+            self, threading.Lock(), can.Message(arbitration_id=SYNC_COB_ID, data=b"",
+                                                is_extended_id=False), self.period_s)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        """The periodic sender's send: counted, then on the bus (a TPDO set answering it
+        can never be seen before its count)."""
+        with self.lock:
+            self.sent += 1
+            self._bus.send(msg, timeout)
+
+    def stop(self) -> None:
+        if self._task is not None:
+            self._task.stop()
+
+
+def counts_syncs(bus: can.BusABC) -> bool:
+    """True where python-can would send SYNC from its thread-based periodic sender (the
+    `SyncSender` counts them); False where the kernel (SocketCAN's broadcast manager) or the
+    adapter sends periodic frames itself (canopen's `network.sync`, SYNCs not counted)."""
+    return type(bus)._send_periodic_internal is can.BusABC._send_periodic_internal
+
+
 class CycleDrive(Protocol):
     """What the clock needs of a drive (`feedbench.drivers.cia402.Cia402Drive`)."""
 
@@ -92,6 +141,10 @@ class CycleDrive(Protocol):
 
     def heartbeat_lost(self, now: float) -> bool: ...
 
+    syncs_sent: Callable[[], int]
+
+    set_syncs: int
+
 
 class _BenchClock:
     """Shared part: SYNC, per-drive unwrapped cycle counters, gap count.
@@ -103,6 +156,9 @@ class _BenchClock:
     channels: tuple[str, ...] = ()
     units: dict[str, str] = {}
     cycle_values: tuple[float, ...] = ()
+    transmitted = True
+    """Whether the last tick sent the setpoints (real time: not when asked not to, or when
+    the SYNC they were computed for had gone)."""
 
     def __init__(self, network: canopen.Network, drives: Sequence[CycleDrive]) -> None:
         if not drives:
@@ -138,6 +194,16 @@ class _BenchClock:
     def since_tick_s(self) -> float:
         """Wall time (s) since the last tick ended (lockstep: 0)."""
         return 0.0
+
+    def next_sync(self) -> int | None:
+        """The number of the SYNC that setpoints sent now precede (real time where the SYNCs
+        are counted, `SyncSender`; None: lockstep, where each tick sends its own, or SYNC
+        from the kernel or the adapter)."""
+        return None
+
+    def sync_offset_bound(self) -> int | None:
+        """See `RealtimeClock` (None: SYNCs not counted)."""
+        return None
 
     def answer_age_s(self) -> float:
         """Wall time (s) since the drives answered the last tick's cycle (lockstep: 0)."""
@@ -201,11 +267,11 @@ class LockstepClock(_BenchClock):
         self.timeout_s = timeout_s
         self._beat_every = max(1, round(heartbeat_s / cycle_s))
 
-    def tick(self, transmit: bool = True) -> int:
+    def tick(self, transmit: bool = True, sync: int | None = None) -> int:
         """One bus cycle; returns the unwrapped device cycle counter (BusTimeout if silent,
         NodeLost if a drive's heartbeat is). The host's heartbeat goes out before the SYNC
-        of every `heartbeat_s / cycle_s`-th tick, the first one included. (`transmit`:
-        always, the real-time clock's argument.)"""
+        of every `heartbeat_s / cycle_s`-th tick, the first one included. (`transmit`,
+        `sync`: always sent, the real-time clock's arguments.)"""
         if self._ticks % self._beat_every == 0:
             self.network.send_message(*HOST_HEARTBEAT)
         self._start_cycle()
@@ -240,21 +306,33 @@ class RealtimeClock(_BenchClock):
         self.cycle_values = (float("nan"), float("nan"))
         """(rpdo_time, tpdo_time) of the last tick (s, wall clock; `daq.timing`)."""
         self.heartbeat_s = heartbeat_s
+        self._sync = (SyncSender(network.bus, period_s) if counts_syncs(network.bus)
+                      else None)
+        if self._sync is not None:
+            for drive in self.drives:
+                drive.syncs_sent = self._syncs_sent
         self._start_senders()
         self._last_tick = time.perf_counter()
         self._stalled = threading.Event()
         self.reset_timing()
 
-    def tick(self, transmit: bool = True) -> int:
+    def tick(self, transmit: bool = True, sync: int | None = None) -> int:
         """Setpoints out, then the next unseen TPDO set of each drive; returns the unwrapped
         device cycle (BusTimeout if a drive stays silent, NodeLost if its heartbeat does,
         HostStalled if `guarded` found the host loop stalled). Without `transmit` (the host
         `behind`) nothing goes out: the row's `rpdo_time` is NaN, the cycle ran without the
-        host's setpoints (`daq.timing`: repeated)."""
+        host's setpoints (`daq.timing`: repeated). With `sync` (`next_sync` when the
+        setpoints were computed) they go out only if they still precede that SYNC, in one
+        step with the count (`SyncSender.lock`); else not (`transmitted` False)."""
         self.raise_if_stalled()
-        rpdo_time = time.time() if transmit else math.nan
-        for drive in self.drives if transmit else ():
-            drive.transmit()
+        rpdo_time = math.nan
+        if transmit:
+            with self._sync.lock if self._sync is not None else nullcontext():
+                if sync is None or self.next_sync() == sync:
+                    rpdo_time = time.time()
+                    for drive in self.drives:
+                        drive.transmit()
+        self.transmitted = not math.isnan(rpdo_time)
         for i, drive in enumerate(self.drives):
             self._wait_new_set(i, drive)
         self._check_heartbeats()
@@ -293,6 +371,22 @@ class RealtimeClock(_BenchClock):
         """Wall time (s) since the last tick ended."""
         return time.perf_counter() - self._last_tick
 
+    def next_sync(self) -> int | None:
+        """The number of the SYNC that setpoints sent now precede: one after those the
+        `SyncSender` has put on the bus (None where the kernel or the adapter sends SYNC)."""
+        return self._sync.sent + 1 if self._sync is not None else None
+
+    def _syncs_sent(self) -> int:
+        return self._sync.sent
+
+    def sync_offset_bound(self) -> int | None:
+        """A lower bound of the first drive's cycle counter less the number of the SYNC its
+        last set answered: that set cannot answer a SYNC not sent when it came (exact when
+        it came before the next SYNC went; None where SYNCs are not counted)."""
+        if self._sync is None:
+            return None
+        return self.cycles[0] - self.drives[0].set_syncs
+
     def answer_age_s(self) -> float:
         """Wall time (s) since the drives answered the cycle of the last tick (its TPDOs'
         timestamps, on the wall clock as `daq.timing` assumes); more than a cycle: the next
@@ -316,7 +410,7 @@ class RealtimeClock(_BenchClock):
 
     def close(self) -> None:
         """Stop SYNC and the host's heartbeat."""
-        self.network.sync.stop()
+        self._stop_sync()
         self._heartbeat.stop()
 
     def raise_if_stalled(self) -> None:
@@ -351,14 +445,23 @@ class RealtimeClock(_BenchClock):
     def _start_senders(self) -> None:
         """The host's heartbeat and SYNC, each from python-can's periodic sender."""
         self._heartbeat = self.network.send_periodic(*HOST_HEARTBEAT, self.heartbeat_s)
-        self.network.sync.start(self.period_s)
+        if self._sync is not None:
+            self._sync.start()
+        else:
+            self.network.sync.start(self.period_s)
+
+    def _stop_sync(self) -> None:
+        if self._sync is not None:
+            self._sync.stop()
+        else:
+            self.network.sync.stop()
 
     def _watch_ticks(self, done: threading.Event) -> None:
         """Until `done`: stop SYNC and heartbeat once the last tick is `timeout_s` old."""
         while not done.wait(self.timeout_s / 4):
             if time.perf_counter() - self._last_tick > self.timeout_s:
                 self._stalled.set()
-                self.network.sync.stop()
+                self._stop_sync()
                 self._heartbeat.stop()
                 return
 

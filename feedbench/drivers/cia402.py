@@ -283,12 +283,16 @@ class Cia402Drive:
         self._tpdo_count = 0
         self._frames_seen = 0
         self._sets_received = 0
-        self._sets: collections.deque[tuple[dict[int, int | float], float, int]] = \
+        self._sets: collections.deque[tuple[dict[int, int | float], float, int, int]] = \
             collections.deque(maxlen=SET_QUEUE)
         self._latched_sets = 0
         self.set_time = math.nan
         """Receive timestamp (python-can's ``msg.timestamp``, s) of the last TPDO of the set
         `wait_cycle` returned."""
+        self.syncs_sent: Callable[[], int] = lambda: 0
+        """The SYNCs the host had sent when a set came (`daq.clock.RealtimeClock` counts
+        them); `set_syncs` for the set `wait_cycle` returned: the set answers one of those."""
+        self.set_syncs = 0
         self._cycle_complete = CycleSignal()
         self._controlword = 0
         self._newton_per_mille = math.nan
@@ -483,7 +487,7 @@ class Cia402Drive:
             self._frames_seen = 1 if first else self._frames_seen + 1
             if self._frames_seen == self._tpdo_count:
                 self._sets_received += 1
-                queue((pending.copy(), timestamp, self._sets_received))
+                queue((pending.copy(), timestamp, self._sets_received, self.syncs_sent()))
                 complete.set()
 
         self.network.unsubscribe(pdo_map.cob_id, pdo_map.on_message)
@@ -737,5 +741,5 @@ class Cia402Drive:
         while not self._sets:
             if not self._cycle_complete.wait(timeout_s):
                 return False
-        self._raw, self.set_time, self._latched_sets = self._sets.popleft()
+        self._raw, self.set_time, self._latched_sets, self.set_syncs = self._sets.popleft()
         return True

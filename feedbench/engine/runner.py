@@ -149,6 +149,10 @@ class Rejoin:
         return abs(self.offset) < 1e-9 and abs(self.rate) < 1e-9
 
 
+HISTORY_KEPT = 4096
+"""Targets sent that `SentTargets.at` keeps behind the last one asked about, at least half."""
+
+
 class SentTargets:
     """The position targets (m) the host sent in real time, as the drive runs on them: the
     last one and its step (what the drive extrapolates from when none comes,
@@ -156,9 +160,20 @@ class SentTargets:
     `Rejoin` of the plan."""
 
     def __init__(self, start: float) -> None:
+        self.start = start
         self.last = start
         self.step = 0.0
         self.rejoin: Rejoin | None = None
+        self.sync: int | None = None
+        """The SYNC the last target went out for (`RealtimeClock.next_sync`; None: before
+        the plan's first, or SYNCs not counted)."""
+        self.due: int | None = None
+        """The SYNC the last catch-up (`Runner._caught_up`) planned the next target for."""
+        self.index = 0
+        """The plan index after the last target sent (a catch-up counts from there)."""
+        self.history: list[tuple[int, float, float]] = []
+        """(SYNC, target, step) of the targets sent for counted SYNCs, for `at`."""
+        self._at = 0
 
     def next(self, planned: float) -> float:
         """The target to send for the plan's `planned` one (the rejoin's offset added)."""
@@ -169,10 +184,52 @@ class SentTargets:
             self.rejoin = None
         return planned + offset
 
-    def sent(self, target: float) -> None:
-        """`target` went out for the next SYNC."""
-        self.step = target - self.last
+    def sent(self, target: float, sync: int | None = None) -> None:
+        """`target` went out for the next SYNC (number `sync` where they are counted). Its
+        step is the drive's (`protocols.cia402`, `_cyclic_target_of`): the distance from
+        the last one if that went out for the SYNC before; after SYNCs without one the
+        step the drive extrapolated with stays (0 once it held)."""
+        gap = sync - self.sync if sync is not None and self.sync is not None else 1
+        if gap == 1:
+            self.step = target - self.last
+        elif gap > EXTRAPOLATED_CYCLES:
+            self.step = 0.0
         self.last = target
+        self.sync = sync
+        if sync is not None:
+            self.history.append((sync, target, self.step))
+
+    def at(self, sync: int) -> float:
+        """The target the drive ran at SYNC `sync`: the one sent for it, else the last one
+        before it extrapolated (`EXTRAPOLATED_CYCLES` at most); before the first one sent
+        the hold at `start`. Asked about nearly in order (the drive's cycles): a cursor
+        walks from the last answer; the history before it is dropped now and then."""
+        history, k = self.history, self._at
+        while k + 1 < len(history) and history[k + 1][0] <= sync:
+            k += 1
+        while k and history[k][0] > sync:
+            k -= 1
+        if k > HISTORY_KEPT:
+            del history[:k - HISTORY_KEPT // 2]
+            k = HISTORY_KEPT // 2
+        self._at = k
+        if not history or history[k][0] > sync:
+            return self.start
+        first, target, step = history[k]
+        return target + min(sync - first, EXTRAPOLATED_CYCLES) * step
+
+    def behind(self, sync: int | None) -> bool:
+        """SYNCs ran, or will before SYNC `sync`, without a setpoint, and no catch-up
+        planned for `sync` yet."""
+        return self.unsent(sync) > 0 and sync != self.due
+
+    def unsent(self, sync: int | None) -> int:
+        """SYNCs that run without a setpoint before SYNC `sync` (the next one): 0 where the
+        SYNCs are not counted or before the plan's first target; -1 when the last target
+        went out for `sync` itself (no SYNC since)."""
+        if sync is None or self.sync is None:
+            return 0
+        return sync - self.sync - 1
 
     def extrapolated(self, cycles: int) -> float:
         """The drive's target `cycles` cycles after the last one sent, none sent since."""
@@ -314,6 +371,13 @@ class Runner:
         self._block = np.zeros((BLOCK_CYCLES, len(self.channels)))
         self._block_cycles = np.zeros(BLOCK_CYCLES, dtype=np.int64)
         self._block_fill = 0
+        self._sent: SentTargets | None = None
+        """While a plan's cycles go in real time with the SYNCs counted: the targets sent,
+        by SYNC (a row's x_ref is the one the drive ran in its cycle)."""
+        self._sync_offset: int | None = None
+        """The first drive's cycle counter less the number of the SYNC it answered: the
+        largest `clock.sync_offset_bound` so far (exact once a set came before the next
+        SYNC went; a peer that stays behind by the same backlog throughout hides it)."""
         self.stack_log = StackLog()
         """python-can's and canopen's log lines during a run, recorded as ``log`` events."""
 
@@ -361,11 +425,13 @@ class Runner:
                 for device in self.devices:
                     device.start(plan, device_recorder)
                 self._enable(plan.mode, start, recorder, plan.cycle_s)
+                self._sent = sent
                 with self.clock.guarded():
                     starts = segment_starts(plan)
                     segment = 0
                     while True:
-                        if i < len(targets) and self.clock.behind():
+                        if i < len(targets) and (
+                                self.clock.behind() or sent.behind(self.clock.next_sync())):
                             i = self._caught_up(recorder, targets, i, sent, force_offsets,
                                                 velocity_offsets, target_velocities,
                                                 plan.cycle_s)
@@ -374,16 +440,27 @@ class Runner:
                             segment += 1
                         if i == len(targets):
                             break
+                        sync = self.clock.next_sync()
+                        if sent.behind(sync):  # SYNCs went meanwhile: caught up for them first
+                            continue
+                        if sent.unsent(sync) < 0:  # none since the last target: it is out
+                            self._cycle(recorder, sent.last, force_offsets[i - 1],
+                                        velocity_offsets[i - 1],
+                                        velocity=target_velocities[i - 1], transmit=False)
+                            continue
                         target = sent.next(targets[i])
                         self._cycle(recorder, target, force_offsets[i],
                                     velocity_offsets[i], index=i,
-                                    velocity=target_velocities[i])
-                        sent.sent(target)
-                        i += 1
+                                    velocity=target_velocities[i], sync=sync)
+                        if self.clock.transmitted:  # else its SYNC went first: caught up
+                            sent.sent(target, sync)
+                            i += 1
+                            sent.index = i
             except (RunAborted, NodeLost, HostStalled) as exc:
                 status, reason = "aborted", str(exc)
             except Exception as exc:  # bus timeout, driver error, full disk: still stop safely
                 status, reason = "aborted", f"{type(exc).__name__}: {exc}"
+            self._sent = None
             quick = status == "aborted"
             if quick:
                 self._note(recorder, "abort", reason)
@@ -426,6 +503,14 @@ class Runner:
         the velocity limit allows in one cycle: "host stalled N ms". Returns the plan index
         to send next.
 
+        The cycles the drive ran without a setpoint are the SYNCs sent since the last one
+        went out (`RealtimeClock.next_sync`, counted as they go onto the bus), not the TPDO
+        sets taken: a peer working through a backlog of the host's frames (`feedbench sim`'s
+        hub up to ≈ 30 ms behind under load) answers SYNCs long after they were sent, and a
+        starved SYNC thread sends them in bursts. Where SYNCs are not counted (the kernel or
+        the adapter sends them), the sets taken say (a drive takes a setpoint late on the
+        wire as the stale one it is).
+
         Sending the missed setpoints one per waiting set instead (before) put several of
         them between two SYNCs; the drive took the last, and stepped."""
         since_s = self.clock.since_tick_s()
@@ -442,11 +527,19 @@ class Runner:
                         velocity=velocity, transmit=False)
         if not i:  # cycles of the hold before the plan: it starts now
             return 0
-        late = self.clock.cycle - first
+        sync = self.clock.next_sync()
+        if sync is None or sent.sync is None:  # SYNCs not counted: the sets taken say
+            late = self.clock.cycle - first
+        else:  # the SYNCs that went without a setpoint, whatever the TPDO sets say
+            late = sent.unsent(sync)
+            if late <= 0:  # none: the drive got every one, the plan goes on
+                return i
+            sent.due, i = sync, sent.index  # from the last one sent (again if it raced one)
         resume = min(i + late, len(targets))
         drive_at = sent.extrapolated(late + 1)
         drive_step = drive_at - sent.extrapolated(late)
-        sent.last, sent.step = sent.extrapolated(late), drive_step
+        if sync is None or sent.sync is None:  # the next one's step counts from here
+            sent.last, sent.step = sent.extrapolated(late), drive_step
         if resume == len(targets):
             return resume
         too_far = self.limits.velocity * cycle_s
@@ -473,21 +566,28 @@ class Runner:
 
     def _cycle(self, recorder, target: float, force_offset: float, velocity_offset: float,
                watch: bool = True, index: int | None = None, velocity: float = 0.0,
-               transmit: bool = True) -> None:
+               transmit: bool = True, sync: int | None = None) -> None:
         """One bus cycle: setpoints out, SYNC, actual values in, limits, record.
 
         `velocity` is the target velocity (CSV; CSP follows `target` and ignores it); without
         `transmit` (real time, the host behind) nothing is sent, the row records the cycle
-        of the next waiting TPDO set.
+        of the next waiting TPDO set; with `sync` (real time, SYNCs counted) the setpoints
+        go out only if they still precede that SYNC (`clock.transmitted`).
         Runs once per bus cycle beside the bus stack's own work: kept to list operations."""
         for drive, offset in zip(self.drives.values(), self._offsets):
             drive.set_targets(position=target + offset, velocity=velocity,
                               force_offset=force_offset, velocity_offset=velocity_offset)
         for device in self.devices:
             device.before_sync(index)
-        cycle = self.clock.tick() if transmit else self.clock.tick(transmit=False)
+        cycle = self.clock.tick(transmit, sync)
         actual = [drive.actual for drive in self.drives.values()]
         row = [target]
+        bound = self.clock.sync_offset_bound()
+        if bound is not None:  # real time: x_ref the target of the drive's cycle
+            if self._sync_offset is None or bound > self._sync_offset:
+                self._sync_offset = bound
+            if self._sent is not None:
+                row[0] = self._sent.at(cycle - self._sync_offset)
         for a in actual:
             row += a[MEASURED]
         row += (force_offset, velocity_offset)
