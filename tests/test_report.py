@@ -118,9 +118,33 @@ def runs(tmp_path_factory):
     return paths
 
 
+DRAWN: dict[str, list] = {}
+"""(experiment, matplotlib figure) of every plot `sectioned` drew, per recording path: the
+legend test (`drawn_figures`) checks the module fixtures' figures instead of drawing every
+section a second time (≈ 20 s)."""
+
+
+def sectioned(path):
+    """`run_section` of the recording at `path`, the figures it draws kept in `DRAWN`."""
+    from matplotlib.figure import Figure
+
+    drawn, savefig = [], Figure.savefig
+
+    def recorded(figure, *args, **kwargs):
+        drawn.append(figure)
+        return savefig(figure, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Figure, "savefig", recorded)
+        recording = open_recording(path)
+        section = run_section(recording)
+    DRAWN[str(path)] = [(recording.experiment, figure) for figure in drawn]
+    return section
+
+
 @pytest.fixture(scope="module")
 def sections(runs):
-    return [run_section(open_recording(path)) for path in runs]
+    return [sectioned(path) for path in runs]
 
 
 @pytest.fixture(scope="module")
@@ -426,7 +450,7 @@ def family_runs(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def family_sections(family_runs):
-    return {name: run_section(open_recording(path)) for name, path in family_runs.items()}
+    return {name: sectioned(path) for name, path in family_runs.items()}
 
 
 def plot_sizes(section) -> dict[str, tuple[int, int]]:
@@ -585,7 +609,7 @@ def stepped_loading_run(tmp_path_factory):
                              single_step_um=20.0, strokes=1, setup_s=0.5, dwell_s=0.1)
     row = run_config(parse_run_config(raw), progress=False)
     assert row["status"] == "complete", row["reason"]
-    return row["file"], run_section(open_recording(row["file"]))
+    return row["file"], sectioned(row["file"])
 
 
 def test_stepped_loading_section_shows_stiffness_backlash_and_preload_loss(stepped_loading_run):
@@ -685,24 +709,10 @@ def test_every_family_renders_in_headless_chromium(campaign, tmp_path):
         "x".join(map(str, png_size(plot.png))) for s in sections for plot in s.plots]
 
 
-def drawn_figures(monkeypatch, paths) -> list[tuple[str, object]]:
-    """(experiment, matplotlib figure) of every plot the report draws for the recordings."""
-    from matplotlib.figure import Figure
-
-    drawn, savefig = [], Figure.savefig
-
-    def recorded(figure, *args, **kwargs):
-        drawn.append(figure)
-        return savefig(figure, *args, **kwargs)
-
-    monkeypatch.setattr(Figure, "savefig", recorded)
-    out = []
-    for path in paths:
-        recording = open_recording(path)
-        run_section(recording)
-        out += [(recording.experiment, figure) for figure in drawn]
-        drawn.clear()
-    return out
+def drawn_figures(paths) -> list[tuple[str, object]]:
+    """(experiment, matplotlib figure) of every plot the report draws for the recordings, as
+    their module fixtures' `sectioned` drew them."""
+    return [pair for path in paths for pair in DRAWN[str(path)]]
 
 
 def points_in(box, ax) -> int:
@@ -721,12 +731,12 @@ def points_in(box, ax) -> int:
 
 
 def test_every_familys_report_plots_keep_legends_off_the_data_and_axes_aligned(
-        runs, family_runs, stepped_loading_run, monkeypatch):
+        runs, sections, family_runs, family_sections, stepped_loading_run):
     """Every plot of every family's report section (issue 25): no data point under an axes
     legend or a frequency tag and no figure legend over an axes (display coordinates), and
     the axes of one column start and end at the same x (magnitude, phase and coherence line
     up)."""
-    figures = drawn_figures(monkeypatch, [*runs[:2], *family_runs.values(),
+    figures = drawn_figures([*runs[:2], *family_runs.values(),
                                           stepped_loading_run[0]])
     assert {name for name, _ in figures} == {
         "friction_sweep", "chirp", "impact_hammer", "sine_stream", "shaker_chirp",
