@@ -74,6 +74,9 @@ BENCH_SCHEMA = {
     "one_core": Field(bool, True, "simulated lockstep bench: its threads on one CPU "
                       "(faster, same results; `feedbench.daq.clock.one_core`)"),
     "eds": Field(str, "", "EDS file of the drive (empty: the packaged simulated drive's)"),
+    "name": Field(str, "", "the bench's name in the run catalog and the lab's store (empty: "
+                  "$FEEDBENCH_BENCH, else the host's name; the environment's wins: "
+                  "docs/catalog.md)"),
     "output_dir": Field(str, "runs", "where recordings and the catalog go"),
     "catalog": Field(str, "", "run catalog: postgresql://user@host/database (no password: "
                      "PGPASSWORD, ~/.pgpass or a service file) or an SQLite file (empty: "
@@ -389,7 +392,7 @@ class Bench:
         metadata = {"experiment": config.plan.experiment, "run_id": run_id,
                     "config": host_config(config.raw),
                     "cycle_s": config.plan.cycle_s, "drive_gains": _drive_gains(self.drive),
-                    "drive_stop": _drive_stop(self.drive)}
+                    "drive_stop": _drive_stop(self.drive), **catalog.recorder_names()}
         catalog.add(run_id, config.plan.experiment, str(path), config.plan.params)
         streams = {name: spec for d in self.devices for name, spec in d.streams.items()}
         recorder = Recorder(path, runner.channels, runner.units, metadata, streams=streams)
@@ -451,6 +454,6 @@ def run_config(config: RunConfig, observers: Sequence[Observer] = (),
     output_dir = Path(config.bench["output_dir"])
     with Bench(config.bench, config.plan, config.experiment.devices()) as bench:
         output_dir.mkdir(parents=True, exist_ok=True)
-        runs = open_catalog(output_dir, catalog, config.bench["catalog"])
+        runs = open_catalog(output_dir, catalog, config.bench["catalog"], config.bench["name"])
         runs.reconcile()  # runs a dead process left `running`: crashed, in their files too
         return bench.run(config, runs, output_dir, observers, progress, stop, store)

@@ -121,6 +121,38 @@ def test_a_run_is_copied_to_a_directory_store_and_read_from_it_once_deleted(
     assert after == before
 
 
+def test_a_run_carries_its_bench_s_name_and_host(tmp_path, can_channel, monkeypatch):
+    """`[bench] name` names the bench of its runs in the catalog, the recording and the
+    store (`FEEDBENCH_BENCH` over it, as `FEEDBENCH_CATALOG` over `[bench] catalog`); the
+    host is the recording host's; a catalog rebuilt from the recordings, by another bench,
+    gives each run the bench and host that recorded it."""
+    import socket
+
+    from feedbench.daq.recording import read_summary
+
+    monkeypatch.delenv("FEEDBENCH_BENCH", raising=False)
+    store = tmp_path / "nas"
+    raw = short_sweep(tmp_path / "runs", can_channel)
+    raw["bench"].update(name="rack-pinion-rig", store=str(store))
+    row = run_config(parse_run_config(raw), progress=False)
+    monkeypatch.setenv("FEEDBENCH_BENCH", "spindle-stand")
+    other = run_config(parse_run_config(raw), progress=False)
+    catalog = Catalog(tmp_path / "runs" / "catalog.sqlite")
+    expected = {row["id"]: "rack-pinion-rig", other["id"]: "spindle-stand"}
+    for run_id, bench in expected.items():
+        listed = catalog.get(run_id)
+        assert (listed.bench, listed.host) == (bench, socket.gethostname())
+        summary = read_summary(listed.file)
+        assert (summary.bench, summary.host) == (bench, socket.gethostname())
+        assert (store / bench / Path(listed.file).name).exists()
+    assert main(["runs", "--dir", str(tmp_path / "runs"), "--bench", "rack-pinion-rig"]) == 0
+    (tmp_path / "runs" / "catalog.sqlite").unlink()
+    rebuilt = Catalog(tmp_path / "runs" / "catalog.sqlite", bench="feed-drive")
+    rebuilt.rebuild()
+    assert {row.id: (row.bench, row.host) for row in rebuilt.list()} == {
+        run_id: (bench, socket.gethostname()) for run_id, bench in expected.items()}
+
+
 @pytest.mark.parametrize("url", ["memory://lab/recordings", "file://{tmp}/lab"])
 def test_an_fsspec_store_holds_the_copy_and_every_command_reads_it(url, tmp_path, capsys):
     url = url.format(tmp=tmp_path)

@@ -205,16 +205,20 @@ def catalog_url(text: str | Path, field: str) -> URL:
     return make_url(str(text))
 
 
-def open_catalog(output_dir: str | Path, option: str = "", setting: str = "") -> Catalog:
+def open_catalog(output_dir: str | Path, option: str = "", setting: str = "",
+                 bench: str = "") -> Catalog:
     """The run catalog of the runs in `output_dir`: at `option` (``--catalog``), else
     ``$FEEDBENCH_CATALOG``, else `setting` (``[bench] catalog``), else
     ``<output_dir>/catalog.sqlite``; a location with a password raises `ConfigError` naming
-    the one it came from."""
+    the one it came from. The runs this process records are `bench`'s (``[bench] name``)
+    unless ``$FEEDBENCH_BENCH`` names another, as the catalog's location: the environment
+    over the config (empty both: the host's name)."""
+    name = os.environ.get(BENCH_ENV) or bench or None
     for field, location in (("--catalog", option), (CATALOG_ENV, os.environ.get(CATALOG_ENV)),
                             ("bench.catalog", setting)):
         if location:
-            return Catalog(catalog_url(location, field), directory=output_dir)
-    return Catalog(Path(output_dir) / DEFAULT_NAME, directory=output_dir)
+            return Catalog(catalog_url(location, field), directory=output_dir, bench=name)
+    return Catalog(Path(output_dir) / DEFAULT_NAME, directory=output_dir, bench=name)
 
 
 class Catalog:
@@ -350,7 +354,12 @@ class Catalog:
 
     def _recorder(self) -> dict[str, Any]:
         """The pid, host and bench columns of a run this process records."""
-        return {"pid": os.getpid(), "host": socket.gethostname(), "bench": self.bench}
+        return {"pid": os.getpid(), **self.recorder_names()}
+
+    def recorder_names(self) -> dict[str, str]:
+        """The bench and host of a run this process records, as its catalog row and its
+        recording keep them (`rebuild` and `sync` read them back from the file)."""
+        return {"bench": self.bench, "host": socket.gethostname()}
 
     def finish(self, run_id: str, status: str, reason: str, n_samples: int,
                timing: Mapping[str, Any] | None = None, stopped_at: str | None = None) -> None:
@@ -904,16 +913,17 @@ def _ended(pid: int | None, host: str | None, file: str | None) -> bool:
 
 def _rebuilt_row(summary: RecordingSummary, file: str, bench: str) -> tuple[Any, ...]:
     """The catalog row of a recording found on disk as `file` by `bench` (see
-    `Catalog.rebuild`)."""
-    status, pid, host = summary.status, None, None
+    `Catalog.rebuild`): the bench and host that recorded it as the file says (a file
+    written before it said: `bench`, no host)."""
+    status, pid, host = summary.status, None, summary.host
     if status in UNFINISHED:
         pid = _writing_process(summary.path)
-        status, host = ("running", socket.gethostname()) if pid else ("crashed", None)
+        status, host = ("running", socket.gethostname()) if pid else ("crashed", host)
     reason = summary.reason or ("no process writes it any more" if status == "crashed" else "")
     return (summary.run_id, summary.experiment, summary.started_at, summary.stopped_at or None,
             status, reason, file, summary.n_samples,
             to_json(summary.config.get("experiment", {})), pid, host,
-            _timing_json(summary.timing), bench, None, None, None, None)
+            _timing_json(summary.timing), summary.bench or bench, None, None, None, None)
 
 
 def _writing_process(path: Path) -> int | None:

@@ -186,6 +186,9 @@ class RecordingSummary:
     n_samples: int
     config: dict[str, Any]
     timing: dict[str, Any] | None = None
+    bench: str | None = None
+    """The bench and host that recorded it (None: a file written before they were kept)."""
+    host: str | None = None
 
 
 def open_recording(path: str | Path) -> Recording:
@@ -262,6 +265,8 @@ def _read_summary(path: Path) -> RecordingSummary:
             n_samples=_complete_rows(file, json.loads(attrs["channels"])),
             config=json.loads(attrs["config"]),
             timing=json.loads(attrs["timing"]) if "timing" in attrs else None,
+            bench=json.loads(attrs["bench"]) if "bench" in attrs else None,
+            host=json.loads(attrs["host"]) if "host" in attrs else None,
         )
 
 

@@ -399,14 +399,16 @@ def _segments(side: Mapping[str, Any], n: int, rate: float) -> list[tuple[int, s
     return events
 
 
-def write_recording(run: ImportedRun, path: str | Path, run_id: str = "") -> Path:
+def write_recording(run: ImportedRun, path: str | Path, run_id: str = "",
+                    recorder: Mapping[str, str] | None = None) -> Path:
     """Write `run` as a feedbench recording (the `Recorder`'s HDF5 layout), status
-    ``complete``; returns the path."""
+    ``complete``, with the bench and host that import it (`recorder`:
+    `Catalog.recorder_names`); returns the path."""
     path = Path(path)
     names = tuple(run.channels)
     metadata = {"experiment": run.experiment, "config": run.config,
                 "run_id": run_id or path.stem, **run.metadata,
-                "imported_name": run.name}
+                "imported_name": run.name, **(recorder or {})}
     if run.controller:
         metadata["controller"] = run.controller
     specs = {name: spec for name, (spec, *_rest) in run.streams.items()}
@@ -470,7 +472,7 @@ def import_recording(run: ImportedRun, directory: str | Path, catalog: Any,
     started, stopped = recorded_times(run, utc_now_iso())
     catalog.add(run_id, run.experiment, str(path), dict(params or {}), started_at=started)
     try:
-        write_recording(run, path, run_id)
+        write_recording(run, path, run_id, catalog.recorder_names())
     except BaseException as exc:
         catalog.finish(run_id, "aborted", f"import failed: {exc}", 0)
         raise
