@@ -289,37 +289,38 @@ def test_ctrl_c_during_the_write_is_held_until_it_completed(tmp_path):
         assert bench.drive.gains["K_p_Ns_m"] == 15000.0
 
 
-def test_ctrl_c_after_the_write_keeps_the_new_gains(tuned, tmp_path):
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    """`feedbench sim` in its own process, shared by the Ctrl-C tests (one start-up, ≈ 5 s,
+    instead of one each): the one interrupted while measuring (which leaves the drive's
+    present gains) runs before the one that writes new gains."""
+    process, info = start_sim(tmp_path_factory.mktemp("sim"), "tune")
+    yield info
+    process.terminate()
+    process.communicate(timeout=20)
+
+
+def test_ctrl_c_while_measuring_at_another_setting_restores_the_present_gains(sim, tmp_path):
+    """`feedbench tune` (no --apply) interrupted during the tool-tip FRF at the
+    ``measure_gains`` setting K_p 7000 N·s/m: status 130, one line, and the drive has its
+    present gains (the 60 Hz factory K_p 12968.5 N·s/m) again."""
+    raw = _interrupted(tmp_path, sim, [], "[3/4] tool-tip FRF (shaker) at K_p 7000",
+                       bode={**SHORT["bode"], "f_step_Hz": 30.0},
+                       tool_tip={**SHORT["tool_tip"], "duration_s": 0.5})
+    with open_bench({"bench": raw["bench"], "limits": raw["limits"]}) as bench:
+        assert bench.drive.gains["K_p_Ns_m"] == pytest.approx(12968.5, rel=1e-4)
+
+
+def test_ctrl_c_after_the_write_keeps_the_new_gains(tuned, sim, tmp_path):
     """`feedbench tune --apply` in its own process against the simulated bench in another:
     SIGINT once the gains are written stops the measurement (status 130, one line) and leaves
     the new gains in the drive (the write completed), read by SDO from a third connection."""
     config, _, _, _, _ = tuned
-    sim, info = start_sim(tmp_path, "tune")
-    try:
-        (tmp_path / "tune.json").write_text(config.result_path.read_text(encoding="utf-8"))
-        raw = _interrupted(tmp_path, info, ["--apply", "stiff"], "gains written")
-        with open_bench({"bench": raw["bench"], "limits": raw["limits"]}) as bench:
-            assert bench.drive.gains["K_p_Ns_m"] == 20000.0
-            assert bench.drive.gains["T_i_ms"] == pytest.approx(4.0, rel=1e-6)
-    finally:
-        sim.terminate()
-        sim.communicate(timeout=20)
-
-
-def test_ctrl_c_while_measuring_at_another_setting_restores_the_present_gains(tmp_path):
-    """`feedbench tune` (no --apply) interrupted during the tool-tip FRF at the
-    ``measure_gains`` setting K_p 7000 N·s/m: status 130, one line, and the drive has its
-    present gains (the 60 Hz factory K_p 12968.5 N·s/m) again."""
-    sim, info = start_sim(tmp_path, "tune-measure")
-    try:
-        raw = _interrupted(tmp_path, info, [], "[3/4] tool-tip FRF (shaker) at K_p 7000",
-                           bode={**SHORT["bode"], "f_step_Hz": 30.0},
-                           tool_tip={**SHORT["tool_tip"], "duration_s": 0.5})
-        with open_bench({"bench": raw["bench"], "limits": raw["limits"]}) as bench:
-            assert bench.drive.gains["K_p_Ns_m"] == pytest.approx(12968.5, rel=1e-4)
-    finally:
-        sim.terminate()
-        sim.communicate(timeout=20)
+    (tmp_path / "tune.json").write_text(config.result_path.read_text(encoding="utf-8"))
+    raw = _interrupted(tmp_path, sim, ["--apply", "stiff"], "gains written")
+    with open_bench({"bench": raw["bench"], "limits": raw["limits"]}) as bench:
+        assert bench.drive.gains["K_p_Ns_m"] == 20000.0
+        assert bench.drive.gains["T_i_ms"] == pytest.approx(4.0, rel=1e-6)
 
 
 def test_ctrl_c_python_cannot_raise_still_interrupts(monkeypatch):
