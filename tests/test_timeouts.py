@@ -14,7 +14,6 @@ import subprocess
 import sys
 import time
 from contextlib import contextmanager
-from pathlib import Path
 from typing import Iterator
 
 import pytest
@@ -67,27 +66,28 @@ def test_a_silent_modbus_peer_is_an_error_within_2_s():
     assert "\n" not in str(info.value)
 
 
-def _start_sim(tmp_path: Path) -> tuple[subprocess.Popen, dict]:
-    """`feedbench sim` with its files in `tmp_path`/sim (the host records into `tmp_path`)."""
-    directory = tmp_path / "sim"
-    directory.mkdir()
-    return start_sim(directory)
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory) -> Iterator[tuple[subprocess.Popen, dict]]:
+    """One `feedbench sim` for both tests (one start-up fewer, as test_fault_paths' hung and
+    killed peers): the hung one leaves it running again, the killed one (the module's last)
+    ends it. The host records into each test's `tmp_path`."""
+    process, info = start_sim(tmp_path_factory.mktemp("timeouts-sim"))
+    yield process, info
+    if process.returncode is None:
+        _end(process)
 
 
-def test_a_hung_peers_stack_log_lines_go_to_the_runs_file(tmp_path, capsys):
+def test_a_hung_peers_stack_log_lines_go_to_the_runs_file(sim, tmp_path, capsys):
     """The bench process stopped (SIGSTOP) for 3 s mid-sweep: canopen's own lines about the
     SDO transfers that timed out are ``log`` events in the recording, not bare on stderr."""
-    process, info = _start_sim(tmp_path)
+    process, info = sim
 
     def hang() -> None:
         process.send_signal(signal.SIGSTOP)
         time.sleep(3.0)
         process.send_signal(signal.SIGCONT)
 
-    try:
-        assert _run_with_fault(_host_config(info, tmp_path, SWEEP), hang) == 1
-    finally:
-        _end(process)
+    assert _run_with_fault(_host_config(info, tmp_path, SWEEP), hang) == 1
     err = capsys.readouterr().err
     assert "canopen" not in err and "Transfer aborted" not in err
     recording = open_recording(Catalog(tmp_path / "catalog.sqlite").list()[0].file)
@@ -95,8 +95,8 @@ def test_a_hung_peers_stack_log_lines_go_to_the_runs_file(tmp_path, capsys):
     assert "canopen.sdo.client: error: Transfer aborted by client with code 0x05040000" in logs
 
 
-def test_the_host_exits_within_2_s_of_its_final_line_after_a_killed_sim(tmp_path):
-    process, info = _start_sim(tmp_path)
+def test_the_host_exits_within_2_s_of_its_final_line_after_a_killed_sim(sim, tmp_path):
+    process, info = sim
     config = _host_config(info, tmp_path, SWEEP)
     host = subprocess.Popen([sys.executable, "-m", "feedbench.commands.cli", "run", str(config)],
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
