@@ -532,7 +532,7 @@ class Runner:
             late = self.clock.cycle - first
         else:  # the SYNCs that went without a setpoint, whatever the TPDO sets say
             late = sent.unsent(sync)
-            if late <= 0:  # none: the drive got every one, the plan goes on
+            if late <= 0 or sync == sent.due:  # none, or planned already: the plan goes on
                 return i
             sent.due, i = sync, sent.index  # from the last one sent (again if it raced one)
         resume = min(i + late, len(targets))
