@@ -13,7 +13,6 @@ import signal
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
 from importlib import resources
 from pathlib import Path
 
@@ -36,14 +35,6 @@ STOPPED_WITHIN_S = CONSUMER_S + 1.5
 """SIGKILL: the drive is in a safe state this long after the kill (consumer time, the fault
 reaction's ramp, a loaded machine)."""
 RACK = ("backlash_reversal", "stepped_loading")
-LANES = (("lab", ("chirp", "closed_loop_bode", "friction_sweep", "impact_hammer")),
-         ("rack_pinion", RACK), ("lab_2", ("shaker_chirp", "sine_stream", "smfe")))
-"""The SIGKILL rows by simulated bench, one after the other on each: the lab families on
-two simulated lab benches (SMFE, which leaves the axis far out, the last on its bench), the
-rack-and-pinion ones on theirs. Two lanes at once (`killed_rows`): the first lab bench's
-rows beside the rack-and-pinion's then the second lab bench's; a row mostly waits (the
-`feedbench run` start-up, the drive's 3 s consumer time), so two at once take about half
-the wall time of one after the other (the file alone: 101 s → 62 s)."""
 
 
 def example_text(family: str) -> str:
@@ -58,19 +49,16 @@ def tables_after_bench(text: str) -> str:
 
 @pytest.fixture(scope="module")
 def sims(tmp_path_factory):
-    """`feedbench sim` of the lab axis (the SMFE example: its workpiece) twice and of the
-    rack-and-pinion axis, each in its own process (started at once)."""
-    def start(axis: str, family: str):
+    """`feedbench sim` of the lab axis (the SMFE example: its workpiece) and of the
+    rack-and-pinion axis, each in its own process."""
+    started = {}
+    for axis, family in (("lab", "smfe"), ("rack_pinion", "stepped_loading")):
         directory = tmp_path_factory.mktemp(f"sim-{axis}")
         text = example_text(family).replace(
             'interface = "virtual"',
             'interface = "socketcand"\nsocketcand = "127.0.0.1:0"', 1)
         (directory / "sim.toml").write_text(text)
-        return axis, start_sim(directory, config=directory / "sim.toml")
-
-    with ThreadPoolExecutor(3) as pool:
-        started = dict(pool.map(lambda args: start(*args), (
-            ("lab", "smfe"), ("lab_2", "smfe"), ("rack_pinion", "stepped_loading"))))
+        started[axis] = start_sim(directory, config=directory / "sim.toml")
     yield started
     for process, _ in started.values():
         process.terminate()
@@ -117,48 +105,18 @@ def kill_mid_run(family: str, info: dict, directory: Path) -> float:
     return killed
 
 
-def kill_and_stop(family: str, info: dict, directory: Path) -> AssertionError | None:
-    """`kill_mid_run`, then the drive reaches a safe state by itself within the consumer
-    time; None, or the assertion that failed (its row's test raises it)."""
-    try:
-        killed = kill_mid_run(family, info, directory)
-        while not all(state in SAFE_STATES for state in drive_states(info)):
-            assert time.monotonic() - killed < STOPPED_WITHIN_S, (family, drive_states(info))
-            time.sleep(0.1)
-    except AssertionError as failed:
-        return failed
-    return None
-
-
-@pytest.fixture(scope="module")
-def killed_rows(sims, tmp_path_factory) -> dict:
-    """Every family's SIGKILL mid-run and the drive's stop (`kill_and_stop`), the `LANES`
-    two at once: family → (its directory, None or the assertion that failed)."""
-    def lane(bench: str, rows: tuple[str, ...]) -> dict:
-        _, info = sims[bench]
-        out = {}
-        for family in rows:
-            directory = tmp_path_factory.mktemp(f"sigkill-{family}")
-            out[family] = (directory, kill_and_stop(family, info, directory))
-        return out
-
-    with ThreadPoolExecutor(2) as pool:
-        first = pool.submit(lane, *LANES[0])
-        rest = [lane(*LANES[1]), lane(*LANES[2])]
-        rows = {**first.result(), **rest[0], **rest[1]}
-    assert sorted(rows) == sorted(FAMILIES)
-    return rows
-
-
 @pytest.mark.parametrize("family", FAMILIES)
-def test_sigkill_row(family, killed_rows, capsys):
-    """SIGKILL mid-run (the lab families share two simulated benches; SMFE, which leaves the
-    axis far out, is the last on its own): the drive reaches a safe state by itself within
-    the consumer time; `feedbench runs` marks the file crashed; every cycle to the last
-    flush is in it."""
-    directory, failed = killed_rows[family]
-    if failed is not None:
-        raise failed
+def test_sigkill_row(family, sims, tmp_path, capsys):
+    """SIGKILL mid-run (the lab families share one simulated bench; SMFE, which leaves the
+    axis far out, is the last of them): the drive reaches a safe state by itself within the
+    consumer time; `feedbench runs` marks the file crashed; every cycle to the last flush is
+    in it."""
+    _, info = sims["rack_pinion" if family in RACK else "lab"]
+    directory = tmp_path
+    killed = kill_mid_run(family, info, directory)
+    while not all(state in SAFE_STATES for state in drive_states(info)):
+        assert time.monotonic() - killed < STOPPED_WITHIN_S, (family, drive_states(info))
+        time.sleep(0.1)
     assert main(["runs", "--dir", str(directory)]) == 0
     capsys.readouterr()
     [row] = Catalog(directory / "catalog.sqlite").list()
