@@ -14,11 +14,10 @@ import sys
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 from feedbench.axes import Axis, axis_kind, axis_schema, default_axis
 from feedbench.config import ConfigError, Field, one_of, positive, read_toml, validate_table
-from feedbench.daq.catalog import Catalog, CatalogError, open_catalog, url_problem
 from feedbench.daq.clock import LockstepClock, RealtimeClock, one_core
 from feedbench.daq.recorder import Recorder, expected_size
 from feedbench.daq.recording import open_recording
@@ -35,6 +34,9 @@ from feedbench.engine.plan import Plan
 from feedbench.engine.runner import Observer, ProgressPrinter, Runner, StopRequest
 from feedbench.units import MS_TYPOS, kv_to_per_second, typed_in
 
+if TYPE_CHECKING:
+    from feedbench.daq.catalog import Catalog
+
 BUS_CYCLE_MS = (0.125, 10.0)
 """Bus cycles (ms) CiA 402 drives run their cyclic synchronous modes at (8 kHz to 100 Hz)."""
 
@@ -49,6 +51,14 @@ def bus_cycle(value: float) -> str | None:
         return None
     return (f" = {value:g} is outside the {low:g}–{high:g} ms a CiA 402 drive runs its cyclic "
             f"synchronous modes at{typed_in(value, 'ms', low, high, MS_TYPOS)}")
+
+
+def catalog_problem(text: str) -> str | None:
+    """Check: `daq.catalog.url_problem`, the catalog imported when a config names one: its
+    SQLAlchemy takes 0.2-0.3 s to import, which a sim or a config without it need not wait."""
+    from feedbench.daq.catalog import url_problem
+
+    return url_problem(text)
 
 
 GAINS_SCHEMA = {
@@ -80,7 +90,7 @@ BENCH_SCHEMA = {
     "output_dir": Field(str, "runs", "where recordings and the catalog go"),
     "catalog": Field(str, "", "run catalog: postgresql://user@host/database (no password: "
                      "PGPASSWORD, ~/.pgpass or a service file) or an SQLite file (empty: "
-                     "output_dir/catalog.sqlite; docs/catalog.md)", url_problem),
+                     "output_dir/catalog.sqlite; docs/catalog.md)", catalog_problem),
     "store": Field(str, "", "the lab's recording store each recording is copied to after its "
                    "run: a directory (NAS mount) or an fsspec URL (empty: none; "
                    "docs/catalog.md)", store_problem),
@@ -380,6 +390,8 @@ class Bench:
         (``--store``) or ``bench.store`` (`daq.store.copy_recording`; the record's ``store``:
         where, ``copied`` or ``pending`` and why, sha256).
         """
+        from feedbench.daq.catalog import CatalogError
+
         runner = Runner(self.drive, self.clock, config.limits, stop=stop,
                         observers=[*observers, *([ProgressPrinter()] if progress else [])],
                         devices=self.devices)
@@ -451,6 +463,8 @@ def run_config(config: RunConfig, observers: Sequence[Observer] = (),
 
     The output directory and its catalog are made once the bench has opened: a bench that
     cannot be reached leaves nothing behind."""
+    from feedbench.daq.catalog import open_catalog
+
     output_dir = Path(config.bench["output_dir"])
     with Bench(config.bench, config.plan, config.experiment.devices()) as bench:
         output_dir.mkdir(parents=True, exist_ok=True)

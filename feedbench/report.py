@@ -18,10 +18,9 @@ from __future__ import annotations
 import base64
 import html
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
-from matplotlib.figure import Figure as MplFigure
 
 from feedbench.daq.live import bucket_size, minmax_decimate
 from feedbench.daq.recording import Recording, open_recording
@@ -31,6 +30,9 @@ from feedbench.engine.limits import Limits
 from feedbench.engine.plan import recorded_windows
 from feedbench.units import MM_PER_MIN, RPM
 from feedbench.views.sections import Indicator, Plot, RunSection, Table, new_figure, png_of
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure as MplFigure
 
 TRACE_POINTS = 3000
 """Min/max buckets per trace: enough for a 1000-pixel-wide plot at any run length."""

@@ -2,6 +2,7 @@
 impact hammer, accelerometer noise and the DAQ samples the world pushes per bus cycle."""
 
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -9,7 +10,7 @@ import pytest
 from feedbench.analysis.frf import quasi_frf
 from feedbench.drivers.io_module import IoModule, IoModuleError
 from feedbench.models.axis import CSP, CSV, AxisSimulator, TwoMassAxis
-from feedbench.models.exciters import InertialActuator, half_sine_pulse, shaker
+from feedbench.models.exciters import ExciterDynamics, InertialActuator, half_sine_pulse, shaker
 from feedbench.protocols import cia401
 from feedbench.protocols.canbus import open_network
 from feedbench.protocols.serial_frames import CHANNEL_INDEX
@@ -98,6 +99,28 @@ def test_force_exciter_steady_state_matches_the_transfer_function():
     force = np.array([exciter.step(10.0 * np.sin(2 * np.pi * 50.0 * tk)) for tk in t])
     amplitude = np.abs(np.fft.rfft(force[1000:]))[50] * 2 / 1000
     assert amplitude == pytest.approx(10.0 * abs(dynamics.response(50.0)), rel=5e-3)
+
+
+@pytest.mark.parametrize("dynamics", [
+    shaker(160.0), shaker(1e3, 10.0), InertialActuator().dynamics(),
+    InertialActuator(0.2, 40.0, 1.0).dynamics(),
+    ExciterDynamics((2.0, 3.0), (4.0, 5.0, 6.0), 1.0),  # den[0] != 1, a strictly proper one
+    ExciterDynamics((0.0, 1.0), (1.0, 2.0), 1.0),  # a leading zero: scipy.signal's own
+    ExciterDynamics((3.0,), (2.0,), 1.0),  # a gain
+])
+@pytest.mark.parametrize("cycle_s", [1e-3, 1.25e-4, 1e-2])
+def test_exciter_discretisation_is_scipy_signals_to_the_last_bit(dynamics, cycle_s):
+    """`ExciterDynamics.discrete` without scipy.signal (its import: 0.6 s of a sim's start)
+    gives tf2ss + cont2discrete's bilinear matrices exactly."""
+    import scipy.signal
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # scipy.signal's BadCoefficients for the leading zero
+        a, b, c, d = scipy.signal.tf2ss(dynamics.numerator, dynamics.denominator)
+        want = scipy.signal.cont2discrete((a, b, c, d), cycle_s, method="bilinear")[:4]
+        got = dynamics.discrete(cycle_s)
+    for g, w in zip(got, want, strict=True):
+        assert g.shape == w.shape and g.dtype == w.dtype and np.array_equal(g, w)
 
 
 def test_force_exciter_saturates_at_its_command_limit():

@@ -170,6 +170,16 @@ def measure_all(chosen: Mapping[str, tuple[Example, dict]], workers: int,
     return {name: done[name] for name in chosen}
 
 
+def imports_for_workers() -> None:
+    """What each run and its report section import on first use (the catalog's SQLAlchemy,
+    matplotlib's Agg canvas: about 1 s), imported here once before the workers fork, which
+    inherit it, rather than in each worker."""
+    import matplotlib.backends.backend_agg  # noqa: F401
+    import matplotlib.figure  # noqa: F401
+
+    import feedbench.daq.catalog  # noqa: F401
+
+
 def plan_cycles(raw: dict) -> int:
     """A run config's plan length in bench cycles (0: a config refused before it runs)."""
     try:
@@ -200,6 +210,8 @@ def run_demo(directory: Path, quiet: bool = False, quick: bool = False,
     configs = {name: campaign_config(example, directory, quick)
                for name, example in declared.items()}
     workers = workers or demo_workers(len(configs))
+    if workers > 1:
+        imports_for_workers()
     t1 = time.monotonic()
     measured = measure_all({name: (declared[name], configs[name]) for name in configs},
                            workers, quiet)

@@ -28,11 +28,10 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import asdict
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 import scipy.signal
-from matplotlib.figure import Figure as MplFigure
 
 from feedbench.analysis.checks import check, peak_checks
 from feedbench.analysis.smfe import (
@@ -60,6 +59,9 @@ from feedbench.views.panels import Curve, Image, Panel, ResultView, phase_panel
 from feedbench.views.sections import (
     MIN_COHERENCE, FrfSeries, Plot, RunSection, Table, frf_figure, new_figure, png_of,
 )
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure as MplFigure
 
 NAME = "smfe"
 

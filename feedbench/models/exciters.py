@@ -18,7 +18,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.signal
 from numpy.typing import ArrayLike
 
 
@@ -40,9 +39,38 @@ class ExciterDynamics:
         """(A_d, B_d, C_d, D_d) over one bus cycle (s), Tustin: a sine command sequence gives
         a force sequence of amplitude |F/u| at (2/T) tan(ωT/2) (0.8 % above ω at 50 Hz,
         1 kHz). A zero-order hold would alias the steps' images (1 kHz ± f) onto f: the
-        amplifier is fed through the output's reconstruction filter, not a staircase."""
-        a, b, c, d = scipy.signal.tf2ss(self.numerator, self.denominator)
-        return scipy.signal.cont2discrete((a, b, c, d), cycle_s, method="bilinear")[:4]
+        amplifier is fed through the output's reconstruction filter, not a staircase.
+
+        scipy.signal's `tf2ss` + `cont2discrete` to the last bit, with scipy.linalg (a
+        simulated bench starts its exciters before it is ready, and scipy.signal takes 0.6 s
+        to import); a transfer function they would trim or refuse goes to scipy.signal."""
+        num = np.asarray(self.numerator, dtype=float)
+        den = np.asarray(self.denominator, dtype=float)
+        if not (num.ndim == den.ndim == 1 and 1 <= num.size <= den.size and den.size >= 2
+                and den[0] != 0.0 and abs(num[0] / den[0]) > 1e-14):
+            import scipy.signal
+
+            a, b, c, d = scipy.signal.tf2ss(self.numerator, self.denominator)
+            return scipy.signal.cont2discrete((a, b, c, d), cycle_s, method="bilinear")[:4]
+        return _tustin(num / den[0], den / den[0], cycle_s)
+
+
+def _tustin(num: np.ndarray, den: np.ndarray, cycle_s: float) -> tuple[np.ndarray, ...]:
+    """(A_d, B_d, C_d, D_d) of N(s)/D(s) (`den[0]` = 1, len(num) <= len(den)) as
+    scipy.signal computes them: controller canonical form (`tf2ss`), then the generalised
+    bilinear transform at alpha = 1/2 (`cont2discrete`, ``method="bilinear"``)."""
+    from scipy import linalg
+
+    n = den.size - 1
+    num = np.hstack((np.zeros(den.size - num.size), num))[None, :]
+    a = np.r_[-np.array([den[1:]]), np.eye(n - 1, n)]
+    b = np.eye(n, 1)
+    c = num[:, 1:] - np.outer(num[:, 0], den[1:])
+    d = np.atleast_2d(num[:, 0]).reshape((c.shape[0], b.shape[1]))
+    ima = np.eye(n) - 0.5 * cycle_s * a
+    bd = linalg.solve(ima, cycle_s * b)
+    return (linalg.solve(ima, np.eye(n) + 0.5 * cycle_s * a), bd,
+            linalg.solve(ima.transpose(), c.transpose()).transpose(), d + 0.5 * np.dot(c, bd))
 
 
 def shaker(corner_hz: float = 160.0, command_limit: float = 500.0) -> ExciterDynamics:

@@ -9,13 +9,14 @@ from __future__ import annotations
 import io
 import textwrap
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure as MplFigure
 
 from feedbench.views.panels import unwrapped_degrees
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure as MplFigure
 
 MIN_COHERENCE = 0.9
 """Coherence below this in the analysed band is flagged (Ch. 3.5.1)."""
@@ -77,6 +78,10 @@ def frf_warnings(lines: Sequence[str], details: Sequence[str] = ()) -> Indicator
 
 def new_figure(width_in: float = 10.0, height_in: float = 4.0) -> MplFigure:
     """A matplotlib figure on an Agg canvas (no pyplot global state)."""
+    # matplotlib here: about 0.5 s to import, and a run, a sim or the CLI draw nothing
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure as MplFigure
+
     figure = MplFigure(figsize=(width_in, height_in), dpi=100, layout="constrained")
     FigureCanvasAgg(figure)
     return figure
