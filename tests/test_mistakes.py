@@ -324,6 +324,10 @@ NOT_VALID = {
     "shaker chirp: run aborted early in its first sweep": (
         aborted_daq_run(SHAKER, [cut_short(shaker_chirp_steps()[0], 0.002)]),
         "sweeps analysed", "records of 0.005 s hold no frequency line in 20–100 Hz"),
+    "sine stream: run aborted at the start of a step": (
+        aborted_daq_run(SINES, sine_stream_steps()[:4] + [cut_short(sine_stream_steps()[4],
+                                                                    0.002)]),
+        "notes", "a step was left out: the FRF lacks its frequency"),
     "smfe: run aborted inside the last cut": (
         aborted_daq_run(SMFE, SMFE_STEPS[:5] + [cut_short(SMFE_STEPS[5], 0.5)]),
         "status", "the run stopped before its plan ended"),
@@ -380,7 +384,9 @@ def test_result_marked_not_valid_with_its_reason_in_terminal_json_and_report(mis
     ("hammer: run aborted inside a feed's first hit (none of it whole)",
      "hit 1: cut short by the stop (500 of 1000 cycles), left out"),
     ("shaker chirp: run aborted inside the second sweep",
-     "sweep 2: cut short by the stop (1250 of 2500 cycles), left out")])
+     "sweep 2: cut short by the stop (1250 of 2500 cycles), left out"),
+    ("sine stream: run aborted at the start of a step",
+     "44 Hz: cut short by the stop after 1 cycle(s), left out")])
 def test_a_record_cut_short_by_the_stop_is_left_out_and_named(mistake, cut, analysed):
     """The stop cuts the run's last record: it is not averaged with the whole ones (its
     frequency lines are not theirs), and the notes say which and why."""

@@ -31,7 +31,7 @@ from feedbench.engine.plan import Plan, Window, recorded_windows
 from feedbench.experiments.tool_tip import (
     COMPLIANCE_LABEL, FEEDS_FIELD, FORCE_CHANNELS, MOTION_SCHEMA, RESPONSE_CHANNEL,
     TIP_ACCELERATION, ExcitationWindow, daq_needs, feed_label, feed_text,
-    overloaded, plan_over_feeds, tip_force, window_samples,
+    overloaded, plan_over_feeds, records_check, tip_force, window_samples,
 )
 from feedbench.experiments.shaker_chirp import ShakerChirp
 from feedbench.models.exciters import ExciterDynamics, InertialActuator, shaker
@@ -136,6 +136,24 @@ def fit_step(recording, window: Window, force_channel: str, fs: float, settle_cy
     return {"H": complex(fit.H[0]), "r_squared": float(fit.r_squared[0]),
             "force_amplitude_N": float(fit.force_amplitude[0]), "drift": float(fit.drift[0]),
             "reasons": reasons}
+
+
+def fitted_steps(recording, force_channel: str, fs: float, settle_cycles: int,
+                 r_squared_min: float) -> tuple[list[tuple[dict, dict]], list[str]]:
+    """Each recorded step's fit (`fit_step`) with its info, and notes: in a run that did not
+    complete, the last step, cut by the stop too short to fit, is left out and named."""
+    windows = recorded_windows(recording, "excite")
+    fits, notes = [], []
+    for k, window in enumerate(windows):
+        try:
+            fits.append((fit_step(recording, window, force_channel, fs, settle_cycles,
+                                  r_squared_min), window.info))
+        except ValueError:
+            if recording.status == "complete" or k < len(windows) - 1:
+                raise
+            notes.append(f"{window.label}: cut short by the stop after "
+                         f"{window.stop - window.start} cycle(s), left out")
+    return fits, notes
 
 
 def _combine_repeats(fits: list[dict], info: dict, tolerance: float) -> dict:
@@ -343,12 +361,12 @@ class SineStream(Experiment):
         fs = recording.streams["daq"].rate_hz
         force_channel = FORCE_CHANNELS[p.exciter]
         grouped: dict[tuple[float, float, int], list[tuple[dict, dict]]] = {}
-        for window in recorded_windows(recording, "excite"):
-            fit = fit_step(recording, window, force_channel, fs, p.settle_cycles,
-                           p.r_squared_min)
-            key = (abs(float(window.info["feed_mm_min"])), float(window.info["amplitude_N"]),
-                   int(window.info["step"]))
-            grouped.setdefault(key, []).append((fit, window.info))
+        fits, notes = fitted_steps(recording, force_channel, fs, p.settle_cycles,
+                                   p.r_squared_min)
+        for fit, info in fits:
+            key = (abs(float(info["feed_mm_min"])), float(info["amplitude_N"]),
+                   int(info["step"]))
+            grouped.setdefault(key, []).append((fit, info))
         streams: dict[tuple[float, float], list[dict]] = {}
         for (feed, amplitude, _), fits in sorted(grouped.items()):
             step = _combine_repeats([fit for fit, _ in fits], fits[0][1],
@@ -367,7 +385,11 @@ class SineStream(Experiment):
                               * len(p.feeds_mm_min)),
             "r_squared_min": p.r_squared_min,
             "min_r_squared": min((s["min_r_squared"] for s in summaries), default=float("nan")),
-            "checks": stream_checks(summaries, p.r_squared_min),
+            "notes": notes,
+            "checks": [*stream_checks(summaries, p.r_squared_min),
+                       records_check("steps", len(fits), notes),
+                       check("notes", "; ".join(notes) or "none", not notes,
+                             "a step was left out: the FRF lacks its frequency")],
         }
 
     @classmethod
