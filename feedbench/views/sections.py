@@ -121,12 +121,15 @@ def covers_data(ax, box) -> bool:
 
 def legends_off_the_data(figure: MplFigure) -> None:
     """Every axes legend that lies over the axes' data moves out, right of the axes (top
-    aligned); constrained layout makes room and keeps the axes of a column aligned."""
+    aligned); constrained layout makes room and keeps the axes of a column aligned. A figure
+    without an axes legend is not laid out here (the layout pass is half of its drawing)."""
+    legends = [(ax, ax.get_legend()) for ax in figure.axes if ax.get_legend() is not None]
+    if not legends:
+        return
     figure.draw_without_rendering()
     renderer = figure.canvas.get_renderer()
-    for ax in figure.axes:
-        legend = ax.get_legend()
-        if legend is not None and covers_data(ax, legend.get_window_extent(renderer)):
+    for ax, legend in legends:
+        if covers_data(ax, legend.get_window_extent(renderer)):
             legend.set_loc("upper left")
             legend.set_bbox_to_anchor((1.01, 1.0), transform=ax.transAxes)
 
