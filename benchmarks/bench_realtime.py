@@ -28,6 +28,7 @@ ms) and the cycles it took without sending; then the limit trips, completed and 
 
 from __future__ import annotations
 
+import math
 import os
 import subprocess
 import sys
@@ -313,10 +314,10 @@ def loaded(n: int) -> dict:
         "chirps": len(results), "limit_trips": sum(c["trip"] for c in results),
         "complete": sum(c["status"] == "complete" for c in results),
         "aborted": sum(c["status"] != "complete" for c in results),
-        "max_x_ref_step_um": max(c["x_ref_step_um"] for c in results),
-        "max_position_step_um": max(c["position_step_um"] for c in results),
-        "max_following_error_um": max(c["following_error_um"] for c in results),
-        "longest_unsent_cycles": max(c["longest_unsent"] for c in results),
+        "max_x_ref_step_um": max((c["x_ref_step_um"] for c in results), default=math.nan),
+        "max_position_step_um": max((c["position_step_um"] for c in results), default=math.nan),
+        "max_following_error_um": max((c["following_error_um"] for c in results), default=math.nan),
+        "longest_unsent_cycles": max((c["longest_unsent"] for c in results), default=0),
         "planned_fastest_step_um": 1e6 * CHIRP_FASTEST_M_PER_CYCLE,
     }
     print("  " + ", ".join(f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}"

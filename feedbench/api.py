@@ -333,7 +333,8 @@ class BenchSession:
         self._bench, self._needs = bench, key
         self.output_dir.mkdir(parents=True, exist_ok=True)
         if self._catalog is None:
-            self._catalog = open_catalog(self.output_dir, setting=self.bench_config["catalog"])
+            self._catalog = open_catalog(self.output_dir, setting=self.bench_config["catalog"],
+                                         bench=self.bench_config["name"])
             self._catalog.reconcile()  # runs a dead process left `running`: crashed, files too
         return bench
 

@@ -100,12 +100,11 @@ BENCH_SCHEMA = {
     "world": Field(dict, {}, "simulated world (simulated = true only); never read by the host"),
     "socketcand": Field(str, "127.0.0.1:29536", "host:port of the socketcand server "
                         "(interface = socketcand; `feedbench sim` listens there)"),
-    "axis": Field(str, default_axis(), "the axis kind: a name registered under feedbench.axes "
-                  "(default: the kind that declares itself the default, one linear drive)"),
     "devices": Field(dict, {}, "one [bench.devices.<name>] table per device: kind, address, "
                      "unit id, its own settings (devices.Device.table_schema)"),
 }
-"""The [bench] keys of every bench; each registered axis kind adds its own (`bench_schema`)."""
+"""The [bench] keys of every bench; ``axis`` and each registered axis kind's own keys are added
+by `bench_schema`."""
 
 RUN_SCHEMA = {
     "bench": Field(dict, {}, "how to reach the drive"),
@@ -126,14 +125,18 @@ class RunConfig:
 
 
 def bench_schema() -> dict[str, Field]:
-    """The [bench] schema: `BENCH_SCHEMA` and the keys of the registered axis kinds."""
-    return {**BENCH_SCHEMA, **axis_schema()}
+    """The [bench] schema: `BENCH_SCHEMA`, ``axis`` (its default the kind that declares
+    itself so, `axes.default_axis`, looked up here, not at import) and the keys of the
+    registered axis kinds."""
+    axis = Field(str, default_axis(), "the axis kind: a name registered under feedbench.axes "
+                 "(default: the kind that declares itself the default, one linear drive)")
+    return {**BENCH_SCHEMA, "axis": axis, **axis_schema()}
 
 
 def run_axis(raw: Mapping[str, Any]) -> type[Axis]:
     """The axis kind a run config (`raw`, its tables) names in ``[bench] axis``, the default
     if it names none."""
-    return axis_kind(raw.get("bench", {}).get("axis", BENCH_SCHEMA["axis"].default))
+    return axis_kind(raw.get("bench", {}).get("axis") or default_axis())
 
 
 def bench_table(table: Mapping[str, Any]) -> dict[str, Any]:

@@ -18,7 +18,7 @@ from feedbench.engine.family import family
 from feedbench.units import MM_PER_MIN
 
 ROOT = Path(__file__).parents[1]
-CONFIG = {"bench": {"simulated": True, "channel": "test-api"},
+CONFIG = {"bench": {"simulated": True, "channel": "test-api", "name": "api-rig"},
           "limits": {"position_mm": [-50.0, 50.0], "gains": {"K_p_Ns_m": [4000.0, 16000.0]}}}
 
 
@@ -111,6 +111,18 @@ def test_an_experiment_instance_runs_with_its_settings(bench):
 
 
 PUBLIC = [getattr(api, name) for name in api.__all__]
+
+
+def test_the_sessions_runs_are_catalogued_and_recorded_under_its_bench_name(bench):
+    """`[bench] name` names the bench of a scripting session's runs as of `feedbench run`'s
+    (the runs of the tests above)."""
+    from feedbench.daq.catalog import Catalog
+    from feedbench.daq.recording import read_summary
+
+    rows = Catalog(bench.output_dir / "catalog.sqlite").list()
+    assert len(rows) >= 3
+    assert {row.bench for row in rows} == {read_summary(row.file).bench for row in rows} == {
+        "api-rig"}
 
 
 def test_every_public_name_and_member_has_a_docstring():

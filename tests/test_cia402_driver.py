@@ -13,7 +13,7 @@ import sys
 import numpy as np
 import pytest
 
-from feedbench.bench import BENCH_SCHEMA, Bench, sync_loss_cycles
+from feedbench.bench import Bench, bench_schema, sync_loss_cycles
 from feedbench.config import ConfigError, validate_table
 from feedbench.drivers.cia402 import DriveError, PdoConfig, decode_state
 from feedbench.models.axis import CSP, CST, CSV
@@ -155,12 +155,12 @@ def test_the_driver_tells_the_drive_its_bus_cycle_and_a_drive_on_another_cycle_r
 def test_the_sync_loss_limit_is_bench_sync_loss_ms_in_whole_cycles(sync_loss_ms, cycle_ms,
                                                                     clock, cycles):
     cfg = validate_table({"sync_loss_ms": sync_loss_ms, "cycle_ms": cycle_ms, "clock": clock},
-                         BENCH_SCHEMA, "bench")
+                         bench_schema(), "bench")
     assert sync_loss_cycles(cfg) == cycles
 
 
 def test_a_sync_loss_limit_no_drive_can_hold_is_an_error_naming_the_field():
-    cfg = validate_table({"sync_loss_ms": 300.0, "clock": "realtime"}, BENCH_SCHEMA, "bench")
+    cfg = validate_table({"sync_loss_ms": 300.0, "clock": "realtime"}, bench_schema(), "bench")
     with pytest.raises(ConfigError, match=r"^bench.sync_loss_ms: 300 ms is 300 bus cycles of "
                                           r"1 ms; a drive counts at most 255 \(0x2021\)$"):
         Bench(cfg).__enter__()

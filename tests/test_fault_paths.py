@@ -24,7 +24,7 @@ from typing import Callable
 import numpy as np
 import pytest
 
-from feedbench.bench import BENCH_SCHEMA, Bench
+from feedbench.bench import Bench, bench_schema
 from feedbench.commands.cli import main
 from feedbench.config import validate_table
 from feedbench.daq.catalog import Catalog
@@ -102,7 +102,7 @@ def _drive_state(info: dict) -> str:
     """The drive's CiA 402 state, from the statusword read by SDO on a new connection."""
     cfg = validate_table({"simulated": False, "interface": "socketcand",
                           "socketcand": info["socketcand"], "channel": info["channel"]},
-                         BENCH_SCHEMA, "bench")
+                         bench_schema(), "bench")
     with Bench(cfg) as bench:
         return bench.drive.state
 

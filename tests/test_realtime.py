@@ -15,7 +15,7 @@ import pytest
 
 import feedbench
 from feedbench.api import RunError
-from feedbench.bench import BENCH_SCHEMA, Bench
+from feedbench.bench import Bench, bench_schema
 from feedbench.commands.cli import main
 from feedbench.config import validate_table
 from feedbench.daq.clock import BusTimeout, RealtimeClock
@@ -67,7 +67,7 @@ def host_bench(info: dict, clock: str) -> dict:
     return validate_table({"simulated": False, "interface": "socketcand",
                            "socketcand": info["socketcand"], "channel": info["channel"],
                            "clock": clock, "cycle_ms": CYCLE_MS,
-                           "output_dir": str(info["directory"])}, BENCH_SCHEMA, "bench")
+                           "output_dir": str(info["directory"])}, bench_schema(), "bench")
 
 
 def test_realtime_run_records_its_cycle_timing(sim, capsys):

@@ -17,7 +17,7 @@ import can
 import numpy as np
 import pytest
 
-from feedbench.bench import BENCH_SCHEMA, Bench
+from feedbench.bench import Bench, bench_schema
 from feedbench.commands.cli import main
 from feedbench.config import validate_table
 from feedbench.daq.recording import open_recording
@@ -81,7 +81,7 @@ def test_host_sync_advances_the_bench_process_world(bench_process):
     which decays with the flexure's 0.2 s time constant)."""
     cfg = validate_table({"simulated": False, "interface": "socketcand",
                           "socketcand": bench_process["socketcand"],
-                          "channel": bench_process["channel"]}, BENCH_SCHEMA, "bench")
+                          "channel": bench_process["channel"]}, bench_schema(), "bench")
     host, port = bench_process["modbus"].rsplit(":", 1)
     client = connect_tcp(host, int(port))
     try:

@@ -108,11 +108,12 @@ def axis_kind(name: str) -> type[Axis]:
 
 def default_axis() -> str:
     """The name of the registered kind that declares itself the `Axis.default`; none or
-    several are a `TypeError` naming them."""
+    several (an installed package's kind declaring it too) are a `ConfigError` naming them."""
     named = sorted(name for name, cls in axes().items() if cls.default)
     if len(named) != 1:
-        raise TypeError(f"one registered axis kind must be the default (Axis.default), "
-                        f"not {len(named)}: {', '.join(named) or 'none'}")
+        raise ConfigError(f"bench.axis: one installed axis kind must be the default "
+                          f"(Axis.default), not {len(named)}: {', '.join(named) or 'none'}; "
+                          "give bench.axis")
     return named[0]
 
 

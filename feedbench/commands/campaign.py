@@ -36,6 +36,7 @@ from feedbench.daq.recording import printable_json
 from feedbench.commands.demo import example_truth
 from feedbench.engine.family import families
 
+
 def _seeds(value: list) -> str | None:
     if not value or not all(isinstance(v, int) and v >= 0 for v in value):
         return f": must be a non-empty list of integers ≥ 0 (got {value!r})"
@@ -230,9 +231,9 @@ def summary_row(index: int, params: Mapping[str, Any], record: Mapping[str, Any]
 def recorded_summary(files: Mapping[str, str]) -> dict[str, Any]:
     """The campaign summary (as `run_campaign`'s) of recorded runs, measured on a bench or
     imported from another DAQ system (`files`: as given → the recording), in that order:
-    each analysed by its family (`summary_row`, no truth); its parameters the varied ones of
-    the campaign that ran it, else its key parameters (``[experiment]``, dotted, without
-    ``type``); a run whose analysis fails is ``failed`` with why, the others kept."""
+    each analysed by its family (`summary_row`, no truth); its parameters its recorded
+    ``[experiment]`` table (dotted, without ``type``); a run whose analysis fails is
+    ``failed`` with why, the others kept."""
     from feedbench.daq.recording import open_recording
 
     t0 = time.monotonic()
@@ -240,18 +241,17 @@ def recorded_summary(files: Mapping[str, str]) -> dict[str, Any]:
     for index, file in enumerate(files.values()):
         recording = open_recording(file)
         kinds.append(recording.experiment)
-        table = dict(recording.config.get("experiment", {}))
-        tag = table.pop("campaign", None)
-        params = tag["params"] if isinstance(tag, Mapping) and "params" in tag else {
-            key: value for key, value in dotted(table).items() if key != "type"}
+        params = {key: value for key, value in
+                  dotted(recording.config.get("experiment", {})).items() if key != "type"}
         record = {"id": recording.metadata.get("run_id", recording.path.stem), "file": file,
                   "status": recording.status, "reason": recording.reason,
                   "experiment": recording.experiment}
         try:
             rows.append(summary_row(index, params, record))
-        except ConfigError as exc:
+        except Exception as exc:  # one run's failing analysis fails its row, not the table
+            why = str(exc) if isinstance(exc, ConfigError) else f"{type(exc).__name__}: {exc}"
             rows.append(summary_row(index, params, {**record, "status": "failed",
-                                                    "reason": str(exc)}))
+                                                    "reason": why}))
         rows[-1]["elapsed_s"] = None
         if "source_file" in recording.metadata:
             rows[-1]["imported_from"] = Path(recording.metadata["source_file"]).name

@@ -368,8 +368,8 @@ class SineStream(Experiment):
                    int(info["step"]))
             grouped.setdefault(key, []).append((fit, info))
         streams: dict[tuple[float, float], list[dict]] = {}
-        for (feed, amplitude, _), fits in sorted(grouped.items()):
-            step = _combine_repeats([fit for fit, _ in fits], fits[0][1],
+        for (feed, amplitude, _), repeats in sorted(grouped.items()):
+            step = _combine_repeats([fit for fit, _ in repeats], repeats[0][1],
                                     p.amplitude_tolerance)
             streams.setdefault((feed, amplitude), []).append(step)
         summaries = [_stream_summary(feed, amplitude, steps)
