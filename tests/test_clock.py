@@ -20,7 +20,7 @@ from feedbench.daq.recording import open_recording
 from feedbench.commands.demo import example_config
 from feedbench.protocols.canbus import open_network
 from feedbench.drivers.cia402 import Cia402Drive
-from feedbench.models.axis import CSV
+from feedbench.models.axis import CSV, AxisSimulator
 from feedbench.sim_backends.bench import start_simulated_axis
 from feedbench.sim_backends.eds import packaged_eds_path
 from prerequisites import requires
@@ -64,6 +64,38 @@ def test_bus_timeout_when_the_device_is_gone(can_channel):
         bench.device.close()
         with pytest.raises(BusTimeout, match=f"node {NODE_ID}"):
             bench.clock.tick()
+
+
+class SlowCycles(AxisSimulator):
+    """A simulated axis whose physics takes `delays` seconds at its first cycles."""
+
+    def __init__(self, delays: list[float]) -> None:
+        super().__init__()
+        self.delays = delays
+
+    def step_cycle(self, *args, **kwargs):
+        if self.delays:
+            time.sleep(self.delays.pop(0))
+        return super().step_cycle(*args, **kwargs)
+
+
+def test_the_first_lockstep_cycle_may_be_slow_the_others_not(can_channel):
+    """A peer 1.5 s late at its first cycle (loading what it needs) is waited for, up to
+    `clock.FIRST_CYCLE_TIMEOUT_S`; 1.5 s late at a later cycle is a BusTimeout at 1 s."""
+    device = start_simulated_axis("virtual", can_channel, NODE_ID, SlowCycles([]))
+    network = open_network("virtual", can_channel)
+    try:
+        drive = Cia402Drive(network, NODE_ID, packaged_eds_path())
+        drive.configure()
+        lockstep = LockstepClock(network, [drive], timeout_s=1.0)
+        device.simulator.delays.extend([1.5, 0.0, 1.5])
+        lockstep.tick()
+        lockstep.tick()
+        with pytest.raises(BusTimeout, match=r"no TPDOs 1.0 s after SYNC"):
+            lockstep.tick()
+    finally:
+        network.disconnect()
+        device.close()
 
 
 def test_lockstep_clock_drives_two_axes(can_channel):

@@ -257,6 +257,13 @@ class _BenchClock:
         return self.cycles[0]
 
 
+FIRST_CYCLE_TIMEOUT_S = 10.0
+"""Lockstep: how long the first cycle may wait for its TPDOs (s) at least. A simulated bench's
+first cycle is its slowest (kernels its warm-up did not load, the first SYNC of a process):
+on a loaded 2-core machine a test run aborted "no TPDOs 1.0 s after SYNC (after device cycle
+0)"; the cycles after it keep `timeout_s`, so a peer gone mid-run is still found at once."""
+
+
 class LockstepClock(_BenchClock):
     """Simulation clock: each tick sends SYNC and waits for every drive's TPDOs of it."""
 
@@ -274,10 +281,12 @@ class LockstepClock(_BenchClock):
         `sync`: always sent, the real-time clock's arguments.)"""
         if self._ticks % self._beat_every == 0:
             self.network.send_message(*HOST_HEARTBEAT)
+        first = self._ticks == 0
         self._start_cycle()
+        timeout_s = max(self.timeout_s, FIRST_CYCLE_TIMEOUT_S) if first else self.timeout_s
         for drive in self.drives:
-            if not drive.wait_cycle(self.timeout_s):
-                raise BusTimeout(f"node {drive.node.id}: no TPDOs {self.timeout_s} s after "
+            if not drive.wait_cycle(timeout_s):
+                raise BusTimeout(f"node {drive.node.id}: no TPDOs {timeout_s} s after "
                                  f"SYNC (after device cycle {self.cycle})")
         self._check_heartbeats()
         return self._count_cycles()
