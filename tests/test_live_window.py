@@ -179,7 +179,9 @@ def test_the_frf_builds_up_point_by_point_and_equals_the_analysis(stream_run):
     result = session.window.result
     analysis = SineStream.analyze(open_recording(row["file"]))["streams"][0]
     assert result.version == analysis["steps"] == 21 and analysis["steps_used"] == 21
-    assert 5 <= points_at_shot <= 16
+    assert 1 <= points_at_shot < 21  # part of them: the shot comes after 55 % of the cycles
+    # (the short high-frequency steps come last); how many the live analysis has drawn by
+    # then depends on the machine's load: 5–16 quiet, 18 seen under a loaded suite
     f, log_compliance = session.window.result_plots.curves[0]["1000 mm/min, 20 N"].getData()
     np.testing.assert_allclose(f, analysis["frf"]["f_hz"])
     np.testing.assert_allclose(10**log_compliance, analysis["frf"]["compliance_abs"], rtol=1e-9)
