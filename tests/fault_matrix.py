@@ -52,9 +52,6 @@ ASYNC_CYCLES = 5000
 """A fault the host notices on its own time (the DAQ's reader thread) is noticed within this
 many bus cycles: lockstep cycles run several times faster than real time and the reader
 thread lags on a loaded machine (measured up to 1557 cycles, typically 1–20)."""
-STARTUP_TIMEOUT_S = 5.0
-"""The first cycle's timeout (the simulated bench loads its compiled kernels then; on a
-loaded machine that took over 0.5 s)."""
 FILE_LIMIT_BYTES = 1_250_000
 """The disk-full rows' file-size limit: the recorder's 1 MiB reserve and ≈ 150 kB of samples."""
 ROW_PROCESSES = 4
@@ -291,9 +288,7 @@ def run_with_fault(fault: Fault, family: str, directory: Path, channel: str) -> 
     with Bench(config.bench, config.plan, config.experiment.devices()) as bench:
         catalog = Catalog(directory / "catalog.sqlite")
         drives = simulated_drives(bench)
-        bench.clock.timeout_s = STARTUP_TIMEOUT_S  # a fresh bench's first cycle loads kernels
-        bench.clock.tick()
-        bench.clock.timeout_s = TIMEOUT_S
+        bench.clock.tick()  # the first cycle, its slowest (daq.clock.FIRST_CYCLE_TIMEOUT_S)
         if fault.name == "sigint":
             interrupt_at(drives[0], AT_CYCLE)
         with file_size_limit(FILE_LIMIT_BYTES) if fault.name == "disk_full" else nullcontext():
