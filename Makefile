@@ -5,6 +5,10 @@ STAMP := $(VENV)/.installed
 # exact versions of every direct and transitive dependency (pip-compile; `make lock` refreshes it)
 LOCK := requirements.lock
 PIP_VERSION := 26.3
+# the build backend test-lab's editable install uses (--no-build-isolation): a fresh venv
+# has Python 3.11's bundled setuptools 65.5, which needs the separate `wheel` package for
+# an editable install ("invalid command 'bdist_wheel'"); 70.1 and later build wheels alone
+SETUPTOOLS_VERSION := 80.9.0
 PYTEST_ARGS = -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 .PHONY: demo test test-lab test-fast test-latest lock bench docs clean
@@ -46,6 +50,7 @@ test: $(STAMP)
 LAB_TESTS := tests/test_bench_tables.py tests/test_testing_kit.py tests/test_device_seam.py \
 	tests/test_sim_serves_all.py::test_the_docs_list_both_modbus_devices_and_the_sims_serve_them
 test-lab: $(STAMP)
+	$(BIN)/pip install --quiet 'setuptools==$(SETUPTOOLS_VERSION)'
 	$(BIN)/pip install --quiet --no-deps --no-build-isolation -e examples/lab_extension
 	cd examples/lab_extension && QT_QPA_PLATFORM=offscreen $(abspath $(BIN))/python -m pytest \
 		-q -p no:cacheprovider
