@@ -116,12 +116,13 @@ def test_directional_friction_is_refused_where_the_axis_moved_one_way_only():
 def test_a_residual_no_signature_explains_is_called_unexplained_not_dominated():
     """odrive-pull: the declared model's residual is the constant pull (the offset explains
     99 % of it); what the final model leaves, no candidate's signature explains 15 % of (the
-    largest, a delay, about 0 %), and the verdict says so instead of naming it."""
+    largest, the ripple its fit finds at 13 %, named with that share, not a 0 % delay),
+    and the verdict says so instead of naming it."""
     pulled = _closed("odrive-pull")
     assert pulled["base_verdict"]["diagnosis"].startswith("dominated by offset (")
     final = pulled["final_verdict"]["diagnosis"]
     assert final.startswith("unexplained: no candidate's signature explains 15% of it (the "
-                            "largest, "), final
+                            "largest, ripple: fitted, it removes 1"), final
     assert "dominated" not in final
 
 

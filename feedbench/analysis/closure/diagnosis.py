@@ -226,17 +226,31 @@ def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ..
                        f"{options.describes_below:.0%} a describing model leaves")
     reasons += [f"{b} is on the lower bound of its range" for b in bounds if b.endswith(" kg")]
     reasons += one_way(fit.model, kin)
-    screened = [c for c in ranking if c.freed is None and np.isfinite(c.screened)]
-    best = max(screened, key=lambda c: c.screened, default=None)
-    if best is None or best.screened <= 0:
+    effects = [c for c in ranking if c.freed is None and np.isfinite(_share(c))]
+    best = max(effects, key=_share, default=None)
+    if best is None or _share(best) <= 0:
         diagnosis = "unexplained: no candidate's signature is in it"
-    elif best.screened < options.min_explained:
+    elif _share(best) < options.min_explained:
         diagnosis = (f"unexplained: no candidate's signature explains "
                      f"{options.min_explained:.0%} of it (the largest, {best.name}: "
-                     f"{best.evidence})")
+                     f"{_share_evidence(best)})")
     else:
-        diagnosis = f"dominated by {best.name} ({best.evidence})"
+        diagnosis = f"dominated by {best.name} ({_share_evidence(best)})"
     return Verdict(not reasons, tuple(reasons), bounds, diagnosis)
+
+
+def _share(candidate: Candidate) -> float:
+    """The share of the residual `candidate` accounts for: its signature test's, or what
+    its fit removed where that is more (a ripple's pitch found by the fit, not the test)."""
+    return max(candidate.screened, candidate.explained)
+
+
+def _share_evidence(candidate: Candidate) -> str:
+    """The signature test's evidence, or the fit's where the fit removed more."""
+    if candidate.explained > candidate.screened:
+        return (f"fitted, it removes {candidate.explained:.0%} of the fit residual; "
+                f"its signature test alone explains {candidate.screened:.0%}")
+    return candidate.evidence
 
 
 def one_way(model: Model, kin: Kinematics) -> list[str]:
