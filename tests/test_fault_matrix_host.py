@@ -12,7 +12,9 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from importlib import resources
 from pathlib import Path
 
@@ -35,6 +37,27 @@ STOPPED_WITHIN_S = CONSUMER_S + 1.5
 """SIGKILL: the drive is in a safe state this long after the kill (consumer time, the fault
 reaction's ramp, a loaded machine)."""
 RACK = ("backlash_reversal", "stepped_loading")
+BENCHES = ("lab", "lab_2", "rack_pinion")
+"""The simulated benches of the SIGKILL rows (`sims`): the lab axis twice, so that
+consecutive rows are never on the same bench (`schedule`)."""
+
+
+def schedule() -> list[tuple[str, str]]:
+    """(bench, family) of every SIGKILL row in the order they run, one `feedbench run` at a
+    time: the lab families alternate between the two lab benches (SMFE, which leaves the
+    axis far out, the last of them), the rack-and-pinion ones come between them, so no two
+    rows in a row share a bench. A row's drive then stops by itself (3 s consumer time)
+    while the next row's run starts on another bench (`killed_rows`), instead of the file
+    waiting ≈ 3 s per row with nothing else running; the runs stay one at a time (two at
+    once raced a short run's end in the 2-worker suite: e5cce2f)."""
+    lab = [family for family in FAMILIES if family not in RACK and family != "smfe"]
+    lab.append("smfe")
+    rows = [("lab" if i % 2 == 0 else "lab_2", family) for i, family in enumerate(lab)]
+    for k, family in enumerate(RACK):
+        rows.insert(2 + 3 * k, ("rack_pinion", family))
+    assert sorted(family for _, family in rows) == sorted(FAMILIES)
+    assert all(a[0] != b[0] for a, b in zip(rows, rows[1:]))
+    return rows
 
 
 def example_text(family: str) -> str:
@@ -49,16 +72,19 @@ def tables_after_bench(text: str) -> str:
 
 @pytest.fixture(scope="module")
 def sims(tmp_path_factory):
-    """`feedbench sim` of the lab axis (the SMFE example: its workpiece) and of the
-    rack-and-pinion axis, each in its own process."""
-    started = {}
-    for axis, family in (("lab", "smfe"), ("rack_pinion", "stepped_loading")):
-        directory = tmp_path_factory.mktemp(f"sim-{axis}")
+    """`feedbench sim` of the lab axis (the SMFE example: its workpiece) twice and of the
+    rack-and-pinion axis, each in its own process, started at once (`BENCHES`)."""
+    def start(bench: str):
+        family = "stepped_loading" if bench == "rack_pinion" else "smfe"
+        directory = tmp_path_factory.mktemp(f"sim-{bench}")
         text = example_text(family).replace(
             'interface = "virtual"',
             'interface = "socketcand"\nsocketcand = "127.0.0.1:0"', 1)
         (directory / "sim.toml").write_text(text)
-        started[axis] = start_sim(directory, config=directory / "sim.toml")
+        return bench, start_sim(directory, config=directory / "sim.toml")
+
+    with ThreadPoolExecutor(len(BENCHES)) as pool:
+        started = dict(pool.map(start, BENCHES))
     yield started
     for process, _ in started.values():
         process.terminate()
@@ -105,18 +131,55 @@ def kill_mid_run(family: str, info: dict, directory: Path) -> float:
     return killed
 
 
-@pytest.mark.parametrize("family", FAMILIES)
-def test_sigkill_row(family, sims, tmp_path, capsys):
-    """SIGKILL mid-run (the lab families share one simulated bench; SMFE, which leaves the
-    axis far out, is the last of them): the drive reaches a safe state by itself within the
-    consumer time; `feedbench runs` marks the file crashed; every cycle to the last flush is
-    in it."""
-    _, info = sims["rack_pinion" if family in RACK else "lab"]
-    directory = tmp_path
-    killed = kill_mid_run(family, info, directory)
+def wait_for_stop(family: str, info: dict, killed: float) -> None:
+    """The drive reaches a safe state by itself within `STOPPED_WITHIN_S` of the kill."""
     while not all(state in SAFE_STATES for state in drive_states(info)):
         assert time.monotonic() - killed < STOPPED_WITHIN_S, (family, drive_states(info))
         time.sleep(0.1)
+
+
+@pytest.fixture(scope="module")
+def killed_rows(sims, tmp_path_factory) -> dict:
+    """Every family's SIGKILL mid-run (`kill_mid_run`, one run at a time, in `schedule`
+    order), each drive's stop watched by a thread (`wait_for_stop`) while the next row runs
+    on another bench; a bench's next row starts once its watcher is done. family → (its
+    directory, None or the exception its row's test raises)."""
+    rows: dict[str, tuple[Path, BaseException | None]] = {}
+    watchers: dict[str, threading.Thread] = {}
+
+    def watch(family: str, info: dict, killed: float, directory: Path) -> None:
+        try:
+            wait_for_stop(family, info, killed)
+        except BaseException as failed:  # noqa: BLE001  (raised by the row's test)
+            rows[family] = (directory, failed)
+
+    for bench, family in schedule():
+        _, info = sims[bench]
+        if bench in watchers:
+            watchers.pop(bench).join()
+        directory = tmp_path_factory.mktemp(f"sigkill-{family}")
+        rows[family] = (directory, None)
+        try:
+            killed = kill_mid_run(family, info, directory)
+        except BaseException as failed:  # noqa: BLE001
+            rows[family] = (directory, failed)
+            continue
+        watchers[bench] = threading.Thread(target=watch, args=(family, info, killed, directory))
+        watchers[bench].start()
+    for watcher in watchers.values():
+        watcher.join()
+    return rows
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_sigkill_row(family, killed_rows, capsys):
+    """SIGKILL mid-run (the lab families share two simulated benches; SMFE, which leaves the
+    axis far out, is the last of them): the drive reaches a safe state by itself within the
+    consumer time; `feedbench runs` marks the file crashed; every cycle to the last flush is
+    in it."""
+    directory, failed = killed_rows[family]
+    if failed is not None:
+        raise failed
     assert main(["runs", "--dir", str(directory)]) == 0
     capsys.readouterr()
     [row] = Catalog(directory / "catalog.sqlite").list()
