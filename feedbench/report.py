@@ -29,7 +29,9 @@ from feedbench.engine.family import families, judged_analysis
 from feedbench.engine.limits import Limits
 from feedbench.engine.plan import recorded_windows
 from feedbench.units import MM_PER_MIN, RPM
-from feedbench.views.sections import Indicator, Plot, RunSection, Table, new_figure, png_of
+from feedbench.views.sections import (
+    LEGEND_BESIDE, Indicator, Plot, RunSection, Table, new_figure, png_of,
+)
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure as MplFigure
@@ -82,7 +84,7 @@ def trace_plot(recording: Recording) -> Plot:
         _shade_windows(ax, spans)
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-        ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)  # beside the data
+        ax.legend(loc="upper left", bbox_to_anchor=LEGEND_BESIDE, fontsize=8)
     axes[-1].set_xlabel("time (s)")
     return Plot("key time traces", png_of(figure))
 

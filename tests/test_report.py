@@ -789,6 +789,29 @@ def test_a_legend_over_the_data_moves_out_of_the_axes():
     assert top.get_position().x1 == pytest.approx(bottom.get_position().x1)
 
 
+def test_an_empty_shaded_area_covers_no_legend_and_a_kept_legend_draws_once():
+    """An empty filled area (no windows to shade: its extent is infinite and inverted) does
+    not count as data under a legend: the legend in a free corner stays, and the figure is
+    drawn once (a moved legend needs a second drawing)."""
+    from matplotlib.figure import Figure
+
+    from feedbench.views.sections import new_figure, png_of
+
+    figure = new_figure(6.0, 3.0)
+    ax = figure.subplots()
+    x = np.linspace(0.0, 1.0, 200)
+    ax.plot(x, x**2, label="rising late")
+    ax.fill_between([], [], [])
+    ax.legend(loc="upper left")
+    drawings = []
+    with pytest.MonkeyPatch.context() as patch:
+        savefig = Figure.savefig
+        patch.setattr(Figure, "savefig", lambda *a, **k: drawings.append(savefig(*a, **k)))
+        png_of(figure)
+    assert ax.get_legend()._loc == 2 and ax.get_legend().get_bbox_to_anchor().x0 < ax.bbox.x1
+    assert len(drawings) == 1
+
+
 FRF_PLOT = re.compile(r"compliance|mobility|receptance|loop:")
 """Titles of the plots that draw an FRF (each must have a phase panel)."""
 
