@@ -70,24 +70,34 @@ def tables_after_bench(text: str) -> str:
     return text[text.index("\n[limits]") + 1:]
 
 
+FAULTED_OPTIONS = ("--fault", "at_cycle=200", "--fault", "emcy_code=0x2310")
+"""`feedbench sim`'s command-line faults of `test_feedbench_sim_injects_the_faults_of_its_
+command_line` (its bench, "faulted" in `sims`: the faults count the SYNCs it hears, so it
+waits idle for its test)."""
+
+
 @pytest.fixture(scope="module")
 def sims(tmp_path_factory):
     """`feedbench sim` of the lab axis (the SMFE example: its workpiece) twice and of the
-    rack-and-pinion axis, each in its own process, started at once (`BENCHES`)."""
+    rack-and-pinion axis (`BENCHES`), and the default bench with `FAULTED_OPTIONS`, each in
+    its own process, started at once (their start-ups overlap), ended at once."""
     def start(bench: str):
-        family = "stepped_loading" if bench == "rack_pinion" else "smfe"
         directory = tmp_path_factory.mktemp(f"sim-{bench}")
+        if bench == "faulted":
+            return bench, start_sim(directory, options=FAULTED_OPTIONS)
+        family = "stepped_loading" if bench == "rack_pinion" else "smfe"
         text = example_text(family).replace(
             'interface = "virtual"',
             'interface = "socketcand"\nsocketcand = "127.0.0.1:0"', 1)
         (directory / "sim.toml").write_text(text)
         return bench, start_sim(directory, config=directory / "sim.toml")
 
-    with ThreadPoolExecutor(len(BENCHES)) as pool:
-        started = dict(pool.map(start, BENCHES))
+    with ThreadPoolExecutor(len(BENCHES) + 1) as pool:
+        started = dict(pool.map(start, (*BENCHES, "faulted")))
     yield started
     for process, _ in started.values():
         process.terminate()
+    for process, _ in started.values():
         process.communicate(timeout=20)
 
 
@@ -193,22 +203,18 @@ def test_sigkill_row(family, killed_rows, capsys):
         before, recording.reason))
 
 
-def test_feedbench_sim_injects_the_faults_of_its_command_line(tmp_path):
+def test_feedbench_sim_injects_the_faults_of_its_command_line(sims):
     """`feedbench sim --fault at_cycle=200 --fault emcy_code=0x2310`: a friction sweep from
     another process aborts on that EMCY, and the drive is in FAULT."""
-    process, info = start_sim(tmp_path, options=("--fault", "at_cycle=200",
-                                                 "--fault", "emcy_code=0x2310"))
-    try:
-        config = tmp_path / "run.toml"
-        config.write_text(host_bench_table(info) + f'\noutput_dir = "{tmp_path}"\n'
-                          + tables_after_bench(example_text("friction_sweep")))
-        run = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "run", str(config)],
-                             capture_output=True, text=True, timeout=120)
-        assert run.returncode == 1, run.stderr
-        [row] = Catalog(tmp_path / "catalog.sqlite").list()
-        assert row.reason == "drive fault (EMCY 0x2310)"
-        assert open_recording(row.file).cycle[-1] < 220
-        assert drive_states(info) == ["FAULT"]
-    finally:
-        process.terminate()
-        process.communicate(timeout=20)
+    _, info = sims["faulted"]
+    directory = info["directory"]
+    config = directory / "run.toml"
+    config.write_text(host_bench_table(info) + f'\noutput_dir = "{directory}"\n'
+                      + tables_after_bench(example_text("friction_sweep")))
+    run = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "run", str(config)],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 1, run.stderr
+    [row] = Catalog(directory / "catalog.sqlite").list()
+    assert row.reason == "drive fault (EMCY 0x2310)"
+    assert open_recording(row.file).cycle[-1] < 220
+    assert drive_states(info) == ["FAULT"]
