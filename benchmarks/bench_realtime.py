@@ -23,7 +23,9 @@ through the runner against one `feedbench sim` process while one CPU-burning pro
 runs beside them (started and stopped here; issue 26 item 2): per chirp its status, the
 largest setpoint (x_ref) and position step in one cycle, the largest following error
 |x_ref - position| while the plan ran, the host's catch-ups (``timing`` events: cycles and
-ms) and the cycles it took without sending; then the limit trips, completed and aborted.
+ms), the cycles it took without sending, how many cycles after it was sent the stop
+reached the drive (the bus backlog, measured from the SYNC count) and the stop's ``fault``
+events (escalation, stop by SDO); then the limit trips, completed and aborted.
 """
 
 from __future__ import annotations
@@ -258,7 +260,11 @@ def loaded_chirp(info: dict, directory: Path) -> dict:
                  if e.kind == "timing"]
     unsent = ~(np.asarray(recording.channels["rpdo_time"]) <= np.asarray(
         recording.channels["tpdo_time"]))
-    return {"status": row["status"], "reason": row["reason"],
+    reached = [e.text.split("stop reached the drive ")[1].split(" cycles")[0]
+               for e in recording.events if "stop reached the drive " in e.text]
+    faults = [e.text for e in recording.events if e.kind == "fault"]
+    return {"status": row["status"], "reason": row["reason"], "reached": reached,
+            "faults": faults,
             "trip": "limit tripped" in row["reason"],
             "x_ref_step_um": 1e6 * float(np.max(np.abs(np.diff(x_ref)) / cycles)),
             "position_step_um": 1e6 * float(np.max(np.abs(np.diff(position)) / cycles)),
@@ -295,6 +301,9 @@ def loaded(n: int) -> dict:
                           flush=True)
                     continue
                 results.append(chirp)
+                reached = (f"; stop reached the drive {'/'.join(chirp['reached'])} cycles after "
+                           "it was sent" if chirp["reached"] else "")
+                reached += "".join(f"; {fault}" for fault in chirp["faults"])
                 print(f"  {k + 1:2d} {chirp['status']:<8s} steps x_ref "
                       f"{chirp['x_ref_step_um']:5.1f} / position {chirp['position_step_um']:5.1f}"
                       f" µm, following error {chirp['following_error_um']:6.1f} µm, "
@@ -303,6 +312,7 @@ def loaded(n: int) -> dict:
                       f"catch-ups noted {len(chirp['catch_ups'])} (longest away "
                       f"{max([int(c.split()[0]) for c in chirp['catch_ups']], default=0)} ms)"
                       f"{'; ' + chirp['reason'] if chirp['reason'] else ''}"
+                      f"{reached}"
                       f" (load {os.getloadavg()[0]:.1f})", flush=True)
         finally:
             for hog in hogs:

@@ -209,6 +209,10 @@ class _BenchClock:
         """Wall time (s) since the drives answered the last tick's cycle (lockstep: 0)."""
         return 0.0
 
+    def pace_hz(self) -> float | None:
+        """See `RealtimeClock` (None: virtual time)."""
+        return None
+
     def guarded(self) -> AbstractContextManager[None]:
         """While a run's cycles go: what keeps a hung host from holding the drives enabled
         (lockstep: nothing needed, a hung host sends no SYNC)."""
@@ -257,6 +261,8 @@ class _BenchClock:
         return self.cycles[0]
 
 
+PACE_TICKS = 200
+"""Ticks over which `RealtimeClock.pace_hz` measures the drives' pace."""
 FIRST_CYCLE_TIMEOUT_S = 10.0
 """Lockstep: how long the first cycle may wait for its TPDOs (s) at least. A simulated bench's
 first cycle is its slowest (kernels its warm-up did not load, the first SYNC of a process):
@@ -401,6 +407,18 @@ class RealtimeClock(_BenchClock):
         timestamps, on the wall clock as `daq.timing` assumes); more than a cycle: the next
         set is on its way."""
         return time.time() - self.cycle_values[1]
+
+    def pace_hz(self, ticks: int = PACE_TICKS) -> float | None:
+        """Drive cycles per second over the last `ticks` ticks, from their TPDO sets' receive
+        timestamps (None before two): below 1 / `period_s` the drives, or the path to them,
+        work through the host's frames slower than the SYNCs go, and frames sent now wait
+        longer than the backlog's cycles of `period_s` (`Runner._sdo_timeout_s`)."""
+        n = len(self._cycle_log)
+        first = max(0, n - ticks)
+        if n < 2 or not self._tpdo_log[n - 1] > self._tpdo_log[first]:
+            return None
+        return ((self._cycle_log[n - 1] - self._cycle_log[first])
+                / (self._tpdo_log[n - 1] - self._tpdo_log[first]))
 
     def reset_timing(self) -> None:
         """Forget the cycles ticked so far and the TPDO sets queued meanwhile (the host was

@@ -16,6 +16,26 @@ statusword of the TPDOs, then 0x6041 read by SDO), within a bound computed from 
 within it is escalated: disable voltage (the power stage off), then safe torque off by a
 device that has it; each step is an event in the file and a part of the run's reason.
 
+A bus behind (issue 26, items 1 and 2): in real time where the host counts its SYNCs
+(`daq.clock.SyncSender`) it knows, for each TPDO set, how many SYNCs it had sent beyond the
+one the set answers (`Runner.backlog`: the drive's cycle counter against the SYNC count,
+nothing the drive does not report). Both follow from it:
+
+- the stop's bound counts from the drive cycle that can have the stop (`_stop_due`: the
+  SYNC the command precedes, as the drive counts it), not from when the host sent it, and
+  likewise for each later command of the stop (`_run_stop`); the cycles between, which the
+  drive ran on what was already on its way, are stated: "stop reached the drive N cycles
+  after it was sent". Escalating earlier would not help: disable voltage goes the same
+  way, behind the same frames; the stop's SDO reads wait for the backlog too
+  (`_sdo_timeout_s`). Where the SYNCs are not
+  counted (the kernel or the adapter sends them: SocketCAN) the backlog is not measurable
+  and the bound counts from the send, as before;
+- a run whose backlog exceeds the stop bound is aborted, "bus N cycles behind": its limit
+  checks would act on data older than a whole stop takes, and a stop sent then would reach
+  the drive only after more than a stop's worth of queued setpoints. Counting from the
+  drive alone (without the abort) would leave the host watching the axis hundreds of ms
+  late; the abort alone would still blame the drive for a stop that had not reached it.
+
 The safe stop depends on nothing but the bus: a recording that fails (full disk) aborts the
 run like any fault, and the stop goes on without it; the file is finalized after the drives
 are stopped. If the bus fails during the stop, the host keeps trying for `STOP_RETRY_S`
@@ -65,7 +85,9 @@ BLOCK_CYCLES = 50
 STOP_RETRY_S = 5.0
 """How long the host keeps trying to stop the drives after the stop sequence failed (s)."""
 SDO_STOP_TIMEOUT_S = 0.3
-"""How long each SDO request of those tries waits for its answer (s)."""
+"""How long each SDO request of the stop waits for its answer (s), plus the time of the bus
+backlog measured last (`Runner._sdo_timeout_s`): the answer comes after the frames queued
+ahead of it."""
 
 
 class StopRequest:
@@ -378,6 +400,16 @@ class Runner:
         """The first drive's cycle counter less the number of the SYNC it answered: the
         largest `clock.sync_offset_bound` so far (exact once a set came before the next
         SYNC went; a peer that stays behind by the same backlog throughout hides it)."""
+        self.backlog: int | None = None
+        """Real time with the SYNCs counted: how many SYNCs the host had sent beyond the one
+        the newest TPDO set answers, when that set came (`_sync_offset` less
+        `clock.sync_offset_bound`): the bus, the drive and the host's receive path together
+        that many cycles behind (None: not measurable, lockstep or SYNC from the kernel or
+        the adapter)."""
+        self._stop_dt = 0.0
+        """The cycle (s) of the stop under way (`_sdo_timeout_s`)."""
+        self._backlog_limit: int | None = None
+        """While a plan's cycles go: the backlog (cycles) that aborts the run, the stop bound."""
         self.stack_log = StackLog()
         """python-can's and canopen's log lines during a run, recorded as ``log`` events."""
 
@@ -426,6 +458,7 @@ class Runner:
                     device.start(plan, device_recorder)
                 self._enable(plan.mode, start, recorder, plan.cycle_s)
                 self._sent = sent
+                self._backlog_limit = self._stop_bound(plan.cycle_s)
                 with self.clock.guarded():
                     starts = segment_starts(plan)
                     segment = 0
@@ -461,6 +494,7 @@ class Runner:
             except Exception as exc:  # bus timeout, driver error, full disk: still stop safely
                 status, reason = "aborted", f"{type(exc).__name__}: {exc}"
             self._sent = None
+            self._backlog_limit = None
             quick = status == "aborted"
             if quick:
                 self._note(recorder, "abort", reason)
@@ -586,6 +620,7 @@ class Runner:
         if bound is not None:  # real time: x_ref the target of the drive's cycle
             if self._sync_offset is None or bound > self._sync_offset:
                 self._sync_offset = bound
+            self.backlog = self._sync_offset - bound
             if self._sent is not None:
                 row[0] = self._sent.at(cycle - self._sync_offset)
         for a in actual:
@@ -611,6 +646,12 @@ class Runner:
             raise RunAborted(self.stop.reason)
         for (name, drive), a in zip(self.drives.items(), actual):
             self._watch(name, drive, a)
+        if self._backlog_limit is not None and self.backlog is not None \
+                and self.backlog > self._backlog_limit:  # a fault or trip seen comes first
+            raise RunAborted(f"bus {self.backlog} cycles behind (the TPDO set of SYNC "
+                             f"{cycle - self._sync_offset} came after SYNC {cycle - bound}): "
+                             "the limits would act on data older than a stop takes "
+                             f"({self._backlog_limit} cycles)")
 
     def _watch(self, name: str, drive, a) -> None:
         """Abort on a drive fault or a limit trip (the drive's name in the reason)."""
@@ -654,6 +695,7 @@ class Runner:
         `_stop_by_sdo`. Returns "" for a stop as planned, else the line the run's reason
         gets: how the stop was escalated, or that the drive state is unknown."""
         bound = self._stop_bound(dt)
+        self._stop_dt = dt
         try:
             return self._stop_by_motion(recorder, x, bound, dt, quick)
         except Exception as exc:  # the bus may be gone: record why the stop ended early
@@ -666,7 +708,10 @@ class Runner:
 
     def _stop_bound(self, dt: float) -> int:
         """Bus cycles (of `dt` s) a stop may take: from the velocity limit at the slowest
-        drive's quick-stop deceleration, plus `StopSettings.margin` and the standstill cycles."""
+        drive's quick-stop deceleration, plus `StopSettings.margin` and the standstill cycles;
+        counted from the cycle the drive can have the stop (`_stop_due`). Also the largest
+        bus backlog a plan runs with (`backlog`): more, and the limits act on data older
+        than a stop takes (the run is aborted "bus N cycles behind")."""
         settings = self.drive.stop_settings
         deceleration = min(drive.stop_deceleration for drive in self.drives.values())
         return (math.ceil((self.limits.velocity / deceleration + settings.margin) / dt)
@@ -675,24 +720,42 @@ class Runner:
     def _stop_by_motion(self, recorder, hold: float, bound: int, dt: float, quick: bool) -> str:
         """The controlword sequence (`_run_stop`) until every drive is de-energised and the
         axis stood still for `StopSettings.standstill_cycles`, within `bound` cycles of `dt`
-        (s); then 0x6041 read by SDO. Not stopped within the bound: escalate (`_escalate`)."""
+        (s) while the drive has the stop's commands (`_run_stop`); then 0x6041 read by SDO.
+        Not stopped within the bound: escalate (`_escalate`)."""
         settings = self.drive.stop_settings
         standstill = Standstill(settings.standstill_velocity, settings.standstill_cycles)
         self._note(recorder, "segment", segment_text(None, "disable"))
-        cycles = self._run_stop(recorder, hold, bound, standstill,
-                                lambda drive: drive.disable_step(not quick, standstill.stopped))
+        cycles, transit = self._run_stop(
+            recorder, hold, bound, standstill,
+            lambda drive: drive.disable_step(not quick, standstill.stopped))
         if cycles is None:
-            return self._escalate(recorder, hold, bound, dt, standstill)
+            return self._escalate(recorder, hold, bound, dt, standstill, transit)
         self._note(recorder, "stop", f"axis stopped, power stage off after {cycles} cycles "
-                   f"({standstill.describe()}; {self._confirm_off()})")
+                   f"({_reached(transit)}{standstill.describe()}; {self._confirm_off()})")
         return ""
 
+    def _stop_due(self) -> int | None:
+        """The drive cycle from which a command sent now is in effect: the SYNC it precedes
+        (`clock.next_sync`) as the drive counts it (`_sync_offset`); None where not known
+        (lockstep: the next cycle; SYNC from the kernel or the adapter). The offset is a
+        lower bound: the cycle is never later than the true one, so the stop's bound never
+        starts late."""
+        sync = self.clock.next_sync()
+        if sync is None or self._sync_offset is None:
+            return None
+        return sync + self._sync_offset
+
     def _escalate(self, recorder, hold: float, bound: int, dt: float,
-                  standstill: Standstill) -> str:
-        """The stop did not end within `bound` cycles of `dt` (s): disable voltage, then safe
-        torque off by every device that has it, and `bound` cycles more for the axis to
-        stand; each step an event and a part of the returned line."""
-        steps = [f"not stopped within {bound * dt:.3g} s ({self._motion()}): disable voltage"]
+                  standstill: Standstill, transit: Sequence[int] = ()) -> str:
+        """The stop did not end within `bound` cycles of `dt` (s) counted while the drive had
+        its commands (`transit`: per command, the cycles before; `_run_stop`): disable
+        voltage, then safe torque off by every device that has it, and `bound` cycles more
+        (counted the same way) for the axis to stand; each step an event and a part of the
+        returned line."""
+        late = f"not stopped within {bound * dt:.3g} s"
+        if transit:
+            late += f" of reaching the drive {_reached(transit)[len(REACHED):-2]}"
+        steps = [f"{late} ({self._motion()}): disable voltage"]
         self._note(recorder, "fault", f"safe stop: {steps[0]}")
         for drive in self.drives.values():
             drive.disable_voltage()
@@ -700,29 +763,47 @@ class Runner:
             if hasattr(device, "safe_torque_off"):
                 steps.append(f"safe torque off by {device.safe_torque_off()}")
                 self._note(recorder, "fault", f"safe stop: {steps[-1]}")
-        cycles = self._run_stop(recorder, hold, bound, standstill,
-                                lambda drive: drive.disable_step(stopped=True))
+        cycles, transit = self._run_stop(recorder, hold, bound, standstill,
+                                         lambda drive: drive.disable_step(stopped=True))
         if not all(drive.state in DISABLED_STATES for drive in self.drives.values()):
             raise RuntimeError(f"not disabled by the controlword sequence ({self._motion()})")
         if cycles is None:
             steps.append(f"axis still moving ({self._motion()})")
         else:
-            steps.append(f"axis stopped after {cycles} more cycles ({self._confirm_off()})")
+            steps.append(f"axis stopped after {cycles} more cycles "
+                         f"({_reached(transit)}{self._confirm_off()})")
         self._note(recorder, "fault", f"safe stop: {steps[-1]}")
         return "; ".join(steps)
 
     def _run_stop(self, recorder, hold: float, cycles: int, standstill: Standstill,
-                  step: Callable[[Any], bool]) -> int | None:
+                  step: Callable[[Any], bool]) -> tuple[int | None, list[int]]:
         """Up to `cycles` bus cycles of `step(drive)` (True: de-energised) with the setpoint
-        held at `hold`; the cycles it took until every drive was de-energised and
-        `standstill` confirmed, else None."""
+        held at `hold`, each counted only once the drive can have the controlwords last sent
+        (`_stop_due` of each new command: the cycles before it the drive ran on what was
+        already on its way, as many as the backlog when the command went, known then; each
+        state change the host waits for costs the way there and back). Returns the cycles
+        counted until every drive was de-energised and `standstill` confirmed (else None)
+        and, per command, the cycles before the drive could have it (empty where not
+        measurable)."""
         drives = self.drives.values()
-        for n in range(cycles):
+        n = 0
+        transit: list[int] = []
+        due = words = None
+        while n < cycles:
             if all([step(drive) for drive in drives]) and standstill.stopped:
-                return n
+                return n, transit
+            sent = tuple(getattr(drive, "_controlword", None) for drive in drives)
+            if sent != words:  # a new command: in effect from the SYNC it precedes
+                words, due = sent, self._stop_due()
+                if due is not None:
+                    transit.append(0)
             self._stop_cycle(recorder, hold)
             standstill.update([drive.actual.velocity for drive in drives])
-        return None
+            if due is not None and self.clock.cycle < due:
+                transit[-1] += 1
+            else:
+                n += 1
+        return None, transit
 
     def _motion(self) -> str:
         """Each drive's state and |velocity actual| (mm/min), for a line."""
@@ -735,11 +816,21 @@ class Runner:
         if one is not de-energised."""
         words = []
         for name, drive in self.drives.items():
-            word, state = drive.state_by_sdo(SDO_STOP_TIMEOUT_S)
+            word, state = drive.state_by_sdo(self._sdo_timeout_s())
             if state not in DISABLED_STATES:
                 raise RuntimeError(f"{_where(name)}0x6041 = 0x{word:04X}: {state}")
             words.append(f"{_where(name)}0x6041 = 0x{word:04X} {state}")
         return ", ".join(words)
+
+    def _sdo_timeout_s(self) -> float:
+        """`SDO_STOP_TIMEOUT_S` plus the time the bus backlog measured last takes: its cycles
+        at the pace the drive works through them (`clock.pace_hz`; at most one per cycle
+        of the stop). Against `feedbench sim` under full load 7 of 10 stops had their 0x6041
+        read time out at 0.3 s + the backlog's cycles of 1 ms: the hub fell further behind
+        while the request waited."""
+        pace = self.clock.pace_hz()
+        per_cycle = self._stop_dt if not pace else max(self._stop_dt, 1.0 / pace)
+        return SDO_STOP_TIMEOUT_S + (self.backlog or 0) * per_cycle
 
     def _stop_by_sdo(self, why: str, bound_s: float) -> tuple[str, str]:
         """A stop by SDO to every drive (`Cia402Drive.stop_by_sdo`: quick stop while it
@@ -754,7 +845,7 @@ class Runner:
         while time.monotonic() < start + STOP_RETRY_S:
             escalate = time.monotonic() > start + bound_s
             try:
-                reads = [d.stop_by_sdo(SDO_STOP_TIMEOUT_S, standstill, escalate)
+                reads = [d.stop_by_sdo(self._sdo_timeout_s(), standstill, escalate)
                          for d in self.drives.values()]
                 last = ", ".join(f"{_where(name)}{state} at {abs(v) / MM_PER_MIN:.3g} mm/min"
                                  for name, (state, v) in zip(self.drives, reads))
@@ -827,6 +918,21 @@ def _finalize(recorder, status: str, reason: str,
         return recorder.close(status, reason, attrs)
     except RecordingError as exc:
         return "aborted", f"{reason}; {exc}" if reason else str(exc)
+
+
+REACHED = "stop reached the drive "
+
+
+def _reached(transit: Sequence[int]) -> str:
+    """Where measured (`Runner._run_stop`): "stop reached the drive N cycles after it was
+    sent; ", with ", commands on their way M cycles in all" where later commands waited
+    too (each after a state change the host saw: a way there and back)."""
+    if not transit:
+        return ""
+    text = f"{REACHED}{transit[0]} cycles after it was sent"
+    if sum(transit) > transit[0]:
+        text += f", commands on their way {sum(transit)} cycles in all"
+    return text + "; "
 
 
 def drive_channels(names: Sequence[str]) -> tuple[tuple[str, ...], dict[str, str]]:
