@@ -28,8 +28,8 @@ if _WORKER:
 from feedbench.testing import simulated_bench, virtual_channel  # noqa: E402, F401
 
 SLOW_FIRST = (
-    "test_demo.py", "test_closure_independent.py", "test_fault_matrix_host.py",
-    "test_report.py", "test_fault_matrix.py", "test_watchdogs.py", "test_live_window.py",
+    "test_demo.py", "test_closure_independent.py", "test_report.py", "test_fault_matrix_host.py",
+    "test_fault_matrix.py", "test_watchdogs.py", "test_live_window.py",
     "test_smfe_bench.py", "test_tune.py", "test_closure_cases.py", "test_scripts.py",
     "test_timeouts.py", "test_fault_paths.py", "test_closure_measurement.py",
     "test_catalog_postgres_benches.py", "test_campaign.py", "test_mistakes.py",
@@ -46,10 +46,12 @@ SLOW_FIRST = (
 )
 """Test files of 5 s or more alone (`pytest -n 0 FILE`, pytest's ≈ 2 s start included),
 longest first: measured one file at a time on 28 Nov beside other jobs, the demo ≈ 45 s
-(its runs on two processes), the closure on the independent simulator 78 s, the SIGKILL
-rows 56 s, the report 52 s, the others 5–31 s. They start first so the other worker spreads
-the short ones around them; the demo first, so that the scripts (four simulated benches at
-once) start after it: together they overload the 2 cores and a 1 s bus timeout trips.
+(its runs on two processes), the closure on the independent simulator 78 s, the report
+52 s, the SIGKILL rows ≈ 37 s (56 s until each row's drive stop overlapped the next row's
+run: 99 → 66 s back to back at load 5 on 29 Nov), the others 5–31 s. They start first so
+the other worker spreads the short ones around them; the demo first, so that the scripts
+(four simulated benches at once) start after it: together they overload the 2 cores and a
+1 s bus timeout trips.
 Marked ``slow``: `make test-fast` runs the other files."""
 
 
