@@ -409,7 +409,8 @@ class Runner:
         self._stop_dt = 0.0
         """The cycle (s) of the stop under way (`_sdo_timeout_s`)."""
         self._backlog_limit: int | None = None
-        """While a plan's cycles go: the backlog (cycles) that aborts the run, the stop bound."""
+        """From the enable to the plan's end: the backlog (cycles) that aborts the run, the
+        stop bound (`_raise_if_behind`)."""
         self.stack_log = StackLog()
         """python-can's and canopen's log lines during a run, recorded as ``log`` events."""
 
@@ -456,9 +457,9 @@ class Runner:
             try:
                 for device in self.devices:
                     device.start(plan, device_recorder)
+                self._backlog_limit = self._stop_bound(plan.cycle_s)
                 self._enable(plan.mode, start, recorder, plan.cycle_s)
                 self._sent = sent
-                self._backlog_limit = self._stop_bound(plan.cycle_s)
                 with self.clock.guarded():
                     starts = segment_starts(plan)
                     segment = 0
@@ -640,14 +641,21 @@ class Runner:
         if self.observers:
             self._to_block(cycle, row)
         if not watch:
+            self._raise_if_behind(cycle, bound)  # the enable: a drive enabled on stale data
             return
         self.clock.raise_if_stalled()  # an observer that held the loop: the cause comes first
         if self.stop.reason is not None:
             raise RunAborted(self.stop.reason)
         for (name, drive), a in zip(self.drives.items(), actual):
             self._watch(name, drive, a)
+        self._raise_if_behind(cycle, bound)  # a fault or trip seen comes first
+
+    def _raise_if_behind(self, cycle: int, bound: int | None) -> None:
+        """From the enable to the plan's end (`_backlog_limit`, the stop bound): abort when
+        the backlog (`backlog`) exceeds it, "bus N cycles behind"; `bound` is this cycle's
+        `clock.sync_offset_bound`."""
         if self._backlog_limit is not None and self.backlog is not None \
-                and self.backlog > self._backlog_limit:  # a fault or trip seen comes first
+                and bound is not None and self.backlog > self._backlog_limit:
             raise RunAborted(f"bus {self.backlog} cycles behind (the TPDO set of SYNC "
                              f"{cycle - self._sync_offset} came after SYNC {cycle - bound}): "
                              "the limits would act on data older than a stop takes "
