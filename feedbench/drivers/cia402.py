@@ -537,6 +537,11 @@ class Cia402Drive:
         """Statusword bit 3: fault (or fault reaction) active."""
         return bool(self._raw[STATUSWORD] & SW_FAULT)
 
+    @property
+    def controlword(self) -> int:
+        """The controlword last written (sent with the next RPDOs)."""
+        return self._controlword
+
     def _write_controlword(self, controlword: int) -> None:
         self._controlword = controlword
         self._put(CONTROLWORD, controlword)

@@ -762,7 +762,7 @@ class Runner:
         returned line."""
         late = f"not stopped within {bound * dt:.3g} s"
         if transit:
-            late += f" of reaching the drive {_reached(transit)[len(REACHED):-2]}"
+            late += f" of reaching the drive {_transit(transit)}"
         steps = [f"{late} ({self._motion()}): disable voltage"]
         self._note(recorder, "fault", f"safe stop: {steps[0]}")
         for drive in self.drives.values():
@@ -800,7 +800,7 @@ class Runner:
         while n < cycles:
             if all([step(drive) for drive in drives]) and standstill.stopped:
                 return n, transit
-            sent = tuple(getattr(drive, "_controlword", None) for drive in drives)
+            sent = tuple(drive.controlword for drive in drives)
             if sent != words:  # a new command: in effect from the SYNC it precedes
                 words, due = sent, self._stop_due()
                 if due is not None:
@@ -928,19 +928,19 @@ def _finalize(recorder, status: str, reason: str,
         return "aborted", f"{reason}; {exc}" if reason else str(exc)
 
 
-REACHED = "stop reached the drive "
-
-
 def _reached(transit: Sequence[int]) -> str:
-    """Where measured (`Runner._run_stop`): "stop reached the drive N cycles after it was
-    sent; ", with ", commands on their way M cycles in all" where later commands waited
-    too (each after a state change the host saw: a way there and back)."""
-    if not transit:
-        return ""
-    text = f"{REACHED}{transit[0]} cycles after it was sent"
+    """Where measured (`Runner._run_stop`): "stop reached the drive `_transit`; "."""
+    return f"stop reached the drive {_transit(transit)}; " if transit else ""
+
+
+def _transit(transit: Sequence[int]) -> str:
+    """"N cycles after it was sent", with ", commands on their way M cycles in all" where
+    later commands waited too (each after a state change the host saw: a way there and
+    back)."""
+    text = f"{transit[0]} cycles after it was sent"
     if sum(transit) > transit[0]:
         text += f", commands on their way {sum(transit)} cycles in all"
-    return text + "; "
+    return text
 
 
 def drive_channels(names: Sequence[str]) -> tuple[tuple[str, ...], dict[str, str]]:
