@@ -792,12 +792,12 @@ class Runner:
         state change the host waits for costs the way there and back). Returns the cycles
         counted until every drive was de-energised and `standstill` confirmed (else None)
         and, per command, the cycles before the drive could have it (empty where not
-        measurable)."""
+        measurable); the cycles in transit count too beyond `TRANSIT_ALLOWANCE` bounds."""
         drives = self.drives.values()
         n = 0
         transit: list[int] = []
         due = words = None
-        while n < cycles:
+        while n < cycles and n + sum(transit) < (1 + TRANSIT_ALLOWANCE) * cycles:
             if all([step(drive) for drive in drives]) and standstill.stopped:
                 return n, transit
             sent = tuple(drive.controlword for drive in drives)
@@ -926,6 +926,14 @@ def _finalize(recorder, status: str, reason: str,
         return recorder.close(status, reason, attrs)
     except RecordingError as exc:
         return "aborted", f"{reason}; {exc}" if reason else str(exc)
+
+
+TRANSIT_ALLOWANCE = 3
+"""Stop bounds that a stop's commands may spend on their way to the drive in all, one per
+command of a complete run's stop (hold, disable operation, disable voltage); beyond it the
+cycles count whatever is in transit: a command that keeps changing (a standstill check
+flickering at its threshold restarts the transit each time) cannot put the stop off
+without end."""
 
 
 def _reached(transit: Sequence[int]) -> str:
