@@ -156,3 +156,20 @@ def test_the_escalation_ends_with_safe_torque_off_where_an_io_module_has_it(tmp_
     assert steps[3].startswith("axis stopped after ")
     assert simulated.peers["exciter"].structure.io.digital & 0x80
     _stopped_at_the_end(open_recording(row["file"]))
+
+
+def test_a_standstill_once_reached_stays_reached_for_the_stop_commands():
+    """A stop sends disable operation once the axis stood `cycles` cycles; one noisy sample
+    above the threshold afterwards resets the count (the stop is confirmed on a fresh run of
+    still cycles) but not `reached`, so enable operation is not sent again behind the
+    disable operation on its way (a flicker seen behind a 200-cycle bus backlog)."""
+    from feedbench.engine.runner import Standstill
+
+    standstill = Standstill(velocity=1e-5, cycles=3)
+    for v in (2e-5, 0.0, 0.0):
+        standstill.update([v])
+    assert not standstill.reached and not standstill.stopped
+    standstill.update([0.0])
+    assert standstill.reached and standstill.stopped
+    standstill.update([3e-5])
+    assert standstill.reached and not standstill.stopped and standstill.count == 0

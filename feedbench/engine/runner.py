@@ -108,17 +108,21 @@ class StopRequest:
 
 class Standstill:
     """Counts the bus cycles in a row in which every drive's |velocity actual| stayed below
-    `velocity` (m/s); the axis stands after `cycles` of them."""
+    `velocity` (m/s); the axis stands after `cycles` of them. `reached`: it stood once (a
+    stop's commands go on from there: one noisy sample above the threshold afterwards must
+    not send enable operation again behind the disable operation already on its way)."""
 
     def __init__(self, velocity: float, cycles: int) -> None:
         self.velocity = velocity
         self.cycles = cycles
         self.count = 0
+        self.reached = False
 
     def update(self, velocities: Sequence[float]) -> None:
         """One bus cycle's measured velocities (m/s; NaN never stands)."""
         still = all(abs(v) < self.velocity for v in velocities)
         self.count = self.count + 1 if still else 0
+        self.reached = self.reached or self.stopped
 
     @property
     def stopped(self) -> bool:
@@ -735,7 +739,7 @@ class Runner:
         self._note(recorder, "segment", segment_text(None, "disable"))
         cycles, transit = self._run_stop(
             recorder, hold, bound, standstill,
-            lambda drive: drive.disable_step(not quick, standstill.stopped))
+            lambda drive: drive.disable_step(not quick, standstill.reached))
         if cycles is None:
             return self._escalate(recorder, hold, bound, dt, standstill, transit)
         self._note(recorder, "stop", f"axis stopped, power stage off after {cycles} cycles "
