@@ -56,3 +56,26 @@ def test_chirp_above_nyquist_rejected() -> None:
     raw = {"experiment": {"type": "chirp", "f_stop_Hz": 600.0}}
     with pytest.raises(ConfigError, match="experiment.f_stop_Hz: must be below the bus Nyquist"):
         parse_run_config(raw)
+
+
+def test_commands_that_read_no_mdf4_start_without_asammdf_and_the_others_keep_it():
+    """`feedbench sim`, `run`… mark asammdf absent before python-can imports it for its MF4
+    log format (0.66 s of every start); python-can then works without MF4, as where asammdf
+    is not installed. The commands that read recordings of other DAQ systems are not among
+    them, and asammdf still loads there."""
+    from feedbench.commands.cli import WITHOUT_MF4, build_parser
+
+    commands = set(build_parser()._subparsers._group_actions[0].choices)
+    assert WITHOUT_MF4 < commands
+    assert not WITHOUT_MF4 & {"import", "analyze", "report", "closure", "live", "export"}
+    probe = ("import sys\n"
+             "from feedbench.commands.cli import without_python_can_mf4\n"
+             "without_python_can_mf4() if sys.argv[1] == 'without' else None\n"
+             "import can\n"
+             "bus = can.Bus(interface='virtual', channel='mf4-probe')\n"
+             "bus.shutdown()\n"
+             "print(sys.modules.get('asammdf') is not None)\n")
+    loaded = {how: subprocess.run([sys.executable, "-c", probe, how], capture_output=True,
+                                  text=True, check=True).stdout.strip()
+              for how in ("without", "with")}
+    assert loaded == {"without": "False", "with": "True"}
