@@ -192,3 +192,30 @@ def test_model_config_converts_units_and_free_flags():
 def test_model_config_errors_name_the_field(patch, message):
     with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
         parse_model_config(patch)
+
+
+def test_follower_memo_returns_the_plain_simulation():
+    """`effects.follower_memo` (one closure run) hands back, for each exact input, the very
+    simulation computed without it: bit for bit, once per input, read-only; recomputed
+    when the motion changed in place or a parameter differs only in the sign of zero; gone
+    after the block."""
+    from feedbench.analysis.closure import effects
+
+    t = np.arange(2000) * 1e-3
+    x, v = 1e-3 * np.sin(2 * np.pi * t), 2e-3 * np.pi * np.cos(2 * np.pi * t)
+    inputs = [(300.0, 0.05), (300.0, 0.05, 0.0, 2e-6, 1.5, 1e4), (300.0, 0.05, 0.0, -0.0)]
+    plain = [effects.follower_force(x, v, 1e-3, *p) for p in inputs]
+    with effects.follower_memo():
+        memo = effects._FOLLOWER_MEMO.get()
+        first = [effects.follower_force(x, v, 1e-3, *p) for p in inputs]
+        again = [effects.follower_force(x, v, 1e-3, *p) for p in inputs]
+        with effects.follower_memo():  # nested: the same memo
+            assert effects.follower_force(x, v, 1e-3, *inputs[0]) is first[0]
+        assert len(memo.forces) == 3  # -0.0 and 0.0 kept apart
+        for a, b, c in zip(plain, first, again):
+            assert a.tobytes() == b.tobytes() and b is c and not b.flags.writeable
+        x[1000:] += 1e-4  # changed in place: simulated anew
+        moved = effects.follower_force(x, v, 1e-3, *inputs[1])
+        assert moved is not first[1] and len(memo.forces) == 1
+    assert effects._FOLLOWER_MEMO.get() is None
+    assert moved.tobytes() == effects.follower_force(x, v, 1e-3, *inputs[1]).tobytes()

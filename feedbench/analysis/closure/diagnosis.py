@@ -29,7 +29,8 @@ from typing import Iterator
 
 import numpy as np
 
-from feedbench.analysis.closure.effects import CANDIDATES, EFFECTS, RETIRED, Context, Effect
+from feedbench.analysis.closure.effects import (
+    CANDIDATES, EFFECTS, RETIRED, Context, Effect, follower_memo)
 from feedbench.analysis.closure.model import (
     TIP_TERMS, Fit, FitError, Model, Term, check_identifiable, design, fit_model,
     held_out_error, least_squares_solution, output_slope, predict_tip, tip_error,
@@ -180,8 +181,15 @@ def close_the_loop(model: Model, fit_kin: Kinematics, holdout_kin: Kinematics,
     """Fit `model` on `fit_kin`, then add effects while one is significant.
 
     Errors before/after are NRMSE of the force reading on `holdout_kin`. Raises
-    `ConfigError` when the declared model cannot be fitted on the data.
+    `ConfigError` when the declared model cannot be fitted on the data. Follower
+    simulations are computed once per exact input within the run (`effects.follower_memo`).
     """
+    with follower_memo():
+        return _close_the_loop(model, fit_kin, holdout_kin, options)
+
+
+def _close_the_loop(model: Model, fit_kin: Kinematics, holdout_kin: Kinematics,
+                    options: ClosureOptions) -> ClosureResult:
     base = base_fit(model, fit_kin)
     current, steps, ranking = base, [], []
     while len(steps) < options.max_effects:
