@@ -219,3 +219,55 @@ def test_follower_memo_returns_the_plain_simulation():
         assert moved is not first[1] and len(memo.forces) == 1
     assert effects._FOLLOWER_MEMO.get() is None
     assert moved.tobytes() == effects.follower_force(x, v, 1e-3, *inputs[1]).tobytes()
+
+
+def _plain_follower(x, v, dt, omega, zeta, kappa, half_play, friction, k_tanh, steps):
+    """The follower's RK4 as first written: the friction term evaluated at every stage."""
+    from feedbench.analysis.closure.effects import _spring_force
+
+    spring = _spring_force.py_func
+    out = np.empty(x.size)
+    xt, vt = x[0], v[0]
+    h, w2, c = dt / steps, omega * omega, 2.0 * zeta * omega
+    for i in range(x.size):
+        out[i] = spring(x[i] - xt, v[i] - vt, w2, c, kappa, half_play)
+        if i + 1 == x.size:
+            break
+        dx, dv = x[i + 1] - x[i], v[i + 1] - v[i]
+        for j in range(steps):
+            f0, f1, f2 = j / steps, (j + 0.5) / steps, (j + 1.0) / steps
+            a1 = (spring(x[i] + f0 * dx - xt, v[i] + f0 * dv - vt, w2, c, kappa, half_play)
+                  - friction * math.tanh(k_tanh * vt))
+            v2 = vt + 0.5 * h * a1
+            a2 = (spring(x[i] + f1 * dx - (xt + 0.5 * h * vt), v[i] + f1 * dv - v2, w2, c,
+                         kappa, half_play) - friction * math.tanh(k_tanh * v2))
+            v3 = vt + 0.5 * h * a2
+            a3 = (spring(x[i] + f1 * dx - (xt + 0.5 * h * v2), v[i] + f1 * dv - v3, w2, c,
+                         kappa, half_play) - friction * math.tanh(k_tanh * v3))
+            v4 = vt + h * a3
+            a4 = (spring(x[i] + f2 * dx - (xt + h * v3), v[i] + f2 * dv - v4, w2, c, kappa,
+                         half_play) - friction * math.tanh(k_tanh * v4))
+            xt += h * (vt + 2.0 * v2 + 2.0 * v3 + v4) / 6.0
+            vt += h * (a1 + 2.0 * a2 + 2.0 * a3 + a4) / 6.0
+    return out
+
+
+def test_follower_kernel_is_the_plain_rk4():
+    """The numba follower (which skips the friction term when it is zero) gives, bit for
+    bit, the plain RK4 with the term at every stage: with and without play, friction,
+    cubic stiffening, on motions through signed zeros."""
+    from feedbench.analysis.closure.effects import _follower
+
+    rng = np.random.default_rng(7)
+    for trial in range(24):
+        n, dt = 150, 1e-3
+        x = np.cumsum(rng.normal(size=n)) * 10.0 ** rng.uniform(-7, -4)
+        x[rng.random(n) < 0.2] = 0.0 if trial % 2 else -0.0
+        v = np.gradient(x, dt)
+        v[rng.random(n) < 0.1] = -0.0
+        p = (1e-3, 10.0 ** rng.uniform(1.5, 3.5), (0.0, 0.012, 0.3)[trial % 3],
+             (0.0, -0.0, 1e9)[trial % 4 % 3], (0.0, 1e-6)[trial % 2],
+             (0.0, -0.0, 2.0)[trial % 3 - 1], (0.0, 1.5e4, math.inf)[trial % 5 % 3],
+             int(rng.integers(1, 10)))
+        plain = _plain_follower(x, v, *p)
+        assert _follower(x, v, *p).tobytes() == plain.tobytes(), p
