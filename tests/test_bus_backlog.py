@@ -141,8 +141,7 @@ def test_a_bus_behind_aborts_the_run_and_the_stop_counts_from_the_drive(tmp_path
     row = _chirp_behind(tmp_path, LAG_S)
     reason = row["reason"]
     stop = _stopped_without_escalation(row)
-    if _host_stalled(reason):
-        return
+    _skip_if_host_stalled(reason)
     assert row["status"] == "aborted", reason
     assert reason.startswith("bus ") and " cycles behind (the TPDO set of SYNC " in reason, reason
     behind = int(reason.split()[1])
@@ -161,8 +160,7 @@ def test_a_plan_completed_behind_the_bus_stops_without_escalation(tmp_path):
     disable voltage" for a drive that stood and had not been sent the commands yet."""
     row = _chirp_behind(tmp_path, 0.2)
     stop = _stopped_without_escalation(row)
-    if _host_stalled(row["reason"]):
-        return
+    _skip_if_host_stalled(row["reason"])
     assert row["status"] == "complete", row["reason"]
     words = stop.text.split("stop reached the drive ")[1].split()
     assert 190 <= int(words[0]), stop.text
@@ -185,10 +183,9 @@ def _stopped_without_escalation(row: dict):
     return stop
 
 
-def _host_stalled(reason: str) -> bool:
-    """Aborted "host stalled N ms", N ≥ `EXTRAPOLATED_CYCLES`: on a loaded machine this
-    process (host, relay and drive share it) can be starved that long, and the drive ran
-    that many cycles without a setpoint (`tests/test_late_host.py` allows that end too);
-    the stop is still checked."""
-    words = reason.split()
-    return reason.startswith("host stalled ") and int(words[2]) >= EXTRAPOLATED_CYCLES
+def _skip_if_host_stalled(reason: str) -> None:
+    """Aborted "host stalled N ms": on a loaded machine this process (host, relay and drive
+    share it) can be starved that long (`tests/test_late_host.py` allows that end too); the
+    stop was checked, the backlog was not: a skip, so the gap shows."""
+    if reason.startswith("host stalled "):
+        pytest.skip(f"the run ended '{reason}' before the backlog could be judged (stop checked)")

@@ -79,3 +79,15 @@ def test_commands_that_read_no_mdf4_start_without_asammdf_and_the_others_keep_it
                                   text=True, check=True).stdout.strip()
               for how in ("without", "with")}
     assert loaded == {"without": "False", "with": "True"}
+
+
+def test_a_campaign_over_recorded_runs_reads_an_mdf4_file_in_a_fresh_process(tmp_path):
+    """`feedbench campaign --runs FILE.mf4` imports the file with asammdf (so `campaign` is
+    not among `WITHOUT_MF4`): in its own process, where nothing imported asammdf before,
+    the CANape recording's chirp is analysed."""
+    data = Path(__file__).parent / "data" / "asap2-canape" / "ASAP2_Demo_V171_slice.mf4"
+    proc = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "campaign", "--runs",
+                           str(data), "--dir", str(tmp_path)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "1 of 1 runs complete" in proc.stdout and "f_t " in proc.stdout

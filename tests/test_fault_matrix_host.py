@@ -93,7 +93,13 @@ def sims(tmp_path_factory):
         return bench, start_sim(directory, config=directory / "sim.toml")
 
     with ThreadPoolExecutor(len(BENCHES) + 1) as pool:
-        started = dict(pool.map(start, (*BENCHES, "faulted")))
+        futures = [pool.submit(start, bench) for bench in (*BENCHES, "faulted")]
+    started = dict(f.result() for f in futures if f.exception() is None)
+    failed = [f.exception() for f in futures if f.exception() is not None]
+    if failed:  # the sims that did start do not outlive the error
+        for process, _ in started.values():
+            process.terminate()
+        raise failed[0]
     yield started
     for process, _ in started.values():
         process.terminate()
@@ -171,7 +177,7 @@ def killed_rows(sims, tmp_path_factory) -> dict:
         rows[family] = (directory, None)
         try:
             killed = kill_mid_run(family, info, directory)
-        except BaseException as failed:  # noqa: BLE001
+        except Exception as failed:  # a Ctrl-C ends the fixture, a failure only its row
             rows[family] = (directory, failed)
             continue
         watchers[bench] = threading.Thread(target=watch, args=(family, info, killed, directory))

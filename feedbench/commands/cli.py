@@ -573,7 +573,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-WITHOUT_MF4 = frozenset({"run", "sim", "tune", "demo", "campaign"})
+WITHOUT_MF4 = frozenset({"run", "sim", "tune", "demo"})
 """Commands that never read or write MDF4 files: they start without asammdf
 (`without_python_can_mf4`)."""
 

@@ -109,8 +109,10 @@ class StopRequest:
 class Standstill:
     """Counts the bus cycles in a row in which every drive's |velocity actual| stayed below
     `velocity` (m/s); the axis stands after `cycles` of them. `reached`: it stood once (a
-    stop's commands go on from there: one noisy sample above the threshold afterwards must
-    not send enable operation again behind the disable operation already on its way)."""
+    stop that holds the setpoint goes on from there: one noisy sample above the threshold
+    afterwards must not send enable operation again behind the disable operation already
+    on its way). A stop counts only cycles in which the drive had its command
+    (`Runner._run_stop`), never the queued setpoints' motion before it."""
 
     def __init__(self, velocity: float, cycles: int) -> None:
         self.velocity = velocity
@@ -739,7 +741,8 @@ class Runner:
         self._note(recorder, "segment", segment_text(None, "disable"))
         cycles, transit = self._run_stop(
             recorder, hold, bound, standstill,
-            lambda drive: drive.disable_step(not quick, standstill.reached))
+            lambda drive: drive.disable_step(not quick, standstill.stopped if quick
+                                              else standstill.reached))
         if cycles is None:
             return self._escalate(recorder, hold, bound, dt, standstill, transit)
         self._note(recorder, "stop", f"axis stopped, power stage off after {cycles} cycles "
@@ -810,10 +813,10 @@ class Runner:
                 if due is not None:
                     transit.append(0)
             self._stop_cycle(recorder, hold)
-            standstill.update([drive.actual.velocity for drive in drives])
-            if due is not None and self.clock.cycle < due:
+            if due is not None and self.clock.cycle < due:  # the drive runs what came before
                 transit[-1] += 1
-            else:
+            else:  # the axis as the drive moves it with the command: standstill counts
+                standstill.update([drive.actual.velocity for drive in drives])
                 n += 1
         return None, transit
 
@@ -839,10 +842,11 @@ class Runner:
         at the pace the drive works through them (`clock.pace_hz`; at most one per cycle
         of the stop). Against `feedbench sim` under full load 7 of 10 stops had their 0x6041
         read time out at 0.3 s + the backlog's cycles of 1 ms: the hub fell further behind
-        while the request waited."""
+        while the request waited. At most a sixth of `STOP_RETRY_S`: canopen tries each
+        request twice, and the SDO stop must keep time for its disable voltage."""
         pace = self.clock.pace_hz()
         per_cycle = self._stop_dt if not pace else max(self._stop_dt, 1.0 / pace)
-        return SDO_STOP_TIMEOUT_S + (self.backlog or 0) * per_cycle
+        return min(SDO_STOP_TIMEOUT_S + (self.backlog or 0) * per_cycle, STOP_RETRY_S / 6)
 
     def _stop_by_sdo(self, why: str, bound_s: float) -> tuple[str, str]:
         """A stop by SDO to every drive (`Cia402Drive.stop_by_sdo`: quick stop while it

@@ -253,13 +253,17 @@ def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ..
 
 def _share(candidate: Candidate) -> float:
     """The share of the residual `candidate` accounts for: its signature test's, or what
-    its fit removed where that is more (a ripple's pitch found by the fit, not the test)."""
+    its fit removed where that is more (a ripple's pitch found by the fit, not the test)
+    and the candidate was not refused (an overfit refused on the held-out data explains
+    nothing there)."""
+    if candidate.rejected is not None:
+        return candidate.screened
     return max(candidate.screened, candidate.explained)
 
 
 def _share_evidence(candidate: Candidate) -> str:
     """The signature test's evidence, or the fit's where the fit removed more."""
-    if candidate.explained > candidate.screened:
+    if _share(candidate) > candidate.screened:
         return (f"fitted, it removes {candidate.explained:.0%} of the fit residual; "
                 f"its signature test alone explains {candidate.screened:.0%}")
     return candidate.evidence
@@ -430,6 +434,8 @@ def moved_only_with_effects(candidate: Candidate, refit: Fit, current: Fit,
     i, key = candidate.freed
     term = refit.model.terms[i]
     p = term.effect.parameter(key)
+    if not math.isfinite(p.tolerance):  # not compared between recordings either
+        return None
     declared = current.model.terms[i].values[key]
     first = declared_moves[candidate.name].fit.model.terms[i]
     if first.name != term.name:  # not the same declared term (cannot happen: effects append)
