@@ -271,3 +271,35 @@ def test_follower_kernel_is_the_plain_rk4():
              int(rng.integers(1, 10)))
         plain = _plain_follower(x, v, *p)
         assert _follower(x, v, *p).tobytes() == plain.tobytes(), p
+
+
+def test_followers_side_by_side_are_the_single_follower():
+    """`effects._followers` (bodies stepped side by side, for the screening's prefetch) gives
+    each body's `_follower` bit for bit; a prefetched input is what `follower_force` then
+    returns, and its linear mode is simulated once."""
+    from feedbench.analysis.closure import effects
+
+    rng = np.random.default_rng(11)
+    n, dt = 400, 1e-3
+    x = np.cumsum(rng.normal(size=n)) * 1e-5
+    x[rng.random(n) < 0.1] = -0.0
+    v = np.gradient(x, dt)
+    table = np.array([(10.0 ** rng.uniform(1.5, 3.5), zeta, kappa, half, friction, k_tanh)
+                      for zeta in (0.012, 0.3) for kappa in (0.0, 1e9)
+                      for half in (0.0, 2e-6) for friction in (0.0, -0.0, 2.0)
+                      for k_tanh in (0.0, 1.5e4, math.inf)])
+    side_by_side = effects._followers(x, v, dt, table, 9)
+    for row, out in zip(table, side_by_side):
+        assert out.tobytes() == effects._follower(x, v, dt, *row, 9).tobytes(), row
+    inputs = [(300.0, 0.3, 0.0, 1e-6, 2.0, 1.5e4), (300.0, 0.012, 0.0, 0.0, 0.0, 0.0),
+              (300.0, 0.012, 0.0, 0.0, 0.0, 0.0), (3000.0, 0.3, 0.0, 1e-6, 1.0, 1.5e4)]
+    with effects.follower_memo():
+        effects.prefetch_followers(x, v, dt, inputs)
+        memo = effects._FOLLOWER_MEMO.get()
+        assert len(memo.forces) == 3
+        held = list(memo.forces.values())
+        got = [effects.follower_force(x, v, dt, *one) for one in inputs]
+        assert len(memo.forces) == 3 and got[1] is got[2]
+        assert all(any(g is h for h in held) for g in got)
+    for one, g in zip(inputs, got):
+        assert g.tobytes() == effects.follower_force(x, v, dt, *one).tobytes()

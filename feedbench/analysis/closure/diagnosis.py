@@ -30,7 +30,7 @@ from typing import Iterator
 import numpy as np
 
 from feedbench.analysis.closure.effects import (
-    CANDIDATES, EFFECTS, RETIRED, Context, Effect, follower_memo)
+    CANDIDATES, EFFECTS, RETIRED, Context, Effect, follower_memo, prefetch_followers)
 from feedbench.analysis.closure.model import (
     TIP_TERMS, Fit, FitError, Model, Term, check_identifiable, design, fit_model,
     held_out_error, least_squares_solution, output_slope, predict_tip, tip_error,
@@ -568,6 +568,9 @@ def try_effect(effect: Effect, current: Fit, kin: Kinematics, context: Context,
     starts = effect.starts(kin, context)
     rows = kin.rows
     with np.errstate(all="ignore"):
+        prefetch_followers(kin.x, kin.v, kin.dt, [
+            inputs for start in starts
+            for inputs in effect.follower_inputs(kin, {**effect.defaults(), **start})])
         probes = [effect.probe(kin, context, s)[rows] for s in starts]
         shares = [_explained_share(probe, context.residual, basis) for probe in probes]
         if effect.name in TIP_TERMS and current.tip_ssr is not None:
