@@ -850,16 +850,19 @@ class Runner:
 
     def _stop_by_sdo(self, why: str, bound_s: float) -> tuple[str, str]:
         """A stop by SDO to every drive (`Cia402Drive.stop_by_sdo`: quick stop while it
-        moves, disable voltage once it stands or after `bound_s` (s), escalated) and a bus
-        cycle, again until each is de-energised, for at most `STOP_RETRY_S`; else NMT stop.
+        moves, disable voltage once it stands or after `bound_s` (s) counted from when the
+        first request can reach the drive behind the bus backlog (`_sdo_timeout_s`),
+        escalated) and a bus cycle, again until each is de-energised, for at most
+        `STOP_RETRY_S`; else NMT stop.
         Returns ("", the states and velocities last read) once confirmed, else ("drive state
         unknown (…)" with the last answer or error, ""). A bus that fails the PDOs may lose
         the SYNCs too: standstill over cycles is the PDO stop's to confirm."""
         start = time.monotonic()
         last = why
         standstill = self.drive.stop_settings.standstill_velocity
+        behind_s = self._sdo_timeout_s() - SDO_STOP_TIMEOUT_S  # 0 where no backlog is known
         while time.monotonic() < start + STOP_RETRY_S:
-            escalate = time.monotonic() > start + bound_s
+            escalate = time.monotonic() > start + behind_s + bound_s
             try:
                 reads = [d.stop_by_sdo(self._sdo_timeout_s(), standstill, escalate)
                          for d in self.drives.values()]
