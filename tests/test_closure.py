@@ -275,8 +275,9 @@ def test_follower_kernel_is_the_plain_rk4():
 
 def test_followers_side_by_side_are_the_single_follower():
     """`effects._followers` (bodies stepped side by side, for the screening's prefetch) gives
-    each body's `_follower` bit for bit; a prefetched input is what `follower_force` then
-    returns, and its linear mode is simulated once."""
+    each body what it gives the body alone, bit for bit (no body sees another's state); a
+    prefetched input is what `follower_force` then returns, and its linear mode is
+    simulated once."""
     from feedbench.analysis.closure import effects
 
     rng = np.random.default_rng(11)
