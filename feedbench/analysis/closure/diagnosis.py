@@ -33,7 +33,8 @@ from feedbench.analysis.closure.effects import (
     CANDIDATES, EFFECTS, RETIRED, Context, Effect, follower_memo, prefetch_followers)
 from feedbench.analysis.closure.model import (
     TIP_TERMS, Fit, FitError, Model, Term, check_identifiable, design, fit_model,
-    held_out_error, least_squares_solution, output_slope, predict_tip, tip_error,
+    held_out_error, least_squares_solution, output_slope, predict_tip, standard_deviations,
+    tip_error,
 )
 from feedbench.analysis.closure.trace import Kinematics
 from feedbench.config import ConfigError
@@ -369,7 +370,7 @@ def _first_passing(current: Fit, ranking: list[Candidate], fit_kin: Kinematics,
             continue
         disagreement = (disagreement_on(refit, current, candidate.freed, holdout_kin, options)
                         or moved_only_with_effects(candidate, refit, current,
-                                                   declared_moves or {}, options))
+                                                   declared_moves or {}, fit_kin, options))
         if disagreement is not None:
             ranking[j] = replace(candidate, rejected=disagreement)
             continue
@@ -413,7 +414,7 @@ def _declared_moves(first_ranking: list[Candidate] | tuple[Candidate, ...],
 
 
 def moved_only_with_effects(candidate: Candidate, refit: Fit, current: Fit,
-                            declared_moves: dict[str, Candidate],
+                            declared_moves: dict[str, Candidate], fit_kin: Kinematics,
                             options: ClosureOptions) -> str | None:
     """Why a recalibration after an added effect is that effect's approximation re-split,
     not a second finding; None when it is not one or holds (issue 24 item 3, parsimony: a
@@ -421,14 +422,15 @@ def moved_only_with_effects(candidate: Candidate, refit: Fit, current: Fit,
 
     A declared value that is wrong is wrong in the declared model too: freed alone there
     (the first round's recalibration, `declared_moves`), it must move from its declared
-    value as far and the same way as it does now, within `agreement_sigmas` of its σ plus
-    the parameter's `tolerance` of the larger move (the test `disagreement_on` applies
-    between two recordings). A move that appears, or turns, only once an effect is in the
-    model is the effect's parameters and the declared one splitting the same force anew:
-    on the independent simulator's `backlash_large` (declared M = 40 kg, true) the declared
-    model wanted 39.55 kg, after the play 41.29 ± 0.02 kg (the load behind the play is part
-    of M); on `backlash_guided_small` the mode's mass 0.64 kg, after the play 10.46 kg (the
-    play's term follows that very mass)."""
+    value as far and the same way as it does now, within `agreement_sigmas` combined σ,
+    √(σ_now² + σ_first²), of the two fits on `fit_kin` (`_move_sigmas`), plus the
+    parameter's `tolerance` of the larger move (the test `disagreement_on` applies between
+    two recordings). A move that appears, or turns, only once an effect is in the model is
+    the effect's parameters and the declared one splitting the same force anew: on the
+    independent simulator's `backlash_large` (declared M = 40 kg, true) the declared model
+    wanted 39.55 ± 0.08 kg, after the play 41.29 ± 0.02 kg (the load behind the play is
+    part of M); on `backlash_guided_small` the mode's mass 0.64 kg, after the play 10.46 kg
+    (the play's term follows that very mass)."""
     if candidate.freed is None or candidate.name not in declared_moves:
         return None
     i, key = candidate.freed
@@ -442,14 +444,26 @@ def moved_only_with_effects(candidate: Candidate, refit: Fit, current: Fit,
         return None
     now = (term.values[key] - declared) / p.to_si
     before = (first.values[key] - declared) / p.to_si
-    sigma = _finite(refit.std.get((term.name, key), math.nan)) / p.to_si
-    allowed = options.agreement_sigmas * sigma + p.tolerance * max(abs(now), abs(before))
+    s_now, s_before = _move_sigmas(refit, declared_moves[candidate.name].fit, fit_kin,
+                                   (term.name, key), p.to_si)
+    allowed = (options.agreement_sigmas * math.hypot(s_now, s_before)
+               + p.tolerance * max(abs(now), abs(before)))
     if abs(now - before) <= allowed:
         return None
     return (f"moves only with the effects added: {term.name}.{key} − declared {now:+.4g} ± "
-            f"{sigma:.2g} {p.unit} now, {before:+.4g} {p.unit} freed on the declared model "
-            f"({abs(now - before):.3g} apart, {allowed:.3g} allowed): the effects' "
-            f"approximation, not a wrong declaration")
+            f"{s_now:.2g} {p.unit} now, {before:+.4g} ± {s_before:.2g} {p.unit} freed on the "
+            f"declared model ({abs(now - before):.3g} apart, {allowed:.3g} allowed): the "
+            f"effects' approximation, not a wrong declaration")
+
+
+def _move_sigmas(refit: Fit, first: Fit, fit_kin: Kinematics, slot: tuple[str, str],
+                 to_si: float) -> tuple[float, float]:
+    """One-sigma deviations (config units: SI / `to_si`) of the parameter `slot` (term name,
+    key) in the refit and in the first round's recalibration `first`, both fitted on
+    `fit_kin`; the first round's is computed here, its ranking fit having been made without
+    (`model.standard_deviations`). A non-finite σ counts as none (`_finite`)."""
+    return tuple(_finite(std.get(slot, math.nan)) / to_si
+                 for std in (refit.std, standard_deviations(first, fit_kin)))
 
 
 Compared = tuple[str, str, float, float, float, float, float]

@@ -367,6 +367,14 @@ def fit_model(model: Model, kin: Kinematics, with_std: bool = True) -> Fit:
                kin.effective_n, k, std, float(np.linalg.norm(kin.force[rows])), **tip)
 
 
+def standard_deviations(fit: Fit, kin: Kinematics) -> dict[tuple[str, str], float]:
+    """One-sigma SI standard deviation per (term name, key) of `fit`, a fit on `kin`: its
+    own `std`, or, for one made `with_std=False`, what `fit_model` would have computed."""
+    if fit.std or fit.k == 0:
+        return fit.std
+    return _standard_deviations(fit.model, kin, predict(fit.model, kin), fit.residual, fit.k)
+
+
 def _refine_nonlinear(model: Model, kin: Kinematics, x0: np.ndarray,
                       slots: list[tuple[int, str]]) -> Model:
     """Bounded least squares over the free η, θ solved inside (variable projection).
