@@ -8,6 +8,7 @@ same drivers it would point at hardware; virtual time stays lockstep (the host's
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import sys
 import threading
@@ -16,6 +17,7 @@ import time
 import can
 import numpy as np
 import pytest
+from can.interfaces.socketcand.socketcand import convert_can_message_to_ascii_message
 
 from feedbench.bench import Bench, bench_schema
 from feedbench.commands.cli import main
@@ -28,7 +30,7 @@ from feedbench.engine.plan import recorded_windows
 from feedbench.models.milling import SMFE_SENSOR_NOISE
 from feedbench.models.friction import LAB_BENCH_FRICTION
 from feedbench.protocols.canbus import open_bus
-from feedbench.sim_backends.socketcand_hub import SocketcandHub
+from feedbench.sim_backends.socketcand_hub import SocketcandHub, parse_send
 from sim_peer import start_sim
 
 ACCELEROMETERS = ("acc_tool_x", "acc_tool_y", "acc_tool_z")
@@ -135,6 +137,71 @@ def test_hub_relays_frames_between_clients_of_one_bus_only():
             for bus in (a, b, other):
                 bus.shutdown()
     assert hub.frames == 4
+
+
+@pytest.mark.parametrize("tokens, expected", [
+    (b"send 7FF 0", (0x7FF, False, b"")),
+    (b"send 1abcdef0 3 0 0A ff", (0x1ABCDEF0, True, b"\x00\x0a\xff")),
+    (b"send 181 8 0 1 2 3 4 5 6 7", (0x181, False, bytes(range(8))))])
+def test_the_hub_reads_a_send_with_bytes_of_one_or_two_hex_digits(tokens, expected):
+    assert parse_send(tokens.split()) == expected
+
+
+@pytest.mark.parametrize("tokens", [b"send 181 2 0 zz", b"send 181 2 0", b"send 18 1 0",
+                                    b"send 181 9 0 1 2 3 4 5 6 7 8", b"send 181 1 100"])
+def test_the_hub_refuses_a_malformed_send(tokens):
+    with pytest.raises(ValueError, match="malformed send"):
+        parse_send(tokens.split())
+
+
+def _scripted_server(frames: bytes, heard: list[bytes]) -> tuple[int, threading.Thread]:
+    """A socketcand server on a free loopback port, for one client (after `open_bus`'s
+    probe connection): the handshake, then what the client sends (kept in `heard`) until
+    it has sent twice, then `frames`, then it closes the connection. Its port and thread."""
+    listener = socket.create_server(("127.0.0.1", 0))
+
+    def serve() -> None:
+        listener.accept()[0].close()  # `reach`: connects once and closes
+        with listener, listener.accept()[0] as sock:
+            sock.sendall(b"< hi >")
+            for _ in range(2):  # < open … >, < rawmode >
+                sock.recv(256)
+                sock.sendall(b"< ok >")
+            while b"".join(heard).count(b">") < 2:
+                heard.append(sock.recv(256))
+            sock.sendall(frames)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    return listener.getsockname()[1], thread
+
+
+def test_the_hosts_socketcand_bus_speaks_python_cans_text_and_reads_frames_as_bytes():
+    """The host's socketcand bus writes what python-can writes, reads ``< frame … >``
+    (standard and extended id, 0–8 bytes, a message split across receives), drops a
+    malformed frame, and raises `CanOperationError` once the server closed the connection
+    (python-can's own bus returns nothing and its receive thread spins)."""
+    sent = [can.Message(arbitration_id=0x201, data=bytes([0, 0x0A, 0xFF]), is_extended_id=False),
+            can.Message(arbitration_id=0x1ABCDEF0, data=b"", is_extended_id=True)]
+    frames = (b"< frame 181 12.500000 00010A0B0C0D0EFF >< frame 1ABCDEF0 13.000000  >"
+              b"< frame zz 1.0 00 >< frame 080 14.250000 07 >")
+    heard: list[bytes] = []
+    port, thread = _scripted_server(frames, heard)
+    bus = open_bus("socketcand", "b1", host="127.0.0.1", port=port)
+    try:
+        for msg in sent:
+            bus.send(msg)
+        got = [bus.recv(1.0) for _ in range(3)]
+        thread.join(2.0)
+        with pytest.raises(can.CanOperationError, match="closed the connection"):
+            bus.recv(1.0)
+    finally:
+        bus.shutdown()
+    assert b"".join(heard).decode() == "".join(convert_can_message_to_ascii_message(msg)
+                                               for msg in sent)
+    assert [(m.arbitration_id, m.is_extended_id, bytes(m.data), m.timestamp, m.channel)
+            for m in got] == [(0x181, False, bytes.fromhex("00010A0B0C0D0EFF"), 12.5, "b1"),
+                              (0x1ABCDEF0, True, b"", 13.0, "b1"), (0x80, False, b"\x07", 14.25, "b1")]
 
 
 class _Answer(can.Listener):

@@ -54,29 +54,41 @@ class _Client:
     joined_at: float = float("inf")
     inbox: bytearray = field(default_factory=bytearray)
     outbox: bytearray = field(default_factory=bytearray)
+    writing: bool = False
+    """Registered for EVENT_WRITE: the outbox holds what the socket did not take."""
 
     def receives(self, now: float) -> bool:
         """Frames are delivered to it (raw mode, and it has sent or waited `JOIN_S`)."""
         return self.raw and now >= self.joined_at
 
 
-def frame_text(can_id: str, data: bytes, now: float) -> bytes:
-    """The server's `< frame … >` message for a frame received as `< send … >`."""
-    return f"< frame {can_id} {now:.6f} {data.hex().upper()} >".encode("ascii")
+HEX_BYTE = {form.format(value).encode("ascii"): value
+            for value in range(256) for form in ("{:x}", "{:02x}", "{:X}", "{:02X}")}
+"""A data byte's token in `< send … >` (1 or 2 hex digits, either case) → its value."""
 
 
-def id_text(msg: can.Message) -> str:
+def frame_text(msg: can.Message) -> bytes:
+    """The server's `< frame <id> <seconds.micros> <HEX DATA> >` message for `msg` (its
+    `timestamp`, s since the epoch)."""
+    return b"< frame %s %.6f %s >" % (id_text(msg), msg.timestamp, msg.data.hex().upper().encode())
+
+
+def id_text(msg: can.Message) -> bytes:
     """A frame's id as socketcand writes it: 3 hex digits, or 8 for an extended id."""
-    return f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id:03X}"
+    return b"%08X" % msg.arbitration_id if msg.is_extended_id else b"%03X" % msg.arbitration_id
 
 
-def parse_send(fields: list[str]) -> tuple[str, bytes]:
-    """`send <id> <dlc> <bytes…>` tokens → (id as sent, 3 or 8 hex digits; payload)."""
+def parse_send(fields: list[bytes]) -> tuple[int, bool, bytes]:
+    """`send <id> <dlc> <bytes…>` tokens → (id, extended: sent as 8 hex digits, payload);
+    ValueError if malformed."""
     can_id, dlc = fields[1], int(fields[2], 16)
-    data = bytes(int(token, 16) for token in fields[3:3 + dlc])
+    try:
+        data = bytes([HEX_BYTE[token] for token in fields[3:3 + dlc]])
+    except KeyError:
+        raise ValueError(f"malformed send: {fields!r}") from None
     if len(can_id) not in (3, 8) or len(data) != dlc or dlc > 8:
-        raise ValueError(f"malformed send: {' '.join(fields)}")
-    return can_id.upper(), data
+        raise ValueError(f"malformed send: {fields!r}")
+    return int(can_id, 16), len(can_id) == 8, data
 
 
 class SocketcandHub:
@@ -185,18 +197,24 @@ class SocketcandHub:
                 self._ports.remove(port)
 
     def relay_from_port(self, sender: HubPort, msg: can.Message) -> None:
-        """A frame a port sends: to every TCP client and every other port of its bus."""
-        self._fan_out(sender, sender.channel, frame_text(id_text(msg), bytes(msg.data),
-                                                         time.time()), msg)
+        """A frame a port sends: to every TCP client and every other port of its bus,
+        stamped now."""
+        self._fan_out(sender, sender.channel, can.Message(
+            timestamp=time.time(), arbitration_id=msg.arbitration_id, data=msg.data,
+            is_extended_id=msg.is_extended_id, channel=sender.channel, check=False))
 
-    def _fan_out(self, sender: object, bus: str | None, text: bytes, msg: can.Message) -> None:
-        """One frame from `sender` on `bus`: `text` to every TCP client of the bus that
-        receives frames, `msg` to every port of it; never back to `sender`."""
+    def _fan_out(self, sender: object, bus: str | None, msg: can.Message) -> None:
+        """One frame from `sender` on `bus`: its text (`frame_text`, made only if a client
+        takes it) to every TCP client of the bus that receives frames, `msg` to every port
+        of it; never back to `sender`."""
         with self._lock:
             self.frames += 1
             now = time.monotonic()
-            for client in list(self._clients.values()):
-                if client is not sender and client.bus == bus and client.receives(now):
+            clients = [client for client in self._clients.values() if client is not sender
+                       and client.bus == bus and client.receives(now)]
+            if clients:
+                text = frame_text(msg)
+                for client in clients:
                     self._send(client, text)
             ports = [port for port in self._ports if port is not sender and port.channel == bus]
         for port in ports:  # outside the lock: a port's listeners send frames themselves
@@ -215,50 +233,64 @@ class SocketcandHub:
         client.inbox += data
         while (end := client.inbox.find(b">")) >= 0:
             start = client.inbox.rfind(b"<", 0, end)
-            message = client.inbox[start + 1:end].decode("ascii", "replace").split()
+            message = client.inbox[start + 1:end].split()
             del client.inbox[:end + 1]
             if start >= 0 and message:
-                self._handle(client, message)
+                self._handle(client, [bytes(token) for token in message])
 
-    def _handle(self, client: _Client, message: list[str]) -> None:
+    def _handle(self, client: _Client, message: list[bytes]) -> None:
         command = message[0]
-        if command == "send" and client.raw:
+        if command == b"send" and client.raw:
             self._relay(client, message)
-        elif command == "open" and len(message) == 2 and client.bus is None:
-            client.bus = message[1]
+        elif command == b"open" and len(message) == 2 and client.bus is None:
+            client.bus = message[1].decode("ascii", "replace")
             self._send(client, b"< ok >")
-        elif command == "rawmode" and client.bus is not None:
+        elif command == b"rawmode" and client.bus is not None:
             client.raw = True
             client.joined_at = time.monotonic() + JOIN_S
             self._send(client, b"< ok >")
-        elif command == "echo":
+        elif command == b"echo":
             self._send(client, b"< echo >")
         else:
             LOGGER.warning("socketcand hub: unsupported command %r: answered < error >",
-                           " ".join(message))
+                           _text(message))
             self._send(client, b"< error unsupported command >")
 
-    def _relay(self, sender: _Client, message: list[str]) -> None:
+    def _relay(self, sender: _Client, message: list[bytes]) -> None:
         try:
-            can_id, data = parse_send(message)
+            can_id, extended, data = parse_send(message)
         except (ValueError, IndexError):
             LOGGER.warning("socketcand hub: malformed frame %r: answered < error >",
-                           " ".join(message))
+                           _text(message))
             self._send(sender, b"< error malformed frame >")
             return
         sender.joined_at = min(sender.joined_at, time.monotonic())
-        stamp = time.time()
-        msg = can.Message(timestamp=stamp, arbitration_id=int(can_id, 16), data=data,
-                          is_extended_id=len(can_id) == 8, channel=sender.bus)
-        self._fan_out(sender, sender.bus, frame_text(can_id, data, stamp), msg)
+        self._fan_out(sender, sender.bus, can.Message(
+            timestamp=time.time(), arbitration_id=can_id, data=data, is_extended_id=extended,
+            channel=sender.bus, check=False))
 
     def _send(self, client: _Client, text: bytes) -> None:
-        """Queue `text` and write what the socket takes now (never blocks the hub)."""
+        """Write `text` now as far as the socket takes it, queue the rest behind what is
+        queued (never blocks the hub)."""
         with self._lock:
-            client.outbox += text
-            self._flush(client)
+            if client.outbox:
+                client.outbox += text
+                self._flush(client)
+                return
+            try:
+                sent = client.sock.send(text)
+            except (BlockingIOError, InterruptedError):
+                sent = 0
+            except OSError:
+                self._drop(client.sock)
+                return
+            if sent < len(text):
+                client.outbox += text[sent:]
+                self._want_write(client, True)
 
     def _flush(self, client: _Client) -> None:
+        """Write what the socket takes of the outbox; watch for writability while some is
+        left."""
         with self._lock:
             if client.sock not in self._clients:
                 return
@@ -270,9 +302,14 @@ class SocketcandHub:
                 self._drop(client.sock)
                 return
             del client.outbox[:sent]
-            wanted = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.outbox else 0)
-            if self._selector.get_key(client.sock).events != wanted:
-                self._selector.modify(client.sock, wanted)
+            self._want_write(client, bool(client.outbox))
+
+    def _want_write(self, client: _Client, writing: bool) -> None:
+        """Watch `client` for writability (`writing`) or only for reading."""
+        if client.writing != writing:
+            client.writing = writing
+            self._selector.modify(client.sock, selectors.EVENT_READ
+                                  | (selectors.EVENT_WRITE if writing else 0))
 
     def _drop(self, sock: socket.socket) -> None:
         with self._lock:
@@ -282,6 +319,11 @@ class SocketcandHub:
             except (KeyError, ValueError):
                 pass
             sock.close()
+
+
+def _text(message: list[bytes]) -> str:
+    """A received message's tokens as one line of text (for the log)."""
+    return b" ".join(message).decode("ascii", "replace")
 
 
 class HubPort(can.BusABC):
