@@ -2,7 +2,8 @@
 
 `LockstepClock` (simulation): the simulated drives step their physics on the SYNC, so
 virtual time advances exactly one cycle per tick, as fast as the bus allows; a missing
-answer is an error (`BusTimeout`). `RealtimeClock` (hardware, or `feedbench sim` in its own
+answer is an error (`BusTimeout`), timed in the time the process ran (`wait_awake`: a
+loaded machine or a paused process is not a silent peer). `RealtimeClock` (hardware, or `feedbench sim` in its own
 process): SYNC every cycle from python-can's periodic sender (canopen's `network.sync`: the
 kernel's broadcast manager on SocketCAN, the adapter where the interface has it, a thread
 otherwise), and a tick is the arrival of the next complete TPDO set: nothing sleeps to a
@@ -270,6 +271,29 @@ on a loaded 2-core machine a test run aborted "no TPDOs 1.0 s after SYNC (after 
 0)"; the cycles after it keep `timeout_s`, so a peer gone mid-run is still found at once."""
 
 
+WAIT_SLICE_S = 0.05
+"""Lockstep: the wait for a cycle's TPDOs is cut into slices this long (s), each timed
+(`wait_awake`)."""
+
+
+def wait_awake(wait: Callable[[float], bool], timeout_s: float, limit_s: float) -> bool:
+    """`wait(slice)` until it returns True or this process has been awake through `timeout_s`
+    (s) of waiting: a slice that returns later than asked counts as only what was asked, the
+    rest being time in which the process did not run (a loaded machine, the whole process
+    stopped) and so neither did an in-process peer. A peer that is slow or gone while the
+    process runs still times out after `timeout_s`; `limit_s` (s) of wall time at most."""
+    start = time.perf_counter()
+    waited = 0.0
+    while waited < timeout_s:
+        asked = min(WAIT_SLICE_S, timeout_s - waited)
+        if wait(asked):
+            return True
+        waited += asked
+        if time.perf_counter() - start >= limit_s:
+            return False
+    return False
+
+
 class LockstepClock(_BenchClock):
     """Simulation clock: each tick sends SYNC and waits for every drive's TPDOs of it."""
 
@@ -290,8 +314,9 @@ class LockstepClock(_BenchClock):
         first = self._ticks == 0
         self._start_cycle()
         timeout_s = max(self.timeout_s, FIRST_CYCLE_TIMEOUT_S) if first else self.timeout_s
+        limit_s = max(timeout_s, FIRST_CYCLE_TIMEOUT_S)
         for drive in self.drives:
-            if not drive.wait_cycle(timeout_s):
+            if not wait_awake(drive.wait_cycle, timeout_s, limit_s):
                 raise BusTimeout(f"node {drive.node.id}: no TPDOs {timeout_s} s after "
                                  f"SYNC (after device cycle {self.cycle})")
         self._check_heartbeats()
