@@ -52,7 +52,8 @@ class _Client:
     bus: str | None = None
     raw: bool = False
     joined_at: float = float("inf")
-    inbox: bytearray = field(default_factory=bytearray)
+    inbox: bytes = b""
+    """What came after the last complete message (``… >``)."""
     outbox: bytearray = field(default_factory=bytearray)
     writing: bool = False
     """Registered for EVENT_WRITE: the outbox holds what the socket did not take."""
@@ -67,10 +68,10 @@ HEX_BYTE = {form.format(value).encode("ascii"): value
 """A data byte's token in `< send … >` (1 or 2 hex digits, either case) → its value."""
 
 
-def frame_text(msg: can.Message) -> bytes:
-    """The server's `< frame <id> <seconds.micros> <HEX DATA> >` message for `msg` (its
-    `timestamp`, s since the epoch)."""
-    return b"< frame %s %.6f %s >" % (id_text(msg), msg.timestamp, msg.data.hex().upper().encode())
+def frame_text(msg: can.Message, stamp: float) -> bytes:
+    """The server's `< frame <id> <seconds.micros> <HEX DATA> >` message for `msg` received
+    at `stamp` (s since the epoch)."""
+    return b"< frame %s %.6f %s >" % (id_text(msg), stamp, msg.data.hex().upper().encode())
 
 
 def id_text(msg: can.Message) -> bytes:
@@ -197,23 +198,21 @@ class SocketcandHub:
                 self._ports.remove(port)
 
     def relay_from_port(self, sender: HubPort, msg: can.Message) -> None:
-        """A frame a port sends: to every TCP client and every other port of its bus,
-        stamped now."""
-        self._fan_out(sender, sender.channel, can.Message(
-            timestamp=time.time(), arbitration_id=msg.arbitration_id, data=msg.data,
-            is_extended_id=msg.is_extended_id, channel=sender.channel, check=False))
+        """A frame a port sends: to every TCP client (stamped now) and every other port of
+        its bus."""
+        self._fan_out(sender, sender.channel, msg, time.time())
 
-    def _fan_out(self, sender: object, bus: str | None, msg: can.Message) -> None:
-        """One frame from `sender` on `bus`: its text (`frame_text`, made only if a client
-        takes it) to every TCP client of the bus that receives frames, `msg` to every port
-        of it; never back to `sender`."""
+    def _fan_out(self, sender: object, bus: str | None, msg: can.Message, stamp: float) -> None:
+        """One frame from `sender` on `bus`: its text (`frame_text` at `stamp`, made only if
+        a client takes it) to every TCP client of the bus that receives frames, `msg` to
+        every port of it; never back to `sender`."""
         with self._lock:
             self.frames += 1
             now = time.monotonic()
             clients = [client for client in self._clients.values() if client is not sender
                        and client.bus == bus and client.receives(now)]
             if clients:
-                text = frame_text(msg)
+                text = frame_text(msg, stamp)
                 for client in clients:
                     self._send(client, text)
             ports = [port for port in self._ports if port is not sender and port.channel == bus]
@@ -230,13 +229,11 @@ class SocketcandHub:
         if not data:
             self._drop(client.sock)
             return
-        client.inbox += data
-        while (end := client.inbox.find(b">")) >= 0:
-            start = client.inbox.rfind(b"<", 0, end)
-            message = client.inbox[start + 1:end].split()
-            del client.inbox[:end + 1]
-            if start >= 0 and message:
-                self._handle(client, [bytes(token) for token in message])
+        *messages, client.inbox = (client.inbox + data).split(b">")
+        for message in messages:
+            start = message.rfind(b"<")
+            if start >= 0 and (tokens := message[start + 1:].split()):
+                self._handle(client, tokens)
 
     def _handle(self, client: _Client, message: list[bytes]) -> None:
         command = message[0]
@@ -265,9 +262,10 @@ class SocketcandHub:
             self._send(sender, b"< error malformed frame >")
             return
         sender.joined_at = min(sender.joined_at, time.monotonic())
+        stamp = time.time()
         self._fan_out(sender, sender.bus, can.Message(
-            timestamp=time.time(), arbitration_id=can_id, data=data, is_extended_id=extended,
-            channel=sender.bus, check=False))
+            timestamp=stamp, arbitration_id=can_id, data=data, is_extended_id=extended,
+            channel=sender.bus, check=False), stamp)
 
     def _send(self, client: _Client, text: bytes) -> None:
         """Write `text` now as far as the socket takes it, queue the rest behind what is
