@@ -33,8 +33,8 @@ from feedbench.analysis.closure.effects import (
     CANDIDATES, EFFECTS, RETIRED, Context, Effect, follower_memo, prefetch_followers)
 from feedbench.analysis.closure.model import (
     TIP_TERMS, Fit, FitError, Model, Term, check_identifiable, design, fit_model,
-    held_out_error, least_squares_solution, output_slope, predict_tip, standard_deviations,
-    tip_error,
+    held_out_error, least_squares_solution, output_slope, predict, predict_tip,
+    standard_deviations, tip_error,
 )
 from feedbench.analysis.closure.trace import Kinematics
 from feedbench.config import ConfigError
@@ -239,6 +239,7 @@ def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ..
                        f"{options.describes_below:.0%} a describing model leaves")
     reasons += [f"{b} is on the lower bound of its range" for b in bounds if b.endswith(" kg")]
     reasons += one_way(fit.model, kin)
+    reasons += falls_with_speed(fit.model, kin, options)
     effects = [c for c in ranking if c.freed is None and np.isfinite(_share(c))]
     best = max(effects, key=_share, default=None)
     if best is None or _share(best) <= 0:
@@ -250,6 +251,31 @@ def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ..
     else:
         diagnosis = f"dominated by {best.name} ({_share_evidence(best)})"
     return Verdict(not reasons, tuple(reasons), bounds, diagnosis)
+
+
+def falls_with_speed(model: Model, kin: Kinematics, options: ClosureOptions) -> list[str]:
+    """Why the force reading is not what a passive axis takes, or nothing: what `model`
+    leaves on `kin` falls as the speed rises, so steeply that the model's viscous coefficient
+    (Eq. 5.2) plus that slope (N·s/m) is negative, and the slope carries at least
+    `min_explained` of the residual's variation about its mean. No friction law gives that over the whole speed range; a speed controller's
+    effort does (its current rises as the speed drops, against a load the record does not
+    show: gchenfc/ODrive's pull test, r = −0.98)."""
+    rows = kin.rows
+    residual = kin.force[rows] - predict(model, kin).reading[rows]
+    residual = residual - residual.mean()
+    speed = kin.v[rows] - kin.v[rows].mean()
+    if not speed @ speed > 0.0 or not residual @ residual > 0.0:
+        return []
+    slope = float(speed @ residual / (speed @ speed))
+    explained = 1.0 - float(np.sum((residual - slope * speed) ** 2) / (residual @ residual))
+    viscous = model.term("viscous").values["F_v_Ns_m"] if "viscous" in model.names else 0.0
+    if viscous + slope >= 0.0 or explained < options.min_explained:
+        return []
+    return [f"the force falls as the speed rises: the residual's slope over the speed is "
+            f"{slope:.4g} N·s/m (it carries {explained:.0%} of the residual's variation), "
+            f"which would make the viscous coefficient {viscous + slope:.4g} N·s/m, and no "
+            f"passive axis has a negative one: the force channel looks like a speed "
+            f"controller's effort against a load it does not see"]
 
 
 def _share(candidate: Candidate) -> float:
