@@ -246,3 +246,23 @@ def test_host_buffer_overflow_is_counted(free_running):
         assert daq.overflowed_frames > 2000
         assert daq.overflowed_frames + len(sequence) == free_running.frames_sent
         assert daq.dropped_frames == 0
+
+
+def test_compiled_data_frames_are_the_bytes_of_quantize_and_encode():
+    """`data_frames` (what a streaming cycle sends) is `encode_data_frames` of `quantize`, bit
+    for bit: any channel mask, rounding ties, saturation both ways, counters that wrap."""
+    from feedbench.sim_backends.serial_daq import LSB, data_frames, encode_data_frames, quantize
+
+    rng = np.random.default_rng(7)
+    for trial in range(200):
+        n = int(rng.integers(1, 25))
+        samples = rng.normal(size=(n, 12)) * 10.0 ** rng.uniform(-6, 3)
+        inputs = np.flatnonzero([int(rng.integers(1, 4096)) >> i & 1 for i in range(12)])
+        if trial % 4 == 0:
+            samples[0, inputs[0]], samples[-1, inputs[-1]] = 1e9, -1e9
+        if trial % 5 == 0:
+            samples[:, inputs] = (np.floor(samples[:, inputs] / LSB[inputs]) + 0.5) * LSB[inputs]
+        first = int(rng.integers(0, 2 ** 33))
+        expected = encode_data_frames((first + np.arange(n)) % 2 ** 32,
+                                      quantize(samples[:, inputs], inputs))
+        assert np.array_equal(data_frames(first, samples, inputs), expected)

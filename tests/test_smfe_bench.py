@@ -208,3 +208,54 @@ def recording_lanes(recording) -> list[tuple[float, float]]:
     start = recording.channels["x_ref"][0]
     return [(start + lane["start_mm"] * 1e-3, start + lane["stop_mm"] * 1e-3)
             for lane in config.plan.params["workpiece"]]
+
+
+def test_smfe_world_cycle_is_the_numpy_arithmetic_it_replaced():
+    """`SmfeWorld.step`'s compiled interpolation and block-drawn noise give the samples of the
+    per-cycle numpy expressions (θ by cumsum of the trapezoids, a generator draw per cycle),
+    bit for bit, through a spindle ramp; `force` is the cycle's mean force."""
+    from feedbench.sim_backends.modbus_devices import SimulatedSpindleInverter
+    from feedbench.sim_backends.smfe_world import (
+        _ACC_COLUMNS, _DYN_COLUMNS, SmfeWorld, Workpiece, build_process,
+    )
+
+    class Daq:
+        samples_per_cycle = 10
+
+        def __init__(self):
+            self.pushed = []
+
+        def push(self, samples):
+            self.pushed.append(np.array(samples))
+
+    inverter = SimulatedSpindleInverter(1)
+    inverter.run_commanded = True
+    inverter.apply("SPEED_SETPOINT", 900.0)
+    process, table = build_process({})
+    reference, _ = build_process({})
+    feed = [0.0]
+    daq = Daq()
+    world = SmfeWorld(process, Workpiece([CutLane(1e-3, 0.05, "down", 12e-3, 2e-3)]),
+                      lambda: feed[0], inverter, daq, 1e-3, table["noise_m_s2"], 3)
+    rng = np.random.default_rng(3)
+    noise = np.tile(np.asarray(table["noise_m_s2"], dtype=float), 2)
+    theta, omega, travel = 0.0, inverter.speed_rad_s, 0.0
+    lane = world.workpiece.lanes[0]
+    for cycle in range(3000):
+        feed[0] += 5e-6
+        world.step()
+        n, dt = 10, 1e-3 / 10
+        fraction = np.arange(1, n + 1) / n
+        omegas = omega + (inverter.speed_rad_s - omega) * fraction
+        thetas = theta + np.cumsum(0.5 * dt * (omegas + np.concatenate(([omega], omegas[:-1]))))
+        travels = travel + (feed[0] - travel) * fraction
+        force, acceleration = reference.advance(
+            thetas, travels, lane if lane.start <= feed[0] < lane.stop else None, dt)
+        theta, omega, travel = float(thetas[-1]), float(omegas[-1]), feed[0]
+        expected = np.zeros((n, 12))
+        accelerometers = rng.standard_normal((n, 6)) * noise
+        accelerometers[:, :acceleration.shape[0]] += acceleration.T
+        expected[:, _ACC_COLUMNS] = accelerometers
+        expected[:, _DYN_COLUMNS] = -force.T
+        assert np.array_equal(daq.pushed[-1], expected), cycle
+    assert np.array_equal(world.force, force.mean(axis=1))

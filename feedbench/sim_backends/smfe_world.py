@@ -48,6 +48,8 @@ from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
 from feedbench.units import N_PER_UM
 
 _JIT = {"cache": True, "error_model": "numpy"}
+NOISE_BLOCK_CYCLES = 1000
+"""Cycles of accelerometer noise drawn at once (`SmfeWorld._noise_rows`)."""
 
 ACCELEROMETERS = ("acc_tool_x", "acc_tool_y", "acc_tool_z", "acc_work_x", "acc_work_y",
                   "acc_work_z")
@@ -273,38 +275,80 @@ class SmfeWorld:
         self.cycle_s = cycle_s
         self._noise = np.tile(np.asarray(noise_std, dtype=float), 2)
         self._rng = np.random.default_rng(seed)
+        self._noise_block = np.zeros((0, 2 * POINT_DOF))
+        self._noise_used = 0
+        self._fraction = np.zeros(0)
         self._theta = 0.0
         self._omega = inverter.speed_rad_s
         self._travel = feed_position()
-        self.force = np.zeros(POINT_DOF)
-        """Mean force on the tool over the last cycle (N)."""
+        self._force = np.zeros((POINT_DOF, 1))
+        _interpolated(0.0, 0.0, 0.0, 0.0, 0.0, np.ones(1), 0.0)  # compiled here, not at a SYNC
+
+    @property
+    def force(self) -> np.ndarray:
+        """Mean force on the tool over the last cycle (N); computed when asked."""
+        return self._force.mean(axis=1)
 
     def step(self) -> None:
         """One bus cycle: spindle, feed, cut, and the cycle's samples to the DAQ."""
         self.inverter.advance(self.cycle_s)
         n = self.daq.samples_per_cycle
-        fraction = np.arange(1, n + 1) / n
-        omega = self._omega + (self.inverter.speed_rad_s - self._omega) * fraction
+        if self._fraction.size != n:
+            self._fraction = np.arange(1, n + 1) / n
         dt = self.cycle_s / n
-        theta = self._theta + np.cumsum(0.5 * dt * (omega + np.concatenate(([self._omega],
-                                                                             omega[:-1]))))
         travel_now = self.feed_position()
-        travel = self._travel + (travel_now - self._travel) * fraction
+        theta, travel, omega_end = _interpolated(
+            self._omega, self.inverter.speed_rad_s, self._theta, self._travel, travel_now,
+            self._fraction, 0.5 * dt)
         force, acceleration = self.process.advance(
             theta, travel, self.workpiece.lane_at(travel_now), dt)
-        self._theta, self._omega, self._travel = float(theta[-1]), float(omega[-1]), travel_now
-        self.force = force.mean(axis=1)
+        self._theta, self._omega, self._travel = float(theta[-1]), omega_end, travel_now
+        self._force = force
         self.daq.push(self._samples(force, acceleration))
 
     def _samples(self, force: np.ndarray, acceleration: np.ndarray) -> np.ndarray:
         """The DAQ's 12 inputs for the cycle: accelerometers with noise, dynamometer −F."""
         n = force.shape[1]
         samples = np.zeros((n, len(CHANNELS)))
-        accelerometers = self._rng.standard_normal((n, 2 * POINT_DOF)) * self._noise
+        accelerometers = self._noise_rows(n)
         accelerometers[:, :acceleration.shape[0]] += acceleration.T
         samples[:, _ACC_COLUMNS] = accelerometers
         samples[:, _DYN_COLUMNS] = -force.T
         return samples
+
+    def _noise_rows(self, n: int) -> np.ndarray:
+        """The accelerometers' noise of the next n samples, drawn `NOISE_BLOCK_CYCLES` cycles
+        at a time (the same numbers as a draw per cycle: the generator fills in order)."""
+        if self._noise_used + n > len(self._noise_block):
+            self._noise_block = self._rng.standard_normal(
+                (NOISE_BLOCK_CYCLES * n, 2 * POINT_DOF)) * self._noise
+            self._noise_used = 0
+        rows = self._noise_block[self._noise_used:self._noise_used + n].copy()
+        self._noise_used += n
+        return rows
+
+
+@njit(**_JIT)
+def _interpolated(omega_start, omega_end, theta_start, travel_start, travel_end, fraction,
+                  half_dt):
+    """A cycle's spindle angle θ and feed travel at its samples, the speed and the travel
+    linear over the cycle from their values at its start to those at its end (`fraction`:
+    k/n, k = 1..n); θ by the trapezoidal rule (`half_dt`: half the sample period). The
+    arithmetic of the numpy expressions it replaces, in their order (bit for bit); returns
+    (θ, travel, the speed at the last sample)."""
+    n = fraction.size
+    theta = np.empty(n)
+    travel = np.empty(n)
+    previous = omega_start
+    total = 0.0
+    omega = omega_start
+    for k in range(n):
+        omega = omega_start + (omega_end - omega_start) * fraction[k]
+        total += half_dt * (omega + previous)
+        theta[k] = theta_start + total
+        travel[k] = travel_start + (travel_end - travel_start) * fraction[k]
+        previous = omega
+    return theta, travel, omega
 
 
 def structure_from_table(table: Mapping[str, Any], path: str) -> ModalStructure | None:
