@@ -754,9 +754,9 @@ class Cia402Drive:
         """Take the oldest complete TPDO set not taken yet, waiting up to `timeout_s` for one
         (lockstep: the SYNC's after `arm_cycle`; real time: the next in order, possibly in
         already), as the actual values (`actual`, `statusword`, `device_cycle`,
-        `set_time`); False if none came."""
+        `set_time`); False if none came (one that came as the wait timed out is taken)."""
         while not self._sets:
-            if not self._cycle_complete.wait(timeout_s):
+            if not self._cycle_complete.wait(timeout_s) and not self._sets:
                 return False
         self._raw, self.set_time, self._latched_sets, self.set_syncs = self._sets.popleft()
         return True
