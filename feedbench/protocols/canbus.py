@@ -243,7 +243,8 @@ class SocketcandBus(SocketCanDaemonBus):
 
     def __init__(self, channel: str, host: str, port: int, **options: Any) -> None:
         self._frames: collections.deque[can.Message] = collections.deque()
-        self._received = bytearray()
+        self._pending = b""
+        """What came after the last complete message (``… >``)."""
         super().__init__(channel, host, port, **options)
         self._sock: socket.socket = self._SocketCanDaemonBus__socket  # python-can's (mangled)
 
@@ -273,29 +274,26 @@ class SocketcandBus(SocketCanDaemonBus):
             raise can.CanOperationError(f"Failed to receive: {exc}") from exc
         if not data:
             raise can.CanOperationError(f"{self.channel_info}: the server closed the connection")
-        received = self._received
-        received += data
-        while (end := received.find(b">")) >= 0:
-            start = received.rfind(b"<", 0, end)
-            text = bytes(received[start:end + 1]) if start >= 0 else b""
-            del received[:end + 1]
-            if text and (msg := self._parse(text)) is not None:
+        *messages, pending = (self._pending + data).split(b">")
+        self._pending = pending if len(pending) <= SOCKETCAND_PENDING_BYTES else b""
+        for message in messages:
+            start = message.rfind(b"<")
+            if start >= 0 and (msg := self._parse(message[start:])) is not None:
                 self._frames.append(msg)
-        if len(received) > SOCKETCAND_PENDING_BYTES:
-            received.clear()
 
-    def _parse(self, text: bytes) -> can.Message | None:
-        """One server message ``< … >`` → its frame (None, logged: not a frame, or malformed)."""
-        fields = text[1:-1].split()
+    def _parse(self, message: bytes) -> can.Message | None:
+        """One server message ``< …`` (its ``>`` cut off) → its frame (None, logged: not a
+        frame, or malformed)."""
+        fields = message[1:].split()
         if len(fields) < 3 or fields[0] != b"frame":
-            msg = convert_ascii_message_to_can_message(text.decode("ascii", "replace"))
+            msg = convert_ascii_message_to_can_message(message.decode("ascii", "replace") + ">")
         else:
             try:
                 msg = can.Message(timestamp=float(fields[2]), arbitration_id=int(fields[1], 16),
                                   data=bytearray.fromhex(b"".join(fields[3:]).decode("ascii")),
                                   is_extended_id=len(fields[1]) != 3, is_rx=True, check=False)
             except (ValueError, UnicodeDecodeError):
-                SOCKETCAND_LOGGER.warning("Invalid Frame: %r", text)
+                SOCKETCAND_LOGGER.warning("Invalid Frame: %r", message)
                 return None
         if msg is not None:
             msg.channel = self.channel
@@ -317,8 +315,8 @@ class SocketcandBus(SocketCanDaemonBus):
 
 def open_bus(interface: str, channel: str, bitrate: int = 1_000_000, **options: Any) -> can.BusABC:
     """A python-can bus; for ``socketcand`` the TCP tuning is on, its handshake bounded in
-    time and its frame path lean (`SocketcandBus`) and its log off (a warning per frame; a receive error per
-    poll once the peer is gone: `ReceiveErrors`).
+    time and its frame path lean (`SocketcandBus`) and its log off (a warning per frame; a
+    receive error per poll once the peer is gone: `ReceiveErrors`).
 
     An unknown interface, or a channel or server that cannot be opened, raises `ConfigError`
     naming the [bench] key.
