@@ -251,6 +251,52 @@ def test_a_hub_port_is_a_python_can_bus_for_the_nodes_in_the_hub_process(caplog)
         "hub port b1: listener _Answer failed on frame 0x666: ValueError: a listener's bug"]
 
 
+class _TwoAnswers(can.Listener):
+    """Answers a frame with two, as a drive answers SYNC with its TPDOs, then (as its world
+    steps) waits until `seen` is set: with `flush`, the hub's flush between the two."""
+
+    def __init__(self, port: can.BusABC, hub: SocketcandHub, flush: bool) -> None:
+        self.port, self.hub, self.flush = port, hub, flush
+        self.seen = threading.Event()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        for can_id in (0x181, 0x281):
+            self.port.send(can.Message(arbitration_id=can_id, data=b"\x01", is_extended_id=False))
+        if self.flush:
+            self.hub.flush()
+        self.seen.wait(2.0)
+
+
+@pytest.mark.parametrize("flush", [False, True])
+def test_a_ports_answers_reach_a_client_in_one_write_at_the_flush(flush):
+    """Frames a port sends while the hub's thread delivers a client's frame to it wait, and
+    go out in one write (one wake-up of the client): at `SocketcandHub.flush` (as the
+    drive's first `after_physics` hook in `feedbench sim`), else once the delivery ends."""
+    with SocketcandHub() as hub, socket.create_connection((hub.host, hub.port)) as sock:
+        port = can.Bus(interface="feedbench_hub", channel="b1", hub=hub)
+        answers = _TwoAnswers(port, hub, flush)
+        port.listen([answers])
+        sock.settimeout(1.0)
+        assert sock.recv(64) == b"< hi >"
+        for command in (b"< open b1 >", b"< rawmode >"):
+            sock.sendall(command)
+            assert sock.recv(64) == b"< ok >"
+        try:
+            sock.sendall(b"< send 080 0  >")
+            if flush:  # out before the listener returns
+                received = sock.recv(4096)
+            else:
+                with pytest.raises(TimeoutError):
+                    sock.recv(4096, socket.MSG_PEEK)
+                answers.seen.set()
+                received = sock.recv(4096)
+        finally:
+            answers.seen.set()
+            port.shutdown()
+    assert [line.split()[1] for line in received.split(b">")[:-1]] == [b"frame", b"frame"]
+    assert [line.split()[2] for line in received.split(b">")[:-1]] == [b"181", b"281"]
+
+
 def test_sim_config_error_names_the_field(tmp_path, capsys):
     config = tmp_path / "bad.toml"
     config.write_text('[bench]\nsocketcand = "127.0.0.1:0"\n'

@@ -300,6 +300,7 @@ class SimulatedBench:
             self.faults = world_faults(axis_world)
             self.drive = self.start_axis(axis_world, bus_options or {})
             self.stack.callback(self.drive.close)
+            self._answer_before_the_world(bus_options or {})
             self._start_peers(tables, modbus_address)
         except BaseException:
             self.stack.close()
@@ -316,6 +317,15 @@ class SimulatedBench:
                                     build_axis(world, self.cycle_s),
                                     noise=build_sensor_noise(world), faults=self.faults,
                                     **bus_options)
+
+    def _answer_before_the_world(self, bus_options: Mapping[str, Any]) -> None:
+        """On a socketcand hub (``hub`` in `bus_options`), its frames held back in the
+        drive's SYNC (`SocketcandHub.flush`) go out as the first of the drive's
+        `after_physics` hooks: the cycle's TPDOs reach the host in one write, before the
+        world steps."""
+        hub = bus_options.get("hub")
+        if hub is not None:
+            self.drive.after_physics.insert(0, hub.flush)
 
     def _start_peers(self, tables: Mapping[str, Mapping[str, Any]],
                      modbus_address: tuple[str, int]) -> None:

@@ -18,7 +18,11 @@ Nodes in the hub's own process (`feedbench sim`'s simulated drives) join a bus t
 `HubPort` (python-can interface ``feedbench_hub``) instead of a TCP connection to themselves:
 a frame a TCP client sends reaches them as a `can.Message` without a second trip through the
 text protocol and the kernel, and a frame they send is written to the TCP clients at once by
-the sending thread. Within one process, that halves the loopback hops of a cycle.
+the sending thread. Within one process, that halves the loopback hops of a cycle. Frames the
+ports send in the hub's thread while it delivers a client's frame to them (a drive's answer
+to SYNC: its TPDOs) wait until `flush()` or the end of that delivery, then go out in one
+write per client: one wake-up of the host's receive thread per cycle, not one per frame
+(`process.SimulatedBench` flushes right after the drive's TPDOs, before its world steps).
 """
 
 from __future__ import annotations
@@ -107,6 +111,11 @@ class SocketcandHub:
         self._lock = threading.RLock()
         """Guards the clients and their outboxes: the hub's thread and its ports' threads
         relay frames (in one order to every client)."""
+        self._holding = False
+        """The hub's thread is delivering a client's frame to the ports: what they send from
+        it waits in the outboxes for `flush()`."""
+        self._held: list[_Client] = []
+        """Clients with frames waiting for `flush()`."""
         self._listener: socket.socket | None = None
         self._wake_read, self._wake_write = os.pipe()
         self._closing = False
@@ -200,12 +209,15 @@ class SocketcandHub:
     def relay_from_port(self, sender: HubPort, msg: can.Message) -> None:
         """A frame a port sends: to every TCP client (stamped now) and every other port of
         its bus."""
-        self._fan_out(sender, sender.channel, msg, time.time())
+        for port in self._fan_out(sender, sender.channel, msg, time.time()):
+            port.deliver(msg)
 
-    def _fan_out(self, sender: object, bus: str | None, msg: can.Message, stamp: float) -> None:
+    def _fan_out(self, sender: object, bus: str | None, msg: can.Message,
+                 stamp: float) -> list[HubPort]:
         """One frame from `sender` on `bus`: its text (`frame_text` at `stamp`, made only if
-        a client takes it) to every TCP client of the bus that receives frames, `msg` to
-        every port of it; never back to `sender`."""
+        a client takes it) to every TCP client of the bus that receives frames; returns the
+        ports of the bus to deliver `msg` to, outside the lock (a port's listeners send
+        frames themselves). Never back to `sender`."""
         with self._lock:
             self.frames += 1
             now = time.monotonic()
@@ -215,9 +227,7 @@ class SocketcandHub:
                 text = frame_text(msg, stamp)
                 for client in clients:
                     self._send(client, text)
-            ports = [port for port in self._ports if port is not sender and port.channel == bus]
-        for port in ports:  # outside the lock: a port's listeners send frames themselves
-            port.deliver(msg)
+            return [port for port in self._ports if port is not sender and port.channel == bus]
 
     def _receive(self, client: _Client) -> None:
         try:
@@ -263,28 +273,33 @@ class SocketcandHub:
             return
         sender.joined_at = min(sender.joined_at, time.monotonic())
         stamp = time.time()
-        self._fan_out(sender, sender.bus, can.Message(
-            timestamp=stamp, arbitration_id=can_id, data=data, is_extended_id=extended,
-            channel=sender.bus, check=False), stamp)
+        msg = can.Message(timestamp=stamp, arbitration_id=can_id, data=data,
+                          is_extended_id=extended, channel=sender.bus, check=False)
+        ports = self._fan_out(sender, sender.bus, msg, stamp)
+        self._holding = True
+        try:
+            for port in ports:
+                port.deliver(msg)
+        finally:
+            self._holding = False
+            self.flush()
+
+    def flush(self) -> None:
+        """Write the frames the ports' answers left waiting (`_holding`) now."""
+        with self._lock:
+            held, self._held = self._held, []
+            for client in held:
+                self._flush(client)
 
     def _send(self, client: _Client, text: bytes) -> None:
-        """Write `text` now as far as the socket takes it, queue the rest behind what is
-        queued (never blocks the hub)."""
+        """Queue `text` and write what the socket takes now (never blocks the hub); from the
+        hub's thread while `_holding`, only queue it for `flush()`."""
         with self._lock:
-            if client.outbox:
-                client.outbox += text
+            client.outbox += text
+            if not (self._holding and threading.current_thread() is self._thread):
                 self._flush(client)
-                return
-            try:
-                sent = client.sock.send(text)
-            except (BlockingIOError, InterruptedError):
-                sent = 0
-            except OSError:
-                self._drop(client.sock)
-                return
-            if sent < len(text):
-                client.outbox += text[sent:]
-                self._want_write(client, True)
+            elif client not in self._held:
+                self._held.append(client)
 
     def _flush(self, client: _Client) -> None:
         """Write what the socket takes of the outbox; watch for writability while some is
