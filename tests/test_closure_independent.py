@@ -12,6 +12,7 @@ today).
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -21,6 +22,7 @@ from feedbench.analysis.closure import report_dict
 from feedbench.analysis.closure.effects import follower_force
 from feedbench.analysis.closure.trace import kinematics, lowpass
 from feedbench.commands.closure import closure_report
+from feedbench.report import closure_section
 from feedbench.closure_io import read_csv_trace
 from independent_sim import CASES, write_case
 from independent_sim.cases import FIT_PROGRAM, STRUCTURES, record, world
@@ -213,14 +215,31 @@ def test_a_rattle_in_the_play_is_not_predictable_open_loop(case_directory, name,
     assert left(motor + linear + truth["F_table_N"] * np.tanh(k_tanh * kin.v)) > 1.0
 
 
+SHARED = {("recal_mass", False), ("channel_skew", False)}
+"""Cases whose closure report a second test of this file reads too (the report's section of a
+recalibration, the timing finding of an undeclared skew): run once, kept in `_REPORTS`."""
+_REPORTS: dict[tuple[str, bool], tuple] = {}
+
+
+def _closure(directory, name: str, free: bool):
+    """(the case's files, the closure's report on them); a `SHARED` case's run once."""
+    if (name, free) in _REPORTS:
+        return _REPORTS[name, free]
+    files = write_case(name, directory, free)
+    closed = files, closure_report(files.data_csv, files.model_toml, files.validation_csv)
+    if (name, free) in SHARED:
+        _REPORTS[name, free] = closed
+    return closed
+
+
 def _closed(directory, name: str, free: bool) -> dict:
     """The closure's JSON report on a case, after asserting what the benchmark counts:
     named first, the only finding, and fixed (halved or within 1.5× the noise floor) for
     effects and recalibrations; untouched and within 1.5× the simulator's noise floor for
     clean cases; no crash."""
-    files = write_case(name, directory, free)
+    files, closed = _closure(directory, name, free)
     injected, kind = CASES[name].expected(free)
-    report = report_dict(closure_report(files.data_csv, files.model_toml, files.validation_csv))
+    report = report_dict(closed)
     verdict = judge(report, kind, injected, files.noise_floor)
     if kind == "clean":
         assert verdict.found == ()
@@ -256,3 +275,33 @@ def test_replay_after_a_delay_recalibration_runs_the_drive_with_it(case_director
     replay = _closed(case_directory, "recal_delay", False)["replay"]
     assert replay["after"]["force"] < 0.8 * replay["before"]["force"]
     assert replay["after"]["frf_phase_deg"] < 10.0 < replay["before"]["frf_phase_deg"]
+
+
+def test_an_undeclared_sub_cycle_skew_is_a_timing_finding_not_a_gain(case_directory):
+    """Position latched 3/8 of a cycle before its time stamp, not declared: one finding, the
+    timing (the declared delay moved by ≈ 0.375 ms), never a sensor gain. (The report of
+    `test_closure_on_independent_case[channel_skew]`; the declared skew's test is in
+    `test_closure_measurement`.)"""
+    data = _closed(case_directory, "channel_skew", False)
+    steps = [s["effect"] for s in data["steps"]]
+    assert steps == ["delay.tau_ms"]
+    moved = data["recalibrations"][0]["value"] - data["recalibrations"][0]["declared"]
+    assert moved == pytest.approx(0.375, abs=0.05)
+    assert "sensor_gain" not in steps
+
+
+def test_closure_section_shows_a_recalibration(case_directory):
+    """The report's section of the independent simulator's axis declared 10 % heavy (44 kg,
+    true 40 kg): the one finding is the declared mass recalibrated, declared → fitted ± σ in
+    the table. (The report of `test_closure_on_independent_case[recal_mass]`; the report's
+    other closure sections are tested in `test_report`.)"""
+    section = closure_section(_closure(case_directory, "recal_mass", False)[1])
+    rows = next(t.rows for t in section.tables if t.title == "findings")
+    findings = {row[0]: row[1:] for row in rows}
+    assert list(findings) == ["inertia.M_kg"]
+    kind, parameters = findings["inertia.M_kg"][0], findings["inertia.M_kg"][-1]
+    assert kind == "declared value recalibrated"
+    pattern = r"declared (\S+) → (\S+) ± \S+ kg, moved \S+ σ"
+    declared, fitted = re.match(pattern, parameters).groups()
+    assert float(declared) == 44.0 and float(fitted) == pytest.approx(40.0, rel=0.01)
+    assert section.headline.startswith("inertia.M_kg recalibrated: ")

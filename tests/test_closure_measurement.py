@@ -1,6 +1,8 @@
 """The closure on what a measurement does to the data: regressors from a quantised, noisy
 encoder (errors-in-variables), sampling conventions declared in the sidecar, a sub-cycle
-skew that is not declared, and a base model that cannot be physical (issue 24.1, 24.4)."""
+skew that is not declared, and a base model that cannot be physical (issue 24.1, 24.4).
+The undeclared skew's closure is `test_closure_independent`'s channel_skew case: its test is
+there, beside the case it reads."""
 
 import re
 import sys
@@ -26,12 +28,13 @@ K_TANH_S_M = 15000.0
 
 
 def _micro_motion_axis(seed: int, resolution: float = 1e-7, noise: float = 5e-8) -> Trace:
-    """40 s at 1 kHz of a rigid axis (40 kg, σ 150 N·s/m, F_c 30 N, Eq. 5.2) on a ±20 mm,
-    0.1 Hz stroke with a multisine of twelve 1 µm lines at 20–150 Hz on top (a few µm of
-    motion carry the inertia); force noise 1 N; the encoder quantised to `resolution` (m)
-    after Gaussian noise of `noise` (m RMS)."""
+    """20 s at 1 kHz (two strokes) of a rigid axis (40 kg, σ 150 N·s/m, F_c 30 N, Eq. 5.2)
+    on a ±20 mm, 0.1 Hz stroke with a multisine of twelve 1 µm lines at 20–150 Hz on top (a
+    few µm of motion carry the inertia); force noise 1 N; the encoder quantised to
+    `resolution` (m) after Gaussian noise of `noise` (m RMS). 40 s gave the same verdict
+    (M 0.04 % off, σ 0.4 %, held-out 2.30 %; 20 s: 0.01 %, 0.5 %, 2.33 %) at 2-3× the time."""
     rng = np.random.default_rng(seed)
-    t = np.arange(0.0, 40.0, 1e-3)
+    t = np.arange(0.0, 20.0, 1e-3)
     w0 = 2 * np.pi * 0.1
     x, v, a = 20e-3 * np.sin(w0 * t), 20e-3 * w0 * np.cos(w0 * t), -20e-3 * w0**2 * np.sin(w0 * t)
     for f, phase in zip(np.linspace(20.0, 150.0, 12), rng.uniform(0.0, 2 * np.pi, 12)):
@@ -98,18 +101,6 @@ def _declare_skew(csv: Path) -> None:
     text = sidecar.read_text().replace("force_lag_ms = 0.5\n", "")
     sidecar.write_text(text + '\n[sampling]\nforce = "cycle_mean"\n'
                               "position_latch_cycles = 0.375\n")
-
-
-def test_an_undeclared_sub_cycle_skew_is_a_timing_finding_not_a_gain(skew_case):
-    """Position latched 3/8 of a cycle before its time stamp, not declared: one finding, the
-    timing (the declared delay moved by ≈ 0.375 ms), never a sensor gain."""
-    data = report_dict(closure_report(skew_case.data_csv, skew_case.model_toml,
-                                      skew_case.validation_csv))
-    steps = [s["effect"] for s in data["steps"]]
-    assert steps == ["delay.tau_ms"]
-    moved = data["recalibrations"][0]["value"] - data["recalibrations"][0]["declared"]
-    assert moved == pytest.approx(0.375, abs=0.05)
-    assert "sensor_gain" not in steps
 
 
 def test_a_declared_sub_cycle_skew_is_applied_and_nothing_is_found(skew_case):
