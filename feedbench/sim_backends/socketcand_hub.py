@@ -282,7 +282,8 @@ class SocketcandHub:
                 port.deliver(msg)
         finally:
             self._holding = False
-            self.flush()
+            if self._held:
+                self.flush()
 
     def flush(self) -> None:
         """Write the frames the ports' answers left waiting (`_holding`) now."""
