@@ -201,7 +201,8 @@ def test_the_hosts_socketcand_bus_speaks_python_cans_text_and_reads_frames_as_by
                                                for msg in sent)
     assert [(m.arbitration_id, m.is_extended_id, bytes(m.data), m.timestamp, m.channel)
             for m in got] == [(0x181, False, bytes.fromhex("00010A0B0C0D0EFF"), 12.5, "b1"),
-                              (0x1ABCDEF0, True, b"", 13.0, "b1"), (0x80, False, b"\x07", 14.25, "b1")]
+                              (0x1ABCDEF0, True, b"", 13.0, "b1"),
+                              (0x80, False, b"\x07", 14.25, "b1")]
 
 
 class _Answer(can.Listener):
