@@ -158,7 +158,8 @@ def wait_for_stop(family: str, info: dict, killed: float) -> None:
 def killed_rows(sims, tmp_path_factory) -> dict:
     """Every family's SIGKILL mid-run (`kill_mid_run`, one run at a time, in `schedule`
     order), each drive's stop watched by a thread (`wait_for_stop`) while the next row runs
-    on another bench; a bench's next row starts once its watcher is done. family → (its
+    on another bench; a bench's next row starts once its watcher is done, also after a row
+    whose run failed to start or to record (its drive may still be enabled). family → (its
     directory, None or the exception its row's test raises)."""
     rows: dict[str, tuple[Path, BaseException | None]] = {}
     watchers: dict[str, threading.Thread] = {}
@@ -167,7 +168,8 @@ def killed_rows(sims, tmp_path_factory) -> dict:
         try:
             wait_for_stop(family, info, killed)
         except BaseException as failed:  # noqa: BLE001  (raised by the row's test)
-            rows[family] = (directory, failed)
+            if rows[family][1] is None:  # a row that failed before keeps its first failure
+                rows[family] = (directory, failed)
 
     for bench, family in schedule():
         _, info = sims[bench]
@@ -179,7 +181,7 @@ def killed_rows(sims, tmp_path_factory) -> dict:
             killed = kill_mid_run(family, info, directory)
         except Exception as failed:  # a Ctrl-C ends the fixture, a failure only its row
             rows[family] = (directory, failed)
-            continue
+            killed = time.monotonic()  # its drive is still watched to a stop before the next
         watchers[bench] = threading.Thread(target=watch, args=(family, info, killed, directory))
         watchers[bench].start()
     for watcher in watchers.values():
