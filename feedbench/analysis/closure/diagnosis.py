@@ -239,7 +239,7 @@ def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ..
                        f"{options.describes_below:.0%} a describing model leaves")
     reasons += [f"{b} is on the lower bound of its range" for b in bounds if b.endswith(" kg")]
     reasons += one_way(fit.model, kin)
-    reasons += falls_with_speed(fit.model, kin, options)
+    reasons += falls_with_speed(fit.model, kin, error, options)
     effects = [c for c in ranking if c.freed is None and np.isfinite(_share(c))]
     best = max(effects, key=_share, default=None)
     if best is None or _share(best) <= 0:
@@ -253,29 +253,74 @@ def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ..
     return Verdict(not reasons, tuple(reasons), bounds, diagnosis)
 
 
-def falls_with_speed(model: Model, kin: Kinematics, options: ClosureOptions) -> list[str]:
-    """Why the force reading is not what a passive axis takes, or nothing: what `model`
-    leaves on `kin` falls as the speed rises, so steeply that the model's viscous coefficient
-    (Eq. 5.2) plus that slope (N·s/m) is negative, and the slope carries at least
-    `min_explained` of the residual's variation about its mean. No friction law gives that over the whole speed range; a speed controller's
-    effort does (its current rises as the speed drops, against a load the record does not
-    show: gchenfc/ODrive's pull test, r = −0.98)."""
+def falls_with_speed(model: Model, kin: Kinematics, error: float,
+                     options: ClosureOptions) -> list[str]:
+    """Why a model that leaves a held-out NRMSE `error` above `describes_below` cannot
+    describe the force reading, where what it leaves on `kin` falls as the speed rises so
+    steeply that its viscous coefficient (Eq. 5.2) plus that slope (N·s/m) is negative and
+    the slope carries at least `min_explained` of the residual's variation about its mean;
+    nothing otherwise. No passive axis has a negative viscous coefficient, but a speed
+    controller's effort falls along the whole speed range (its current rises as the speed
+    drops, against a load the record does not show: gchenfc/ODrive's pull test, r = −0.98).
+    A passive force that falls with the speed levels off: on a record that turns both ways,
+    a Stribeck excess (Eq. 5.2) with its velocity within the speeds used that removes as
+    much (`_decay_share`) makes it friction (nothing said); one way only, a decay and a
+    slope look alike over a limited speed range, and the reason says both."""
+    if not error > options.describes_below:
+        return []
     rows = kin.rows
     residual = kin.force[rows] - predict(model, kin).reading[rows]
     residual = residual - residual.mean()
-    speed = kin.v[rows] - kin.v[rows].mean()
-    if not speed @ speed > 0.0 or not residual @ residual > 0.0:
-        return []
-    slope = float(speed @ residual / (speed @ speed))
-    explained = 1.0 - float(np.sum((residual - slope * speed) ** 2) / (residual @ residual))
+    v = kin.v[rows]
+    slope, line = _slope_share(residual, v - v.mean())
     viscous = model.term("viscous").values["F_v_Ns_m"] if "viscous" in model.names else 0.0
-    if viscous + slope >= 0.0 or explained < options.min_explained:
+    if viscous + slope >= 0.0 or line < options.min_explained:
         return []
-    return [f"the force falls as the speed rises: the residual's slope over the speed is "
-            f"{slope:.4g} N·s/m (it carries {explained:.0%} of the residual's variation), "
-            f"which would make the viscous coefficient {viscous + slope:.4g} N·s/m, and no "
-            f"passive axis has a negative one: the force channel looks like a speed "
+    falls = (f"the force falls as the speed rises: the residual's slope over the speed is "
+             f"{slope:.4g} N·s/m ({line:.0%} of the residual's variation), which would make "
+             f"the viscous coefficient {viscous + slope:.4g} N·s/m")
+    decay = _decay_share(residual, v)
+    one_way_only = one_way_reason(kin)
+    if one_way_only:
+        return [f"{falls}; {one_way_only}, so a speed controller's effort and a Stribeck "
+                f"decay within the speeds used (it removes {decay:.0%}) look alike"]
+    if decay >= line:
+        return []
+    return [f"{falls}, and no passive axis has a negative one (a Stribeck decay within the "
+            f"speeds used removes {decay:.0%}): the force channel looks like a speed "
             f"controller's effort against a load it does not see"]
+
+
+def _slope_share(residual: np.ndarray, column: np.ndarray) -> tuple[float, float]:
+    """The least-squares coefficient of `column` for the centred `residual`, and the share
+    of the residual's sum of squares it removes (0 where either is all zeros)."""
+    norm, energy = float(column @ column), float(residual @ residual)
+    if not norm > 0.0 or not energy > 0.0:
+        return 0.0, 0.0
+    coefficient = float(column @ residual) / norm
+    return coefficient, coefficient * coefficient * norm / energy
+
+
+DECAY_VELOCITIES = 24
+"""Stribeck velocities tried by `_decay_share`, spaced evenly in log between the 5th and the
+95th percentile of the speeds used."""
+
+
+def _decay_share(residual: np.ndarray, v: np.ndarray) -> float:
+    """The largest share of the centred `residual` a Stribeck excess A sgn(v) e^{−|v|/v_s}
+    (A ≥ 0: Eq. 5.2's F_s − F_c, the closure's default shape δ = 1) removes, v_s within the
+    speeds used (m/s)."""
+    speeds = np.abs(v)
+    low, high = np.percentile(speeds, [5.0, 95.0])
+    if not high > low > 0.0:
+        return 0.0
+    best = 0.0
+    for v_s in np.geomspace(low, high, DECAY_VELOCITIES):
+        decay = np.sign(v) * np.exp(-speeds / v_s)
+        excess, share = _slope_share(residual, decay - decay.mean())
+        if excess > 0.0:
+            best = max(best, share)
+    return best
 
 
 def _share(candidate: Candidate) -> float:
