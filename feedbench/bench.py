@@ -76,7 +76,9 @@ BENCH_SCHEMA = {
     "cycle_ms": Field(float, 1.0, "bus cycle: SYNC period (ms)", bus_cycle),
     "clock": Field(str, "lockstep", "lockstep (simulation) or realtime (hardware)",
                    one_of("lockstep", "realtime")),
-    "timeout_s": Field(float, 1.0, "how long a cycle may wait for its TPDOs (s; lockstep: while the process runs)", positive),
+    "timeout_s": Field(float, 1.0,
+                       "how long a cycle may wait for its TPDOs (s; lockstep: while the process "
+                       "runs)", positive),
     "sync_loss_ms": Field(float, 50.0, "real time: the drives stop when no SYNC came for this "
                           "long (ms; 0x2021 in bus cycles, at most 255; lockstep: off). Keep "
                           "it above the host's scheduling hiccups (docs/realtime.md)",

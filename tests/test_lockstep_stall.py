@@ -86,5 +86,6 @@ def test_waiting_counts_only_the_time_the_process_was_awake():
     calls.clear()
     start = time.perf_counter()
     assert not wait_awake(late, 1.0, limit_s=0.5)
-    assert len(calls) == 3, "stopped at the wall-time limit"
+    assert 2 <= len(calls) <= 3 and time.perf_counter() - start >= 0.5, \
+        "stopped at the wall-time limit"
     assert wait_awake(lambda asked: True, 1.0, limit_s=1.0)

@@ -2,14 +2,15 @@
 
 `LockstepClock` (simulation): the simulated drives step their physics on the SYNC, so
 virtual time advances exactly one cycle per tick, as fast as the bus allows; a missing
-answer is an error (`BusTimeout`), timed in the time the process ran (`wait_awake`: a
-loaded machine or a paused process is not a silent peer). `RealtimeClock` (hardware, or `feedbench sim` in its own
-process): SYNC every cycle from python-can's periodic sender (canopen's `network.sync`: the
-kernel's broadcast manager on SocketCAN, the adapter where the interface has it, a thread
-otherwise), and a tick is the arrival of the next complete TPDO set: nothing sleeps to a
-deadline. Each tick's setpoints go out at once and take effect at the next SYNC. Its
-per-cycle times (`TIMING_CHANNELS`: setpoints sent, TPDOs received) are recorded, and the
-run's missed, repeated and late cycles and lateness follow from them (`daq.timing`).
+answer is an error (`BusTimeout`), timed in the time the process ran (`wait_awake`:
+a loaded machine or a paused process is not a silent peer). `RealtimeClock` (hardware,
+or `feedbench sim` in its own process): SYNC every cycle from python-can's periodic sender
+(canopen's `network.sync`: the kernel's broadcast manager on SocketCAN, the adapter where
+the interface has it, a thread otherwise), and a tick is the arrival of the next complete
+TPDO set: nothing sleeps to a deadline. Each tick's setpoints go out at once and take
+effect at the next SYNC. Its per-cycle times (`TIMING_CHANNELS`: setpoints sent, TPDOs
+received) are recorded, and the run's missed, repeated and late cycles and lateness follow
+from them (`daq.timing`).
 
 Every tick returns the first drive's cycle counter (0x2020, 16 bit), unwrapped to a
 monotonic integer; `gaps` counts ticks where a drive's counter did not advance by exactly
@@ -283,12 +284,10 @@ def wait_awake(wait: Callable[[float], bool], timeout_s: float, limit_s: float) 
     stopped) and so neither did an in-process peer. A peer that is slow or gone while the
     process runs still times out after `timeout_s`; `limit_s` (s) of wall time at most."""
     start = time.perf_counter()
-    waited = 0.0
-    while waited < timeout_s:
-        asked = min(WAIT_SLICE_S, timeout_s - waited)
-        if wait(asked):
+    slices = max(1, math.ceil(timeout_s / WAIT_SLICE_S))
+    for _ in range(slices):
+        if wait(timeout_s / slices):
             return True
-        waited += asked
         if time.perf_counter() - start >= limit_s:
             return False
     return False
@@ -316,9 +315,11 @@ class LockstepClock(_BenchClock):
         timeout_s = max(self.timeout_s, FIRST_CYCLE_TIMEOUT_S) if first else self.timeout_s
         limit_s = max(timeout_s, FIRST_CYCLE_TIMEOUT_S)
         for drive in self.drives:
+            start = time.perf_counter()
             if not wait_awake(drive.wait_cycle, timeout_s, limit_s):
-                raise BusTimeout(f"node {drive.node.id}: no TPDOs {timeout_s} s after "
-                                 f"SYNC (after device cycle {self.cycle})")
+                raise BusTimeout(f"node {drive.node.id}: no TPDOs {timeout_s} s after SYNC "
+                                 f"while this process ran ({time.perf_counter() - start:.1f} s "
+                                 f"wall; after device cycle {self.cycle})")
         self._check_heartbeats()
         return self._count_cycles()
 

@@ -181,6 +181,20 @@ def frozen_heap() -> Iterator[None]:
                 gc.unfreeze()
 
 
+def send_frames(network: canopen.Network, frames: Iterable[can.Message]) -> None:
+    """Send `frames` in order on `network`'s bus under its send lock, as canopen's
+    `Network.send_message` sends one frame (which makes a new `can.Message` per frame: ≈ 1.3
+    µs of the ≈ 4 µs a frame costs, measured); `RuntimeError` when not connected, and the
+    network's receive errors raised afterwards (`Network.check`), as there."""
+    bus = network.bus
+    if bus is None:
+        raise RuntimeError("Not connected to CAN bus")
+    with network.send_lock:
+        for frame in frames:
+            bus.send(frame)
+    network.check()
+
+
 class LocalVirtualBus(virtual.VirtualBus):
     """python-can's `virtual` bus (same channels: its frames reach plain `VirtualBus`es on
     the channel and theirs reach it) at a fraction of the cost per frame: a frame is copied
@@ -285,16 +299,17 @@ class SocketcandBus(SocketCanDaemonBus):
         """One server message ``< …`` (its ``>`` cut off) → its frame (None, logged: not a
         frame, or malformed)."""
         fields = message[1:].split()
-        if len(fields) < 3 or fields[0] != b"frame":
-            msg = convert_ascii_message_to_can_message(message.decode("ascii", "replace") + ">")
-        else:
-            try:
+        try:
+            if len(fields) < 3 or fields[0] != b"frame":  # python-can's parser: not a frame
+                msg = convert_ascii_message_to_can_message(
+                    message.decode("ascii", "replace") + ">")
+            else:
                 msg = can.Message(timestamp=float(fields[2]), arbitration_id=int(fields[1], 16),
                                   data=bytearray.fromhex(b"".join(fields[3:]).decode("ascii")),
                                   is_extended_id=len(fields[1]) != 3, is_rx=True, check=False)
-            except (ValueError, UnicodeDecodeError):
-                SOCKETCAND_LOGGER.warning("Invalid Frame: %r", message)
-                return None
+        except (ValueError, IndexError, UnicodeDecodeError):  # python-can's raises on < error … >
+            SOCKETCAND_LOGGER.warning("Invalid message: %r", message)
+            return None
         if msg is not None:
             msg.channel = self.channel
         return msg

@@ -64,7 +64,7 @@ from canopen.sdo import SdoAbortedError
 from feedbench.models.axis import AxisSimulator
 from feedbench.protocols import cia301
 from feedbench.protocols.canbus import (
-    NMT_BYTES, GuardedSdoServer, connect, length_checked, pdo_codec)
+    NMT_BYTES, GuardedSdoServer, connect, length_checked, pdo_codec, send_frames)
 from feedbench.protocols.cia402 import (
     CONTROLWORD, CSP, CSV, CW_FAULT_RESET, CYCLE_COUNTER, EMCY_FOLLOWING_ERROR, EXTRAPOLATED_CYCLES,
     DRIVE_MODES, EMCY_INTERNAL_SOFTWARE, EMCY_PDO_LENGTH, ERROR_CODE, FAULT, FAULT_INJECTION,
@@ -375,9 +375,7 @@ class SimulatedCia402Drive:
                                   if cob_id not in self._rpdo_events)
         self._received.clear()
         transmit = [(m, pdo_codec(m)) for m in self.node.tpdo.map.values() if m.enabled and m.map]
-        self._tpdos = [(can.Message(arbitration_id=m.cob_id, is_extended_id=m.cob_id > 0x7FF,
-                                    data=bytes(codec.layout.size)),
-                        m.trans_type, codec.layout.pack, _fetcher(codec.indices))
+        self._tpdos = [(m.cob_id, m.trans_type, codec.layout.pack, _fetcher(codec.indices))
                        for m, codec in transmit if m.trans_type <= 240]
         self._event_tpdos = {m.cob_id: (codec.layout.pack, _fetcher(codec.indices))
                              for m, codec in transmit if m.trans_type >= ASYNCHRONOUS}
@@ -735,19 +733,12 @@ class SimulatedCia402Drive:
         return word
 
     def _send_tpdos(self) -> None:
-        """The synchronous TPDOs due at this SYNC, each its frame made at mapping with this
-        cycle's data (a new bytearray: a bus that keeps the frame's data keeps this cycle's),
-        on the network's bus under its send lock as canopen's `Network.send_message` sends
-        (which makes a `can.Message` per frame)."""
+        """The synchronous TPDOs due at this SYNC, each a new frame (a bus or a listener may
+        keep it) sent without canopen's per-frame call (`protocols.canbus.send_frames`)."""
         values = self.values
         count = self._count
-        network = self.network
-        bus = network.bus
-        if bus is None:
-            raise RuntimeError("Not connected to CAN bus")
-        with network.send_lock:
-            for frame, trans_type, pack, fetch in self._tpdos:
-                if trans_type <= 1 or count % trans_type == 0:
-                    frame.data = bytearray(pack(*fetch(values)))
-                    bus.send(frame)
-        network.check()
+        send_frames(self.network, [
+            can.Message(arbitration_id=cob_id, is_extended_id=cob_id > 0x7FF,
+                        data=pack(*fetch(values)), check=False)
+            for cob_id, trans_type, pack, fetch in self._tpdos
+            if trans_type <= 1 or count % trans_type == 0])

@@ -48,8 +48,9 @@ from feedbench.protocols.serial_frames import CHANNEL_INDEX, CHANNELS
 from feedbench.units import N_PER_UM
 
 _JIT = {"cache": True, "error_model": "numpy"}
-NOISE_BLOCK_CYCLES = 1000
-"""Cycles of accelerometer noise drawn at once (`SmfeWorld._noise_rows`)."""
+NOISE_BLOCK_CYCLES = 50
+"""Cycles of accelerometer noise drawn at once (`SmfeWorld._noise_rows`): 1000 took 2–7 ms
+at 10 samples a cycle, 43–66 ms at 50–100, inside one SYNC (late TPDOs in real time)."""
 
 ACCELEROMETERS = ("acc_tool_x", "acc_tool_y", "acc_tool_z", "acc_work_x", "acc_work_y",
                   "acc_work_z")
