@@ -103,36 +103,42 @@ def _crc_table() -> np.ndarray:
 
 
 _CRC_TABLE = _crc_table()
+_LAYOUT = np.array([SYNC[0], SYNC[1], TYPE_DATA, HEADER_BYTES, SEQ_BYTES, SAMPLE_BYTES,
+                    CRC_BYTES, CRC_INIT, FULL_SCALE_COUNTS], np.int64)
+"""The frame constants of `protocols.serial_frames` that `_data_frames` uses, passed to it:
+a compiled kernel's globals are frozen in numba's cache, which a change of that other file
+does not invalidate."""
 
 
 @njit(cache=True)
-def _data_frames(samples, inputs, lsb, first, crc_table):
+def _data_frames(samples, inputs, lsb, first, crc_table, layout):
     """`encode_data_frames` of `quantize` of the `inputs` columns of `samples` (n, 12), the
     counters from `first` on, in one pass: the same bytes (rounding half to even as np.round,
-    saturation as np.clip; a NaN as numpy casts it, the lowest int32)."""
+    saturation as np.clip; a NaN as numpy casts it, the lowest int32); `layout`: `_LAYOUT`."""
+    sync0, sync1, data_type, header, seq_bytes, sample_bytes, crc_bytes, crc_init, full = layout
     n, k = samples.shape[0], inputs.size
-    length = HEADER_BYTES + SEQ_BYTES + SAMPLE_BYTES * k + CRC_BYTES
+    length = header + seq_bytes + sample_bytes * k + crc_bytes
     frames = np.empty((n, length), np.uint8)
     for i in range(n):
         frame = frames[i]
-        frame[0], frame[1] = SYNC[0], SYNC[1]
-        frame[2] = TYPE_DATA
-        frame[3] = length - HEADER_BYTES - CRC_BYTES
+        frame[0], frame[1] = sync0, sync1
+        frame[2] = data_type
+        frame[3] = length - header - crc_bytes
         sequence = (first + i) % 4294967296
-        for b in range(SEQ_BYTES):
-            frame[HEADER_BYTES + b] = (sequence >> (8 * b)) & 0xFF
-        at = HEADER_BYTES + SEQ_BYTES
+        for b in range(seq_bytes):
+            frame[header + b] = (sequence >> (8 * b)) & 0xFF
+        at = header + seq_bytes
         for j in range(k):
             count = np.rint(samples[i, inputs[j]] / lsb[j])
             if count != count:
                 word = -2147483648
             else:
-                word = int(min(max(count, -FULL_SCALE_COUNTS), FULL_SCALE_COUNTS - 1))
-            for b in range(SAMPLE_BYTES):
+                word = int(min(max(count, -full), full - 1))
+            for b in range(sample_bytes):
                 frame[at + b] = (word >> (8 * b)) & 0xFF
-            at += SAMPLE_BYTES
-        crc = CRC_INIT
-        for b in range(2, length - CRC_BYTES):
+            at += sample_bytes
+        crc = crc_init
+        for b in range(2, length - crc_bytes):
             crc = ((crc << 8) & 0xFFFF) ^ crc_table[((crc >> 8) ^ frame[b]) & 0xFF]
         frame[length - 2] = crc & 0xFF
         frame[length - 1] = crc >> 8
@@ -144,7 +150,7 @@ def data_frames(first: int, samples: np.ndarray, inputs: np.ndarray) -> np.ndarr
     from `first`: `encode_data_frames(counters, quantize(samples[:, inputs], inputs))` in one
     compiled pass (≈ 40 µs less per bench cycle of 10 samples, measured)."""
     return _data_frames(np.ascontiguousarray(samples, dtype=float), inputs, LSB[inputs],
-                        first, _CRC_TABLE)
+                        first, _CRC_TABLE, _LAYOUT)
 
 
 def quantize(values: np.ndarray, inputs: np.ndarray) -> np.ndarray:
