@@ -29,7 +29,7 @@ from feedbench.experiments.friction_sweep import friction_points
 from feedbench.engine.plan import recorded_windows
 from feedbench.models.milling import SMFE_SENSOR_NOISE
 from feedbench.models.friction import LAB_BENCH_FRICTION
-from feedbench.protocols.canbus import open_bus
+from feedbench.protocols.canbus import SOCKETCAND_PENDING_BYTES, open_bus, socketcand_messages
 from feedbench.sim_backends.socketcand_hub import SocketcandHub, parse_send
 from sim_peer import start_sim
 
@@ -307,3 +307,14 @@ def test_sim_config_error_names_the_field(tmp_path, capsys):
     assert main(["sim", str(config)]) == 2
     assert capsys.readouterr().err.strip() == (
         "feedbench: error: bench.world.milling.teeth: must be > 0 (got 0)")
+
+
+def test_received_bytes_split_into_socketcand_messages_across_receives():
+    """A message cut between two receives is completed by the second; bytes outside
+    ``< … >`` are dropped; a rest longer than `SOCKETCAND_PENDING_BYTES` without a ``>`` is
+    garbage, dropped (python-can's limit)."""
+    messages, rest = socketcand_messages(b"", b"junk< frame 181 1.0 01 >< fra")
+    assert messages == [b"< frame 181 1.0 01 "] and rest == b"< fra"
+    messages, rest = socketcand_messages(rest, b"me 281 1.5 02 >< error x >")
+    assert messages == [b"< frame 281 1.5 02 ", b"< error x "] and rest == b""
+    assert socketcand_messages(b"", b"<" + b"x" * SOCKETCAND_PENDING_BYTES) == ([], b"")

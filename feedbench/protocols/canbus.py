@@ -181,6 +181,17 @@ def frozen_heap() -> Iterator[None]:
                 gc.unfreeze()
 
 
+def socketcand_messages(pending: bytes, data: bytes) -> tuple[list[bytes], bytes]:
+    """The complete socketcand messages in `pending` + `data` (received bytes), each from its
+    last ``<`` with its ``>`` cut off (bytes outside ``< … >`` dropped), and the rest, to be
+    completed by the next receive: at most `SOCKETCAND_PENDING_BYTES`, more without a ``>``
+    is garbage and dropped (python-can's limit). The client (`SocketcandBus`) and the server
+    (`sim_backends.socketcand_hub`) split what they receive with it."""
+    *parts, rest = (pending + data).split(b">")
+    messages = [part[start:] for part in parts if (start := part.rfind(b"<")) >= 0]
+    return messages, rest if len(rest) <= SOCKETCAND_PENDING_BYTES else b""
+
+
 def send_frames(network: canopen.Network, frames: Iterable[can.Message]) -> None:
     """Send `frames` in order on `network`'s bus under its send lock, as canopen's
     `Network.send_message` sends one frame (which makes a new `can.Message` per frame: ≈ 1.3
@@ -288,11 +299,9 @@ class SocketcandBus(SocketCanDaemonBus):
             raise can.CanOperationError(f"Failed to receive: {exc}") from exc
         if not data:
             raise can.CanOperationError(f"{self.channel_info}: the server closed the connection")
-        *messages, pending = (self._pending + data).split(b">")
-        self._pending = pending if len(pending) <= SOCKETCAND_PENDING_BYTES else b""
+        messages, self._pending = socketcand_messages(self._pending, data)
         for message in messages:
-            start = message.rfind(b"<")
-            if start >= 0 and (msg := self._parse(message[start:])) is not None:
+            if (msg := self._parse(message)) is not None:
                 self._frames.append(msg)
 
     def _parse(self, message: bytes) -> can.Message | None:

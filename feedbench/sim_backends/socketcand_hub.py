@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import can
 
 from feedbench.protocols.address import LOOPBACK
+from feedbench.protocols.canbus import socketcand_messages
 
 LOGGER = logging.getLogger(__name__)
 JOIN_S = 0.05
@@ -239,10 +240,9 @@ class SocketcandHub:
         if not data:
             self._drop(client.sock)
             return
-        *messages, client.inbox = (client.inbox + data).split(b">")
+        messages, client.inbox = socketcand_messages(client.inbox, data)
         for message in messages:
-            start = message.rfind(b"<")
-            if start >= 0 and (tokens := message[start + 1:].split()):
+            if tokens := message[1:].split():
                 self._handle(client, tokens)
 
     def _handle(self, client: _Client, message: list[bytes]) -> None:
