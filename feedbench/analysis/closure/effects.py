@@ -312,7 +312,8 @@ class Ripple(Effect):
         """Peaks of the Lomb–Scargle periodogram of the residual against position.
 
         On every `stride`-th sample (≥ 3 per period of the band's edge: the residual is
-        band-limited) and at two wavenumbers per 2π/stroke (the periodogram's resolution).
+        band-limited) and at two wavenumbers per 2π/stroke (the periodogram's resolution),
+        by `lomb_scargle` (work ∝ samples + wavenumbers, not their product).
         """
         low, high = _pitch_range(kin)
         stroke = float(np.ptp(kin.x))
@@ -321,8 +322,8 @@ class Ripple(Effect):
             return []
         stride = max(1, int(1.0 / (3.0 * kin.bandwidth * kin.dt)))
         residual = context.residual[::stride]
-        power = scipy.signal.lombscargle(kin.x[kin.rows[::stride]], residual - residual.mean(),
-                                         wavenumbers)
+        power = lomb_scargle(kin.x[kin.rows[::stride]], residual - residual.mean(),
+                             wavenumbers[0], np.pi / stroke, wavenumbers.size)
         peaks = scipy.signal.find_peaks(power)[0]
         best = peaks[np.argsort(power[peaks])[::-1][:3]]
         return [{"pitch_mm": 2 * np.pi / wavenumbers[i]} for i in best]
@@ -354,6 +355,64 @@ def _pitch_range(kin: Kinematics) -> tuple[float, float]:
     """Shortest pitch the filter passes at the top speed, longest half the stroke (m)."""
     fastest = float(np.quantile(np.abs(kin.v), 0.95))
     return max(fastest / kin.bandwidth, 1e-6), max(float(np.ptp(kin.x)) / 2.0, 2e-6)
+
+
+EXTIRPOLATION_NODES = 8
+"""Mesh nodes each sample is spread onto by `lomb_scargle` (Lagrange weights of degree 7)."""
+
+MESH_PER_WAVENUMBER = 32
+"""Mesh points per wavenumber of `lomb_scargle`'s grid: the highest wavenumber turns by at
+most 2π/32 rad per mesh step, so a sample's extirpolation error is below (2π/32)⁸ · 43 / 8!
+≈ 2·10⁻⁹ of its weight (the Lagrange remainder, 43 the node product's bound)."""
+
+
+def lomb_scargle(x: np.ndarray, y: np.ndarray, first: float, step: float,
+                 count: int) -> np.ndarray:
+    """`scipy.signal.lombscargle(x, y, first + step · arange(count))`, its default power
+    ((y's unit)², A² n/4 for a sine of amplitude A on the n samples), from sums made by
+    extirpolation onto a uniform position mesh and FFTs (Press & Rybicki 1989): work ∝
+    n + count log count instead of n · count.
+
+    x: positions (m, any order, repeats), y: the centred signal at them, first and step:
+    the wavenumber grid (rad/m). The periodogram is shift-invariant, so x counts from its
+    least value. Equal to lombscargle's within ≈ 10⁻⁸ of the largest power (see
+    `MESH_PER_WAVENUMBER`).
+    """
+    x = x - x.min()
+    n = x.size
+    z = _trig_sums(x, y * np.exp(1j * first * x), step, count)
+    w = _trig_sums(x, np.exp(2j * first * x), 2.0 * step, count)
+    rotated = z * np.exp(-0.5j * np.angle(w))
+    smallest = np.finfo(float).epsneg
+    in_phase = np.maximum(0.5 + np.abs(w) / (2.0 * n), smallest)
+    quadrature = np.maximum(0.5 - np.abs(w) / (2.0 * n), smallest)
+    return (rotated.real**2 / in_phase + rotated.imag**2 / quadrature) / (2.0 * n)
+
+
+def _trig_sums(x: np.ndarray, weights: np.ndarray, step: float, count: int) -> np.ndarray:
+    """Σ_i weights_i exp(i j step x_i) for j = 0 … count − 1 (x ≥ 0 in m, step in rad/m):
+    the weights extirpolated onto `MESH_PER_WAVENUMBER` · count nodes over 2π/step (a
+    period of every term, so the mesh wraps around exactly), then one inverse FFT."""
+    size = scipy.fft.next_fast_len(max(MESH_PER_WAVENUMBER * count, EXTIRPOLATION_NODES))
+    u = x * (step * size / (2.0 * math.pi))
+    first_node = np.floor(u).astype(np.int64) - (EXTIRPOLATION_NODES // 2 - 1)
+    mesh = np.zeros(size, dtype=complex)
+    for node, lagrange in enumerate(_lagrange_weights(u - first_node)):
+        index = (first_node + node) % size
+        spread = weights * lagrange
+        mesh += np.bincount(index, spread.real, size) + 1j * np.bincount(index, spread.imag, size)
+    return scipy.fft.ifft(mesh)[:count] * size
+
+
+def _lagrange_weights(t: np.ndarray) -> np.ndarray:
+    """Lagrange weights (`EXTIRPOLATION_NODES` × len(t)) of nodes 0, 1, … at t (in nodes)."""
+    nodes = range(EXTIRPOLATION_NODES)
+    weights = np.ones((EXTIRPOLATION_NODES, t.size))
+    for m in nodes:
+        for other in nodes:
+            if other != m:
+                weights[m] *= (t - other) / (m - other)
+    return weights
 
 
 @dataclass(frozen=True)
