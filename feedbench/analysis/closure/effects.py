@@ -376,7 +376,8 @@ def lomb_scargle(x: np.ndarray, y: np.ndarray, first: float, step: float,
     x: positions (m, any order, repeats), y: the centred signal at them, first and step:
     the wavenumber grid (rad/m). The periodogram is shift-invariant, so x counts from its
     least value. Equal to lombscargle's within ≈ 10⁻⁸ of the largest power (see
-    `MESH_PER_WAVENUMBER`).
+    `MESH_PER_WAVENUMBER`). Hand-written: scipy has only the direct sums, and astropy's
+    `LombScargle(method="fast")`, the same algorithm, would add astropy for this function.
     """
     x = x - x.min()
     n = x.size
