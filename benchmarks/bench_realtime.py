@@ -45,7 +45,7 @@ from bench_sim_process import cycles_per_s, start_bench_process
 
 import feedbench
 from feedbench.api import RunError
-from feedbench.bench import BENCH_SCHEMA, Bench
+from feedbench.bench import Bench, bench_schema
 from feedbench.config import ConfigError, validate_table
 from feedbench.daq.clock import HOST_HEARTBEAT
 from feedbench.daq.timing import MISSED_TARGET, CycleTiming, cycle_timing
@@ -146,13 +146,13 @@ def moving_loop(bench: Bench, tick, timing_of) -> CycleTiming:
 def realtime_loop(info: dict) -> CycleTiming:
     """The moving loop on the real-time clock, inside `guarded()` as the runner runs its
     cycles (the stall guard, and no full garbage collection meanwhile)."""
-    with Bench(validate_table(host_bench(info, "realtime"), BENCH_SCHEMA, "bench")) as bench, \
+    with Bench(validate_table(host_bench(info, "realtime"), bench_schema(), "bench")) as bench, \
             bench.clock.guarded():
         return moving_loop(bench, bench.clock.tick, bench.clock)
 
 
 def sleep_spin_loop(info: dict) -> CycleTiming:
-    with Bench(validate_table(host_bench(info, "lockstep"), BENCH_SCHEMA, "bench")) as bench:
+    with Bench(validate_table(host_bench(info, "lockstep"), bench_schema(), "bench")) as bench:
         loop = SleepSpinLoop(bench)
         try:
             return moving_loop(bench, loop.tick, loop)
@@ -177,7 +177,7 @@ def realtime_run(info: dict, directory: Path) -> CycleTiming:
 def sim_capacity(info: dict) -> float:
     """Lockstep cycles/s against the same sim process: how many cycles it answers per second
     when nothing waits for the wall clock (a 1 kHz real-time cycle needs more than 1000)."""
-    with Bench(validate_table(host_bench(info, "lockstep"), BENCH_SCHEMA, "bench")) as bench:
+    with Bench(validate_table(host_bench(info, "lockstep"), bench_schema(), "bench")) as bench:
         cycles_per_s(bench, WARMUP_CYCLES)  # the first cycles of a fresh sim run slower
         return cycles_per_s(bench, 2000)
 
