@@ -32,7 +32,7 @@ import numpy as np
 from feedbench.analysis.closure.effects import (
     CANDIDATES, EFFECTS, RETIRED, Context, Effect, follower_memo, prefetch_followers)
 from feedbench.analysis.closure.model import (
-    TIP_TERMS, Fit, FitError, Model, Term, check_identifiable, design, fit_model,
+    TIP_TERMS, Design, Fit, FitError, Model, Term, check_identifiable, design, fit_model,
     held_out_error, least_squares_solution, output_slope, predict, predict_tip,
     standard_deviations, tip_error,
 )
@@ -395,10 +395,14 @@ def at_bounds(model: Model) -> tuple[str, ...]:
             if p.key not in term.free:
                 continue
             value = term.values[p.key]
-            if any(math.isfinite(b) and math.isclose(value, b, rel_tol=1e-4, abs_tol=1e-12)
-                   for b in (p.lower, p.upper)):
+            if _on_bound(value, p.lower) or _on_bound(value, p.upper):
                 out.append(f"{term.name}.{p.key} = {value / p.to_si:.4g} {p.unit}")
     return tuple(out)
+
+
+def _on_bound(value: float, bound: float) -> bool:
+    """A fitted value equal to a finite bound of its range (to the optimiser's precision)."""
+    return math.isfinite(bound) and math.isclose(value, bound, rel_tol=1e-4, abs_tol=1e-12)
 
 
 def base_fit(model: Model, kin: Kinematics) -> Fit:
@@ -707,15 +711,30 @@ def _free_again(augmented: Model, before: Model, freed: tuple[int, str] | None =
 
 
 def _free_basis(current: Fit, kin: Kinematics) -> np.ndarray:
-    """Orthonormal basis of the columns the current model can still move (free θ)."""
+    """Orthonormal basis of the columns the current model can still move towards the
+    residual: free θ, less those held on a bound the residual pushes them past (the active
+    set: a viscous coefficient on 0 cannot take a residual that falls with the speed, so
+    that residual is left for the candidates to explain)."""
     d = design(current.model, kin)
-    columns = d.columns[:, d.free] * output_slope(current.model, current.acting)[:, None]
-    columns = columns[kin.rows]
+    columns = (d.columns * output_slope(current.model, current.acting)[:, None])[kin.rows]
+    columns = columns[:, d.free & ~_pushed_past_bound(current, d, columns)]
     if columns.shape[1] == 0:
         return np.zeros((kin.n_used, 0))
     q, r = np.linalg.qr(columns)
     keep = np.abs(np.diag(r)) > 1e-10 * max(np.abs(np.diag(r)).max(), 1e-300)
     return q[:, keep]
+
+
+def _pushed_past_bound(current: Fit, d: Design, columns: np.ndarray) -> np.ndarray:
+    """Per linear column: its parameter sits on a bound and the residual's gradient
+    (column · residual, the direction that lowers the SSR) points beyond it."""
+    pushed = np.zeros(len(d.owners), dtype=bool)
+    for j, (i, key) in enumerate(d.owners):
+        p = current.model.terms[i].effect.parameter(key)
+        step = float(columns[:, j] @ current.residual)
+        pushed[j] = ((_on_bound(d.theta[j], p.lower) and step < 0.0)
+                     or (_on_bound(d.theta[j], p.upper) and step > 0.0))
+    return pushed
 
 
 def _with_tip(shares: list[float], probes: list[np.ndarray], current: Fit,
