@@ -15,6 +15,7 @@ import threading
 import time
 
 import can
+import canopen
 import numpy as np
 import pytest
 from can.interfaces.socketcand.socketcand import convert_can_message_to_ascii_message
@@ -29,7 +30,9 @@ from feedbench.experiments.friction_sweep import friction_points
 from feedbench.engine.plan import recorded_windows
 from feedbench.models.milling import SMFE_SENSOR_NOISE
 from feedbench.models.friction import LAB_BENCH_FRICTION
-from feedbench.protocols.canbus import SOCKETCAND_PENDING_BYTES, open_bus, socketcand_messages
+from feedbench.protocols.canbus import (
+    SOCKETCAND_PENDING_BYTES, batched_sends, open_bus, socketcand_messages,
+)
 from feedbench.sim_backends.socketcand_hub import SocketcandHub, parse_send
 from sim_peer import start_sim
 
@@ -203,6 +206,54 @@ def test_the_hosts_socketcand_bus_speaks_python_cans_text_and_reads_frames_as_by
             for m in got] == [(0x181, False, bytes.fromhex("00010A0B0C0D0EFF"), 12.5, "b1"),
                               (0x1ABCDEF0, True, b"", 13.0, "b1"),
                               (0x80, False, b"\x07", 14.25, "b1")]
+
+
+def test_the_hosts_socketcand_bus_writes_a_batch_in_one_piece():
+    """Frames sent inside `SocketcandBus.batch()` (a lockstep cycle's RPDOs and SYNC,
+    `batched_sends`) go out together as it ends, in order, as python-can writes them."""
+    sent = [can.Message(arbitration_id=0x201, data=bytes([1, 2]), is_extended_id=False),
+            can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)]
+    heard: list[bytes] = []
+    port, thread = _scripted_server(b"", heard)
+    bus = open_bus("socketcand", "b1", host="127.0.0.1", port=port)
+    try:
+        network = canopen.Network(bus)
+        with batched_sends(network):
+            for msg in sent:
+                bus.send(msg)
+            time.sleep(0.1)
+            assert heard == []  # nothing written yet
+        thread.join(2.0)
+    finally:
+        bus.shutdown()
+    assert heard == ["".join(convert_can_message_to_ascii_message(msg) for msg in sent).encode()]
+
+
+def test_the_hub_relays_the_frames_of_one_receive_in_order_and_answers_a_malformed_one():
+    """Several ``< send … >`` in one receive reach the ports and the other clients in the
+    order sent; a malformed one among them is answered ``< error … >`` in its place."""
+    with SocketcandHub() as hub, socket.create_connection((hub.host, hub.port)) as sock:
+        port = can.Bus(interface="feedbench_hub", channel="b1", hub=hub)
+        other = open_bus("socketcand", "b1", host=hub.host, port=hub.port)
+        sock.settimeout(10.0)
+        assert sock.recv(64) == b"< hi >"
+        for command in (b"< open b1 >", b"< rawmode >"):
+            sock.sendall(command)
+            assert sock.recv(64) == b"< ok >"
+        try:
+            time.sleep(0.1)  # past the join delay of `other`
+            sock.sendall(b"< send 200 1 1 >< send 201 1 zz >< send 202 0  >< send 203 1 3 >")
+            assert sock.recv(4096) == b"< error malformed frame >"
+            got = [port.recv(1.0) for _ in range(3)]
+            relayed = [other.recv(1.0) for _ in range(3)]
+            assert port.recv(0.1) is None and other.recv(0.1) is None
+        finally:
+            port.shutdown()
+            other.shutdown()
+    for frames in (got, relayed):
+        assert [(m.arbitration_id, bytes(m.data)) for m in frames] == [
+            (0x200, b"\x01"), (0x202, b""), (0x203, b"\x03")]
+    assert hub.frames == 3
 
 
 class _Answer(can.Listener):

@@ -16,7 +16,7 @@ import socket
 import struct
 import threading
 import time
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from typing import Any, Callable, Iterable, Iterator, NamedTuple
 
 import can
@@ -206,6 +206,14 @@ def send_frames(network: canopen.Network, frames: Iterable[can.Message]) -> None
     network.check()
 
 
+def batched_sends(network: canopen.Network) -> AbstractContextManager[None]:
+    """While inside, the frames the calling thread sends on `network` go out together at
+    the end, in order, where its bus can write several in one go (`SocketcandBus.batch`);
+    elsewhere each goes out as sent (nothing changes)."""
+    batch = getattr(network.bus, "batch", None)
+    return batch() if callable(batch) else nullcontext()
+
+
 class LocalVirtualBus(virtual.VirtualBus):
     """python-can's `virtual` bus (same channels: its frames reach plain `VirtualBus`es on
     the channel and theirs reach it) at a fraction of the cost per frame: a frame is copied
@@ -263,24 +271,51 @@ class SocketcandBus(SocketCanDaemonBus):
       receive and sets TCP_QUICKACK after every send and receive (a system call each; with
       TCP_NODELAY on both ends nothing waits for an acknowledgement). A connection the
       server closed raises `can.CanOperationError` (python-can returns nothing, and a
-      receive thread then spins on the closed socket).
+      receive thread then spins on the closed socket);
+    - `batch()`: the frames one thread sends inside it go out in one write as it ends, in
+      the order sent (a lockstep cycle's RPDOs and SYNC: one system call, and the server
+      reads the cycle's frames in one wake-up instead of racing them frame by frame).
     """
 
     def __init__(self, channel: str, host: str, port: int, **options: Any) -> None:
         self._frames: collections.deque[can.Message] = collections.deque()
         self._pending = b""
         """What came after the last complete message (``… >``)."""
+        self._batch: list[bytes] | None = None
+        """The texts `batch()`'s thread sent meanwhile (None: not inside `batch()`)."""
+        self._batch_thread: int | None = None
         super().__init__(channel, host, port, **options)
         self._sock: socket.socket = self._SocketCanDaemonBus__socket  # python-can's (mangled)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        """Write `msg` as python-can does (`timeout` ignored, as by python-can)."""
+        """Write `msg` as python-can does (`timeout` ignored, as by python-can); inside
+        `batch()`, from its thread, at its end."""
         if msg.is_extended_id:
             can_id = b"%08X" % (msg.arbitration_id & 0x1FFFFFFF)
         else:
             can_id = b"%03X" % (msg.arbitration_id & 0x7FF)
         data = b" ".join([SOCKETCAND_HEX[value] for value in msg.data[:msg.dlc]])
-        self._sock.sendall(b"< send %s %X %s >" % (can_id, msg.dlc, data))
+        text = b"< send %s %X %s >" % (can_id, msg.dlc, data)
+        if self._batch is not None and threading.get_ident() == self._batch_thread:
+            self._batch.append(text)
+        else:
+            self._sock.sendall(text)
+
+    @contextmanager
+    def batch(self) -> Iterator[None]:
+        """While inside, the frames this thread sends wait; on exit (an exception too:
+        what was sent counts as sent) they go out in one write, in order. Other threads'
+        frames go out at once, as always. Nested: the outer one writes."""
+        if self._batch is not None:
+            yield
+            return
+        self._batch, self._batch_thread = [], threading.get_ident()
+        try:
+            yield
+        finally:
+            texts, self._batch, self._batch_thread = self._batch, None, None
+            if texts:
+                self._sock.sendall(b"".join(texts))
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         """The next frame received, waiting up to `timeout` s for the server (None: no

@@ -23,6 +23,9 @@ ports send in the hub's thread while it delivers a client's frame to them (a dri
 to SYNC: its TPDOs) wait until `flush()` or the end of that delivery, then go out in one
 write per client: one wake-up of the host's receive thread per cycle, not one per frame
 (`process.SimulatedBench` flushes right after the drive's TPDOs, before its world steps).
+The frames of one receive from a client (a lockstep cycle's RPDOs and SYNC, which the
+host writes at once: `protocols.canbus.batched_sends`) are relayed together: one stamp,
+one write to each other client, then to the ports in order.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ import selectors
 import socket
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import can
@@ -210,22 +214,22 @@ class SocketcandHub:
     def relay_from_port(self, sender: HubPort, msg: can.Message) -> None:
         """A frame a port sends: to every TCP client (stamped now) and every other port of
         its bus."""
-        for port in self._fan_out(sender, sender.channel, msg, time.time()):
+        for port in self._fan_out(sender, sender.channel, (msg,), time.time()):
             port.deliver(msg)
 
-    def _fan_out(self, sender: object, bus: str | None, msg: can.Message,
+    def _fan_out(self, sender: object, bus: str | None, msgs: Sequence[can.Message],
                  stamp: float) -> list[HubPort]:
-        """One frame from `sender` on `bus`: its text (`frame_text` at `stamp`, made only if
-        a client takes it) to every TCP client of the bus that receives frames; returns the
-        ports of the bus to deliver `msg` to, outside the lock (a port's listeners send
-        frames themselves). Never back to `sender`."""
+        """Frames from `sender` on `bus`, in order: their text (`frame_text` at `stamp`, made
+        only if a client takes it) to every TCP client of the bus that receives frames, in
+        one piece; returns the ports of the bus to deliver them to, outside the lock (a
+        port's listeners send frames themselves). Never back to `sender`."""
         with self._lock:
-            self.frames += 1
+            self.frames += len(msgs)
             now = time.monotonic()
             clients = [client for client in self._clients.values() if client is not sender
                        and client.bus == bus and client.receives(now)]
             if clients:
-                text = frame_text(msg, stamp)
+                text = b"".join([frame_text(msg, stamp) for msg in msgs])
                 for client in clients:
                     self._send(client, text)
             return [port for port in self._ports if port is not sender and port.channel == bus]
@@ -241,14 +245,34 @@ class SocketcandHub:
             self._drop(client.sock)
             return
         messages, client.inbox = socketcand_messages(client.inbox, data)
+        frames: list[tuple[int, bool, bytes]] = []
         for message in messages:
-            if tokens := message[1:].split():
-                self._handle(client, tokens)
+            if not (tokens := message[1:].split()):
+                continue
+            if tokens[0] == b"send" and client.raw:
+                try:
+                    frames.append(parse_send(tokens))
+                    continue
+                except (ValueError, IndexError):  # answered by `_handle`, in its place
+                    pass
+            if frames:
+                self._relay(client, frames)
+                frames = []
+            self._handle(client, tokens)
+        if frames:
+            self._relay(client, frames)
 
     def _handle(self, client: _Client, message: list[bytes]) -> None:
         command = message[0]
         if command == b"send" and client.raw:
-            self._relay(client, message)
+            try:
+                frame = parse_send(message)
+            except (ValueError, IndexError):
+                LOGGER.warning("socketcand hub: malformed frame %r: answered < error >",
+                               _text(message))
+                self._send(client, b"< error malformed frame >")
+                return
+            self._relay(client, [frame])
         elif command == b"open" and len(message) == 2 and client.bus is None:
             client.bus = message[1].decode("ascii", "replace")
             self._send(client, b"< ok >")
@@ -263,23 +287,22 @@ class SocketcandHub:
                            _text(message))
             self._send(client, b"< error unsupported command >")
 
-    def _relay(self, sender: _Client, message: list[bytes]) -> None:
-        try:
-            can_id, extended, data = parse_send(message)
-        except (ValueError, IndexError):
-            LOGGER.warning("socketcand hub: malformed frame %r: answered < error >",
-                           _text(message))
-            self._send(sender, b"< error malformed frame >")
-            return
+    def _relay(self, sender: _Client, frames: list[tuple[int, bool, bytes]]) -> None:
+        """The frames (`parse_send`) one receive from `sender` brought, in order: stamped
+        alike (they arrived together), to the TCP clients in one write each, then to the
+        ports; what the ports send meanwhile waits for the end (`_holding`)."""
         sender.joined_at = min(sender.joined_at, time.monotonic())
         stamp = time.time()
-        msg = can.Message(timestamp=stamp, arbitration_id=can_id, data=data,
-                          is_extended_id=extended, channel=sender.bus, check=False)
-        ports = self._fan_out(sender, sender.bus, msg, stamp)
+        bus = sender.bus
+        msgs = [can.Message(timestamp=stamp, arbitration_id=can_id, data=data,
+                            is_extended_id=extended, channel=bus, check=False)
+                for can_id, extended, data in frames]
+        ports = self._fan_out(sender, bus, msgs, stamp)
         self._holding = True
         try:
-            for port in ports:
-                port.deliver(msg)
+            for msg in msgs:
+                for port in ports:
+                    port.deliver(msg)
         finally:
             self._holding = False
             if self._held:
