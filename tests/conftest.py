@@ -34,12 +34,13 @@ SLOW_FIRST = (
     "test_timeouts.py", "test_fault_paths.py", "test_closure_measurement.py",
     "test_catalog_postgres_benches.py", "test_campaign.py", "test_mistakes.py",
     "test_notebook.py", "test_fault_matrix_devices.py", "test_structure_experiments.py",
-    "test_stepped_loading.py", "test_config_cli.py", "test_catalog_truth.py",
+    "test_stepped_loading.py", "test_config_cli.py", "test_catalog_truth.py", "test_import.py",
     "test_sim_process.py", "test_dynamic_friction.py", "test_closure_emps.py",
     "test_closure_gallery.py", "test_realtime.py", "test_closure_robust.py",
-    "test_late_host.py", "test_bad_inputs.py", "test_catalog_postgres.py",
+    "test_late_host.py", "test_bad_inputs.py", "test_catalog_postgres.py", "test_store.py",
     "test_catalog_paths.py", "test_fuzz_parsers.py", "test_rack_pinion_bench.py",
-    "test_catalog_concurrency.py", "test_serial_daq.py", "test_sim_serves_all.py",
+    "test_closure_io.py", "test_catalog_concurrency.py", "test_serial_daq.py",
+    "test_sim_serves_all.py",
     "test_run_safety.py", "test_cia402_conformance.py", "test_api.py", "test_smfe.py",
     "test_closure_kuka.py", "test_clock.py", "test_live_offline.py", "test_bench_tables.py",
     "test_backlash_reversal.py",
@@ -52,6 +53,8 @@ run: 99 → 66 s back to back at load 5 on 29 Nov), the others 5–31 s. They st
 the other worker spreads the short ones around them; the demo first, so that the scripts
 (four simulated benches at once) start after it: together they overload the 2 cores and a
 1 s bus timeout trips.
+test_import (15 s), test_store (9 s), test_closure_io (6 s) alone on 29 Nov: they had been
+left out and ran last, among the short files (test_import ended one worker's share).
 Marked ``slow``: `make test-fast` runs the other files."""
 
 
