@@ -31,7 +31,7 @@ from feedbench.engine.plan import recorded_windows
 from feedbench.models.milling import SMFE_SENSOR_NOISE
 from feedbench.models.friction import LAB_BENCH_FRICTION
 from feedbench.protocols.canbus import (
-    SOCKETCAND_PENDING_BYTES, batched_sends, open_bus, socketcand_messages,
+    SOCKETCAND_PENDING_BYTES, batched_sends, open_bus, send_frames, socketcand_messages,
 )
 from feedbench.sim_backends.socketcand_hub import SocketcandHub, parse_send
 from sim_peer import start_sim
@@ -254,6 +254,28 @@ def test_the_hub_relays_the_frames_of_one_receive_in_order_and_answers_a_malform
         assert [(m.arbitration_id, bytes(m.data)) for m in frames] == [
             (0x200, b"\x01"), (0x202, b""), (0x203, b"\x03")]
     assert hub.frames == 3
+
+
+def test_a_hub_ports_batch_reaches_a_client_in_one_piece():
+    """Frames a port sends inside `HubPort.batch()` (a drive's TPDOs, `send_frames`) are
+    relayed together as it ends: in order, in one write to each client."""
+    with SocketcandHub() as hub, socket.create_connection((hub.host, hub.port)) as sock:
+        port = can.Bus(interface="feedbench_hub", channel="b1", hub=hub)
+        sock.settimeout(10.0)
+        assert sock.recv(64) == b"< hi >"
+        for command in (b"< open b1 >", b"< rawmode >"):
+            sock.sendall(command)
+            assert sock.recv(64) == b"< ok >"
+        time.sleep(0.1)  # past the client's join delay
+        try:
+            network = canopen.Network(port)
+            send_frames(network, [can.Message(arbitration_id=can_id, data=b"\x01",
+                                              is_extended_id=False) for can_id in (0x181, 0x281)])
+            received = sock.recv(4096)
+        finally:
+            port.shutdown()
+    assert [line.split()[2] for line in received.split(b">")[:-1]] == [b"181", b"281"]
+    assert hub.frames == 2
 
 
 class _Answer(can.Listener):

@@ -195,12 +195,13 @@ def socketcand_messages(pending: bytes, data: bytes) -> tuple[list[bytes], bytes
 def send_frames(network: canopen.Network, frames: Iterable[can.Message]) -> None:
     """Send `frames` in order on `network`'s bus under its send lock, as canopen's
     `Network.send_message` sends one frame (which makes a new `can.Message` per frame: ≈ 1.3
-    µs of the ≈ 4 µs a frame costs, measured); `RuntimeError` when not connected, and the
-    network's receive errors raised afterwards (`Network.check`), as there."""
+    µs of the ≈ 4 µs a frame costs, measured), together where the bus can
+    (`batched_sends`); `RuntimeError` when not connected, and the network's receive errors
+    raised afterwards (`Network.check`), as there."""
     bus = network.bus
     if bus is None:
         raise RuntimeError("Not connected to CAN bus")
-    with network.send_lock:
+    with network.send_lock, batched_sends(network):
         for frame in frames:
             bus.send(frame)
     network.check()
@@ -208,8 +209,9 @@ def send_frames(network: canopen.Network, frames: Iterable[can.Message]) -> None
 
 def batched_sends(network: canopen.Network) -> AbstractContextManager[None]:
     """While inside, the frames the calling thread sends on `network` go out together at
-    the end, in order, where its bus can write several in one go (`SocketcandBus.batch`);
-    elsewhere each goes out as sent (nothing changes)."""
+    the end, in order, where its bus can write several in one go (`SocketcandBus.batch`,
+    `sim_backends.socketcand_hub.HubPort.batch`); elsewhere each goes out as sent (nothing
+    changes)."""
     batch = getattr(network.bus, "batch", None)
     return batch() if callable(batch) else nullcontext()
 

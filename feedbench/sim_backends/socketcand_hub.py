@@ -37,7 +37,8 @@ import selectors
 import socket
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import can
@@ -211,11 +212,12 @@ class SocketcandHub:
             if port in self._ports:
                 self._ports.remove(port)
 
-    def relay_from_port(self, sender: HubPort, msg: can.Message) -> None:
-        """A frame a port sends: to every TCP client (stamped now) and every other port of
-        its bus."""
-        for port in self._fan_out(sender, sender.channel, (msg,), time.time()):
-            port.deliver(msg)
+    def relay_from_port(self, sender: HubPort, msgs: Sequence[can.Message]) -> None:
+        """Frames a port sends, in order: to every TCP client (stamped now) and every other
+        port of its bus."""
+        for port in self._fan_out(sender, sender.channel, msgs, time.time()):
+            for msg in msgs:
+                port.deliver(msg)
 
     def _fan_out(self, sender: object, bus: str | None, msgs: Sequence[can.Message],
                  stamp: float) -> list[HubPort]:
@@ -320,7 +322,7 @@ class SocketcandHub:
         hub's thread while `_holding`, only queue it for `flush()`."""
         with self._lock:
             client.outbox += text
-            if not (self._holding and threading.current_thread() is self._thread):
+            if not (self._holding and threading.get_ident() == self._thread.ident):
                 self._flush(client)
             elif client not in self._held:
                 self._held.append(client)
@@ -382,6 +384,9 @@ class HubPort(can.BusABC):
         self._hub = hub
         self._inbox: queue.SimpleQueue[can.Message] = queue.SimpleQueue()
         self._listeners: list[can.Listener] = []
+        self._batch: list[can.Message] | None = None
+        """The frames `batch()`'s thread sent meanwhile (None: not inside `batch()`)."""
+        self._batch_thread: int | None = None
         super().__init__(channel=self.channel)
         hub.attach(self)
 
@@ -408,7 +413,27 @@ class HubPort(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         if self._is_shutdown:
             raise can.CanOperationError(f"{self.channel_info}: shut down")
-        self._hub.relay_from_port(self, msg)
+        if self._batch is not None and threading.get_ident() == self._batch_thread:
+            self._batch.append(msg)
+        else:
+            self._hub.relay_from_port(self, (msg,))
+
+    @contextmanager
+    def batch(self) -> Iterator[None]:
+        """While inside, the frames this thread sends are relayed together as it ends (an
+        exception too), in order: one stamp, one piece to each TCP client (a drive's TPDOs,
+        `protocols.canbus.send_frames`). Other threads' frames go at once. Nested: the outer
+        one relays."""
+        if self._batch is not None:
+            yield
+            return
+        self._batch, self._batch_thread = [], threading.get_ident()
+        try:
+            yield
+        finally:
+            msgs, self._batch, self._batch_thread = self._batch, None, None
+            if msgs:
+                self._hub.relay_from_port(self, msgs)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         try:
