@@ -19,7 +19,7 @@ rate; the sidecar (TOML, same stem) says which column is which channel and its u
     tip_acceleration = "a_tip"   # optional: load-side acceleration (m/s², unit "m/s2")
     [units]                      # unit of each channel's column (default: SI)
     time = "s"
-    position = "mm"
+    position = "mm"              # an angle (rad, deg): a rotary axis (force in N·m)
     force = "N"
     [controller]                 # optional: the drive's controller, keys as in a model config
     [sampling]                   # optional: how the channels were sampled (declared, never
@@ -51,10 +51,11 @@ import scipy.io
 import scipy.signal
 
 from feedbench.analysis.closure.trace import SIGNALS, Trace, lowpass
+from feedbench.analysis.closure.units import axis_unit
 from feedbench.config import (
     ConfigError, Field, non_negative, one_of, read_toml, validate_table,
 )
-from feedbench.units import UNITS_TO_SI  # the units a sidecar may name and their SI factor
+from feedbench.units import SI_UNITS, UNITS_TO_SI  # the units a sidecar may name, SI factor
 
 SIDECAR_SCHEMA = {
     "name": Field(str, "", "what the trace is"),
@@ -158,8 +159,13 @@ def read_csv_trace(path: str | Path, sidecar: Mapping[str, Any] | None = None
                    side["force_lag_ms"] * 1e-3
                    + declared_force_lag(side["sampling"], float(np.median(np.diff(time)))),
                    signals.get("external_force"),
-                   signals.get("tip_acceleration"))
+                   signals.get("tip_acceleration"), rotary=_rotary(side["units"]))
     return trace, side["controller"]
+
+
+def _rotary(units: Mapping[str, Any]) -> bool:
+    """Whether a sidecar's position unit is an angle (rad, deg): a rotary axis."""
+    return SI_UNITS.get(units.get("position", ""), (1.0, "length"))[1] == "angle"
 
 
 def _trace(path: Path, *args: Any, **options: Any) -> Trace:
@@ -233,20 +239,22 @@ def _bad_row(rows: list[str], delimiter: str, width: int) -> str:
 
 
 def write_csv_trace(path: str | Path, trace: Trace, sidecar_extra: Mapping[str, Any]) -> None:
-    """Write `trace` as CSV (mm, N, s) with its sidecar; `sidecar_extra` adds TOML tables
-    (e.g. the controller) as ready-made text lines under their header."""
+    """Write `trace` as CSV (mm, N, s; a rotary axis's position in rad) with its sidecar;
+    `sidecar_extra` adds TOML tables (e.g. the controller) as ready-made text lines under
+    their header."""
     path = Path(path)
-    names = {"time": "t_s", "position": "x_mm", "force": "F_N", "reference": "x_ref_mm",
-             "excitation": "excitation_N", "external_force": "external_N",
-             "tip_acceleration": "a_tip_m_s2"}
-    scale = {"time": 1.0, "position": 1e3, "force": 1.0, "reference": 1e3, "excitation": 1.0,
-             "external_force": 1.0, "tip_acceleration": 1.0}
+    length, to_length = ("rad", 1.0) if trace.rotary else ("mm", 1e3)
+    names = {"time": "t_s", "position": f"x_{length}", "force": "F_N",
+             "reference": f"x_ref_{length}", "excitation": "excitation_N",
+             "external_force": "external_N", "tip_acceleration": "a_tip_m_s2"}
+    scale = {"time": 1.0, "position": to_length, "force": 1.0, "reference": to_length,
+             "excitation": 1.0, "external_force": 1.0, "tip_acceleration": 1.0}
     present = [c for c in SIGNALS if getattr(trace, c) is not None]
     table = np.column_stack([getattr(trace, c) * scale[c] for c in present])
     np.savetxt(path, table, delimiter=",", header=",".join(names[c] for c in present),
                comments="", fmt="%.9g")
-    units = {"time": "s", "position": "mm", "force": "N", "reference": "mm", "excitation": "N",
-             "external_force": "N", "tip_acceleration": "m/s2"}
+    units = {"time": "s", "position": length, "force": "N", "reference": length,
+             "excitation": "N", "external_force": "N", "tip_acceleration": "m/s2"}
     lines = [f'name = "{trace.name}"', f"force_lag_ms = {trace.force_lag * 1e3:g}", "",
              "[columns]"] + [f'{c} = "{names[c]}"' for c in present] + ["", "[units]"]
     lines += [f'{c} = "{units[c]}"' for c in present]
@@ -315,7 +323,7 @@ def _kuka_trace(path: Path, raw: dict[str, Any], axis: int) -> Trace:
                 + raw["tau_c_all"][i] + raw["tau_g_all"][i] + raw["tau_g_init"][i])
     return _trace(path, rec.time_cont, deg * rec.act_pos_mot_deg[i],
                   ratio * rec.act_torque_abs_nm[i], deg * rec.ref_pos_deg[i], None,
-                  f"{path.name} axis {axis}", external_force=external)
+                  f"{path.name} axis {axis}", external_force=external, rotary=True)
 
 
 def kuka_parameters(path: str | Path, axis: int) -> dict[str, float]:
@@ -530,7 +538,7 @@ def _residual_plot(plt: Any, report: Any, path: Path) -> Path:
             label=f"after (+ {', '.join(result.effects) or 'nothing'}): "
                   f"NRMSE {result.error_after:.2%}")
     ax.set_xlabel("time in the held-out data (s)")
-    ax.set_ylabel("force residual (N)")
+    ax.set_ylabel(f"force residual ({axis_unit('N', report.rotary)})")
     ax.set_title(f"{report.name}\nheld-out residual, {report.holdout_source}", fontsize=10)
     ax.legend(markerscale=6)
     fig.tight_layout()
@@ -573,7 +581,7 @@ def _frf_plot(plt: Any, report: Any, path: Path) -> Path | None:
     for row, (label, style) in enumerate(FRF_STYLES.items()):
         mag.semilogy(frf.f[band], np.abs(frf.H1[row, band]), label=label, **style)
         phase.plot(frf.f[band], np.degrees(np.angle(frf.H1[row, band])), label=label, **style)
-    mag.set_ylabel("|v / excitation| (m/(N·s))")
+    mag.set_ylabel(f"|v / excitation| ({axis_unit('m/(N·s)', report.rotary)})")
     phase.set_ylabel("phase (deg)")
     phase.set_xlabel("frequency (Hz)")
     mag.legend()

@@ -37,6 +37,7 @@ from feedbench.analysis.closure.model import (
     standard_deviations, tip_error,
 )
 from feedbench.analysis.closure.trace import Kinematics
+from feedbench.analysis.closure.units import axis_unit
 from feedbench.config import ConfigError
 
 MAX_FAILED_STARTS = 3
@@ -232,12 +233,13 @@ def judge(fit: Fit, error: float, ranking: list[Candidate] | tuple[Candidate, ..
     mode, a load behind a play has one). The parameters on a bound are listed either way;
     the diagnosis is the candidate whose signature explains most of what the model leaves
     (from `ranking`, tried on it), if it explains at least `min_explained` of it."""
-    bounds = at_bounds(fit.model)
+    bounds = at_bounds(fit.model, kin.rotary)
     reasons = []
     if not error <= options.describes_below:
         reasons.append(f"held-out force NRMSE {error:.1%} is above the "
                        f"{options.describes_below:.0%} a describing model leaves")
-    reasons += [f"{b} is on the lower bound of its range" for b in bounds if b.endswith(" kg")]
+    mass = f" {axis_unit('kg', kin.rotary)}"
+    reasons += [f"{b} is on the lower bound of its range" for b in bounds if b.endswith(mass)]
     reasons += one_way(fit.model, kin)
     reasons += falls_with_speed(fit.model, kin, error, options)
     effects = [c for c in ranking if c.freed is None and np.isfinite(_share(c))]
@@ -276,9 +278,10 @@ def falls_with_speed(model: Model, kin: Kinematics, error: float,
     viscous = model.term("viscous").values["F_v_Ns_m"] if "viscous" in model.names else 0.0
     if viscous + slope >= 0.0 or line < options.min_explained:
         return []
+    ns_m = axis_unit("N·s/m", kin.rotary)
     falls = (f"the force falls as the speed rises: the residual's slope over the speed is "
-             f"{slope:.4g} N·s/m ({line:.0%} of the residual's variation), which would make "
-             f"the viscous coefficient {viscous + slope:.4g} N·s/m")
+             f"{slope:.4g} {ns_m} ({line:.0%} of the residual's variation), which would make "
+             f"the viscous coefficient {viscous + slope:.4g} {ns_m}")
     decay = _decay_share(residual, v)
     one_way_only = one_way_reason(kin)
     if one_way_only:
@@ -387,8 +390,9 @@ def refused_one_way(effect: Effect, kin: Kinematics) -> Candidate | None:
     return Candidate(effect.name, 0.0, "not screened", None, 0.0, 0.0, reason)
 
 
-def at_bounds(model: Model) -> tuple[str, ...]:
-    """"term.key = value unit" of every free parameter that sits on a bound of its range."""
+def at_bounds(model: Model, rotary: bool = False) -> tuple[str, ...]:
+    """"term.key = value unit" of every free parameter that sits on a bound of its range (the
+    unit a `rotary` axis reads or a linear one)."""
     out = []
     for term in model.terms:
         for p in term.effect.parameters:
@@ -396,7 +400,8 @@ def at_bounds(model: Model) -> tuple[str, ...]:
                 continue
             value = term.values[p.key]
             if _on_bound(value, p.lower) or _on_bound(value, p.upper):
-                out.append(f"{term.name}.{p.key} = {value / p.to_si:.4g} {p.unit}")
+                out.append(f"{term.name}.{p.key} = {value / p.to_si:.4g} "
+                           f"{axis_unit(p.unit, rotary)}")
     return tuple(out)
 
 
@@ -466,7 +471,7 @@ def disagreement_on(refit: Fit, current: Fit, freed: tuple[int, str] | None,
         other = fit_model(refit.model, holdout_kin)
     except FitError as exc:
         return f"does not hold on the held-out recording: its fit there fails ({exc})"
-    worst = None
+    worst, rotary = None, holdout_kin.rotary
     for name, unit, a, sa, b, sb, tolerance in _compared(refit, other, current, freed):
         if not math.isfinite(tolerance) or a == b:  # an effective value, or the very same
             continue
@@ -474,8 +479,8 @@ def disagreement_on(refit: Fit, current: Fit, freed: tuple[int, str] | None,
         excess = abs(a - b) / allowed if allowed > 0.0 else math.inf
         if not excess <= 1.0 and (worst is None or excess > worst[0]):
             worst = (excess, f"{name} {a:.4g} ± {sa:.2g} on the fit recording, {b:.4g} ± "
-                             f"{sb:.2g} on the held-out one ({unit}; {abs(a - b):.3g} apart, "
-                             f"{allowed:.3g} allowed)")
+                             f"{sb:.2g} on the held-out one ({axis_unit(unit, rotary)}; "
+                             f"{abs(a - b):.3g} apart, {allowed:.3g} allowed)")
     return None if worst is None else f"does not hold on every recording: {worst[1]}"
 
 
@@ -525,8 +530,9 @@ def moved_only_with_effects(candidate: Candidate, refit: Fit, current: Fit,
                + p.tolerance * max(abs(now), abs(before)))
     if abs(now - before) <= allowed:
         return None
+    unit = axis_unit(p.unit, fit_kin.rotary)
     return (f"moves only with the effects added: {term.name}.{key} − declared {now:+.4g} ± "
-            f"{s_now:.2g} {p.unit} now, {before:+.4g} ± {s_before:.2g} {p.unit} freed on the "
+            f"{s_now:.2g} {unit} now, {before:+.4g} ± {s_before:.2g} {unit} freed on the "
             f"declared model ({abs(now - before):.3g} apart, {allowed:.3g} allowed): the "
             f"effects' approximation, not a wrong declaration")
 

@@ -31,6 +31,7 @@ import scipy.signal
 from numba import njit
 
 from feedbench.analysis.closure.trace import Kinematics, lowpass, lowpass_derivatives
+from feedbench.analysis.closure.units import axis_unit, axis_units, unit_after_key
 from feedbench.models import effects as laws
 from feedbench.models.dynamic_friction import dahl_normalised, maxwell_slip_normalised
 from feedbench.models.friction import AnderssonFriction, DirectionalFriction
@@ -209,9 +210,10 @@ class Effect:
                           std.get((self.name, p.key), math.nan) / p.to_si, p.tolerance)
         return out
 
-    def describe(self, values: Mapping[str, float]) -> str:
-        """What the fitted effect looks like, in engineering units."""
-        return ", ".join(f"{p.key} = {values[p.key] / p.to_si:.4g}"
+    def describe(self, values: Mapping[str, float], rotary: bool = False) -> str:
+        """What the fitted effect looks like, in engineering units (a `rotary` axis's: rad
+        for m, N·m for N, `units.axis_unit`)."""
+        return ", ".join(f"{p.key} = {values[p.key] / p.to_si:.4g}{unit_after_key(p.unit, rotary)}"
                          for p in self.parameters if not p.setting)
 
 
@@ -267,8 +269,9 @@ class Stribeck(Effect):
             return "static level below the Coulomb level"
         fastest = float(np.max(np.abs(kin.v[kin.rows])))
         if values["v_s_mm_min"] > fastest:
-            return (f"Stribeck velocity {values['v_s_mm_min'] / MM_PER_MIN:.4g} mm/min beyond "
-                    f"the fastest speed used, {fastest / MM_PER_MIN:.4g} mm/min: a slope over "
+            speed = axis_unit("mm/min", kin.rotary)
+            return (f"Stribeck velocity {values['v_s_mm_min'] / MM_PER_MIN:.4g} {speed} beyond "
+                    f"the fastest speed used, {fastest / MM_PER_MIN:.4g} {speed}: a slope over "
                     f"the data, not a decay it shows")
         return None
 
@@ -331,8 +334,9 @@ class Ripple(Effect):
     def implausible(self, values, total_mass, kin):
         longest = _pitch_range(kin)[1]
         if values["pitch_mm"] > longest:
-            return (f"pitch {values['pitch_mm'] * 1e3:.3g} mm longer than half the stroke "
-                    f"({longest * 1e3:.3g} mm): not a periodic force on this data")
+            mm = axis_unit("mm", kin.rotary)
+            return (f"pitch {values['pitch_mm'] * 1e3:.3g} {mm} longer than half the stroke "
+                    f"({longest * 1e3:.3g} {mm}): not a periodic force on this data")
         return None
 
     def invariants(self, term, std):
@@ -346,9 +350,10 @@ class Ripple(Effect):
                              std.get((self.name, "pitch_mm"), math.nan) / pitch.to_si,
                              pitch.tolerance)}
 
-    def describe(self, values):
+    def describe(self, values, rotary=False):
         amplitude = math.hypot(values["A_sin_N"], values["A_cos_N"])
-        return f"amplitude {amplitude:.3g} N at pitch {values['pitch_mm'] * 1e3:.4g} mm"
+        n, mm = axis_units(rotary, "N", "mm")
+        return f"amplitude {amplitude:.3g} {n} at pitch {values['pitch_mm'] * 1e3:.4g} {mm}"
 
 
 def _pitch_range(kin: Kinematics) -> tuple[float, float]:
@@ -426,15 +431,17 @@ class StructuralMode(Effect):
 
     def implausible(self, values, total_mass, kin):
         if not 0.0 < values["m_kg"] < total_mass:
-            return f"modal mass {values['m_kg']:.3g} kg outside (0, {total_mass:.3g}) kg"
+            kg = axis_unit("kg", kin.rotary)
+            return f"modal mass {values['m_kg']:.3g} {kg} outside (0, {total_mass:.3g}) {kg}"
         return None
 
     def starts(self, kin, context):
         top = 0.9 * kin.bandwidth
         return [{"f_n_Hz": f, "zeta": z} for f in np.geomspace(2.0, top, 32) for z in (0.02, 0.1)]
 
-    def describe(self, values):
-        return (f"mass {values['m_kg']:.3g} kg at {values['f_n_Hz']:.4g} Hz, "
+    def describe(self, values, rotary=False):
+        return (f"mass {values['m_kg']:.3g} {axis_unit('kg', rotary)} at "
+                f"{values['f_n_Hz']:.4g} Hz, "
                 f"ζ = {values['zeta']:.3g}")
 
 
@@ -475,8 +482,8 @@ class SecondMode(StructuralMode):
         return (super().implausible(values, total_mass, kin) or _out_of_band(values, kin)
                 or _too_close(values))
 
-    def describe(self, values):
-        return "second mode: " + super().describe(values)
+    def describe(self, values, rotary=False):
+        return "second mode: " + super().describe(values, rotary)
 
 
 def _too_close(values: Mapping[str, float]) -> str | None:
@@ -535,12 +542,14 @@ class CubicStiffening(Effect):
 
     def implausible(self, values, total_mass, kin):
         if not 0.0 < values["m_kg"] < total_mass:
-            return f"spring mass {values['m_kg']:.3g} kg outside (0, {total_mass:.3g}) kg"
+            kg = axis_unit("kg", kin.rotary)
+            return f"spring mass {values['m_kg']:.3g} {kg} outside (0, {total_mass:.3g}) {kg}"
         return None
 
-    def describe(self, values):
-        return (f"κ = {values['kappa_per_um2'] * 1e-12:.3g} /µm² on the {values['f_n_Hz']:.4g} Hz "
-                f"mode, mass {values['m_kg']:.3g} kg")
+    def describe(self, values, rotary=False):
+        per_um2, kg = axis_units(rotary, "1/µm²", "kg")
+        return (f"κ = {values['kappa_per_um2'] * 1e-12:.3g} {per_um2} on the "
+                f"{values['f_n_Hz']:.4g} Hz mode, mass {values['m_kg']:.3g} {kg}")
 
 
 TIP_SUBSTEPS = 8
@@ -785,7 +794,7 @@ class Delay(Effect):
         bound = self.parameter("tau_ms").upper
         return [{"tau_ms": float(np.clip(tau, -bound, bound))}]
 
-    def describe(self, values):
+    def describe(self, values, rotary=False):
         return f"force leads motion by {values['tau_ms'] * 1e3:.3g} ms"
 
 
@@ -822,8 +831,8 @@ class AmplitudeNonlinearity(Effect):
         lower = max(lower, -0.5 / (4.0 * max(float(np.max(np.abs(kin.force))), 1e-300)))
         return [{"beta_per_kN": float(np.clip(beta, lower, upper))}]
 
-    def describe(self, values):
-        return f"β = {values['beta_per_kN'] * 1e3:.3g} /kN"
+    def describe(self, values, rotary=False):
+        return f"β = {values['beta_per_kN'] * 1e3:.3g} {axis_unit('1/kN', rotary)}"
 
 
 @dataclass(frozen=True)
@@ -857,7 +866,7 @@ class SensorGain(Effect):
         return {"gain − 1": (p.unit, term.values["gain"] - 1.0,
                              std.get((self.name, "gain"), math.nan), p.tolerance)}
 
-    def describe(self, values):
+    def describe(self, values, rotary=False):
         return f"gain {values['gain']:.4g}"
 
 
@@ -921,11 +930,12 @@ class Backlash(Effect):
         return super().fitted_keys(start)
 
     def implausible(self, values, total_mass, kin):
+        kg, um = axis_units(kin.rotary, "kg", "µm")
         if not 0.0 < values["m_load_kg"] < total_mass:
-            return f"load mass {values['m_load_kg']:.3g} kg outside (0, {total_mass:.3g}) kg"
+            return f"load mass {values['m_load_kg']:.3g} {kg} outside (0, {total_mass:.3g}) {kg}"
         if values["width_um"] < 0.5 * SMALLEST_PLAY:
-            return (f"play {values['width_um'] * 1e6:.3g} µm below the "
-                    f"{SMALLEST_PLAY * 1e6:.3g} µm the screening resolves: friction behind a "
+            return (f"play {values['width_um'] * 1e6:.3g} {um} below the "
+                    f"{SMALLEST_PLAY * 1e6:.3g} {um} the screening resolves: friction behind a "
                     f"spring, not a play")
         return None
 
@@ -971,15 +981,16 @@ class Backlash(Effect):
                  "friction_N_kg": mu * r}
                 for f in (0.5, 1.0, 2.0) for z in (0.3, 1.0) for r in (0.5, 1.0, 2.0)]
 
-    def describe(self, values):
+    def describe(self, values, rotary=False):
+        um, kg, n = axis_units(rotary, "µm", "kg", "N")
         if values["mode_f_n_Hz"] > 0.0:
-            return (f"play {values['width_um'] * 1e6:.3g} µm in the spring of the "
-                    f"{values['mode_f_n_Hz']:.4g} Hz mode, mass {values['m_load_kg']:.3g} kg, "
-                    f"friction behind it {values['m_load_kg'] * values['friction_N_kg']:.3g} N, "
+            return (f"play {values['width_um'] * 1e6:.3g} {um} in the spring of the "
+                    f"{values['mode_f_n_Hz']:.4g} Hz mode, mass {values['m_load_kg']:.3g} {kg}, "
+                    f"friction behind it {values['m_load_kg'] * values['friction_N_kg']:.3g} {n}, "
                     f"contact damping ζ {values['zeta_contact']:.2g} (effective)")
-        return (f"play {values['width_um'] * 1e6:.3g} µm, load {values['m_load_kg']:.3g} kg "
+        return (f"play {values['width_um'] * 1e6:.3g} {um}, load {values['m_load_kg']:.3g} {kg} "
                 f"on a {values['f_contact_Hz']:.3g} Hz contact (ζ {values['zeta_contact']:.2g}), "
-                f"load friction {values['m_load_kg'] * values['friction_N_kg']:.3g} N")
+                f"load friction {values['m_load_kg'] * values['friction_N_kg']:.3g} {n}")
 
 
 def _declared_friction(context: Context) -> float:
@@ -1086,21 +1097,23 @@ class Presliding(Effect):
         axis crosses 2 x_p after a reversal (w from −1 to 0.73) within less than one filter
         period 1/B, the term is a Coulomb transition read through the filter, not
         hysteresis this data can show."""
+        n, um = axis_units(kin.rotary, "N", "µm")
         if not values["F_p_N"] > 0.0:
-            return f"pre-sliding level {values['F_p_N']:.3g} N not positive"
+            return f"pre-sliding level {values['F_p_N']:.3g} {n} not positive"
         crossing = presliding_time(kin, 2.0 * values["x_p_um"])
         if crossing < PRESLIDING_RESOLVED_PERIODS / kin.bandwidth:
-            return (f"pre-sliding over {values['x_p_um'] * 1e6:.3g} µm lasts "
+            return (f"pre-sliding over {values['x_p_um'] * 1e6:.3g} {um} lasts "
                     f"{crossing * 1e3:.3g} ms after a reversal (median), shorter than the "
                     f"filter period {1e3 / kin.bandwidth:.3g} ms: not resolved on this data")
         return None
 
-    def describe(self, values):
+    def describe(self, values, rotary=False):
+        n_um, n, um, ns_m = axis_units(rotary, "N/µm", "N", "µm", "N·s/m")
         return (f"pre-sliding hysteresis: bristle stiffness "
-                f"{values['F_p_N'] / values['x_p_um'] / N_PER_UM:.3g} N/µm, level "
-                f"{values['F_p_N']:.3g} N, pre-sliding displacement "
-                f"{values['x_p_um'] * 1e6:.3g} µm, bristle damping "
-                f"{values['sigma1_Ns_m']:.3g} N·s/m")
+                f"{values['F_p_N'] / values['x_p_um'] / N_PER_UM:.3g} {n_um}, level "
+                f"{values['F_p_N']:.3g} {n}, pre-sliding displacement "
+                f"{values['x_p_um'] * 1e6:.3g} {um}, bristle damping "
+                f"{values['sigma1_Ns_m']:.3g} {ns_m}")
 
 
 GMS_BLOCKS = 16
@@ -1130,11 +1143,12 @@ class MaxwellSlip(Presliding):
         return lowpass_columns(np.column_stack([w - np.tanh(k_tanh * kin.v),
                                                 kin.v * elastic]), kin)
 
-    def describe(self, values):
+    def describe(self, values, rotary=False):
+        n_um, n, um, ns_m = axis_units(rotary, "N/µm", "N", "µm", "N·s/m")
         return (f"pre-sliding hysteresis (generalized Maxwell-slip, {GMS_BLOCKS} blocks): "
-                f"initial stiffness {values['F_p_N'] / values['x_p_um'] / N_PER_UM:.3g} N/µm, "
-                f"level {values['F_p_N']:.3g} N, full sliding after "
-                f"{2e6 * values['x_p_um']:.3g} µm, damping {values['sigma1_Ns_m']:.3g} N·s/m")
+                f"initial stiffness {values['F_p_N'] / values['x_p_um'] / N_PER_UM:.3g} {n_um}, "
+                f"level {values['F_p_N']:.3g} {n}, full sliding after "
+                f"{2e6 * values['x_p_um']:.3g} {um}, damping {values['sigma1_Ns_m']:.3g} {ns_m}")
 
 
 def lowpass_columns(columns: np.ndarray, kin: Kinematics) -> np.ndarray:

@@ -2,7 +2,10 @@
 
 JSON values are in the units their keys name (the model config's), errors are fractions
 (NRMSE = ‖measured − predicted‖ / ‖measured‖ of the band-limited motor force, the EMPS
-benchmark's relative error).
+benchmark's relative error). On a rotary axis (`"rotary": true`) a key's length is an angle
+and its force a torque at the same scale (pitch_mm in mrad, M_kg in kg·m², offset_N in
+N·m): the keys stay, the units the texts and the "unit" strings name are the rotary ones
+(`units.axis_unit`).
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from feedbench.analysis.closure.diagnosis import Candidate, ClosureResult, Step,
 from feedbench.analysis.closure.model import Fit, Term, tip_error
 from feedbench.analysis.closure.replay import ReplayErrors
 from feedbench.analysis.closure.run import ClosureReport
+from feedbench.analysis.closure.units import axis_unit, unit_after_key
 
 RUNNERS_UP = 3
 
@@ -92,20 +96,23 @@ def stop_reason(result: ClosureResult) -> str:
     return f"no candidate significant: the best, {best.name}, fails on {failed}{passed}"
 
 
-def recalibration_dict(step: Step) -> dict[str, Any]:
-    """A recalibrated declared parameter in its config unit: declared → fitted ± std, and by
-    how many standard deviations it moved (NaN when the std is not finite and positive)."""
+def recalibration_dict(step: Step, rotary: bool = False) -> dict[str, Any]:
+    """A recalibrated declared parameter in its config unit (named as a `rotary` axis reads
+    it): declared → fitted ± std, and by how many standard deviations it moved (NaN when the
+    std is not finite and positive)."""
     i, key = step.chosen.freed
     p = step.fit.model.terms[i].effect.parameter(key)
     declared, value, std = (v / p.to_si for v in step.recalibration)
     known = math.isfinite(std) and std > 0.0
-    return {"parameter": step.chosen.name, "unit": p.unit, "declared": declared,
+    return {"parameter": step.chosen.name, "unit": axis_unit(p.unit, rotary),
+            "declared": declared,
             "value": value, "std": std,
             "sigmas": abs(value - declared) / std if known else math.nan}
 
 
-def _step_dict(step: Step) -> dict[str, Any]:
-    """One step of the search: an effect added or a declared parameter recalibrated."""
+def _step_dict(step: Step, rotary: bool = False) -> dict[str, Any]:
+    """One step of the search: an effect added or a declared parameter recalibrated (its
+    texts in the units a `rotary` axis or a linear one reads)."""
     out = {"kind": step.chosen.kind, "effect": step.chosen.name,
            "evidence": step.chosen.evidence, "delta_bic": step.chosen.delta_bic,
            "holdout_delta_bic": step.holdout_delta_bic, "explained": step.chosen.explained,
@@ -113,11 +120,11 @@ def _step_dict(step: Step) -> dict[str, Any]:
            "runners_up": [candidate_dict(c) for c in step.ranking[1:1 + RUNNERS_UP]],
            "model_params": model_params(step.fit)}
     if step.chosen.freed is not None:
-        recalibration = recalibration_dict(step)
+        recalibration = recalibration_dict(step, rotary)
         return {**out, "description": _recalibration_text(recalibration),
                 "recalibration": recalibration}
     term = step.fit.model.term(step.chosen.name)
-    return {**out, "description": term.effect.describe(term.values),
+    return {**out, "description": term.effect.describe(term.values, rotary),
             "params": term_params(term, step.fit)}
 
 
@@ -151,12 +158,13 @@ def verdict_text(which: str, verdict: Verdict) -> list[str]:
 def report_dict(report: ClosureReport) -> dict[str, Any]:
     """The machine-readable report (`feedbench closure --json`)."""
     result = report.result
-    steps = [_step_dict(step) for step in result.steps]
+    steps = [_step_dict(step, report.rotary) for step in result.steps]
     final = result.final
     return {
         "model": report.name,
         "fit_data": report.fit_source,
         "holdout_data": report.holdout_source,
+        "rotary": report.rotary,
         "bandwidth_Hz": report.bandwidth,
         "standstill_mm_s": report.standstill * 1e3,
         "effects": list(result.effects),
@@ -192,12 +200,18 @@ def _tip_errors(report: ClosureReport) -> dict[str, float | None]:
             for key, fit in fits.items()}
 
 
-def _params_text(params: dict[str, dict[str, float | bool]], indent: str = "    ") -> str:
+def _params_text(params: dict[str, dict[str, float | bool]], term: Term, rotary: bool,
+                 indent: str = "    ") -> str:
+    """"key = value ± std" of a term's `params`; on a `rotary` axis followed by the unit, the
+    key's own naming the linear one."""
     parts = []
     for key, p in params.items():
         std = "" if not p["free"] or math.isnan(p["std"]) else f" ± {p['std']:.3g}"
-        parts.append(f"{key} = {p['value']:.5g}{std}" + ("" if p["free"] else " (declared)"))
+        parts.append(f"{key} = {p['value']:.5g}{std}"
+                     + unit_after_key(term.effect.parameter(key).unit, rotary)
+                     + ("" if p["free"] else " (declared)"))
     return indent + ", ".join(parts)
+
 
 
 def _replay_text(before: ReplayErrors, after: ReplayErrors) -> list[str]:
@@ -221,15 +235,17 @@ def report_text(report: ClosureReport) -> str:
     lines = [
         f"closure: {report.name or 'model'}",
         f"fit on {report.fit_source}, judged on {report.holdout_source}; bandwidth "
-        f"{report.bandwidth:.4g} Hz; samples slower than {report.standstill * 1e3:.3g} mm/s "
+        f"{report.bandwidth:.4g} Hz; samples slower than {report.standstill * 1e3:.3g} "
+        f"{axis_unit('mm/s', report.rotary)} "
         f"not used (stiction)",
         f"base model ({', '.join(t.name for t in result.base.model.terms)}): held-out force "
         f"NRMSE {result.error_before:.2%} (fit {result.base.error:.2%})",
     ]
     for name, params in data["base_params"].items():
-        lines.append(f"  {name}:" + _params_text(params, " "))
+        lines.append(f"  {name}:" + _params_text(params, result.base.model.term(name),
+                                                 report.rotary, " "))
     lines += verdict_text("the declared", result.base_verdict)
-    for i, step in enumerate(data["steps"], 1):
+    for i, (step, found) in enumerate(zip(data["steps"], result.steps), 1):
         runners = "; ".join(f"{c['effect']} ΔBIC {c['delta_bic']:.0f}, {c['explained']:.1%}"
                             + (f" [{c['rejected']}]" if c["rejected"] else "")
                             for c in step["runners_up"]) or "none"
@@ -242,7 +258,8 @@ def report_text(report: ClosureReport) -> str:
             f"removes {step['explained']:.1%} of the fit residual; runners-up: {runners}",
         ]
         if "params" in step:
-            lines.append(_params_text(step["params"]))
+            lines.append(_params_text(step["params"], found.fit.model.term(step["effect"]),
+                                      report.rotary))
     for r in data["rejected"]:
         lines.append(f"rejected: {r['effect']}: {r['reason']}")
     if not result.steps:

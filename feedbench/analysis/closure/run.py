@@ -49,6 +49,11 @@ class ClosureReport:
     replay_after: ReplayErrors | None
     replays: tuple[Replay, Replay] | None
 
+    @property
+    def rotary(self) -> bool:
+        """Whether the axis turns: the units the report names are the rotary ones."""
+        return self.holdout.trace.rotary
+
     def held_out_residuals(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Sample times (s, from the held-out start) and force residuals (N) of the base and
         the final model on the used held-out samples."""
@@ -62,6 +67,10 @@ class ClosureReport:
 def run_closure(spec: ModelSpec, trace: Trace, validation: Trace | None = None) -> ClosureReport:
     """Fit `spec`'s model on `trace`, judge on `validation` (or on the trace's last
     `holdout_fraction`), add effects while significant, replay before and after."""
+    if validation is not None and validation.rotary != trace.rotary:
+        raise ValueError(f"{validation.name or 'the validation trace'}: "
+                         f"{_axis(validation)}, but {trace.name or 'the trace'} is "
+                         f"{_axis(trace)}: both must be of one axis")
     bandwidth = spec.bandwidth or DEFAULT_BANDWIDTH_FRACTION * trace.sample_rate
     standstill = standstill_speed(kinematics(trace, bandwidth), spec.standstill)
     fit_kin, judged = _fit_and_judged(trace, validation, bandwidth, standstill,
@@ -74,6 +83,11 @@ def run_closure(spec: ModelSpec, trace: Trace, validation: Trace | None = None) 
                       else f"{trace.name} (last {spec.holdout_fraction:.0%})")
     return ClosureReport(spec.model.name, trace.name, holdout_source, bandwidth, standstill,
                          result, judged, errors[0], errors[1], replays)
+
+
+def _axis(trace: Trace) -> str:
+    """What kind of axis a trace records (for a message)."""
+    return "rotary (rad)" if trace.rotary else "linear (m)"
 
 
 def _fit_and_judged(trace: Trace, validation: Trace | None, bandwidth: float,

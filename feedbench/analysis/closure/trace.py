@@ -43,7 +43,10 @@ class Trace:
     when each force sample is the force held over the cycle that ends at its time stamp;
     external_force: a known force the motor works against besides the model's terms (N;
     N·m), e.g. a robot joint's gravity and coupling torques, or None: the model explains
-    force − external_force; tip_acceleration: acceleration of the load side (m/s²) or None.
+    force − external_force; tip_acceleration: acceleration of the load side (m/s²) or None;
+    rotary: whether the axis turns (position in rad, force in N·m or the dataset's own force
+    unit): the numbers are the same, the units the report names are the rotary ones
+    (`units.axis_unit`).
     """
 
     time: np.ndarray
@@ -55,6 +58,7 @@ class Trace:
     force_lag: float = 0.0
     external_force: np.ndarray | None = None
     tip_acceleration: np.ndarray | None = None
+    rotary: bool = False
 
     def __post_init__(self) -> None:
         n = np.shape(self.time)[0] if np.ndim(self.time) == 1 else -1
@@ -102,7 +106,8 @@ class Kinematics:
     filtered measured force less the trace's known external force (N); used: samples that
     fits and errors count (the axis moving faster than the standstill speed: in stiction
     the friction force is a constraint force no friction law predicts); dt: sample period
-    (s); bandwidth: cut-off (Hz); tip: the filtered load-side acceleration (m/s²) or None.
+    (s); bandwidth: cut-off (Hz); tip: the filtered load-side acceleration (m/s²) or None;
+    rotary: the trace's (rad and N·m for m and N).
     """
 
     x: np.ndarray
@@ -113,6 +118,7 @@ class Kinematics:
     dt: float
     bandwidth: float
     tip: np.ndarray | None = None
+    rotary: bool = False
 
     @property
     def rows(self) -> np.ndarray:
@@ -190,7 +196,8 @@ def kinematics(trace: Trace, bandwidth: float, standstill: float = 0.0) -> Kinem
                          f"a {bandwidth:g} Hz filter (need > {4 * edge})")
     tip = (None if trace.tip_acceleration is None
            else lowpass(trace.tip_acceleration, bandwidth, dt))
-    kin = Kinematics(x, v, a, force, np.abs(v) >= standstill, dt, bandwidth, tip)
+    kin = Kinematics(x, v, a, force, np.abs(v) >= standstill, dt, bandwidth, tip,
+                     trace.rotary)
     kin = kin.window(edge, trace.n_samples - edge)
     if kin.n_used < 16:
         raise ValueError(f"{trace.name or 'trace'}: only {kin.n_used} samples move faster "
