@@ -133,7 +133,7 @@ def test_a_cogging_ripple_behind_a_speed_loop_is_found_after_the_pull():
     from 62 % to 26 % ± 2 %."""
     pulled = _closed("odrive-pull")
     assert [s["effect"] for s in pulled["steps"]] == ["offset", "ripple"]
-    pitch_rad = pulled["final_params"]["ripple"]["pitch_mm"]["value"] * 1e-3  # rad read as m
+    pitch_rad = pulled["final_params"]["ripple"]["pitch_mm"]["value"] * 1e-3  # mrad: rotary
     assert pitch_rad == pytest.approx(2 * math.pi / 7, rel=0.01)
     assert pulled["error_after"] == pytest.approx(0.26, abs=0.02)
 
