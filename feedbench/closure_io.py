@@ -239,22 +239,23 @@ def _bad_row(rows: list[str], delimiter: str, width: int) -> str:
 
 
 def write_csv_trace(path: str | Path, trace: Trace, sidecar_extra: Mapping[str, Any]) -> None:
-    """Write `trace` as CSV (mm, N, s; a rotary axis's position in rad) with its sidecar;
-    `sidecar_extra` adds TOML tables (e.g. the controller) as ready-made text lines under
-    their header."""
+    """Write `trace` as CSV (mm, N, s; a rotary axis's position in rad, its forces in N·m)
+    with its sidecar; `sidecar_extra` adds TOML tables (e.g. the controller) as ready-made
+    text lines under their header."""
     path = Path(path)
     length, to_length = ("rad", 1.0) if trace.rotary else ("mm", 1e3)
-    names = {"time": "t_s", "position": f"x_{length}", "force": "F_N",
-             "reference": f"x_ref_{length}", "excitation": "excitation_N",
-             "external_force": "external_N", "tip_acceleration": "a_tip_m_s2"}
+    force = "Nm" if trace.rotary else "N"
+    names = {"time": "t_s", "position": f"x_{length}", "force": f"F_{force}",
+             "reference": f"x_ref_{length}", "excitation": f"excitation_{force}",
+             "external_force": f"external_{force}", "tip_acceleration": "a_tip_m_s2"}
     scale = {"time": 1.0, "position": to_length, "force": 1.0, "reference": to_length,
              "excitation": 1.0, "external_force": 1.0, "tip_acceleration": 1.0}
     present = [c for c in SIGNALS if getattr(trace, c) is not None]
     table = np.column_stack([getattr(trace, c) * scale[c] for c in present])
     np.savetxt(path, table, delimiter=",", header=",".join(names[c] for c in present),
                comments="", fmt="%.9g")
-    units = {"time": "s", "position": length, "force": "N", "reference": length,
-             "excitation": "N", "external_force": "N", "tip_acceleration": "m/s2"}
+    units = {"time": "s", "position": length, "force": force, "reference": length,
+             "excitation": force, "external_force": force, "tip_acceleration": "m/s2"}
     lines = [f'name = "{trace.name}"', f"force_lag_ms = {trace.force_lag * 1e3:g}", "",
              "[columns]"] + [f'{c} = "{names[c]}"' for c in present] + ["", "[units]"]
     lines += [f'{c} = "{units[c]}"' for c in present]
@@ -465,7 +466,8 @@ def _recording_trace(recording: Any) -> Trace:
                                                                   cycle)
     return Trace(recording.cycle * cycle, channels["position"], channels["force"],
                  channels.get("x_ref"), channels.get("force_offset"), recording.path.name,
-                 lag, channels.get("external_force"), channels.get("tip_acceleration"))
+                 lag, channels.get("external_force"), channels.get("tip_acceleration"),
+                 rotary=recording.units.get("position") == "rad")
 
 
 def read_foreign_trace(path: str | Path, mapping: str | Path | None = None
@@ -480,7 +482,7 @@ def read_foreign_trace(path: str | Path, mapping: str | Path | None = None
     trace = _trace(Path(path), np.arange(run.n_samples) * cycle, channels["position"],
                    channels["force"], channels.get("x_ref"), channels.get("force_offset"),
                    run.name, lag, channels.get("external_force"),
-                   channels.get("tip_acceleration"))
+                   channels.get("tip_acceleration"), rotary=run.units["position"] == "rad")
     return trace, run.controller
 
 

@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from feedbench.analysis.closure import report_dict
+from feedbench.analysis.closure import ClosureReport, report_dict
 from feedbench.analysis.closure.report import DAMPING, NON_NEGATIVE, POSITIVE, unphysical
 from feedbench.commands.cli import main
 from feedbench.commands.closure import closure_report
@@ -67,10 +67,16 @@ def test_every_slice_reads_with_its_units_shape_and_rate(dataset, path):
 
 
 @functools.cache
+def closure_of(name: str) -> ClosureReport:
+    """The closure on a gallery dataset (once per process)."""
+    dataset = next(d for d in DATASETS if d.name == name)
+    return closure_report(dataset.fit, dataset.model, dataset.validation)
+
+
+@functools.cache
 def _closed(name: str) -> dict:
     """The closure's JSON report on a gallery dataset (once per process)."""
-    dataset = next(d for d in DATASETS if d.name == name)
-    return report_dict(closure_report(dataset.fit, dataset.model, dataset.validation))
+    return report_dict(closure_of(name))
 
 
 @pytest.mark.parametrize("dataset", DATASETS, ids=_id)

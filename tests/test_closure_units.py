@@ -3,7 +3,6 @@ is rotary, a linear axis's (m, N, kg) otherwise; keys and numbers the same eithe
 
 from __future__ import annotations
 
-import functools
 import math
 import re
 
@@ -15,21 +14,14 @@ from feedbench.analysis.closure.effects import EFFECTS
 from feedbench.analysis.closure.spec import parse_model_config
 from feedbench.analysis.closure.units import ROTARY_UNITS, axis_unit
 from feedbench.closure_io import read_csv_trace, write_csv_trace
-from feedbench.commands.closure import closure_report
-from gallery import DATA, datasets
+from gallery import DATA
+from test_closure_gallery import closure_of
 
 LINEAR_UNIT = re.compile(r"(?<![\w·/])(mm|µm|mm/s|mm/min|N|kg|N·s/m|N/µm)(?![\w·/²])")
 """A linear unit standing alone (not part of a key such as pitch_mm, nor of N·m or kg·m²)."""
 
 AXIS_FREE = frozenset({"-", "Hz", "ms"})
 """Parameter units that name no length and no force."""
-
-
-@functools.cache
-def _closed(name: str):
-    """The closure report on a gallery dataset (once per process)."""
-    dataset = next(d for d in datasets() if d.name == name)
-    return closure_report(dataset.fit, dataset.model, dataset.validation)
 
 
 def test_every_parameter_unit_has_its_rotary_counterpart_or_names_no_axis():
@@ -52,6 +44,9 @@ def test_a_written_trace_reads_back_on_its_kind_of_axis(tmp_path, rotary):
     read = read_csv_trace(tmp_path / "axis.csv")[0]
     assert read.rotary is rotary
     np.testing.assert_allclose(read.position, written.position, rtol=1e-8)
+    np.testing.assert_allclose(read.force, written.force, rtol=1e-8)
+    sidecar = (tmp_path / "axis.toml").read_text()
+    assert ('force = "Nm"' in sidecar) is rotary and ('force = "N"' in sidecar) is not rotary
 
 
 def test_a_validation_trace_of_the_other_kind_of_axis_is_refused():
@@ -87,7 +82,7 @@ REPORTED = {
 @pytest.mark.parametrize("name", REPORTED)
 def test_the_text_names_the_units_of_the_axis_recorded(name):
     rotary, foreign, lines = REPORTED[name]
-    report = _closed(name)
+    report = closure_of(name)
     text = report_text(report)
     assert [line for line in lines if line not in text] == []
     assert foreign.findall(text) == []
@@ -95,7 +90,7 @@ def test_the_text_names_the_units_of_the_axis_recorded(name):
 
 
 def test_a_rotary_json_keeps_its_keys_and_values_and_names_the_rotary_units():
-    data = report_dict(_closed("odrive-pull"))
+    data = report_dict(closure_of("odrive-pull"))
     assert "pitch_mm" in data["params"]["ripple"] and "offset_N" in data["params"]["offset"]
     assert math.isclose(data["params"]["ripple"]["pitch_mm"]["value"], 897.99, rel_tol=1e-4)
     assert data["final_verdict"]["on_bounds"] == ["viscous.F_v_Ns_m = 0 N·m·s/rad"]

@@ -380,6 +380,35 @@ def test_the_closure_runs_on_an_imported_mdf4_recording(tmp_path, capsys):
         assert on_import[key] == pytest.approx(on_csv[key], rel=1e-6), key
 
 
+def test_a_joint_recorded_in_degrees_imports_and_closes_as_a_rotary_axis(tmp_path, capsys):
+    """A mapping whose position is an angle (deg) and force a torque (N·m): the imported
+    run stores them in rad and N·m, and the closure reads the file and the imported run
+    as a rotary axis (its report in mrad, N·m); a position in mm stays linear."""
+    from asammdf import MDF, Signal
+
+    from feedbench.closure_io import read_trace
+
+    t = np.arange(2000) * 1e-3
+    angle_deg = 30.0 * np.sin(2 * np.pi * 0.5 * t)
+    torque = 2.0 * np.cos(2 * np.pi * 0.5 * t)
+    for unit, rotary, to_si in (("deg", True, np.pi / 180.0), ("mm", False, 1e-3)):
+        mdf = MDF(version="4.10")
+        mdf.append([Signal(angle_deg, t, name="q", unit=unit),
+                    Signal(torque, t, name="tau", unit="N·m" if rotary else "N")])
+        source = tmp_path / f"joint_{unit}.mf4"
+        mdf.save(source, overwrite=True)
+        source.with_suffix(".toml").write_text('[channels]\nposition = "q"\nforce = "tau"\n')
+        foreign, _ = read_trace(source)
+        assert foreign.rotary is rotary
+        np.testing.assert_allclose(foreign.position, angle_deg * to_si, rtol=1e-12)
+        assert main(["import", str(source), "--dir", str(tmp_path / unit), "--json"]) == 0
+        imported = json.loads(capsys.readouterr().out)["file"]
+        assert read_recording(imported).rotary is rotary
+        units = open_recording(imported).units
+        assert (units["position"], units["velocity"], units["force"]) == (
+            ("rad", "rad/s", "N·m") if rotary else ("m", "m/s", "N"))
+
+
 @pytest.mark.parametrize("name, content, message", [
     ("cut.mf4", PUBLIC_MDF4.read_bytes()[:5000], r"cut\.mf4: not a readable MDF file \("),
     ("cut.tdms", PUBLIC_TDMS.read_bytes()[:3000],

@@ -733,7 +733,10 @@ def _free_basis(current: Fit, kin: Kinematics) -> np.ndarray:
 
 def _pushed_past_bound(current: Fit, d: Design, columns: np.ndarray) -> np.ndarray:
     """Per linear column: its parameter sits on a bound and the residual's gradient
-    (column · residual, the direction that lowers the SSR) points beyond it."""
+    (column · residual, the direction that lowers the SSR) points beyond it. The columns
+    are the reading's (scaled by the output slope, as the basis is); the linear solve
+    bounds the acting force's: the two gradients' signs agree unless the slope varies
+    strongly over the samples (a large amplitude nonlinearity)."""
     pushed = np.zeros(len(d.owners), dtype=bool)
     for j, (i, key) in enumerate(d.owners):
         p = current.model.terms[i].effect.parameter(key)

@@ -213,7 +213,6 @@ def _params_text(params: dict[str, dict[str, float | bool]], term: Term, rotary:
     return indent + ", ".join(parts)
 
 
-
 def _replay_text(before: ReplayErrors, after: ReplayErrors) -> list[str]:
     lines = [f"replay in closed loop, held out: force {before.force:.2%} → {after.force:.2%}, "
              f"tracking error {before.tracking:.2%} → {after.tracking:.2%}, "

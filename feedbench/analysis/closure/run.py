@@ -70,7 +70,9 @@ def run_closure(spec: ModelSpec, trace: Trace, validation: Trace | None = None) 
     if validation is not None and validation.rotary != trace.rotary:
         raise ValueError(f"{validation.name or 'the validation trace'}: "
                          f"{_axis(validation)}, but {trace.name or 'the trace'} is "
-                         f"{_axis(trace)}: both must be of one axis")
+                         f"{_axis(trace)}: both must be of one axis (the position unit "
+                         "of each recording's sidecar or import mapping decides: an angle, "
+                         "rad or deg, is a rotary axis; a KUKA joint is rotary)")
     bandwidth = spec.bandwidth or DEFAULT_BANDWIDTH_FRACTION * trace.sample_rate
     standstill = standstill_speed(kinematics(trace, bandwidth), spec.standstill)
     fit_kin, judged = _fit_and_judged(trace, validation, bandwidth, standstill,

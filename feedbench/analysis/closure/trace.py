@@ -18,6 +18,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.fft
 
+from feedbench.analysis.closure.units import axis_unit
+
 FILTER_ORDER = 4
 """Order of the zero-phase Butterworth filter (applied twice by filtfilt: order 8 in gain)."""
 
@@ -201,7 +203,8 @@ def kinematics(trace: Trace, bandwidth: float, standstill: float = 0.0) -> Kinem
     kin = kin.window(edge, trace.n_samples - edge)
     if kin.n_used < 16:
         raise ValueError(f"{trace.name or 'trace'}: only {kin.n_used} samples move faster "
-                         f"than the standstill speed {standstill:g} m/s")
+                         f"than the standstill speed {standstill:g} "
+                         f"{axis_unit('m/s', trace.rotary)}")
     return kin
 
 

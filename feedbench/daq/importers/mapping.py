@@ -59,6 +59,12 @@ GAP_FACTOR = 1.5
 ON_GRID = 1e-6
 """A sample lies on the time base when it is within this share of a base period of it."""
 
+SI_UNIT_OF = {"length": "m", "angle": "rad", "velocity": "m/s", "angular velocity": "rad/s",
+              "force": "N", "torque": "N·m", "acceleration": "m/s2",
+              "angular acceleration": "rad/s2", "time": "s"}
+"""The SI unit an imported channel is stored in, by the quantity its unit measures (a rotary
+axis's position in rad, its force in N·m)."""
+
 RUN_CHANNELS = {
     "position": ("position", "m", ("length", "angle")),
     "velocity": ("velocity", "m/s", ("velocity", "angular velocity")),
@@ -68,7 +74,8 @@ RUN_CHANNELS = {
     "external_force": ("external_force", "N", ("force", "torque")),
     "tip_acceleration": ("tip_acceleration", "m/s2", ("acceleration", "angular acceleration")),
 }
-"""Mapping channel → (recording channel, SI unit, the quantities its unit may measure)."""
+"""Mapping channel → (recording channel, its SI unit on a linear axis, the quantities its
+unit may measure; an angle is stored in rad, a torque in N·m: `SI_UNIT_OF`)."""
 
 STREAM_QUANTITIES = {"acc": ("acceleration",), "force": ("force",)}
 """A stream channel whose name contains the key must be in a unit of these quantities."""
@@ -210,16 +217,16 @@ def build_run(foreign: ForeignFile, side: Mapping[str, Any]) -> ImportedRun:
     base = t0 + np.arange(n) * period
     channels, units, notes = {}, {}, {}
     for key, channel in picked.items():
-        target, unit, quantities = RUN_CHANNELS[key]
+        target, _, quantities = RUN_CHANNELS[key]
         factor = _factor(side, key, channel, quantities)
         values, how = _on_base(channel, base, rate)
         channels[target] = values * factor if factor != 1.0 else values
-        units[target] = unit
+        units[target] = SI_UNIT_OF[_quantity(side, key, channel)]
         notes[key] = {"file_channel": channel.name, "file_unit": channel.unit,
                       "rate_Hz": channel.rate_hz, "resampled": how}
     if "velocity" not in channels:
         channels["velocity"] = np.gradient(channels["position"], 1.0 / rate)
-        units["velocity"] = "m/s"
+        units["velocity"] = "rad/s" if units["position"] == "rad" else "m/s"
         notes["velocity"] = {"resampled": "central differences of the position"}
     streams = {name: _stream(foreign, name, table, side, t0, base[-1], rate, notes)
                for name, table in side["streams"].items()}
@@ -293,7 +300,7 @@ def _factor(side: Mapping[str, Any], key: str, channel: ForeignChannel,
             quantities: tuple[str, ...]) -> float:
     """SI factor of a mapped channel: [scale] × the unit's factor; the unit ([units], else the
     file's) must be known and measure one of `quantities`."""
-    unit = side["units"].get(key) or channel.unit.strip()
+    unit = _unit(side, key, channel)
     where = f"mapping.units.{key}"
     if not unit:
         raise ConfigError(f"{where}: channel {channel.name!r} has no unit in the file; give "
@@ -307,6 +314,16 @@ def _factor(side: Mapping[str, Any], key: str, channel: ForeignChannel,
         raise ConfigError(f"{where}: {unit!r} is a unit of {quantity}, the run's {key} is a "
                           f"{' or '.join(quantities)} (one of {', '.join(_units_of(quantities))})")
     return float(side["scale"].get(key, 1.0)) * factor
+
+
+def _unit(side: Mapping[str, Any], key: str, channel: ForeignChannel) -> str:
+    """A mapped channel's unit: the mapping's [units], else the file's."""
+    return side["units"].get(key) or channel.unit.strip()
+
+
+def _quantity(side: Mapping[str, Any], key: str, channel: ForeignChannel) -> str:
+    """What a mapped channel's unit measures (its unit checked known by `_factor`)."""
+    return SI_UNITS[_unit(side, key, channel)][1]
 
 
 def _units_of(quantities: tuple[str, ...]) -> list[str]:
@@ -362,11 +379,8 @@ def _stream(foreign: ForeignFile, name: str, table: Mapping[str, str], side: Map
         quantities = next((q for part, q in STREAM_QUANTITIES.items() if part in key),
                           tuple({q for _, q in SI_UNITS.values()}))
         factor = _factor(side, key, channel, quantities)
-        unit = side["units"].get(key) or channel.unit.strip()
-        si = {"length": "m", "force": "N", "acceleration": "m/s2", "velocity": "m/s",
-              "torque": "N·m", "time": "s", "angle": "rad"}.get(SI_UNITS[unit][1], "")
         values[key] = channel.values[inside] * factor
-        units[key] = si
+        units[key] = SI_UNIT_OF.get(_quantity(side, key, channel), "")
         notes[f"{name}.{key}"] = {"file_channel": channel.name, "file_unit": channel.unit,
                                   "rate_Hz": channel.rate_hz, "resampled": "none (a stream)"}
     spec = StreamSpec(tuple(picked), units, first.rate_hz)
