@@ -1,6 +1,8 @@
 """What both ends of a link share (`feedbench.protocols`): one address parser, one CiA 402
 object table."""
 
+import threading
+
 import can
 import pytest
 from canopen.profiles.p402 import State402
@@ -9,7 +11,7 @@ from feedbench.config import ConfigError
 from feedbench.drivers.cia402 import PdoConfig, controlword_towards, decode_state
 from feedbench.protocols import cia301, cia402
 from feedbench.protocols.address import split_address
-from feedbench.protocols.canbus import LocalVirtualBus, open_bus
+from feedbench.protocols.canbus import LocalVirtualBus, SendBatch, open_bus
 from feedbench.sim_backends import eds
 
 
@@ -151,3 +153,31 @@ def test_the_local_virtual_bus_shares_python_cans_channels_and_copies_each_frame
     finally:
         local.shutdown()
         plain.shutdown()
+
+
+def test_two_threads_batch_apart_and_flush_their_own_frames_in_order():
+    """`SendBatch` is per thread: two threads inside their batches at once, their items
+    interleaved in time, each flush gets exactly its own thread's items in the order sent;
+    a thread outside a batch is not held, and a nested block leaves the flush to the outer."""
+    flushed: list[tuple[str, list[int]]] = []
+    batches = SendBatch(lambda items: flushed.append((threading.current_thread().name, items)))
+    turn = threading.Barrier(2)
+
+    def sender(offset: int) -> None:
+        with batches.held():
+            for k in range(5):
+                turn.wait()
+                assert batches.hold(offset + k)
+                with batches.held():
+                    assert batches.hold(offset + 100 + k)
+            turn.wait()
+        assert not batches.hold(offset)
+
+    threads = [threading.Thread(target=sender, args=(o,), name=f"t{o}") for o in (0, 1000)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert sorted(flushed) == [(f"t{o}", [o + d + k for k in range(5) for d in (0, 100)])
+                               for o in (0, 1000)]
+    assert not batches.hold(7)

@@ -229,17 +229,23 @@ def test_the_hosts_socketcand_bus_writes_a_batch_in_one_piece():
     assert heard == ["".join(convert_can_message_to_ascii_message(msg) for msg in sent).encode()]
 
 
+def raw_mode(sock: socket.socket) -> None:
+    """Take a new socketcand client of a hub through its handshake onto channel b1 in raw
+    mode (a 10 s timeout on every receive)."""
+    sock.settimeout(10.0)
+    assert sock.recv(64) == b"< hi >"
+    for command in (b"< open b1 >", b"< rawmode >"):
+        sock.sendall(command)
+        assert sock.recv(64) == b"< ok >"
+
+
 def test_the_hub_relays_the_frames_of_one_receive_in_order_and_answers_a_malformed_one():
     """Several ``< send … >`` in one receive reach the ports and the other clients in the
     order sent; a malformed one among them is answered ``< error … >`` in its place."""
     with SocketcandHub() as hub, socket.create_connection((hub.host, hub.port)) as sock:
         port = can.Bus(interface="feedbench_hub", channel="b1", hub=hub)
         other = open_bus("socketcand", "b1", host=hub.host, port=hub.port)
-        sock.settimeout(10.0)
-        assert sock.recv(64) == b"< hi >"
-        for command in (b"< open b1 >", b"< rawmode >"):
-            sock.sendall(command)
-            assert sock.recv(64) == b"< ok >"
+        raw_mode(sock)
         try:
             time.sleep(0.1)  # past the join delay of `other`
             sock.sendall(b"< send 200 1 1 >< send 201 1 zz >< send 202 0  >< send 203 1 3 >")
@@ -261,11 +267,7 @@ def test_a_hub_ports_batch_reaches_a_client_in_one_piece():
     relayed together as it ends: in order, in one write to each client."""
     with SocketcandHub() as hub, socket.create_connection((hub.host, hub.port)) as sock:
         port = can.Bus(interface="feedbench_hub", channel="b1", hub=hub)
-        sock.settimeout(10.0)
-        assert sock.recv(64) == b"< hi >"
-        for command in (b"< open b1 >", b"< rawmode >"):
-            sock.sendall(command)
-            assert sock.recv(64) == b"< ok >"
+        raw_mode(sock)
         time.sleep(0.1)  # past the client's join delay
         try:
             network = canopen.Network(port)
@@ -350,11 +352,7 @@ def test_a_ports_answers_reach_a_client_in_one_write_at_the_flush(flush):
         port = can.Bus(interface="feedbench_hub", channel="b1", hub=hub)
         answers = _TwoAnswers(port, hub, flush)
         port.listen([answers])
-        sock.settimeout(10.0)
-        assert sock.recv(64) == b"< hi >"
-        for command in (b"< open b1 >", b"< rawmode >"):
-            sock.sendall(command)
-            assert sock.recv(64) == b"< ok >"
+        raw_mode(sock)
         try:
             sock.sendall(b"< send 080 0  >")
             if flush:  # out before the listener returns

@@ -235,15 +235,14 @@ class _BenchClock:
         """The first drive's unwrapped cycle counter after the last tick (0 before any)."""
         return self.cycles[0]
 
-    def _start_cycle(self) -> float:
+    def _start_cycle(self) -> None:
         """Arm the drives, send their RPDOs, then SYNC, in one write where the bus can
-        (`batched_sends`: a socketcand connection); returns the perf_counter time of SYNC."""
+        (`batched_sends`: a socketcand connection)."""
         with batched_sends(self.network):
             for drive in self.drives:
                 drive.arm_cycle()
                 drive.transmit()
             self.network.send_message(SYNC_COB_ID, b"")
-        return time.perf_counter()
 
     def _count_cycles(self) -> int:
         """Unwrap each drive's 16-bit counter; count the ticks where one skipped or stalled."""

@@ -207,6 +207,41 @@ def send_frames(network: canopen.Network, frames: Iterable[can.Message]) -> None
     network.check()
 
 
+class SendBatch:
+    """What one bus sends, held per thread: inside `held()` a thread's items wait and go to
+    `flush` together, in the order sent, as its outermost block ends (an exception too:
+    what was sent counts as sent); other threads' items are not held (`hold` says so), and
+    two threads batch apart (thread-local). `SocketcandBus` and the hub's
+    `HubPort` batch with it."""
+
+    def __init__(self, flush: Callable[[list[Any]], None]) -> None:
+        self._flush = flush
+        self._local = threading.local()
+
+    def hold(self, item: Any) -> bool:
+        """Keep `item` in the calling thread's open batch; False when it has none (send it
+        now)."""
+        items = getattr(self._local, "items", None)
+        if items is None:
+            return False
+        items.append(item)
+        return True
+
+    @contextmanager
+    def held(self) -> Iterator[None]:
+        """The calling thread's batch: what it sends inside goes to `flush` at the end."""
+        if getattr(self._local, "items", None) is not None:
+            yield  # nested: the outer block flushes
+            return
+        self._local.items = []
+        try:
+            yield
+        finally:
+            items, self._local.items = self._local.items, None
+            if items:
+                self._flush(items)
+
+
 def batched_sends(network: canopen.Network) -> AbstractContextManager[None]:
     """While inside, the frames the calling thread sends on `network` go out together at
     the end, in order, where its bus can write several in one go (`SocketcandBus.batch`,
@@ -283,9 +318,9 @@ class SocketcandBus(SocketCanDaemonBus):
         self._frames: collections.deque[can.Message] = collections.deque()
         self._pending = b""
         """What came after the last complete message (``… >``)."""
-        self._batch: list[bytes] | None = None
-        """The texts `batch()`'s thread sent meanwhile (None: not inside `batch()`)."""
-        self._batch_thread: int | None = None
+        self._write_lock = threading.Lock()
+        """One write at a time: two threads' texts never interleave on the stream."""
+        self._batches = SendBatch(lambda texts: self._write(b"".join(texts)))
         super().__init__(channel, host, port, **options)
         self._sock: socket.socket = self._SocketCanDaemonBus__socket  # python-can's (mangled)
 
@@ -298,26 +333,17 @@ class SocketcandBus(SocketCanDaemonBus):
             can_id = b"%03X" % (msg.arbitration_id & 0x7FF)
         data = b" ".join([SOCKETCAND_HEX[value] for value in msg.data[:msg.dlc]])
         text = b"< send %s %X %s >" % (can_id, msg.dlc, data)
-        if self._batch is not None and threading.get_ident() == self._batch_thread:
-            self._batch.append(text)
-        else:
-            self._sock.sendall(text)
+        if not self._batches.hold(text):
+            self._write(text)
 
-    @contextmanager
-    def batch(self) -> Iterator[None]:
-        """While inside, the frames this thread sends wait; on exit (an exception too:
-        what was sent counts as sent) they go out in one write, in order. Other threads'
-        frames go out at once, as always. Nested: the outer one writes."""
-        if self._batch is not None:
-            yield
-            return
-        self._batch, self._batch_thread = [], threading.get_ident()
-        try:
-            yield
-        finally:
-            texts, self._batch, self._batch_thread = self._batch, None, None
-            if texts:
-                self._sock.sendall(b"".join(texts))
+    def batch(self) -> AbstractContextManager[None]:
+        """While inside, the frames this thread sends wait; on exit they go out in one
+        write, in order (`SendBatch`). Other threads' frames go out at once, as always."""
+        return self._batches.held()
+
+    def _write(self, data: bytes) -> None:
+        with self._write_lock:
+            self._sock.sendall(data)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         """The next frame received, waiting up to `timeout` s for the server (None: no

@@ -37,14 +37,14 @@ import selectors
 import socket
 import threading
 import time
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 
 import can
 
 from feedbench.protocols.address import LOOPBACK
-from feedbench.protocols.canbus import socketcand_messages
+from feedbench.protocols.canbus import SendBatch, socketcand_messages
 
 LOGGER = logging.getLogger(__name__)
 JOIN_S = 0.05
@@ -384,9 +384,7 @@ class HubPort(can.BusABC):
         self._hub = hub
         self._inbox: queue.SimpleQueue[can.Message] = queue.SimpleQueue()
         self._listeners: list[can.Listener] = []
-        self._batch: list[can.Message] | None = None
-        """The frames `batch()`'s thread sent meanwhile (None: not inside `batch()`)."""
-        self._batch_thread: int | None = None
+        self._batches = SendBatch(lambda msgs: hub.relay_from_port(self, msgs))
         super().__init__(channel=self.channel)
         hub.attach(self)
 
@@ -413,27 +411,14 @@ class HubPort(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         if self._is_shutdown:
             raise can.CanOperationError(f"{self.channel_info}: shut down")
-        if self._batch is not None and threading.get_ident() == self._batch_thread:
-            self._batch.append(msg)
-        else:
+        if not self._batches.hold(msg):
             self._hub.relay_from_port(self, (msg,))
 
-    @contextmanager
-    def batch(self) -> Iterator[None]:
-        """While inside, the frames this thread sends are relayed together as it ends (an
-        exception too), in order: one stamp, one piece to each TCP client (a drive's TPDOs,
-        `protocols.canbus.send_frames`). Other threads' frames go at once. Nested: the outer
-        one relays."""
-        if self._batch is not None:
-            yield
-            return
-        self._batch, self._batch_thread = [], threading.get_ident()
-        try:
-            yield
-        finally:
-            msgs, self._batch, self._batch_thread = self._batch, None, None
-            if msgs:
-                self._hub.relay_from_port(self, msgs)
+    def batch(self) -> AbstractContextManager[None]:
+        """While inside, the frames this thread sends are relayed together as it ends, in
+        order (`protocols.canbus.SendBatch`): one stamp, one piece to each TCP client (a
+        drive's TPDOs, `protocols.canbus.send_frames`). Other threads' frames go at once."""
+        return self._batches.held()
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         try:
