@@ -128,6 +128,12 @@ def own_server() -> Iterator[PostgresServer]:
 @pytest.fixture
 def postgres_url(server: PostgresServer, monkeypatch: pytest.MonkeyPatch) -> str:
     """A new, empty database on the server; its password only in `PGPASSWORD`."""
+    return new_database(server, monkeypatch)
+
+
+def new_database(server: PostgresServer, monkeypatch: pytest.MonkeyPatch) -> str:
+    """The URL of a new, empty database on `server`, its password set in `PGPASSWORD` for
+    as long as `monkeypatch` holds."""
     monkeypatch.setenv("PGPASSWORD", server.password)
     name = f"catalog_{uuid.uuid4().hex[:12]}"
     with psycopg.connect(server.url, autocommit=True) as connection:

@@ -107,11 +107,12 @@ def stream_run(app, tmp_path_factory):
     shot = directory / "live_window.png"
     assert session.window.grab().save(str(shot))
     points_at_shot = len(session.window.result_plots.curves[0]["1000 mm/min, 20 N"].getData()[0])
+    running_at_shot = session.worker.alive
     progress += pump(app, session)
     row = finish(app, session)
     if os.environ.get("FEEDBENCH_SCREENSHOT_DIR"):
         shutil.copy(shot, os.path.join(os.environ["FEEDBENCH_SCREENSHOT_DIR"], shot.name))
-    return session, row, progress, shot, points_at_shot
+    return session, row, progress, shot, (points_at_shot, running_at_shot)
 
 
 def test_traces_show_the_recorded_samples(stream_run):
@@ -175,13 +176,17 @@ def test_the_frf_builds_up_point_by_point_and_equals_the_analysis(stream_run):
     """The window drew one point per completed step; the screenshot half-way shows part of
     them. Each point is the compliance the analysis finds in the recording (same DAQ
     samples, same sine fits), its R² the analysis's."""
-    session, row, _, _, points_at_shot = stream_run
+    session, row, _, _, (points_at_shot, running_at_shot) = stream_run
     result = session.window.result
     analysis = SineStream.analyze(open_recording(row["file"]))["streams"][0]
     assert result.version == analysis["steps"] == 21 and analysis["steps_used"] == 21
-    assert 1 <= points_at_shot < 21  # part of them: the shot comes after 55 % of the cycles
-    # (the short high-frequency steps come last); how many the live analysis has drawn by
-    # then depends on the machine's load: 5–16 quiet, 18 seen under a loaded suite
+    # the shot comes after 55 % of the cycles (the short high-frequency steps come last);
+    # how many points the live analysis has drawn by then depends on the machine's load:
+    # 5–16 quiet, 18 seen under a loaded suite, and on a loaded 2-core machine the result
+    # pane once showed its first point only as the run ended (all 21: the fixture waits for
+    # a first point). While the run goes on, its last step is not done: part of them.
+    assert 1 <= points_at_shot <= 21
+    assert points_at_shot < 21 or not running_at_shot
     f, log_compliance = session.window.result_plots.curves[0]["1000 mm/min, 20 N"].getData()
     np.testing.assert_allclose(f, analysis["frf"]["f_hz"])
     np.testing.assert_allclose(10**log_compliance, analysis["frf"]["compliance_abs"], rtol=1e-9)

@@ -7,17 +7,15 @@ array or table (nor a number tested against text), so listing does not read the 
 from __future__ import annotations
 
 import math
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
-import psycopg
 import pytest
 from sqlalchemy import text
 
 from feedbench.daq.catalog import Catalog
 from feedbench.daq.run_filter import Condition, RunFilter
-from pg_server import BINARIES, postgres_url, server  # noqa: F401  (fixtures)
+from pg_server import BINARIES, new_database, postgres_url, server  # noqa: F401  (fixtures)
 from prerequisites import requires
 
 PARAMS = [
@@ -77,11 +75,7 @@ def shared_catalog(request: pytest.FixtureRequest,
         return
     server = request.getfixturevalue("server")
     with pytest.MonkeyPatch.context() as monkeypatch:
-        monkeypatch.setenv("PGPASSWORD", server.password)
-        name = f"catalog_{uuid.uuid4().hex[:12]}"
-        with psycopg.connect(server.url, autocommit=True) as connection:
-            connection.execute(f"CREATE DATABASE {name}")
-        yield filled(server.url.rsplit("/", 1)[0] + "/" + name, directory)
+        yield filled(new_database(server, monkeypatch), directory)
 
 
 def by_definition(catalog: Catalog, conditions: tuple[Condition, ...]) -> list[str]:
