@@ -255,7 +255,7 @@ class SocketcandHub:
                 try:
                     frames.append(parse_send(tokens))
                     continue
-                except (ValueError, IndexError):  # answered by `_handle`, in its place
+                except (ValueError, IndexError):  # malformed: answered by `_handle`, in place
                     pass
             if frames:
                 self._relay(client, frames)
@@ -266,15 +266,10 @@ class SocketcandHub:
 
     def _handle(self, client: _Client, message: list[bytes]) -> None:
         command = message[0]
-        if command == b"send" and client.raw:
-            try:
-                frame = parse_send(message)
-            except (ValueError, IndexError):
-                LOGGER.warning("socketcand hub: malformed frame %r: answered < error >",
-                               _text(message))
-                self._send(client, b"< error malformed frame >")
-                return
-            self._relay(client, [frame])
+        if command == b"send" and client.raw:  # a frame `_receive` could not parse
+            LOGGER.warning("socketcand hub: malformed frame %r: answered < error >",
+                           _text(message))
+            self._send(client, b"< error malformed frame >")
         elif command == b"open" and len(message) == 2 and client.bus is None:
             client.bus = message[1].decode("ascii", "replace")
             self._send(client, b"< ok >")
