@@ -327,6 +327,60 @@ def test_a_hub_port_is_a_python_can_bus_for_the_nodes_in_the_hub_process(caplog)
         "hub port b1: listener _Answer failed on frame 0x666: ValueError: a listener's bug"]
 
 
+class _Frames(can.Listener):
+    """Keeps every frame a port gives it."""
+
+    def __init__(self) -> None:
+        self.msgs: list[can.Message] = []
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.msgs.append(msg)
+
+
+def test_a_canopen_network_on_a_hub_port_gets_each_clients_frame_as_notify(caplog):
+    """A canopen network's listener on a hub port (`connect`) gets a TCP client's frames as
+    its `on_message_received` passes them on, `notify(can_id, data, stamp)` (no
+    `can.Message`): the handlers see the id, the bytes (a bytearray, as canopen's) and the
+    relay's stamp that another listener's `can.Message` and the other clients see. A
+    handler's error is logged as canopen logs it and the next frame is delivered."""
+    with SocketcandHub() as hub, socket.create_connection((hub.host, hub.port)) as sock:
+        port = can.Bus(interface="feedbench_hub", channel="b1", hub=hub)
+        other = open_bus("socketcand", "b1", host=hub.host, port=hub.port)
+        network = canopen.Network(port)
+        seen: list[tuple[int, bytearray, float]] = []
+        handler = lambda can_id, data, stamp: seen.append((can_id, data, stamp))  # noqa: E731
+
+        def failing(can_id: int, data: bytearray, stamp: float) -> None:
+            raise ValueError("a handler's bug")
+
+        network.subscribe(0x201, handler)
+        network.subscribe(0x666, failing)
+        network.subscribe(0x1ABCDEF0, handler)
+        frames = _Frames()
+        port.listen([*network.listeners, frames])
+        raw_mode(sock)
+        try:
+            time.sleep(0.1)  # past the join delay of `other`
+            sock.sendall(b"< send 201 3 1 a FF >< send 666 0  >< send 1ABCDEF0 1 7 >")
+            relayed = [other.recv(1.0) for _ in range(3)]
+            deadline = time.monotonic() + 5.0
+            while len(frames.msgs) < 3 and time.monotonic() < deadline:
+                time.sleep(0.01)
+        finally:
+            port.shutdown()
+            other.shutdown()
+    assert [(can_id, type(data), bytes(data)) for can_id, data, _ in seen] == [
+        (0x201, bytearray, b"\x01\x0a\xff"), (0x1ABCDEF0, bytearray, b"\x07")]
+    assert [(m.arbitration_id, m.is_extended_id, bytes(m.data), m.channel)
+            for m in frames.msgs] == [(0x201, False, b"\x01\x0a\xff", "b1"),
+                                      (0x666, False, b"", "b1"), (0x1ABCDEF0, True, b"\x07", "b1")]
+    stamps = [m.timestamp for m in frames.msgs]
+    assert [stamp for _, _, stamp in seen] == [stamps[0], stamps[2]]
+    assert [round(m.timestamp, 6) for m in relayed] == [round(stamp, 6) for stamp in stamps]
+    assert [(r.name, r.getMessage()) for r in caplog.records if r.levelname == "ERROR"] == [
+        ("canopen.network", "a handler's bug")]
+
+
 class _TwoAnswers(can.Listener):
     """Answers a frame with two, as a drive answers SYNC with its TPDOs, then (as its world
     steps) waits until `seen` is set: with `flush`, the hub's flush between the two."""

@@ -16,9 +16,10 @@ a single `recv` and would fail if a frame arrived in the same TCP segment.
 
 Nodes in the hub's own process (`feedbench sim`'s simulated drives) join a bus through a
 `HubPort` (python-can interface ``feedbench_hub``) instead of a TCP connection to themselves:
-a frame a TCP client sends reaches them as a `can.Message` without a second trip through the
-text protocol and the kernel, and a frame they send is written to the TCP clients at once by
-the sending thread. Within one process, that halves the loopback hops of a cycle. Frames the
+a frame a TCP client sends reaches them without a second trip through the text protocol and
+the kernel (a canopen network's listener straight as its `Network.notify` call, others as a
+`can.Message`), and a frame they send is written to the TCP clients at once by the sending
+thread. Within one process, that halves the loopback hops of a cycle. Frames the
 ports send in the hub's thread while it delivers a client's frame to them (a drive's answer
 to SYNC: its TPDOs) wait until `flush()` or the end of that delivery, then go out in one
 write per client: one wake-up of the host's receive thread per cycle, not one per frame
@@ -30,6 +31,7 @@ one write to each other client, then to the ports in order.
 
 from __future__ import annotations
 
+import binascii
 import logging
 import os
 import queue
@@ -42,11 +44,15 @@ from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 
 import can
+from canopen.network import MessageListener
 
 from feedbench.protocols.address import LOOPBACK
 from feedbench.protocols.canbus import SendBatch, socketcand_messages
 
 LOGGER = logging.getLogger(__name__)
+CANOPEN_LOGGER = logging.getLogger("canopen.network")
+"""Where canopen's `MessageListener` logs an error of its network's handlers (`HubPort`
+logs one there as it would)."""
 JOIN_S = 0.05
 RECEIVE_BYTES = 65536
 THREAD_TIMEOUT_S = 5.0
@@ -76,25 +82,27 @@ class _Client:
 HEX_BYTE = {form.format(value).encode("ascii"): value
             for value in range(256) for form in ("{:x}", "{:02x}", "{:X}", "{:02X}")}
 """A data byte's token in `< send … >` (1 or 2 hex digits, either case) → its value."""
+_hex_byte = HEX_BYTE.__getitem__
+
+Frame = tuple[int, bool, bytearray]
+"""A data frame: (id, extended: an 29-bit id, written as 8 hex digits, payload)."""
 
 
-def frame_text(msg: can.Message, stamp: float) -> bytes:
-    """The server's `< frame <id> <seconds.micros> <HEX DATA> >` message for `msg` received
-    at `stamp` (s since the epoch)."""
-    return b"< frame %s %.6f %s >" % (id_text(msg), stamp, msg.data.hex().upper().encode())
+def frames_text(frames: Sequence[Frame], stamp: float) -> bytes:
+    """The server's `< frame <id> <seconds.micros> <HEX DATA> >` messages for `frames`
+    received at `stamp` (s since the epoch), in order, in one piece; the id as socketcand
+    writes it: 3 hex digits, or 8 for an extended id."""
+    at = b" %.6f " % stamp
+    return b"".join([b"< frame %s%s%s >" % (b"%08X" % can_id if extended else b"%03X" % can_id,
+                                            at, binascii.hexlify(data).upper())
+                     for can_id, extended, data in frames])
 
 
-def id_text(msg: can.Message) -> bytes:
-    """A frame's id as socketcand writes it: 3 hex digits, or 8 for an extended id."""
-    return b"%08X" % msg.arbitration_id if msg.is_extended_id else b"%03X" % msg.arbitration_id
-
-
-def parse_send(fields: list[bytes]) -> tuple[int, bool, bytes]:
-    """`send <id> <dlc> <bytes…>` tokens → (id, extended: sent as 8 hex digits, payload);
-    ValueError if malformed."""
+def parse_send(fields: list[bytes]) -> Frame:
+    """`send <id> <dlc> <bytes…>` tokens → its frame (`Frame`); ValueError if malformed."""
     can_id, dlc = fields[1], int(fields[2], 16)
     try:
-        data = bytes([HEX_BYTE[token] for token in fields[3:3 + dlc]])
+        data = bytearray(map(_hex_byte, fields[3:3 + dlc]))
     except KeyError:
         raise ValueError(f"malformed send: {fields!r}") from None
     if len(can_id) not in (3, 8) or len(data) != dlc or dlc > 8:
@@ -215,23 +223,24 @@ class SocketcandHub:
     def relay_from_port(self, sender: HubPort, msgs: Sequence[can.Message]) -> None:
         """Frames a port sends, in order: to every TCP client (stamped now) and every other
         port of its bus."""
-        for port in self._fan_out(sender, sender.channel, msgs, time.time()):
+        frames = [(msg.arbitration_id, msg.is_extended_id, msg.data) for msg in msgs]
+        for port in self._fan_out(sender, sender.channel, frames, time.time()):
             for msg in msgs:
                 port.deliver(msg)
 
-    def _fan_out(self, sender: object, bus: str | None, msgs: Sequence[can.Message],
+    def _fan_out(self, sender: object, bus: str | None, frames: Sequence[Frame],
                  stamp: float) -> list[HubPort]:
-        """Frames from `sender` on `bus`, in order: their text (`frame_text` at `stamp`, made
-        only if a client takes it) to every TCP client of the bus that receives frames, in
-        one piece; returns the ports of the bus to deliver them to, outside the lock (a
+        """Frames from `sender` on `bus`, in order: their text (`frames_text` at `stamp`,
+        made only if a client takes it) to every TCP client of the bus that receives frames,
+        in one piece; returns the ports of the bus to deliver them to, outside the lock (a
         port's listeners send frames themselves). Never back to `sender`."""
         with self._lock:
-            self.frames += len(msgs)
+            self.frames += len(frames)
             now = time.monotonic()
             clients = [client for client in self._clients.values() if client is not sender
                        and client.bus == bus and client.receives(now)]
             if clients:
-                text = b"".join([frame_text(msg, stamp) for msg in msgs])
+                text = frames_text(frames, stamp)
                 for client in clients:
                     self._send(client, text)
             return [port for port in self._ports if port is not sender and port.channel == bus]
@@ -247,7 +256,7 @@ class SocketcandHub:
             self._drop(client.sock)
             return
         messages, client.inbox = socketcand_messages(client.inbox, data)
-        frames: list[tuple[int, bool, bytes]] = []
+        frames: list[Frame] = []
         for message in messages:
             if not (tokens := message[1:].split()):
                 continue
@@ -284,22 +293,19 @@ class SocketcandHub:
                            _text(message))
             self._send(client, b"< error unsupported command >")
 
-    def _relay(self, sender: _Client, frames: list[tuple[int, bool, bytes]]) -> None:
+    def _relay(self, sender: _Client, frames: list[Frame]) -> None:
         """The frames (`parse_send`) one receive from `sender` brought, in order: stamped
         alike (they arrived together), to the TCP clients in one write each, then to the
-        ports; what the ports send meanwhile waits for the end (`_holding`)."""
+        ports (`HubPort.deliver_frame`); what the ports send meanwhile waits for the end
+        (`_holding`)."""
         sender.joined_at = min(sender.joined_at, time.monotonic())
         stamp = time.time()
-        bus = sender.bus
-        msgs = [can.Message(timestamp=stamp, arbitration_id=can_id, data=data,
-                            is_extended_id=extended, channel=bus, check=False)
-                for can_id, extended, data in frames]
-        ports = self._fan_out(sender, bus, msgs, stamp)
+        ports = self._fan_out(sender, sender.bus, frames, stamp)
         self._holding = True
         try:
-            for msg in msgs:
+            for can_id, extended, data in frames:
                 for port in ports:
-                    port.deliver(msg)
+                    port.deliver_frame(can_id, extended, data, stamp)
         finally:
             self._holding = False
             if self._held:
@@ -393,15 +399,46 @@ class HubPort(can.BusABC):
     def deliver(self, msg: can.Message) -> None:
         """A frame of the bus for this port (called by the hub, any thread). A listener's
         error is logged, one line, and the frame goes on to the next listener."""
-        if not self._listeners:
+        listeners = self._listeners
+        if not listeners:
             self._inbox.put(msg)
-        for listener in self._listeners:
-            try:
-                listener.on_message_received(msg)
-            except Exception as error:  # a listener's bug must not stop the hub
-                LOGGER.error("hub port %s: listener %s failed on frame 0x%03X: %s: %s",
-                             self.channel, type(listener).__name__, msg.arbitration_id,
-                             type(error).__name__, error)
+        for listener in listeners:
+            self._give(listener, msg)
+
+    def deliver_frame(self, can_id: int, extended: bool, data: bytearray, stamp: float) -> None:
+        """A data frame of a TCP client received at `stamp` (s since the epoch) for this port
+        (called by the hub's thread), as `deliver` gives it, except that a canopen
+        `MessageListener` gets it as its `on_message_received` would pass a data frame on,
+        `network.notify(can_id, data, stamp)`, without a `can.Message` (its handler's error
+        is logged as canopen logs it, `CANOPEN_LOGGER`); the others get one `can.Message`,
+        made for the first of them."""
+        msg = None
+        listeners = self._listeners
+        for listener in listeners:
+            if type(listener) is MessageListener:
+                try:
+                    listener.network.notify(can_id, data, stamp)
+                except Exception as error:  # canopen's listener logs it and goes on
+                    CANOPEN_LOGGER.error(str(error))
+                continue
+            if msg is None:
+                msg = self._message(can_id, extended, data, stamp)
+            self._give(listener, msg)
+        if not listeners:
+            self._inbox.put(self._message(can_id, extended, data, stamp))
+
+    def _message(self, can_id: int, extended: bool, data: bytearray, stamp: float) -> can.Message:
+        return can.Message(timestamp=stamp, arbitration_id=can_id, data=data,
+                           is_extended_id=extended, channel=self.channel, check=False)
+
+    def _give(self, listener: can.Listener, msg: can.Message) -> None:
+        """`msg` to `listener`; its error is logged, one line, and not raised."""
+        try:
+            listener.on_message_received(msg)
+        except Exception as error:  # a listener's bug must not stop the hub
+            LOGGER.error("hub port %s: listener %s failed on frame 0x%03X: %s: %s",
+                         self.channel, type(listener).__name__, msg.arbitration_id,
+                         type(error).__name__, error)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         if self._is_shutdown:
