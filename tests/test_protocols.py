@@ -181,3 +181,16 @@ def test_two_threads_batch_apart_and_flush_their_own_frames_in_order():
     assert sorted(flushed) == [(f"t{o}", [o + d + k for k in range(5) for d in (0, 100)])
                                for o in (0, 1000)]
     assert not batches.hold(7)
+
+
+def test_a_batch_left_by_an_exception_flushes_what_was_sent_and_raises_it():
+    """What a thread sent inside its batch counts as sent: an exception leaving the block
+    flushes it, then goes on; the thread's next item is not held."""
+    flushed: list[list[int]] = []
+    batches = SendBatch(flushed.append)
+    with pytest.raises(KeyError, match="boom"):
+        with batches.held():
+            assert batches.hold(1) and batches.hold(2)
+            raise KeyError("boom")
+    assert flushed == [[1, 2]]
+    assert not batches.hold(3)
