@@ -85,7 +85,7 @@ HEX_BYTE = {form.format(value).encode("ascii"): value
 _hex_byte = HEX_BYTE.__getitem__
 
 Frame = tuple[int, bool, bytearray]
-"""A data frame: (id, extended: an 29-bit id, written as 8 hex digits, payload)."""
+"""A data frame: (id, extended: a 29-bit id, written as 8 hex digits, payload)."""
 
 
 def frames_text(frames: Sequence[Frame], stamp: float) -> bytes:
@@ -428,6 +428,7 @@ class HubPort(can.BusABC):
             self._inbox.put(self._message(can_id, extended, data, stamp))
 
     def _message(self, can_id: int, extended: bool, data: bytearray, stamp: float) -> can.Message:
+        """The frame as python-can's message on this port's channel, stamped `stamp` (s)."""
         return can.Message(timestamp=stamp, arbitration_id=can_id, data=data,
                            is_extended_id=extended, channel=self.channel, check=False)
 
