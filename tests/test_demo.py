@@ -36,8 +36,19 @@ def demo(tmp_path_factory) -> dict:
     proc = subprocess.run([sys.executable, "-m", "feedbench.commands.cli", "demo", "--json", "--quick",
                            "--distribution", OWN_DISTRIBUTION, "--dir", str(out)],
                           capture_output=True, text=True, timeout=DEMO_TIMEOUT_S)
-    assert proc.returncode == 0, proc.stderr
+    assert proc.returncode == 0, proc.stderr + _runs_not_complete(proc.stdout)
     return json.loads(proc.stdout)
+
+
+def _runs_not_complete(stdout: str) -> str:
+    """The demo's runs that did not complete, with their reasons (its JSON on stdout), as
+    lines to show beside its stderr when it failed."""
+    try:
+        experiments = json.loads(stdout)["experiments"]
+    except (ValueError, KeyError):
+        return f"\nstdout: {stdout[-2000:]}"
+    return "".join(f"\n{name}: {e['run']['status']}: {e['run']['reason']}"
+                   for name, e in experiments.items() if e["run"]["status"] != "complete")
 
 
 @pytest.mark.parametrize("direction", ["positive", "negative"])

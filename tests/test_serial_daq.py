@@ -5,11 +5,13 @@ from __future__ import annotations
 import binascii
 import threading
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import serial
 
+from feedbench.devices.cycle_io import LOCKSTEP_LAG_CYCLES, LOCKSTEP_WAIT_S, DaqStream
 from feedbench.drivers.serial_daq import (
     CHANNELS, FrameParser, SerialDaq, SerialDaqError, data_frame_bytes,
 )
@@ -266,3 +268,46 @@ def test_compiled_data_frames_are_the_bytes_of_quantize_and_encode():
         expected = encode_data_frames((first + np.arange(n)) % 2 ** 32,
                                       quantize(samples[:, inputs], inputs))
         assert np.array_equal(data_frames(first, samples, inputs), expected)
+
+
+class _StreamCount:
+    """The stream side of a run's recorder: how many samples were recorded so far."""
+
+    def __init__(self) -> None:
+        self.samples = 0
+
+    def append_stream(self, name, cycles, sequence, samples) -> None:
+        self.samples += len(sequence)
+
+
+@pytest.mark.parametrize("lockstep", [True, False], ids=["lockstep", "real time"])
+def test_a_lockstep_stream_waits_for_a_reader_behind_and_real_time_never_does(
+        instrument, lockstep):
+    """The instrument's samples of 600 bus cycles reach the port only 0.2 s after the
+    host's first cycle (a reader thread starved of the GIL by the cycle's threads). In
+    lockstep the stream, silent for `LOCKSTEP_LAG_CYCLES`, waits for them
+    (`LOCKSTEP_WAIT_S` per cycle) and records them before its last cycle; in real time its
+    600 cycles go by without waiting and record nothing yet (the 0.2 s is far above 600
+    unwaited cycles' time)."""
+    n = 600
+    with SerialDaq(instrument.port, NAMES, RATE) as daq:
+        stream = DaqStream(daq, "daq", lockstep=lockstep)
+        recorder = _StreamCount()
+        stream.start(SimpleNamespace(cycle_s=instrument.cycle_s), recorder)
+        cycle = np.zeros((instrument.samples_per_cycle, len(CHANNELS)))
+        late = threading.Timer(0.2, lambda: [instrument.push(cycle) for _ in range(n)])
+        late.start()
+        try:
+            t0 = time.monotonic()
+            for k in range(n):
+                stream.after_sync(k)
+            elapsed, recorded = time.monotonic() - t0, recorder.samples
+        finally:
+            late.join()
+            stream.stop(recorder)
+    if lockstep:
+        assert recorded > 0 and elapsed >= 0.2 - 0.01
+        assert elapsed < 0.2 + (n - LOCKSTEP_LAG_CYCLES) * LOCKSTEP_WAIT_S
+    else:
+        assert recorded == 0 and elapsed < 0.1
+    assert recorder.samples == n * instrument.samples_per_cycle

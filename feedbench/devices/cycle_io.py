@@ -45,6 +45,17 @@ was measured holding a pty's bytes for 2 s on a busy machine (`sim_backends.seri
 which aborted live-window runs of the test suite."""
 
 
+LOCKSTEP_LAG_CYCLES = 200
+LOCKSTEP_WAIT_S = 0.005
+"""In lockstep, a stream silent for `LOCKSTEP_LAG_CYCLES` bus cycles waits up to
+`LOCKSTEP_WAIT_S` per cycle for the reader thread. The cycle's threads hand the GIL among
+themselves, and the serial reader's thread, which wakes every 10 ms, was measured starved
+for hundreds of cycles (beside two busy processes: 1001 cycles and 5.6 s, and the quick
+demo's SMFE run aborted as if the DAQ had stopped). The wait gives it the GIL; virtual time
+and the samples' cycles (from their counter) are unchanged, and a DAQ that did stop still
+ends the run after `DAQ_SILENCE_CYCLES` and `DAQ_SILENCE_S`. In real time nothing waits."""
+
+
 class DeviceLinkError(RuntimeError):
     """A per-cycle device stopped answering."""
 
@@ -107,12 +118,13 @@ class SpindleCommands(PerCycleDevice):
 
 class DaqStream(PerCycleDevice):
     """The streaming DAQ (`drivers.serial_daq.SerialDaq`) recorded as stream `name` (its
-    device's)."""
+    device's); in `lockstep` a lagging reader is waited for (`LOCKSTEP_LAG_CYCLES`)."""
 
-    def __init__(self, daq, name: str) -> None:
+    def __init__(self, daq, name: str, lockstep: bool = False) -> None:
         super().__init__()
         self.daq = daq
         self.name = name
+        self.lockstep = lockstep
         units = {c: CHANNELS[CHANNEL_INDEX[c]].unit for c in daq.channels}
         self.streams = {name: StreamSpec(tuple(daq.channels), units, daq.rate)}
         self._recorder = None
@@ -141,7 +153,11 @@ class DaqStream(PerCycleDevice):
 
     def _watch(self, cycle: int) -> None:
         """Record what arrived; a lost frame or a stream silent too long is an error."""
-        self._silent = 0 if self._drain() else self._silent + 1
+        arrived = self._drain()
+        if (not arrived and self.lockstep and self._silent >= LOCKSTEP_LAG_CYCLES
+                and self.daq.wait_for_samples(LOCKSTEP_WAIT_S)):
+            arrived = self._drain()
+        self._silent = 0 if arrived else self._silent + 1
         self._check_lost(cycle)
         now = time.monotonic()
         if not self._silent:
@@ -222,7 +238,7 @@ class DaqDevice(Device):
 
         daq = links.stack.enter_context(SerialDaq(cls.address(settings), settings["channels"],
                                                   settings["rate_hz"]))
-        return DaqStream(daq, settings["name"])
+        return DaqStream(daq, settings["name"], lockstep=links.cfg["clock"] == "lockstep")
 
 
 class ExciterDevice(Device):

@@ -194,6 +194,8 @@ class SerialDaq:
         self.gone = ""
         """Why the port stopped reading (the device went away), "" while it reads."""
         self._lock = threading.Lock()
+        self._arrived = threading.Condition(self._lock)
+        """Notified when samples are queued (`wait_for_samples`)."""
         self._command_lock = threading.Lock()
         self._replies: queue.Queue[str] = queue.Queue()
         self._closing = threading.Event()
@@ -250,6 +252,12 @@ class SerialDaq:
         return DaqBlock(np.concatenate([b.sequence for b in blocks]),
                         np.concatenate([b.samples for b in blocks]))
 
+    def wait_for_samples(self, timeout_s: float) -> bool:
+        """Wait at most `timeout_s` (s) until samples are queued for `read_available`, the
+        calling thread idle meanwhile (the reader thread gets the GIL); whether some are."""
+        with self._arrived:
+            return self._arrived.wait_for(lambda: self._queued > 0, timeout_s)
+
     def close(self) -> None:
         """Stop the reader thread and close the port."""
         self._closing.set()
@@ -298,6 +306,7 @@ class SerialDaq:
     def _enqueue(self, block: DaqBlock) -> None:
         self._blocks.append(block)
         self._queued += len(block.sequence)
+        self._arrived.notify_all()
         while self._queued > self._capacity:
             oldest = self._blocks.popleft()
             self._queued -= len(oldest.sequence)
