@@ -27,6 +27,7 @@ from feedbench.daq.recording import Recording, open_recording
 from feedbench.daq.timing import MISSED_TARGET, CycleTiming, recorded_timing
 from feedbench.engine.family import families, judged_analysis
 from feedbench.engine.limits import Limits
+from feedbench.analysis.closure.units import axis_unit
 from feedbench.engine.plan import recorded_windows
 from feedbench.units import MM_PER_MIN, RPM
 from feedbench.views.sections import (
@@ -42,12 +43,14 @@ TRACE_POINTS = 3000
 SHADED_KINDS = {"measure": "#2ca02c", "excite": "#ff7f0e"}
 
 TRACE_PANELS = (
-    ("position (mm)", ("x_ref", "position", "load_position"), 1e3),
-    ("velocity (mm/min)", ("velocity", "velocity_offset"), 1.0 / MM_PER_MIN),
-    ("force (N)", ("force", "force_offset", "excitation", "load_cell.force"), 1.0),
-    ("spindle speed (rpm)", ("spindle_speed",), 1.0 / RPM),
+    ("position", "mm", ("x_ref", "position", "load_position"), 1e3),
+    ("velocity", "mm/min", ("velocity", "velocity_offset"), 1.0 / MM_PER_MIN),
+    ("force", "N", ("force", "force_offset", "excitation", "load_cell.force"), 1.0),
+    ("spindle speed", "rpm", ("spindle_speed",), 1.0 / RPM),
 )
-"""Per-cycle panels of the key traces: channels by name, a drive's also as ``drive.name``."""
+"""Per-cycle panels of the key traces: quantity, unit on a linear axis (a rotary axis's at
+the same scale, `axis_unit`: mrad, mrad/min, N·m), channels by name (a drive's also as
+``drive.name``), scale from the stored SI unit to the one shown."""
 
 STREAM_PANELS = (("DAQ forces", "N", "N"), ("accelerations", "m/s^2", "m/s²"))
 """Panels of the high-rate streams' channels: title, unit as recorded, unit as shown."""
@@ -58,20 +61,38 @@ SMALL_MULTIPLES = 3
 
 # figures
 
-def trace_plot(recording: Recording) -> Plot:
-    """Positions (mm), velocities (mm/min), forces (N), spindle speed (rpm) and the DAQ's
-    forces and accelerations over the run (more than `SMALL_MULTIPLES` channels of a unit:
-    a panel each), measure and excite windows shaded."""
+Trace = tuple[np.ndarray, np.ndarray, str]
+"""One line of a panel: time (s), values as shown, channel name."""
+
+
+def cycle_times(recording: Recording) -> tuple[np.ndarray, float]:
+    """Each recorded cycle's time from the run's first (s), and the bus cycle (s)."""
     cycle_s = float(recording.metadata.get("cycle_s", 1e-3))
-    t = (recording.cycle - (recording.cycle[0] if recording.n_samples else 0)) * cycle_s
-    panels = [(label, [(t, recording.channels[n] * scale, n)
-                       for n in drive_channels(recording, names)])
-              for label, names, scale in TRACE_PANELS]
+    first = recording.cycle[0] if recording.n_samples else 0
+    return (recording.cycle - first) * cycle_s, cycle_s
+
+
+def trace_panels(recording: Recording) -> list[tuple[str, list[Trace]]]:
+    """The panels of `trace_plot`, those with a trace: (y label, traces). A rotary axis's
+    (its position stored in rad: an imported joint) in mrad, mrad/min and N·m."""
+    t, _ = cycle_times(recording)
+    rotary = recording.units.get("position") == "rad"
+    panels = [(f"{quantity} ({axis_unit(unit, rotary)})",
+               [(t, recording.channels[n] * scale, n) for n in drive_channels(recording, names)])
+              for quantity, unit, names, scale in TRACE_PANELS]
     for title, unit, shown in STREAM_PANELS:
         traces = stream_traces(recording, unit)
         panels += ([(shown, [trace]) for trace in traces]  # the channel named in its legend
                    if len(traces) > SMALL_MULTIPLES else [(f"{title} ({shown})", traces)])
-    panels = [(label, traces) for label, traces in panels if traces]
+    return [(label, traces) for label, traces in panels if traces]
+
+
+def trace_plot(recording: Recording) -> Plot:
+    """Positions (mm), velocities (mm/min), forces (N), spindle speed (rpm) and the DAQ's
+    forces and accelerations over the run (more than `SMALL_MULTIPLES` channels of a unit:
+    a panel each; `trace_panels`), measure and excite windows shaded."""
+    t, cycle_s = cycle_times(recording)
+    panels = trace_panels(recording)
     figure = new_figure(10.0, 7.0 if len(panels) <= 3 else max(9.5, 1.4 * len(panels)))
     axes = np.atleast_1d(figure.subplots(len(panels), 1, sharex=True))
     spans = _shaded_spans(recording, t, cycle_s)

@@ -21,6 +21,7 @@ from feedbench.daq.importers import formats, read_foreign
 from feedbench.daq.importers.mapping import load_run
 from feedbench.daq.recording import open_recording
 from feedbench.engine.plan import segment_event
+from feedbench.report import trace_panels
 from test_report import DAQ_RATE, chirp_steps, hammer_steps, record, record_with_daq
 
 DATA = Path(__file__).parent / "data"
@@ -404,9 +405,13 @@ def test_a_joint_recorded_in_degrees_imports_and_closes_as_a_rotary_axis(tmp_pat
         assert main(["import", str(source), "--dir", str(tmp_path / unit), "--json"]) == 0
         imported = json.loads(capsys.readouterr().out)["file"]
         assert read_recording(imported).rotary is rotary
-        units = open_recording(imported).units
+        recording = open_recording(imported)
+        units = recording.units
         assert (units["position"], units["velocity"], units["force"]) == (
             ("rad", "rad/s", "N·m") if rotary else ("m", "m/s", "N"))
+        assert [label for label, _ in trace_panels(recording)] == (
+            ["position (mrad)", "velocity (mrad/min)", "force (N·m)"] if rotary
+            else ["position (mm)", "velocity (mm/min)", "force (N)"])
 
 
 @pytest.mark.parametrize("name, content, message", [
