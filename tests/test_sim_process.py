@@ -337,25 +337,41 @@ class _Frames(can.Listener):
         self.msgs.append(msg)
 
 
-def test_a_canopen_network_on_a_hub_port_gets_each_clients_frame_as_notify(caplog):
+def _network_with_handlers(bus: can.BusABC | None) -> tuple[canopen.Network, list]:
+    """A canopen network whose handlers of 0x201 and 0x1ABCDEF0 keep (id, data, stamp) in
+    the returned list and whose handler of 0x666 raises."""
+    network = canopen.Network(bus)
+    seen: list[tuple[int, bytearray, float]] = []
+    handler = lambda can_id, data, stamp: seen.append((can_id, data, stamp))  # noqa: E731
+
+    def failing(can_id: int, data: bytearray, stamp: float) -> None:
+        raise ValueError("a handler's bug")
+
+    network.subscribe(0x201, handler)
+    network.subscribe(0x666, failing)
+    network.subscribe(0x1ABCDEF0, handler)
+    return network, seen
+
+
+def test_a_canopen_network_on_a_hub_port_gets_each_clients_frame_as_notify(caplog,
+                                                                          monkeypatch):
     """A canopen network's listener on a hub port (`connect`) gets a TCP client's frames as
     its `on_message_received` passes them on, `notify(can_id, data, stamp)` (no
-    `can.Message`): the handlers see the id, the bytes (a bytearray, as canopen's) and the
-    relay's stamp that another listener's `can.Message` and the other clients see. A
-    handler's error is logged as canopen logs it and the next frame is delivered."""
+    `can.Message`; the listener's own method is never called): the handlers see the id,
+    the bytes (a bytearray, as canopen's) and the relay's stamp that another listener's
+    `can.Message` and the other clients see. A handler's error is logged as canopen logs
+    it and the next frame is delivered. The installed canopen's own listener, given those
+    messages, calls the handlers and logs alike (the short cut holds for this version)."""
+    own_listener = canopen.network.MessageListener.on_message_received
+
+    def not_called(self, msg: can.Message) -> None:
+        raise AssertionError("the hub gave a canopen listener a can.Message")
+
+    monkeypatch.setattr(canopen.network.MessageListener, "on_message_received", not_called)
     with SocketcandHub() as hub, socket.create_connection((hub.host, hub.port)) as sock:
         port = can.Bus(interface="feedbench_hub", channel="b1", hub=hub)
         other = open_bus("socketcand", "b1", host=hub.host, port=hub.port)
-        network = canopen.Network(port)
-        seen: list[tuple[int, bytearray, float]] = []
-        handler = lambda can_id, data, stamp: seen.append((can_id, data, stamp))  # noqa: E731
-
-        def failing(can_id: int, data: bytearray, stamp: float) -> None:
-            raise ValueError("a handler's bug")
-
-        network.subscribe(0x201, handler)
-        network.subscribe(0x666, failing)
-        network.subscribe(0x1ABCDEF0, handler)
+        network, seen = _network_with_handlers(port)
         frames = _Frames()
         port.listen([*network.listeners, frames])
         raw_mode(sock)
@@ -377,8 +393,16 @@ def test_a_canopen_network_on_a_hub_port_gets_each_clients_frame_as_notify(caplo
     stamps = [m.timestamp for m in frames.msgs]
     assert [stamp for _, _, stamp in seen] == [stamps[0], stamps[2]]
     assert [round(m.timestamp, 6) for m in relayed] == [round(stamp, 6) for stamp in stamps]
-    assert [(r.name, r.getMessage()) for r in caplog.records if r.levelname == "ERROR"] == [
-        ("canopen.network", "a handler's bug")]
+    errors = [(r.name, r.getMessage()) for r in caplog.records if r.levelname == "ERROR"]
+    assert errors == [("canopen.network", "a handler's bug")]
+    caplog.clear()
+    reference, seen_by_canopen = _network_with_handlers(None)
+    for msg in frames.msgs:
+        own_listener(canopen.network.MessageListener(reference), msg)
+    assert [(i, type(d), bytes(d), t) for i, d, t in seen_by_canopen] == [
+        (i, type(d), bytes(d), t) for i, d, t in seen]
+    assert [(r.name, r.getMessage()) for r in caplog.records
+            if r.levelname == "ERROR"] == errors
 
 
 class _TwoAnswers(can.Listener):

@@ -154,6 +154,11 @@ class Recording:
         """Number of samples in the file."""
         return len(self.cycle)
 
+    @property
+    def rotary(self) -> bool:
+        """A rotary axis's recording: its position stored in rad (an imported joint)."""
+        return self.units.get("position") == "rad"
+
     def segments(self, kind: str = "segment") -> list[Segment]:
         """Cycle ranges from each `kind` event to the next one (the last one to the end)."""
         marks = [event for event in self.events if event.kind == kind]

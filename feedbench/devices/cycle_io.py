@@ -47,8 +47,9 @@ which aborted live-window runs of the test suite."""
 
 LOCKSTEP_LAG_CYCLES = 200
 LOCKSTEP_WAIT_S = 0.005
-"""In lockstep, a stream silent for `LOCKSTEP_LAG_CYCLES` bus cycles waits up to
-`LOCKSTEP_WAIT_S` per cycle for the reader thread. The cycle's threads hand the GIL among
+"""In lockstep (virtual time: a simulated bench, in the host's process or `feedbench sim`), a
+stream silent for `LOCKSTEP_LAG_CYCLES` bus cycles (and one sample period, at a rate below
+one sample a cycle) waits up to `LOCKSTEP_WAIT_S` per cycle for the reader thread. The cycle's threads hand the GIL among
 themselves, and the serial reader's thread, which wakes every 10 ms, was measured starved
 for hundreds of cycles (beside two busy processes: 1001 cycles and 5.6 s, and the quick
 demo's SMFE run aborted as if the DAQ had stopped). The wait gives it the GIL; virtual time
@@ -133,12 +134,14 @@ class DaqStream(PerCycleDevice):
         self._first_sequence: int | None = None
         self._last_cycle = 0
         self._silent = 0
+        self._lag_cycles = LOCKSTEP_LAG_CYCLES
         self._last_sample = time.monotonic()
 
     def start(self, plan: Plan, recorder) -> None:
         super().start(plan, recorder)
         self._recorder = recorder
         self._samples_per_cycle = max(1, round(self.daq.rate * plan.cycle_s))
+        self._lag_cycles = LOCKSTEP_LAG_CYCLES + math.ceil(1.0 / (self.daq.rate * plan.cycle_s))
         self.daq.start()
 
     def before_sync(self, index: int | None) -> None:
@@ -154,7 +157,7 @@ class DaqStream(PerCycleDevice):
     def _watch(self, cycle: int) -> None:
         """Record what arrived; a lost frame or a stream silent too long is an error."""
         arrived = self._drain()
-        if (not arrived and self.lockstep and self._silent >= LOCKSTEP_LAG_CYCLES
+        if (not arrived and self.lockstep and self._silent >= self._lag_cycles
                 and self.daq.wait_for_samples(LOCKSTEP_WAIT_S)):
             arrived = self._drain()
         self._silent = 0 if arrived else self._silent + 1

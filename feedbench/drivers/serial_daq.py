@@ -304,6 +304,8 @@ class SerialDaq:
             self._replies.put(reply)
 
     def _enqueue(self, block: DaqBlock) -> None:
+        """Queue `block` for `read_available` (the caller holds `_lock`, which the
+        notification of `wait_for_samples` needs); the oldest go when the buffer is full."""
         self._blocks.append(block)
         self._queued += len(block.sequence)
         self._arrived.notify_all()
