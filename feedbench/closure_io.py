@@ -164,7 +164,7 @@ def read_csv_trace(path: str | Path, sidecar: Mapping[str, Any] | None = None
 
 
 def _rotary(units: Mapping[str, Any]) -> bool:
-    """Whether a sidecar's position unit is an angle (rad, deg): a rotary axis."""
+    """Whether a sidecar's position unit is an angle (rad, deg, rev): a rotary axis."""
     return SI_UNITS.get(units.get("position", ""), (1.0, "length"))[1] == "angle"
 
 

@@ -382,7 +382,7 @@ def test_the_closure_runs_on_an_imported_mdf4_recording(tmp_path, capsys):
 
 
 def test_a_joint_recorded_in_degrees_imports_and_closes_as_a_rotary_axis(tmp_path, capsys):
-    """A mapping whose position is an angle (deg) and force a torque (N·m): the imported
+    """A mapping whose position is an angle (deg, rev) and force a torque (N·m): the imported
     run stores them in rad and N·m, and the closure reads the file and the imported run
     as a rotary axis (its report in mrad, N·m); a position in mm stays linear."""
     from asammdf import MDF, Signal
@@ -392,7 +392,8 @@ def test_a_joint_recorded_in_degrees_imports_and_closes_as_a_rotary_axis(tmp_pat
     t = np.arange(2000) * 1e-3
     angle_deg = 30.0 * np.sin(2 * np.pi * 0.5 * t)
     torque = 2.0 * np.cos(2 * np.pi * 0.5 * t)
-    for unit, rotary, to_si in (("deg", True, np.pi / 180.0), ("mm", False, 1e-3)):
+    for unit, rotary, to_si in (("deg", True, np.pi / 180.0), ("rev", True, 2.0 * np.pi),
+                                ("mm", False, 1e-3)):
         mdf = MDF(version="4.10")
         mdf.append([Signal(angle_deg, t, name="q", unit=unit),
                     Signal(torque, t, name="tau", unit="N·m" if rotary else "N")])
