@@ -31,8 +31,8 @@ demo: $(STAMP)
 	@s=$$(cat $(STAMP)); echo "Set-up of this clone (venv + pip install, once):" \
 		"$${s:-not timed}$${s:+ s}; the first demo also compiles the physics (numba, cached)"
 
-# two xdist workers, whole files each, slowest files first (tests/conftest.py): 1430 tests
-# in 7 min 31 s on this 2-core machine, quiet (29 Nov, later; all of `make test` 8 min 15 s)
+# two xdist workers, whole files each, slowest files first (tests/conftest.py): 1434 tests
+# in 6 min 33 s on this 2-core machine, quiet (29 Nov, evening; all of `make test` 7 min 10 s)
 # then the real-time tests alone (marked realtime): a host loop starved by the other
 # worker's CPU is what they measure against, not what they may run beside; only the files
 # that mark a test realtime are collected for them (collecting the whole suite to deselect
