@@ -4,6 +4,8 @@ Config files, the CLI and reports speak mm/min, N/µm, (m/min)/mm, rpm, N·min/m
 everything between them is SI (m, s, N, kg, rad).
 """
 
+import math
+
 MM_PER_MIN = 1e-3 / 60.0
 """1 mm/min in m/s."""
 
@@ -19,7 +21,7 @@ N_MIN_PER_MM = 60.0 / 1e-3
 MIN_PER_MM = 60.0 / 1e-3
 """1 min/mm (friction model constant k_tanh) in s/m."""
 
-RPM = 2.0 * 3.141592653589793 / 60.0
+RPM = 2.0 * math.pi / 60.0
 """1 rpm in rad/s."""
 
 
@@ -65,14 +67,14 @@ SI_UNITS: dict[str, tuple[float, str]] = {
     "s": (1.0, "time"), "ms": (1e-3, "time"), "us": (1e-6, "time"), "µs": (1e-6, "time"),
     "m": (1.0, "length"), "mm": (1e-3, "length"), "um": (1e-6, "length"),
     "µm": (1e-6, "length"), "nm": (1e-9, "length"),
-    "rad": (1.0, "angle"), "deg": (3.141592653589793 / 180.0, "angle"),
-    "rev": (2.0 * 3.141592653589793, "angle"),
+    "rad": (1.0, "angle"), "deg": (math.pi / 180.0, "angle"),
+    "rev": (2.0 * math.pi, "angle"),
     "N": (1.0, "force"), "kN": (1e3, "force"),
     "Nm": (1.0, "torque"), "N·m": (1.0, "torque"), "kNm": (1e3, "torque"),
     "m/s": (1.0, "velocity"), "mm/s": (1e-3, "velocity"), "mm/min": (MM_PER_MIN, "velocity"),
     "m/min": (1.0 / 60.0, "velocity"), "rad/s": (1.0, "angular velocity"),
-    "deg/s": (3.141592653589793 / 180.0, "angular velocity"), "rpm": (RPM, "angular velocity"),
-    "rev/s": (2.0 * 3.141592653589793, "angular velocity"),
+    "deg/s": (math.pi / 180.0, "angular velocity"), "rpm": (RPM, "angular velocity"),
+    "rev/s": (2.0 * math.pi, "angular velocity"),
     "m/s2": (1.0, "acceleration"), "mm/s2": (1e-3, "acceleration"),
     "g": (9.80665, "acceleration"), "rad/s2": (1.0, "angular acceleration"),
 }

@@ -49,9 +49,9 @@ LOCKSTEP_LAG_CYCLES = 200
 LOCKSTEP_WAIT_S = 0.005
 """In lockstep (virtual time: a simulated bench, in the host's process or `feedbench sim`), a
 stream silent for `LOCKSTEP_LAG_CYCLES` bus cycles (and one sample period, at a rate below
-one sample a cycle) waits up to `LOCKSTEP_WAIT_S` per cycle for the reader thread. The cycle's threads hand the GIL among
-themselves, and the serial reader's thread, which wakes every 10 ms, was measured starved
-for hundreds of cycles (beside two busy processes: 1001 cycles and 5.6 s, and the quick
+one sample a cycle) waits up to `LOCKSTEP_WAIT_S` per cycle for the reader thread. The
+cycle's threads hand the GIL among themselves, and the serial reader's thread, which wakes
+every 10 ms, was measured starved for hundreds of cycles (beside two busy processes: 1001 cycles and 5.6 s, and the quick
 demo's SMFE run aborted as if the DAQ had stopped). The wait gives it the GIL; virtual time
 and the samples' cycles (from their counter) are unchanged, and a DAQ that did stop still
 ends the run after `DAQ_SILENCE_CYCLES` and `DAQ_SILENCE_S`. In real time nothing waits."""
