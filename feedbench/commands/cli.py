@@ -265,19 +265,21 @@ def checked_experiment(table: Mapping[str, Any]) -> dict[str, Any]:
 def cmd_demo(args: argparse.Namespace) -> int:
     """The campaign on the simulated bench (every experiment family), identified vs true."""
     t0 = time.monotonic()
-    from feedbench.commands.demo import describe_demo, run_demo
+    from feedbench.commands.demo import describe_demo, run_demo, runs_not_complete
 
     imported = time.monotonic()
     result = run_demo(output_directory(args.dir), quiet=args.json, quick=args.quick,
                       distribution=args.distribution, workers=args.workers)
     result["elapsed_s"] = time.monotonic() - t0
     result["timing"]["setup_s"] += imported - t0  # the imports
+    failed = runs_not_complete(result)
     if args.json:
         _print_json(result)
+        for line in failed:
+            print(f"feedbench: demo: {line}", file=sys.stderr)
     else:
         print(describe_demo(result))
-    runs = [e["run"] for e in result["experiments"].values()]
-    return 0 if all(r["status"] == "complete" for r in runs) else 1
+    return 1 if failed else 0
 
 
 def cmd_campaign(args: argparse.Namespace) -> int:

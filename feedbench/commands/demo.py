@@ -271,13 +271,21 @@ def describe_demo(result: dict) -> str:
         lines += _experiment_lines(name, entry)
     lines.append("Runs:")
     lines += [f"  {e['run']['id'] or name}  {e['run']['status']}  "
-              f"{e['run']['file'] or e['run']['reason']}" for name, e in experiments.items()]
+              + "  ".join(filter(None, (e["run"]["file"], e["run"]["reason"])))
+              for name, e in experiments.items()]
     left_out = result.get("report_left_out")
     lines.append(f"Report: {result['report']}"
                  + (f" (left out: {', '.join(left_out)})" if left_out else ""))
     if "elapsed_s" in result:
         lines += timing_lines(result["timing"], result["elapsed_s"])
     return "\n".join(lines)
+
+
+def runs_not_complete(result: dict) -> list[str]:
+    """``smfe: aborted: DeviceLinkError: …``: a line per run of `run_demo`'s result that did
+    not complete, with its reason (what `--json` says on stderr beside its exit status 1)."""
+    return [f"{name}: {e['run']['status']}: {e['run']['reason']}"
+            for name, e in result["experiments"].items() if e["run"]["status"] != "complete"]
 
 
 def timing_lines(timing: Mapping[str, float], elapsed_s: float) -> list[str]:
