@@ -54,12 +54,12 @@ many bus cycles: lockstep cycles run several times faster than real time and the
 thread lags on a loaded machine (measured up to 1557 cycles, typically 1–20)."""
 FILE_LIMIT_BYTES = 1_250_000
 """The disk-full rows' file-size limit: the recorder's 1 MiB reserve and ≈ 150 kB of samples."""
-ROW_PROCESSES = 4
+ROW_PROCESSES = 8
 """Rows measured at once, each in a forked process (`measure_rows`): a row is ≈ 15 % CPU
 (≈ 0.35 of its 2.4 s; the rest waits on the host's 0.5 s bus timeout and the safe stop's
-SDO timeouts), so four at once keep about half a core busy and a file of rows takes about a
-quarter of its one-after-the-other wall time (test_fault_matrix.py: 98 s → 30 s). The rows
-count bus cycles, which the lockstep clock makes independent of the machine's load."""
+SDO timeouts), so eight at once keep about one core busy (test_fault_matrix.py: 98 s one
+after the other, 33 s four at once, 22 s eight at once, the same CPU; 29 Nov, load 4). The
+rows count bus cycles, which the lockstep clock makes independent of the machine's load."""
 MODBUS_KINDS = {"spindle", "load_cell"}
 SERIAL_KINDS = {"daq"}
 
