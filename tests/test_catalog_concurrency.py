@@ -26,6 +26,8 @@ RUNS_PER_WRITER = 50
 CYCLES_PER_RUN = 300
 WRITER = textwrap.dedent("""
     import sys
+    from feedbench.commands.cli import without_python_can_mf4
+    without_python_can_mf4()  # as `feedbench run` starts
     import numpy as np
     from feedbench.daq.catalog import Catalog
     from feedbench.daq.recorder import Recorder

@@ -16,7 +16,7 @@ import pytest
 
 from feedbench.config import ConfigError
 from feedbench.daq import recorder as recorder_module
-from feedbench.daq.recorder import Recorder, RecordingError
+from feedbench.daq.recorder import Recorder, RecordingError, software_versions
 from feedbench.daq.recording import Segment, open_recording
 
 CHANNELS = [f"ch{index}" for index in range(10)]
@@ -72,6 +72,15 @@ def test_round_trip_is_bit_exact_with_attrs_and_events(tmp_path: Path) -> None:
         assert file.attrs["n_samples"] == 25_003
         assert file["data/ch0"].chunks == (1000,)
         assert json.loads(file.attrs["channels"]) == CHANNELS
+
+
+def test_software_versions_are_read_once_and_each_caller_gets_its_own_copy():
+    """The installed packages' metadata is read once per process (9 ms a recording before);
+    a caller that changes its dict changes nobody else's."""
+    first = software_versions()
+    assert first["numpy"] == np.__version__ and first["python-can"] is not None
+    first["numpy"] = "changed"
+    assert software_versions()["numpy"] == np.__version__
 
 
 def test_buffer_is_bounded_and_each_chunk_is_on_disk_for_a_live_reader(tmp_path: Path) -> None:
