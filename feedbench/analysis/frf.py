@@ -17,8 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-import scipy.fft
-import scipy.signal
+import scipy
 from numpy.lib.stride_tricks import sliding_window_view
 
 FRF_FORMS = ("receptance", "mobility", "accelerance")

@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import brentq, least_squares
+import scipy
 
 from feedbench.models.friction import AnderssonFriction, DirectionalFriction
 
@@ -101,7 +101,7 @@ def _fit(
     def residual(x: np.ndarray) -> np.ndarray:
         return param.to_law(x).force(speed) - force
 
-    sol = least_squares(
+    sol = scipy.optimize.least_squares(
         residual, x0, bounds=(lower, np.inf), x_scale=x_scale, jac="3-point",
         ftol=_TOL, xtol=_TOL, gtol=_TOL,
     )
@@ -244,4 +244,4 @@ def invariant_feed(law: AnderssonFriction, K_p: float, fraction: float = 0.05) -
     if above.size == 0:
         return 0.0
     last = above[-1]
-    return float(brentq(excess, grid[last], grid[last + 1], xtol=1e-12))
+    return float(scipy.optimize.brentq(excess, grid[last], grid[last + 1], xtol=1e-12))

@@ -4,12 +4,14 @@ Frequency-domain functions take frequencies in Hz and return complex arrays; sta
 functions return the matrices (A, B, C, D). SI units throughout: N, m, s, kg.
 """
 
+from __future__ import annotations
+
 from collections.abc import Sequence
 from math import comb, factorial
 
 import numpy as np
+import scipy
 from numpy.typing import ArrayLike, NDArray
-from scipy import signal
 
 ComplexArray = NDArray[np.complex128]
 RealArray = NDArray[np.float64]
@@ -66,7 +68,7 @@ def mobility_to_compliance(frequency: ArrayLike, mobility: ArrayLike) -> Complex
     return np.asarray(mobility, dtype=complex) / laplace(frequency)
 
 
-def pade_delay(delay: float, order: int) -> signal.TransferFunction:
+def pade_delay(delay: float, order: int) -> scipy.signal.TransferFunction:
     """Padé approximation P_d(s) of e^{-τs} of order L, Eq. (4.16).
 
     Closed-form diagonal coefficients a_k = (2L−k)! L! / ((2L)! k! (L−k)!) τ^k; scipy only
@@ -76,15 +78,15 @@ def pade_delay(delay: float, order: int) -> signal.TransferFunction:
         comb(order, k) / comb(2 * order, k) * delay**k / factorial(k) for k in range(order + 1)
     ])
     alternating = a * (-1.0) ** np.arange(order + 1)
-    return signal.TransferFunction(alternating[::-1], a[::-1])
+    return scipy.signal.TransferFunction(alternating[::-1], a[::-1])
 
 
 def with_delay(
-    system: signal.TransferFunction, delay: float, order: int
-) -> signal.TransferFunction:
+    system: scipy.signal.TransferFunction, delay: float, order: int
+) -> scipy.signal.TransferFunction:
     """system(s)·P_d(s): a rational model of a delayed system for root loci, Eq. (4.16)."""
     pade = pade_delay(delay, order)
-    return signal.TransferFunction(
+    return scipy.signal.TransferFunction(
         np.polymul(system.num, pade.num), np.polymul(system.den, pade.den)
     )
 
@@ -177,7 +179,7 @@ def chain_mobility(
     stiffnesses: Sequence[float],
     dampings: Sequence[float],
     ground_damping: float = 0.0,
-) -> signal.TransferFunction:
+) -> scipy.signal.TransferFunction:
     """Rational motor mobility ẋ_mot/F_mot (m/(N·s)) of a serial chain (see `chain_matrices`).
 
     Realised on link deflections and velocities, so the rigid-body position mode that
@@ -194,5 +196,5 @@ def chain_mobility(
     ])
     b = np.concatenate([np.zeros(n - 1), mass_inv[:, 0]])[:, None]
     c = np.eye(1, 2 * n - 1, n - 1)
-    numerator, denominator = signal.ss2tf(a, b, c, np.zeros((1, 1)))
-    return signal.TransferFunction(np.trim_zeros(numerator[0], "f"), denominator)
+    numerator, denominator = scipy.signal.ss2tf(a, b, c, np.zeros((1, 1)))
+    return scipy.signal.TransferFunction(np.trim_zeros(numerator[0], "f"), denominator)

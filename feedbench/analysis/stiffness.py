@@ -9,8 +9,7 @@ everything in the motor's force path (Eq. 3.4) plus its dead zone (backlash).
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import find_peaks
-from scipy.stats import linregress, siegelslopes
+import scipy
 
 
 @dataclass(frozen=True)
@@ -110,7 +109,7 @@ def equivalent_stiffness(
     used = load >= min_fraction * load[-1]
     if np.count_nonzero(used) < 3:
         raise ValueError("fewer than 3 samples on the loaded branch above min_fraction")
-    line = linregress(motor[used] - scale[used], load[used])
+    line = scipy.stats.linregress(motor[used] - scale[used], load[used])
     return StiffnessFit(
         k=share * line.slope,
         k_std=share * line.stderr,
@@ -150,7 +149,8 @@ def backlash_from_reversals(
     delta = x_motor - np.asarray(x_load, dtype=float).ravel()
     travel = min_travel if min_travel is not None else 0.5 * np.ptp(x_motor)
     turns = np.sort(np.concatenate([
-        find_peaks(x_motor, prominence=travel)[0], find_peaks(-x_motor, prominence=travel)[0],
+        scipy.signal.find_peaks(x_motor, prominence=travel)[0],
+        scipy.signal.find_peaks(-x_motor, prominence=travel)[0],
     ]))
     if turns.size == 0:
         raise ValueError("no direction reversal with the required travel in x_motor")
@@ -195,7 +195,7 @@ def _robust_line(f: np.ndarray, d: np.ndarray, max_points: int = 400) -> tuple[f
     """Siegel repeated-medians line (slope, intercept), 50 % breakdown, on ≤ max_points
     evenly spaced samples (its cost grows with the square of the count)."""
     pick = np.unique(np.linspace(0, f.size - 1, min(f.size, max_points)).astype(int))
-    line = siegelslopes(d[pick], f[pick])
+    line = scipy.stats.siegelslopes(d[pick], f[pick])
     return line.slope, line.intercept
 
 
@@ -260,7 +260,8 @@ def preload_loss_force(
     if np.count_nonzero(first) < 3 or np.count_nonzero(second) < 3:
         raise ValueError("fewer than 3 samples on one of the contact lines: the loading "
                          "must go on well beyond the loss (and start below it)")
-    before, after = linregress(f[first], d[first]), linregress(f[second], d[second])
+    before = scipy.stats.linregress(f[first], d[first])
+    after = scipy.stats.linregress(f[second], d[second])
     last_contact = f[first].max()
     loss = 0.5 * (last_contact + f[f > last_contact].min())
     recovery = 0.5 * (f[crossing].max() + f[second].min()) if crossing.any() else loss
@@ -304,8 +305,8 @@ def stiffness_while_lost(
     if np.count_nonzero(both) < 3 or np.count_nonzero(lost) < 3:
         raise ValueError("fewer than 3 samples with both motors in contact or with the "
                          "master out of contact")
-    return LossStiffness(contact=share * linregress(delta[both], f[both]).slope,
-                         lost=share * linregress(delta[lost], f[lost]).slope,
+    return LossStiffness(contact=share * scipy.stats.linregress(delta[both], f[both]).slope,
+                         lost=share * scipy.stats.linregress(delta[lost], f[lost]).slope,
                          n_lost=int(np.count_nonzero(lost)))
 
 
@@ -316,7 +317,7 @@ def torque_sharing(tau_master: np.ndarray, tau_slave: np.ndarray) -> TorqueShari
     """
     tau_master = np.asarray(tau_master, dtype=float).ravel()
     net = tau_master + np.asarray(tau_slave, dtype=float).ravel()
-    line = linregress(net, tau_master)
+    line = scipy.stats.linregress(net, tau_master)
     return TorqueSharing(share=line.slope, preload=line.intercept, r_squared=line.rvalue**2)
 
 

@@ -29,6 +29,13 @@ the demo runs the example configs the families declare (`Experiment.examples`, `
 so a lab's family joins it. `families(distribution)` lists one installed distribution's
 families (feedbench's own tests ask for `config.OWN_DISTRIBUTION`'s).
 docs/ARCHITECTURE.md walks through adding one (the backlash reversal test).
+
+Loading the families loads every family's module and its analysis modules, so those import
+scipy lazily (``import scipy``, then ``scipy.signal.find_peaks`` at the call: SciPy imports a
+submodule on first use): `feedbench run` and `sim` start without scipy.signal, .stats and
+.optimize unless their plan or world uses them (a chirp's plan does). Measured: their imports
+plus `families()` 1.9 → 0.8 s CPU, `feedbench sim` of the friction sweep to its ready line
+2.3 → 1.2 s.
 """
 
 from __future__ import annotations

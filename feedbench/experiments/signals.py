@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
-import scipy.signal
+import scipy
 
 
 def ramp_to_feed(v_from: float, v_to: float, accel: float, dt: float) -> np.ndarray:

@@ -31,7 +31,7 @@ from dataclasses import asdict
 from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
-import scipy.signal
+import scipy
 
 from feedbench.analysis.checks import check, peak_checks
 from feedbench.analysis.smfe import (

@@ -36,7 +36,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import expm
+import scipy
 
 from feedbench.models import _kernel
 from feedbench.models._cycle_simulator import (
@@ -109,7 +109,7 @@ class TwoMassAxis:
         a, b = self.state_matrices()
         augmented = np.zeros((6, 6))
         augmented[:4, :4], augmented[:4, 4:] = a, b
-        return expm(augmented * step)[:4, :]
+        return scipy.linalg.expm(augmented * step)[:4, :]
 
 
 @dataclass(frozen=True)
