@@ -99,7 +99,8 @@ def trace_plot(recording: Recording) -> Plot:
     excite windows shaded."""
     t, cycle_s = cycle_times(recording)
     panels = trace_panels(recording)
-    figure = new_figure(10.0, 7.0 if len(panels) <= 3 else max(9.5, 1.4 * len(panels)))
+    figure = new_figure(10.0, 7.0 if len(panels) <= 3 else max(9.5, 1.4 * len(panels)),
+                        layout="column")
     axes = np.atleast_1d(figure.subplots(len(panels), 1, sharex=True))
     spans = _shaded_spans(recording, t, cycle_s)
     for ax, (label, traces) in zip(axes, panels):
