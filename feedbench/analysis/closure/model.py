@@ -9,15 +9,19 @@ band-limited residual (n / n_eff, see `Kinematics.effective_n`).
 
 from __future__ import annotations
 
+import functools
+import inspect
 import math
 from dataclasses import dataclass, replace
-from typing import Mapping
+from typing import Callable, Iterable, Iterator, Mapping
 
 import numpy as np
 from scipy.optimize import least_squares, lsq_linear
 
-from feedbench.analysis.closure.effects import DIFFERENCE_STEP, EFFECTS, Effect, spectral
-from feedbench.analysis.closure.trace import Kinematics, nrmse
+from feedbench.analysis.closure.effects import (
+    DIFFERENCE_STEP, EFFECTS, Effect, prefetch_followers, spectral,
+)
+from feedbench.analysis.closure.trace import Kinematics, frequencies, nrmse, read_only
 
 MAX_NONLINEAR_EVALUATIONS = 40
 """Budget of residual evaluations of one nonlinear refinement (per free η)."""
@@ -165,7 +169,15 @@ def _advance(columns: np.ndarray, samples: float) -> np.ndarray:
     2 % at 61 Hz at 1 kHz, where a lightly damped mode makes the force)."""
     if samples == 0.0:
         return columns
-    return spectral(columns, 1.0, lambda f: np.exp(2j * np.pi * f * samples))
+    return spectral(columns, 1.0, functools.partial(_lead_response, samples))
+
+
+@functools.lru_cache(maxsize=64)
+def _lead_response(samples: float, length: int, dt: float) -> np.ndarray:
+    """e^{jω·samples} (a lead of `samples` sample periods dt, f in cycles per sample at
+    dt = 1) at the `frequencies(length, dt)`, read-only: a model's lead is the same at
+    every evaluation that does not refine it."""
+    return read_only(np.exp(2j * np.pi * frequencies(length, dt) * samples))
 
 
 def _outputs(model: Model) -> list[Term]:
@@ -420,6 +432,15 @@ def _refine_nonlinear(model: Model, kin: Kinematics, x0: np.ndarray,
         start = ", ".join(f"{model.terms[i].name}.{k} = {v:.3g}" for (i, k), v in zip(slots, x0))
         raise FitError(f"residuals not finite at the start ({start}, SI)")
     unit = _magnitudes(x0, lower, upper)
+
+    def differences(fun: Callable[[np.ndarray], np.ndarray],
+                    points: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
+        """`least_squares`' map over a Jacobian's difference points (its `workers`): their
+        follower bodies simulated together first (`_prefetch`), then each point in turn."""
+        points = list(points)
+        _prefetch([model.with_nonlinear(u * unit, slots) for u in points], moving, kin)
+        return map(fun, points)
+
     steps = np.array([model.terms[i].effect.difference_step for i, _ in slots])
     tangent = np.full(len(slots), DIFFERENCE_STEP)
     results, failures = [], []
@@ -430,13 +451,27 @@ def _refine_nonlinear(model: Model, kin: Kinematics, x0: np.ndarray,
                     lambda u: residual(u * unit), x0 / unit,
                     bounds=(lower / unit, upper / unit), x_scale="jac", diff_step=step,
                     ftol=NONLINEAR_TOLERANCE, xtol=NONLINEAR_TOLERANCE,
-                    max_nfev=MAX_NONLINEAR_EVALUATIONS * len(slots)))
+                    max_nfev=MAX_NONLINEAR_EVALUATIONS * len(slots),
+                    **({"workers": differences} if BATCHED_DIFFERENCES else {})))
             except (ValueError, np.linalg.LinAlgError) as exc:
                 failures.append(str(exc))
     if not results:
         raise FitError(f"nonlinear refinement failed: {'; '.join(failures)}")
     best = min(results, key=lambda result: result.cost)
     return model.with_nonlinear(best.x * unit, slots)
+
+
+BATCHED_DIFFERENCES = "workers" in inspect.signature(least_squares).parameters
+"""Whether `least_squares` takes a map for its finite differences (scipy ≥ 1.16): the
+refinement then simulates a Jacobian's follower bodies side by side (results the same)."""
+
+
+def _prefetch(models: list[Model], moving: set[int], kin: Kinematics) -> None:
+    """Simulate together the follower bodies (`effects.prefetch_followers`) of the terms
+    `moving` (indices) of each of `models` on `kin`, within a `follower_memo`."""
+    prefetch_followers(kin.x, kin.v, kin.dt, [
+        inputs for m in models for i in sorted(moving)
+        for inputs in m.terms[i].effect.follower_inputs(kin, m.terms[i].values)])
 
 
 def _magnitudes(x0: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:

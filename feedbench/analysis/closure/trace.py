@@ -13,6 +13,7 @@ high; jω is exact in the band. The ends, where the mirror leaves a kink, are dr
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -167,11 +168,36 @@ def lowpass_derivatives(signal: np.ndarray, bandwidth: float, dt: float,
     n = signal.size
     length = scipy.fft.next_fast_len(2 * n, real=True)
     extended = np.concatenate([signal, np.full(length - 2 * n, signal[-1]), signal[::-1]])
-    f = scipy.fft.rfftfreq(length, dt)
-    spectrum = scipy.fft.rfft(extended) * np.exp(2j * np.pi * f * lead)
-    spectrum /= 1.0 + (f / bandwidth) ** (2 * FILTER_ORDER)
+    shift, gain, derivatives = _filter_factors(length, dt, bandwidth, float(lead).hex(), orders)
+    spectrum = scipy.fft.rfft(extended) * shift
+    spectrum /= gain
+    return [scipy.fft.irfft(spectrum * d, length)[:n] for d in derivatives]
+
+
+@functools.lru_cache(maxsize=16)
+def _filter_factors(length: int, dt: float, bandwidth: float, lead: str, orders: tuple[int, ...]
+                    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+    """The factors `lowpass_derivatives` applies to a spectrum of `length` samples taken
+    every dt (s), computed once per closure's filter: the lead's e^{jωτ} (`lead`: τ in s as
+    `float.hex`, so that -0.0 and 0.0 stay apart), the filter's 1 + (f/B)^(2·FILTER_ORDER)
+    (B in Hz) it divides by, and (jω)^order per derivative order. Read-only."""
+    f = frequencies(length, dt)
     jw = 2j * np.pi * f
-    return [scipy.fft.irfft(spectrum * jw**order, length)[:n] for order in orders]
+    return (read_only(np.exp(2j * np.pi * f * float.fromhex(lead))),
+            read_only(1.0 + (f / bandwidth) ** (2 * FILTER_ORDER)),
+            tuple(read_only(jw**order) for order in orders))
+
+
+@functools.lru_cache(maxsize=16)
+def frequencies(length: int, dt: float) -> np.ndarray:
+    """`scipy.fft.rfftfreq(length, dt)` (Hz, dt in s), read-only, computed once per length."""
+    return read_only(scipy.fft.rfftfreq(length, dt))
+
+
+def read_only(array: np.ndarray) -> np.ndarray:
+    """`array`, made read-only (a cached value that no caller may change), returned."""
+    array.flags.writeable = False
+    return array
 
 
 def edge_samples(bandwidth: float, dt: float) -> int:
