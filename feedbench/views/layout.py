@@ -68,14 +68,24 @@ def legends_reach(figure: Figure, renderer) -> float:
 
 
 def column_reach(axes: Sequence, renderer) -> Reach:
-    """What each panel's labels, tick labels, legend and tags reach out of it as placed
-    (px)."""
+    """What each panel's labels, tick labels, tick marks, legend and tags reach out of it as
+    placed (px). Its spines are left out of the measurement (each measures its axis' ticks
+    again, for the tick marks: `tick_marks_reach`)."""
     reach = []
     for ax in axes:
-        box, panel = ax.get_tightbbox(renderer, for_layout_only=True), ax.bbox
+        spines = set(ax.spines.values())
+        box, panel = ax.get_tightbbox(renderer, for_layout_only=True, bbox_extra_artists=[
+            a for a in ax.get_default_bbox_extra_artists() if a not in spines]), ax.bbox
         reach.append((panel.x0 - box.x0, box.x1 - panel.x1, box.y1 - panel.y1,
                       panel.y0 - box.y0))
-    return np.maximum(np.array(reach), 0.0)
+    return np.maximum(np.array(reach), tick_marks_reach(axes))
+
+
+def tick_marks_reach(axes: Sequence) -> Reach:
+    """How far each panel's tick marks reach out of it (px): the y axis' left, the x axis'
+    below."""
+    return np.array([(ax.yaxis.get_tick_padding(), 0.0, 0.0, ax.xaxis.get_tick_padding())
+                     for ax in axes]) * axes[0].figure.dpi / 72
 
 
 def place_column(figure: Figure, axes: Sequence, reach: Reach, above: float = 0.0) -> None:
