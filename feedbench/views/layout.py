@@ -8,6 +8,7 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
+from matplotlib import rcParams
 from matplotlib.figure import Figure
 from matplotlib.layout_engine import LayoutEngine
 
@@ -54,8 +55,6 @@ def fit_column(figure: Figure, axes: Sequence) -> None:
 def guessed_reach(figure: Figure, n_panels: int) -> Reach:
     """What a column's panels reach out before measuring (px): the last one's x tick labels
     and label below it (three lines of the font, for the ticks and pads), nothing else."""
-    from matplotlib import rcParams
-
     reach = np.zeros((n_panels, 4))
     reach[-1, 3] = 3.0 * rcParams["font.size"] * figure.dpi / 72
     return reach
