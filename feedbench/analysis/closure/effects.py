@@ -678,25 +678,66 @@ def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
     return a.shape == b.shape and np.array_equal(a.view(np.int64), b.view(np.int64))
 
 
+COLUMN_MEMO_BLOCKS = 64
+"""Most column blocks one `follower_memo` keeps (the least recently used go first): a block
+is asked for again within one candidate's fit (refinement, solve, prediction) and by the
+next candidates' fits of the same model."""
+
+
+class _ColumnMemo:
+    """The `Effect.columns` blocks computed within one `follower_memo`, keyed on the effect
+    and the kinematics (by identity, both held: a `Kinematics` is never changed) and the
+    bit patterns of the values. A hit returns the very array computed before, read-only."""
+
+    def __init__(self) -> None:
+        self.blocks: OrderedDict[tuple, tuple[Effect, Kinematics, np.ndarray]] = OrderedDict()
+
+    def columns(self, effect: Effect, kin: Kinematics, values: Mapping[str, float]
+                ) -> np.ndarray:
+        key = (id(effect), id(kin), tuple(values),
+               np.array(list(values.values()), dtype=float).tobytes())
+        held = self.blocks.get(key)
+        if held is not None:
+            self.blocks.move_to_end(key)
+            return held[2]
+        block = read_only(effect.columns(kin, values))
+        self.blocks[key] = (effect, kin, block)
+        if len(self.blocks) > COLUMN_MEMO_BLOCKS:
+            self.blocks.popitem(last=False)
+        return block
+
+
+def term_columns(effect: Effect, kin: Kinematics, values: Mapping[str, float]) -> np.ndarray:
+    """`effect.columns(kin, values)`; within a `follower_memo`, computed once per exact
+    input (read-only: the same array each time)."""
+    memo = _COLUMN_MEMO.get()
+    return effect.columns(kin, values) if memo is None else memo.columns(effect, kin, values)
+
+
 _FOLLOWER_MEMO: ContextVar[_FollowerMemo | None] = ContextVar("follower_memo", default=None)
+_COLUMN_MEMO: ContextVar[_ColumnMemo | None] = ContextVar("column_memo", default=None)
 
 
 @contextmanager
 def follower_memo() -> Iterator[None]:
     """Within the block, `follower_force` computes each exact input once (one closure run:
-    `diagnosis.close_the_loop`). The screening of a candidate probes many starts, each with
-    the same linear mode beside it (`Backlash._in_the_mode_spring`, `CubicStiffening`), and a
-    start is simulated again when it is fitted: on the independent simulator's recal_mass
-    case, 964 follower simulations held 301 distinct inputs. Results are the same arrays,
-    so the closure's results are bit for bit those without the memo. Nested blocks share
-    the outer memo; it is dropped when the outermost block ends (no cache outlives a run)."""
+    `diagnosis.close_the_loop`), and so does `term_columns`. The screening of a candidate
+    probes many starts, each with the same linear mode beside it
+    (`Backlash._in_the_mode_spring`, `CubicStiffening`), and a start is simulated again when
+    it is fitted: on the independent simulator's recal_mass case, 964 follower simulations
+    held 301 distinct inputs; a model's held terms give the same columns at every fit.
+    Results are the same arrays, so the closure's results are bit for bit those without
+    the memo. Nested blocks share the outer memo; it is dropped when the outermost block
+    ends (no cache outlives a run)."""
     if _FOLLOWER_MEMO.get() is not None:
         yield
         return
     token = _FOLLOWER_MEMO.set(_FollowerMemo())
+    columns = _COLUMN_MEMO.set(_ColumnMemo())
     try:
         yield
     finally:
+        _COLUMN_MEMO.reset(columns)
         _FOLLOWER_MEMO.reset(token)
 
 

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.optimize import least_squares, lsq_linear
 
 from feedbench.analysis.closure.effects import (
-    DIFFERENCE_STEP, EFFECTS, Effect, prefetch_followers, spectral,
+    DIFFERENCE_STEP, EFFECTS, Effect, prefetch_followers, spectral, term_columns,
 )
 from feedbench.analysis.closure.trace import Kinematics, frequencies, nrmse, read_only
 
@@ -153,7 +153,7 @@ def design(model: Model, kin: Kinematics, cache: ColumnCache | None = None,
         if cache is not None and i in cache and cache[i][0] == lead:
             blocks.append(cache[i][1])
         else:
-            block = _advance(term.effect.columns(kin, term.values), lead / kin.dt)
+            block = _advance(term_columns(term.effect, kin, term.values), lead / kin.dt)
             blocks.append(block if rows is None else block[rows])
         for key in term.effect.linear_keys:
             owners.append((i, key))
@@ -239,7 +239,7 @@ def predict_tip(model: Model, kin: Kinematics) -> np.ndarray:
     tip = kin.a
     for term in model.terms:
         if term.name in TIP_TERMS:
-            tip = tip + term.effect.columns(kin, term.values)[:, 0]
+            tip = tip + term_columns(term.effect, kin, term.values)[:, 0]
     return tip
 
 
@@ -405,7 +405,7 @@ def _refine_nonlinear(model: Model, kin: Kinematics, x0: np.ndarray,
     moving = {i for i, _ in slots}
     rows = kin.rows[::_stride(kin)]
     lead = sum(t.effect.shift(t.values) for t in model.terms)
-    cache = {i: (lead, _advance(t.effect.columns(kin, t.values), lead / kin.dt)[rows])
+    cache = {i: (lead, _advance(term_columns(t.effect, kin, t.values), lead / kin.dt)[rows])
              for i, t in enumerate(model.terms) if i not in moving and t.effect.linear_keys}
     measured = kin.force[rows]
 
