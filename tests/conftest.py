@@ -7,6 +7,7 @@ files first (`SLOW_FIRST`). Each worker compiles numba kernels into its own cach
 
 from __future__ import annotations
 
+import gc
 import os
 from pathlib import Path
 
@@ -66,6 +67,14 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if item.path.name in rank:
             item.add_marker(pytest.mark.slow)
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Freeze the heap once collected (`gc.freeze`): every test module and the libraries
+    they import, ≈ 250 000 objects a worker, are then left out of Python's full
+    collections, which walked them about 50 times a worker in a fifth of the suite (8.5 of
+    a worker's 38 s of CPU went to full collections; 1.8 s frozen, measured 29 Nov)."""
+    gc.freeze()
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:

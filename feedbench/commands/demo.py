@@ -33,6 +33,7 @@ from feedbench.config import ConfigError, read_toml
 from feedbench.engine.family import HEADLINE_SEPARATOR, Example, examples, families, family
 from feedbench.engine.limits import LimitError
 from feedbench.daq.recording import open_recording
+from feedbench.protocols.canbus import frozen_heap
 from feedbench.report import run_section, write_sections
 from feedbench.views.sections import RunSection
 
@@ -213,8 +214,9 @@ def run_demo(directory: Path, quiet: bool = False, quick: bool = False,
     if workers > 1:
         imports_for_workers()
     t1 = time.monotonic()
-    measured = measure_all({name: (declared[name], configs[name]) for name in configs},
-                           workers, quiet)
+    with frozen_heap():  # the workers fork from it: their full collections skip the imports
+        measured = measure_all({name: (declared[name], configs[name]) for name in configs},
+                               workers, quiet)
     t2 = time.monotonic()
     experiments = {name: m.entry for name, m in measured.items()}
     for cls in dict.fromkeys(family(raw["experiment"]["type"]) for raw in configs.values()):
