@@ -73,7 +73,10 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     """Freeze the heap once collected (`gc.freeze`): every test module and the libraries
     they import, ≈ 250 000 objects a worker, are then left out of Python's full
     collections, which walked them about 50 times a worker in a fifth of the suite (8.5 of
-    a worker's 38 s of CPU went to full collections; 1.8 s frozen, measured 29 Nov)."""
+    a worker's 38 s of CPU went to full collections; 1.8 s frozen, measured 29 Nov). A
+    real-time run's `frozen_heap` unfreezes it as it ends: that worker's later tests
+    collect as before (kept frozen, the next real-time run there faulted on SYNC loss right
+    after its enable, cause not found)."""
     gc.freeze()
 
 

@@ -156,9 +156,6 @@ def connect(network: canopen.Network) -> canopen.Network:
 
 _frozen = 0
 """How many `frozen_heap` blocks are open (any thread)."""
-_frozen_outside = False
-"""The heap was frozen already when the first open block began (by the process itself: a
-test worker after collecting, a parent before it forks workers): the last block leaves it so."""
 _frozen_lock = threading.Lock()
 
 
@@ -166,16 +163,13 @@ _frozen_lock = threading.Lock()
 def frozen_heap() -> Iterator[None]:
     """While inside, Python's garbage collector leaves every object that exists on entry
     alone (`gc.freeze`); once the last open block (of any thread) exits, they are its again
-    (`gc.unfreeze`), unless the heap was frozen before the first block began. A full
-    collection walks every object of the process: ≈ 0.1 s with numpy, scipy and numba
-    loaded, during which no thread of the process runs, so no SYNC is sent, no TPDO
-    received, no setpoint sent (measured: one such pause per ≈ 15 s of 1 kHz cycles, long
-    enough for the drive's SYNC-loss watchdog to stop the axis). Objects made inside are
-    collected as before; the young ones cost microseconds."""
-    global _frozen, _frozen_outside
+    (`gc.unfreeze`). A full collection walks every object of the process: ≈ 0.1 s with
+    numpy, scipy and numba loaded, during which no thread of the process runs, so no SYNC
+    is sent, no TPDO received, no setpoint sent (measured: one such pause per ≈ 15 s of
+    1 kHz cycles, long enough for the drive's SYNC-loss watchdog to stop the axis). Objects
+    made inside are collected as before; the young ones cost microseconds."""
+    global _frozen
     with _frozen_lock:
-        if not _frozen:
-            _frozen_outside = gc.get_freeze_count() > 0
         gc.freeze()
         _frozen += 1
     try:
@@ -183,7 +177,7 @@ def frozen_heap() -> Iterator[None]:
     finally:
         with _frozen_lock:
             _frozen -= 1
-            if not _frozen and not _frozen_outside:
+            if not _frozen:
                 gc.unfreeze()
 
 
