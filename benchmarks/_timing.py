@@ -1,9 +1,13 @@
-"""Helpers the benchmarks share: best-of-n wall time, and the one-line-per-figure printout."""
+"""Helpers the benchmarks share: best-of-n wall time, the one-line-per-figure printout, and
+another process burning one CPU (a machine with one core busy)."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
-from typing import Callable, TypeVar
+from contextlib import contextmanager
+from typing import Callable, Iterator, TypeVar
 
 Result = TypeVar("Result")
 
@@ -29,3 +33,14 @@ def print_figures(figures: dict[str, float], notes: dict[str, str], name_width: 
     """One line per figure: name, value (`value_format`, e.g. "10.3f") and its note."""
     for name, value in figures.items():
         print(f"{name:<{name_width}s} {value:{value_format}}  {notes[name]}")
+
+
+@contextmanager
+def burning_one_cpu() -> Iterator[None]:
+    """While inside, another process spins on one CPU; killed on exit."""
+    burner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        yield
+    finally:
+        burner.kill()
+        burner.wait()

@@ -19,14 +19,10 @@ starts burns one CPU (`burning_one_cpu`), killed when the run ends.
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 import tempfile
 import threading
 import time
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
@@ -38,6 +34,7 @@ from feedbench.daq.recording import open_recording  # noqa: E402
 from feedbench.engine.plan import Plan, Segment  # noqa: E402
 from feedbench.gui.live_window import LiveWindow, qt_app  # noqa: E402
 from feedbench.protocols.canbus import frozen_heap  # noqa: E402
+from _timing import burning_one_cpu  # noqa: E402  (benchmarks/_timing.py)
 
 N_CHANNELS = 8
 RATE_HZ = 10_000
@@ -180,17 +177,6 @@ def frame_costs(window: LiveWindow, stream: LiveStream, repeats: int = 5) -> dic
             window.trace_view.grab()
         costs[f"frame_{name}_s"] = (time.perf_counter() - start) / repeats
     return costs
-
-
-@contextmanager
-def burning_one_cpu() -> Iterator[None]:
-    """While inside, another process spins on one CPU; killed on exit."""
-    burner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
-    try:
-        yield
-    finally:
-        burner.kill()
-        burner.wait()
 
 
 def run(duration_s: float = DURATION_S) -> dict[str, float]:
