@@ -11,7 +11,7 @@ PIP_VERSION := 26.3
 SETUPTOOLS_VERSION := 80.9.0
 PYTEST_ARGS = -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
-.PHONY: demo test test-lab test-fast test-latest lock bench docs clean
+.PHONY: demo test test-lab test-fast test-latest lock bench bench-suite docs clean
 
 # the stamp holds the set-up's wall time (s), which `make demo` reports
 $(STAMP): pyproject.toml $(LOCK)
@@ -31,8 +31,9 @@ demo: $(STAMP)
 	@s=$$(cat $(STAMP)); echo "Set-up of this clone (venv + pip install, once):" \
 		"$${s:-not timed}$${s:+ s}; the first demo also compiles the physics (numba, cached)"
 
-# two xdist workers, whole files each, slowest files first (tests/conftest.py): 1434 tests
-# in 6 min 33 s on this 2-core machine, quiet (29 Nov, evening; all of `make test` 7 min 10 s)
+# two xdist workers, whole files each, slowest files first (tests/conftest.py): 1437 tests
+# in 5 min 55 s on this 2-core machine, quiet (29 Nov, late evening; all of `make test`
+# 6 min 31–36 s; `make bench-suite` times it)
 # then the real-time tests alone (marked realtime): a host loop starved by the other
 # worker's CPU is what they measure against, not what they may run beside; only the files
 # that mark a test realtime are collected for them (collecting the whole suite to deselect
@@ -86,6 +87,11 @@ docs: $(STAMP)
 
 bench: $(VENV)/.bench
 	QT_QPA_PLATFORM=offscreen $(BIN)/python benchmarks/run_all.py
+
+# `make test` timed whole, quiet and beside a process burning one CPU (≈ 15 min; `make
+# bench` leaves it out unless FEEDBENCH_BENCH_SUITE=1)
+bench-suite: $(VENV)/.bench
+	FEEDBENCH_BENCH_SUITE=1 $(BIN)/python benchmarks/run_all.py suite
 
 clean:
 	rm -rf $(VENV) .venv-latest runs .pytest_cache

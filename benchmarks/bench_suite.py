@@ -14,6 +14,7 @@ import os
 import resource
 import subprocess
 import time
+from contextlib import nullcontext
 from pathlib import Path
 
 from _timing import burning_one_cpu  # benchmarks/_timing.py
@@ -25,24 +26,26 @@ REPOSITORY = Path(__file__).resolve().parents[1]
 
 def make_test() -> tuple[float, float]:
     """`make test` in the repository as CI runs it (``CI=true``): wall time and the CPU time
-    (s) of its processes; raises if it fails."""
+    (s) of its processes; a failure raises with the output's last lines."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
-    subprocess.run(["make", "-s", "test"], cwd=REPOSITORY, env={**os.environ, "CI": "true"},
-                   check=True, stdout=subprocess.DEVNULL)
+    done = subprocess.run(["make", "-s", "test"], cwd=REPOSITORY, env={**os.environ, "CI": "true"},
+                          capture_output=True, text=True)
     wall = time.perf_counter() - start
+    if done.returncode:
+        tail = "\n".join((done.stdout + done.stderr).splitlines()[-40:])
+        raise RuntimeError(f"make test failed (exit {done.returncode}):\n{tail}")
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
-def timed(label: str, loaded: bool) -> dict[str, float]:
-    """One `make test`, printed with its load average and ratio to the target."""
+def timed(loaded: bool) -> dict[str, float]:
+    """One `make test` (`loaded`: beside a process burning one CPU), printed with the load
+    average before it and its ratio to the target."""
     load = os.getloadavg()[0]
-    if loaded:
-        with burning_one_cpu():
-            wall, cpu = make_test()
-    else:
+    with burning_one_cpu() if loaded else nullcontext():
         wall, cpu = make_test()
+    label = "one CPU burnt by another process" if loaded else "quiet"
     print(f"make test, {label}: {wall:.0f} s ({wall / 60:.1f} min), CPU {cpu:.0f} s; "
           f"{wall / TARGET_S:.2f} of the target {TARGET_S:.0f} s; load before {load:.2f}")
     key = "suite_loaded" if loaded else "suite"
@@ -50,10 +53,12 @@ def timed(label: str, loaded: bool) -> dict[str, float]:
 
 
 def run() -> dict[str, float]:
-    figures = timed("quiet", loaded=False)
-    if os.environ.get("FEEDBENCH_SUITE_LOADED", "1") != "0":
-        figures.update(timed("one CPU burnt by another process", loaded=True))
-    return figures
+    """The suite quiet, then loaded; nothing unless ``FEEDBENCH_BENCH_SUITE=1``."""
+    if os.environ.get("FEEDBENCH_BENCH_SUITE") != "1":
+        print("skipped: two whole `make test` runs (≈ 15 min); FEEDBENCH_BENCH_SUITE=1 or "
+              "`make bench-suite` runs them")
+        return {}
+    return {**timed(loaded=False), **timed(loaded=True)}
 
 
 if __name__ == "__main__":

@@ -216,7 +216,7 @@ def test_a_frozen_heap_keeps_what_exists_out_of_the_collector_until_the_last_blo
     collection walks only what was made inside, not the ≈ 200 000 objects of the imports.
     Blocks of two threads overlap: the first to exit leaves the other's freeze alone. (The
     suite's workers freeze their heap after collecting, `conftest.py`: this test starts
-    from a heap that is not frozen and freezes it again at its end.)"""
+    from a heap that is not frozen, as the worker's tests after a real-time run do.)"""
     gc.unfreeze()
     entered, leave = threading.Event(), threading.Event()
 
@@ -235,5 +235,3 @@ def test_a_frozen_heap_keeps_what_exists_out_of_the_collector_until_the_last_blo
     leave.set()
     thread.join(5)
     assert gc.get_freeze_count() == 0
-    gc.freeze()
-

@@ -274,8 +274,9 @@ def test_follower_kernel_is_the_plain_rk4():
 
 
 def test_followers_side_by_side_are_the_single_follower():
-    """`effects._followers` (bodies stepped side by side, for the screening's prefetch) gives
-    each body what it gives the body alone, bit for bit (no body sees another's state); a
+    """`effects._followers` (bodies stepped side by side, for the screening's prefetch) and
+    `_followers_staged` (a stage at a time over all bodies, for 8 or more) give each body
+    what it gives the body alone, bit for bit (no body sees another's state); a
     prefetched input is what `follower_force` then returns, and its linear mode is
     simulated once."""
     from feedbench.analysis.closure import effects
@@ -292,6 +293,8 @@ def test_followers_side_by_side_are_the_single_follower():
     side_by_side = effects._followers(x, v, dt, table, 9)
     for row, out in zip(table, side_by_side):
         assert out.tobytes() == effects._follower(x, v, dt, *row, 9).tobytes(), row
+    assert len(table) >= effects.STAGED_BODIES  # the staged kernel of a large batch: the same
+    assert effects._followers_staged(x, v, dt, table, 9).tobytes() == side_by_side.tobytes()
     inputs = [(300.0, 0.3, 0.0, 1e-6, 2.0, 1.5e4), (300.0, 0.012, 0.0, 0.0, 0.0, 0.0),
               (300.0, 0.012, 0.0, 0.0, 0.0, 0.0), (3000.0, 0.3, 0.0, 1e-6, 1.0, 1.5e4)]
     with effects.follower_memo():

@@ -773,9 +773,10 @@ def test_a_legend_over_the_data_moves_out_of_the_axes():
 def test_an_empty_shaded_area_covers_no_legend_and_a_kept_legend_draws_once():
     """An empty filled area (no windows to shade: its extent is infinite and inverted) does
     not count as data under a legend: the legend in a free corner stays, and the figure is
-    drawn once (a moved legend needs a second drawing)."""
+    laid out once and drawn once (a moved legend needs a second layout)."""
     from matplotlib.figure import Figure
 
+    from feedbench.views import sections
     from feedbench.views.sections import new_figure, png_of
 
     figure = new_figure(6.0, 3.0)
@@ -784,13 +785,14 @@ def test_an_empty_shaded_area_covers_no_legend_and_a_kept_legend_draws_once():
     ax.plot(x, x**2, label="rising late")
     ax.fill_between([], [], [])
     ax.legend(loc="upper left")
-    drawings = []
+    layouts, drawings = [], []
     with pytest.MonkeyPatch.context() as patch:
-        savefig = Figure.savefig
-        patch.setattr(Figure, "savefig", lambda *a, **k: drawings.append(savefig(*a, **k)))
+        lay_out, draw = sections.lay_out, Figure.draw
+        patch.setattr(sections, "lay_out", lambda fig: layouts.append(lay_out(fig)))
+        patch.setattr(Figure, "draw", lambda self, renderer: drawings.append(draw(self, renderer)))
         png_of(figure)
     assert ax.get_legend()._loc == 2 and ax.get_legend().get_bbox_to_anchor().x0 < ax.bbox.x1
-    assert len(drawings) == 1
+    assert len(layouts) == 1 and len(drawings) == 1
 
 
 FRF_PLOT = re.compile(r"compliance|mobility|receptance|loop:")

@@ -18,6 +18,7 @@ after the other in this process (``workers=1``): lockstep virtual time.
 
 from __future__ import annotations
 
+import gc
 import multiprocessing
 import os
 import sys
@@ -33,7 +34,6 @@ from feedbench.config import ConfigError, read_toml
 from feedbench.engine.family import HEADLINE_SEPARATOR, Example, examples, families, family
 from feedbench.engine.limits import LimitError
 from feedbench.daq.recording import open_recording
-from feedbench.protocols.canbus import frozen_heap
 from feedbench.report import run_section, write_sections
 from feedbench.views.sections import RunSection
 
@@ -151,14 +151,17 @@ def demo_workers(n_examples: int) -> int:
 def measure_all(chosen: Mapping[str, tuple[Example, dict]], workers: int,
                 quiet: bool = False) -> dict[str, Measured]:
     """`measure` each example (name → (example, config)), by name in the given order; on
-    `workers` > 1 forked worker processes (they inherit the imports), the longest plans
-    first (`plan_cycles`: the last to start is a short one), one line per finished run on
+    `workers` > 1 forked worker processes (they inherit the imports, frozen: `gc.freeze`
+    as each starts, so that their full collections leave the imports alone: 1.5 → 0.6 s
+    of CPU in full collections over the campaign), the longest plans first
+    (`plan_cycles`: the last to start is a short one), one line per finished run on
     stderr unless `quiet`."""
     if workers <= 1:
         return {name: measure(example, raw, quiet) for name, (example, raw) in chosen.items()}
     done: dict[str, Measured] = {}
     longest_first = sorted(chosen, key=lambda name: -plan_cycles(chosen[name][1]))
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                             initializer=gc.freeze) as pool:
         futures = {pool.submit(measure, *chosen[name]): name for name in longest_first}
         try:
             for future in as_completed(futures):
@@ -214,9 +217,8 @@ def run_demo(directory: Path, quiet: bool = False, quick: bool = False,
     if workers > 1:
         imports_for_workers()
     t1 = time.monotonic()
-    with frozen_heap():  # the workers fork from it: their full collections skip the imports
-        measured = measure_all({name: (declared[name], configs[name]) for name in configs},
-                               workers, quiet)
+    measured = measure_all({name: (declared[name], configs[name]) for name in configs},
+                           workers, quiet)
     t2 = time.monotonic()
     experiments = {name: m.entry for name, m in measured.items()}
     for cls in dict.fromkeys(family(raw["experiment"]["type"]) for raw in configs.values()):

@@ -104,10 +104,15 @@ def png_of(figure: MplFigure) -> bytes:
     out again only when `legends_off_the_data` moved a legend of the figure as laid out,
     then drawn once with that layout fixed (savefig with a layout engine draws twice: a
     hidden drawing to lay out, then the image)."""
+    from matplotlib import rc_context
+
     lay_out(figure)
     if legends_off_the_data(figure):
         lay_out(figure)
-    figure.set_layout_engine(None)
+    # no engine at all (a "none" placeholder engine still draws twice), whatever a
+    # matplotlibrc's autolayout or constrained_layout.use would put in its place
+    with rc_context({"figure.autolayout": False, "figure.constrained_layout.use": False}):
+        figure.set_layout_engine(None)
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png")
     return buffer.getvalue()
