@@ -776,6 +776,17 @@ def _follower(x: np.ndarray, v: np.ndarray, dt: float, omega: float, zeta: float
 
 
 @njit(cache=True)
+def _substep_motion(x: np.ndarray, v: np.ndarray, i: int, j: int,
+                    steps: int) -> tuple[float, float, float, float, float, float]:
+    """The motor's position (m) and speed (m/s) at the start, the middle and the end of
+    substep `j` of `steps` after sample `i`, linearly interpolated: RK4's three points."""
+    dx, dv = x[i + 1] - x[i], v[i + 1] - v[i]
+    f0, f1, f2 = j / steps, (j + 0.5) / steps, (j + 1.0) / steps
+    return (x[i] + f0 * dx, v[i] + f0 * dv, x[i] + f1 * dx, v[i] + f1 * dv,
+            x[i] + f2 * dx, v[i] + f2 * dv)
+
+
+@njit(cache=True)
 def _followers(x: np.ndarray, v: np.ndarray, dt: float, table: np.ndarray,
                steps: int) -> np.ndarray:
     """The follower body of `follower_force` for each row (ω, ζ, κ, half play, friction,
@@ -806,12 +817,8 @@ def _followers(x: np.ndarray, v: np.ndarray, dt: float, table: np.ndarray,
                                       table[k, 3])
         if i + 1 == n:
             break
-        dx, dv = x[i + 1] - x[i], v[i + 1] - v[i]
         for j in range(steps):
-            f0, f1, f2 = j / steps, (j + 0.5) / steps, (j + 1.0) / steps
-            x0, v0 = x[i] + f0 * dx, v[i] + f0 * dv
-            x1, v1 = x[i] + f1 * dx, v[i] + f1 * dv
-            x2, v2_ = x[i] + f2 * dx, v[i] + f2 * dv
+            x0, v0, x1, v1, x2, v2_ = _substep_motion(x, v, i, j, steps)
             for k in range(k_bodies):
                 kappa, half_play = table[k, 2], table[k, 3]
                 friction, k_tanh = table[k, 4], table[k, 5]
@@ -869,12 +876,8 @@ def _followers_staged(x: np.ndarray, v: np.ndarray, dt: float, table: np.ndarray
                                       half_play[k])
         if i + 1 == n:
             break
-        dx, dv = x[i + 1] - x[i], v[i + 1] - v[i]
         for j in range(steps):
-            f0, f1, f2 = j / steps, (j + 0.5) / steps, (j + 1.0) / steps
-            x0, v0 = x[i] + f0 * dx, v[i] + f0 * dv
-            x1, v1 = x[i] + f1 * dx, v[i] + f1 * dv
-            x2, v2_ = x[i] + f2 * dx, v[i] + f2 * dv
+            x0, v0, x1, v1, x2, v2_ = _substep_motion(x, v, i, j, steps)
             for k in range(k_bodies):
                 a1[k] = _spring_force(x0 - xt[k], v0 - vt[k], w2[k], c[k], kappa[k],
                                       half_play[k])
