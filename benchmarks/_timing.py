@@ -1,8 +1,10 @@
-"""Helpers the benchmarks share: best-of-n wall time, the one-line-per-figure printout, and
-another process burning one CPU (a machine with one core busy)."""
+"""Helpers the benchmarks share: best-of-n wall time, the one-line-per-figure printout,
+another process burning one CPU (a machine with one core busy), the CPU time of child
+processes."""
 
 from __future__ import annotations
 
+import resource
 import subprocess
 import sys
 import time
@@ -44,3 +46,9 @@ def burning_one_cpu() -> Iterator[None]:
     finally:
         burner.kill()
         burner.wait()
+
+
+def children_cpu_s() -> float:
+    """CPU time (s) of this process's ended child processes (and theirs, when waited for)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime

@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
 
-from _timing import best_of  # benchmarks/_timing.py
+from _timing import best_of, children_cpu_s  # benchmarks/_timing.py
 from feedbench.commands.demo import numbers_of
 
 TARGET_S = 25.0
@@ -36,12 +35,6 @@ def demo(workers: int | None) -> tuple[dict, float]:
                                "--dir", directory, *extra],
                               capture_output=True, text=True, check=True)
     return json.loads(proc.stdout), children_cpu_s() - before
-
-
-def children_cpu_s() -> float:
-    """CPU time (s) of this process's ended child processes (and theirs, when waited for)."""
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
 
 
 def run() -> dict[str, float]:

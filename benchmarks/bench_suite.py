@@ -11,13 +11,12 @@ and the load average before each. A failing suite is an error here, not a time.
 from __future__ import annotations
 
 import os
-import resource
 import subprocess
 import time
 from contextlib import nullcontext
 from pathlib import Path
 
-from _timing import burning_one_cpu  # benchmarks/_timing.py
+from _timing import burning_one_cpu, children_cpu_s  # benchmarks/_timing.py
 
 TARGET_S = 360.0
 """The issue's goal for `make test` on 2 cores (s)."""
@@ -27,7 +26,7 @@ REPOSITORY = Path(__file__).resolve().parents[1]
 def make_test() -> tuple[float, float]:
     """`make test` in the repository as CI runs it (``CI=true``): wall time and the CPU time
     (s) of its processes; a failure raises with the output's last lines."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    before = children_cpu_s()
     start = time.perf_counter()
     done = subprocess.run(["make", "-s", "test"], cwd=REPOSITORY, env={**os.environ, "CI": "true"},
                           capture_output=True, text=True)
@@ -35,8 +34,7 @@ def make_test() -> tuple[float, float]:
     if done.returncode:
         tail = "\n".join((done.stdout + done.stderr).splitlines()[-40:])
         raise RuntimeError(f"make test failed (exit {done.returncode}):\n{tail}")
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, children_cpu_s() - before
 
 
 def timed(loaded: bool) -> dict[str, float]:
