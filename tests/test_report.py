@@ -770,6 +770,36 @@ def test_a_legend_over_the_data_moves_out_of_the_axes():
     assert top.get_position().x1 == pytest.approx(bottom.get_position().x1)
 
 
+@pytest.mark.parametrize("x_scale", ["log", "linear"])
+def test_frequency_tags_of_close_marks_do_not_overlap_and_stay_inside_the_figure(x_scale):
+    """Five marks, four of them close (and one at the x axis' right end) on a column of
+    panels laid out as the Bode plots are: drawn, no two tags (text or box) overlap, no box
+    overlaps the figure's legend and every tag lies inside the figure."""
+    from feedbench.views.sections import mark_frequencies, new_figure
+
+    figure = new_figure(8.0, 5.0, layout="column")
+    magnitude, phase = figure.subplots(2, 1, sharex=True)
+    f = np.geomspace(1.0, 1000.0, 400)
+    magnitude.loglog(f, 1.0 / np.abs(1.0 - (f / 120.0) ** 2 + 0.05j * f / 120.0), label="X")
+    phase.plot(f, -np.degrees(np.arctan2(0.05 * f / 120.0, 1.0 - (f / 120.0) ** 2)))
+    phase.set_xscale(x_scale)
+    figure.legend(loc="outside upper center", fontsize=8)
+    mark_frequencies((magnitude, phase), [(f"f_r {m:.1f} Hz", m)
+                                          for m in (100.0, 104.0, 109.0, 115.0, 1000.0)])
+    figure.canvas.draw()
+    tags = magnitude.texts
+    texts = [tag.get_window_extent() for tag in tags]
+    boxes = [tag.get_bbox_patch().get_window_extent() for tag in tags]
+    assert len(tags) == 5
+    for extents in (texts, boxes):
+        assert not [(i, j) for i, a in enumerate(extents) for j, b in enumerate(extents[:i])
+                    if a.overlaps(b)]
+    legend = figure.legends[0].get_window_extent()
+    assert not any(box.overlaps(legend) for box in boxes)
+    assert all(figure.bbox.x0 <= box.x0 and box.x1 <= figure.bbox.x1
+               and figure.bbox.y0 <= box.y0 and box.y1 <= figure.bbox.y1 for box in texts)
+
+
 def test_an_empty_shaded_area_covers_no_legend_and_a_kept_legend_draws_once():
     """An empty filled area (no windows to shade: its extent is infinite and inverted) does
     not count as data under a legend: the legend in a free corner stays, and the figure is

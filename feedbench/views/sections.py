@@ -213,12 +213,24 @@ def frf_figure(series: Sequence[FrfSeries], y_label: str, quality_label: str = "
 
 def mark_frequencies(axes: Sequence, marks: Sequence[tuple[str, float]]) -> None:
     """Dashed lines at `marks` (label, Hz) through `axes`, labelled above the first one in a
-    boxed tag (outside the data, as the legends); tags of neighbouring marks step up so
-    none draws over another."""
-    for i, (label, f_hz) in enumerate(sorted(marks, key=lambda m: m[1])):
+    boxed tag (outside the data, as the legends); each tag, in ascending frequency, on the
+    lowest level (13 pt apart) where its box overlaps no box already there, as the axes
+    stand before layout (which widens them: tags only move apart)."""
+    tags = []
+    for label, f_hz in sorted(marks, key=lambda m: m[1]):
         for ax in axes:
             ax.axvline(f_hz, color="k", ls="--", lw=0.8)
-        axes[0].annotate(label, (f_hz, 1.0), xycoords=("data", "axes fraction"),
-                         xytext=(0, 3 + 13 * (i % 3)), textcoords="offset points",
-                         ha="center", va="bottom", fontsize=8,
-                         bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.6", alpha=0.9))
+        tags.append(axes[0].annotate(
+            label, (f_hz, 1.0), xycoords=("data", "axes fraction"), xytext=(0, 3),
+            textcoords="offset points", ha="center", va="bottom", fontsize=8,
+            bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.6", alpha=0.9)))
+    axes[0].get_xlim()  # autoscaled to the lines first, as drawn (marks beyond the data)
+    figure = axes[0].figure
+    gap = 5 * figure.dpi / 72  # two box pads (1.6 pt), their edges and some air (px)
+    rights: list[float] = []  # per level, the right end of its last tag's text (px)
+    for tag in tags:
+        text = tag.get_window_extent(figure.canvas.get_renderer())
+        level = next((n for n, right in enumerate(rights) if right + gap <= text.x0),
+                     len(rights))
+        rights[level:level + 1] = [text.x1]
+        tag.xyann = (0, 3 + 13 * level)
