@@ -114,6 +114,34 @@ def test_host_sync_advances_the_bench_process_world(bench_process):
     np.testing.assert_allclose(block.samples[10_000:].std(axis=0), SMFE_SENSOR_NOISE, rtol=0.1)
 
 
+def test_a_lockstep_tick_reads_its_answers_itself_and_an_sdo_between_ticks_is_answered(
+        bench_process):
+    """Lockstep over socketcand (`protocols.canbus.cycle_reads`): once the receive thread has
+    let go of the socket (the first ticks), every TPDO reaches its handler in the ticking
+    thread, none in the receive thread; an SDO upload between ticks, which no tick reads, is
+    answered by the receive thread once the lease ends (`READS_LEASE_S`), within 0.3 s; the
+    ticks after it read their answers themselves again (but the first, which finds the
+    receive thread on the socket)."""
+    cfg = validate_table({"simulated": False, "interface": "socketcand",
+                          "socketcand": bench_process["socketcand"],
+                          "channel": bench_process["channel"]}, bench_schema(), "bench")
+    with Bench(cfg) as bench:
+        readers: list[int] = []
+        bench.network.subscribe(0x180 + bench.drive.node.id,
+                                lambda *_: readers.append(threading.get_ident()))
+        for _ in range(300):
+            bench.clock.tick()
+        t0 = time.perf_counter()
+        statusword = bench.drive.node.sdo[0x6041].raw
+        answered_s = time.perf_counter() - t0
+        for _ in range(100):
+            bench.clock.tick()
+    ticking = threading.get_ident()
+    assert len(readers) == 400
+    assert readers[100:300] == [ticking] * 200 and readers[-90:] == [ticking] * 90
+    assert answered_s < 0.3 and statusword == bench.drive.statusword
+
+
 def test_hub_relays_frames_between_clients_of_one_bus_only():
     """Raw-mode socketcand: a frame reaches the other clients of its bus (standard and
     extended id, 0–8 bytes), never its sender, never another bus."""

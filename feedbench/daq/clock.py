@@ -38,6 +38,7 @@ import threading
 import time
 from array import array
 from contextlib import AbstractContextManager, contextmanager, nullcontext
+from functools import partial
 from pathlib import Path
 from typing import Callable, Iterator, Protocol, Sequence
 
@@ -47,7 +48,7 @@ import numpy as np
 from can.broadcastmanager import ThreadBasedCyclicSendTask
 
 from feedbench.daq.timing import TIMING_CHANNELS, TIMING_UNITS, cycle_timing
-from feedbench.protocols.canbus import batched_sends, frozen_heap
+from feedbench.protocols.canbus import Receive, batched_sends, cycle_reads, frozen_heap
 from feedbench.protocols.cia301 import (
     HEARTBEAT_COB_BASE, HEARTBEAT_OPERATIONAL, HOST_NODE_ID, SYNC_COB_ID,
 )
@@ -136,7 +137,7 @@ class CycleDrive(Protocol):
 
     def transmit(self) -> None: ...
 
-    def wait_cycle(self, timeout_s: float) -> bool: ...
+    def wait_cycle(self, timeout_s: float, receive: Receive | None = None) -> bool: ...
 
     @property
     def sets_waiting(self) -> int: ...
@@ -294,7 +295,9 @@ def wait_awake(wait: Callable[[float], bool], timeout_s: float, limit_s: float) 
 
 
 class LockstepClock(_BenchClock):
-    """Simulation clock: each tick sends SYNC and waits for every drive's TPDOs of it."""
+    """Simulation clock: each tick sends SYNC and waits for every drive's TPDOs of it, reading
+    them in the tick's own thread where the bus lets it (`protocols.canbus.cycle_reads`: a
+    `feedbench sim` over socketcand)."""
 
     def __init__(self, network: canopen.Network, drives: Sequence[CycleDrive],
                  timeout_s: float = 0.5, cycle_s: float = 1e-3,
@@ -311,13 +314,15 @@ class LockstepClock(_BenchClock):
         if self._ticks % self._beat_every == 0:
             self.network.send_message(*HOST_HEARTBEAT)
         first = self._ticks == 0
-        self._start_cycle()
         timeout_s = max(self.timeout_s, FIRST_CYCLE_TIMEOUT_S) if first else self.timeout_s
         limit_s = max(timeout_s, FIRST_CYCLE_TIMEOUT_S)
-        for drive in self.drives:
-            if not wait_awake(drive.wait_cycle, timeout_s, limit_s):
-                raise BusTimeout(f"node {drive.node.id}: no TPDOs {timeout_s} s after "
-                                 f"SYNC (after device cycle {self.cycle})")
+        with cycle_reads(self.network) as receive:
+            self._start_cycle()
+            for drive in self.drives:
+                if not wait_awake(partial(drive.wait_cycle, receive=receive), timeout_s,
+                                  limit_s):
+                    raise BusTimeout(f"node {drive.node.id}: no TPDOs {timeout_s} s after "
+                                     f"SYNC (after device cycle {self.cycle})")
         self._check_heartbeats()
         return self._count_cycles()
 

@@ -37,7 +37,7 @@ from canopen.profiles.p402 import State402
 
 from feedbench.config import ConfigError, Field, positive, validate_table
 from feedbench.protocols import cia301
-from feedbench.protocols.canbus import pdo_codec, remote_node, send_frames
+from feedbench.protocols.canbus import Receive, pdo_codec, remote_node, send_frames
 from feedbench.protocols.cia402 import (
     COMMANDS, CONTROLWORD, CW_FAULT_RESET, CYCLE_COUNTER, DEFAULT_RPDO_MAPS, DEFAULT_TPDO_MAPS,
     FAULT, FAULT_REACTION_OPTION_CODE, FOLLOWING_ERROR_OFF, FOLLOWING_ERROR_WINDOW, FORCE_ACTUAL,
@@ -741,11 +741,19 @@ class Cia402Drive:
         self._sets.clear()
         self._cycle_complete.clear()
 
-    def wait_cycle(self, timeout_s: float) -> bool:
+    def wait_cycle(self, timeout_s: float, receive: Receive | None = None) -> bool:
         """Take the oldest complete TPDO set not taken yet, waiting up to `timeout_s` for one
         (lockstep: the SYNC's after `arm_cycle`; real time: the next in order, possibly in
         already), as the actual values (`actual`, `statusword`, `device_cycle`,
-        `set_time`); False if none came (one that came as the wait timed out is taken)."""
+        `set_time`); False if none came (one that came as the wait timed out is taken).
+        `receive`: the frames are read in this thread while it can (`protocols.canbus.
+        cycle_reads`), else the receive thread's are awaited."""
+        if receive is not None:
+            deadline = time.monotonic() + timeout_s
+            while not self._sets and (left_s := deadline - time.monotonic()) > 0 \
+                    and receive(left_s):
+                pass
+            timeout_s = max(0.0, deadline - time.monotonic())
         while not self._sets:
             if not self._cycle_complete.wait(timeout_s) and not self._sets:
                 return False
