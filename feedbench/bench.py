@@ -288,7 +288,11 @@ def gains_si(table: Mapping[str, Any]) -> dict[str, float]:
 
 
 def _bus_options(cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """python-can options beyond interface and channel: a socketcand server's host and port."""
+    """python-can options beyond interface and channel: a socketcand server's host and port;
+    a simulated lockstep bench on the virtual bus delivers each frame in its sender's thread
+    (`protocols.canbus.DirectVirtualBus`)."""
+    if cfg["interface"] == "virtual":
+        return {"direct": True} if cfg["simulated"] and cfg["clock"] == "lockstep" else {}
     if cfg["interface"] != "socketcand":
         return {}
     host, port = split_address(cfg["socketcand"], "bench.socketcand")

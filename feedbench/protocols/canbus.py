@@ -55,6 +55,9 @@ SOCKETCAND_PENDING_BYTES = 200
 (python-can's limit)."""
 SOCKETCAND_LOGGER = logging.getLogger("can.interfaces.socketcand")
 """python-can's socketcand logger (silenced by `open_bus`: a warning per frame)."""
+DIRECT_LOGGER = logging.getLogger("can.interfaces.virtual")
+"""Where a `DirectVirtualBus` logs a listener's error (python-can's Notifier would raise it
+in its thread)."""
 SOCKETCAND_HEX = [b"%x" % value for value in range(256)]
 """A data byte as python-can writes it in ``< send … >``: lower-case hex, no leading zero."""
 READS_LEASE_S = 0.01
@@ -346,6 +349,50 @@ class LocalVirtualBus(virtual.VirtualBus):
             raise can.CanOperationError("Could not send message to one or more recipients")
 
 
+class DirectVirtualBus(LocalVirtualBus):
+    """A `LocalVirtualBus` whose frames, once a canopen network listens on it (`listen`,
+    called by `connect`), go to the network's listeners in the sending thread instead of a
+    queue and a receive thread. A simulated lockstep `Bench` in one process opens both its
+    host and its simulated nodes on such buses (``direct`` in `open_bus`): a cycle's RPDOs
+    and SYNC run the drive and its world in the host's thread, and the TPDOs they send
+    complete the host's set before the SYNC's send returns; two thread hand-overs a cycle
+    fewer. The ten demo runs took 38.6 → 33.0 s of CPU with every recorded sample the same
+    (SHA-1 of every dataset, 29 Nov 2026). Buses on the channel that do not listen (a
+    faulty bus, python-can's `VirtualBus`) queue their frames as before."""
+
+    def listen(self, listeners: list[can.Listener]) -> None:
+        """From now on hand every frame to `listeners` as it is sent; frames queued before
+        go to them first."""
+        deliver = _Deliver(listeners)
+        with virtual.channels_lock:
+            inbox = self.queue
+            self.channel[self.channel.index(inbox)] = deliver
+            self.queue = deliver  # type: ignore[assignment]
+        while not inbox.empty():
+            deliver.put(inbox.get())
+
+
+class _Deliver:
+    """A listening `DirectVirtualBus`'s place in its channel: what a sender puts there goes
+    to the listeners at once, in the sender's thread; a listener's error is logged, one
+    line (canopen's `MessageListener` logs its handlers' own), and the next one gets the
+    frame."""
+
+    __slots__ = ("listeners",)
+
+    def __init__(self, listeners: list[can.Listener]) -> None:
+        self.listeners = list(listeners)
+
+    def put(self, msg: can.Message, block: bool = True, timeout: float | None = None) -> None:
+        for listener in self.listeners:
+            try:
+                listener.on_message_received(msg)
+            except Exception as error:  # a listener's bug must not reach the sender
+                DIRECT_LOGGER.error("listener %s failed on frame 0x%03X: %s: %s",
+                                    type(listener).__name__, msg.arbitration_id,
+                                    type(error).__name__, error)
+
+
 class SocketcandBus(SocketCanDaemonBus):
     """python-can's socketcand bus (its connection and handshake, the same text on the
     wire), with two changes:
@@ -531,7 +578,8 @@ class SocketcandBus(SocketCanDaemonBus):
 def open_bus(interface: str, channel: str, bitrate: int = 1_000_000, **options: Any) -> can.BusABC:
     """A python-can bus; for ``socketcand`` the TCP tuning is on, its handshake bounded in
     time and its frame path lean (`SocketcandBus`) and its log off (a warning per frame; a
-    receive error per poll once the peer is gone: `ReceiveErrors`).
+    receive error per poll once the peer is gone: `ReceiveErrors`); ``virtual`` is
+    `LocalVirtualBus`, or `DirectVirtualBus` with ``direct=True``.
 
     An unknown interface, or a channel or server that cannot be opened, raises `ConfigError`
     naming the [bench] key.
@@ -543,7 +591,8 @@ def open_bus(interface: str, channel: str, bitrate: int = 1_000_000, **options: 
             reach(options["host"], options["port"])
             return SocketcandBus(channel=channel, bitrate=bitrate, **options)
         if interface == "virtual":
-            return LocalVirtualBus(channel=channel, bitrate=bitrate, **options)
+            bus_class = DirectVirtualBus if options.pop("direct", False) else LocalVirtualBus
+            return bus_class(channel=channel, bitrate=bitrate, **options)
         return can.Bus(interface=interface, channel=channel, bitrate=bitrate, **options)
     except can.CanInterfaceNotImplementedError as exc:
         raise ConfigError(f"bench.interface: {exc}") from None
