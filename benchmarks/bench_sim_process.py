@@ -6,7 +6,9 @@
   spindle, load cell, DAQ and their worlds); the same bench in the host's process on
   python-can's `virtual` bus (the baseline: the process boundary is the only difference);
   and the simulated drive alone in the host's process (the figure the issue quoted: it
-  leaves out the other devices' worlds). The in-process benches run on one CPU
+  leaves out the other devices' worlds). The same bench in process is also timed on
+  `DirectVirtualBus` (as a simulated lockstep `Bench` opens it since 29 Nov: no receive
+  threads), with `feedbench sim`'s ratio over it. The in-process benches run on one CPU
   (`one_core`), as a simulated `Bench` does; the bench process's host is not pinned. Five
   repeats interleave the three (process, in process, drive alone), so that load from other
   processes hits them alike; the ratio is printed per repeat (min / median / max) with the
@@ -37,6 +39,7 @@ import can
 import numpy as np
 from can.interfaces import virtual
 
+import feedbench.bench
 from feedbench.bench import Bench, bench_table
 from feedbench.devices import device_tables
 from feedbench.daq.clock import one_core
@@ -84,24 +87,42 @@ def start_bench_process(directory: Path) -> tuple[subprocess.Popen, dict]:
     return process, json.loads(line[len(READY):])
 
 
-def every_device_in_process(stack: ExitStack) -> Bench:
+def every_device_in_process(stack: ExitStack, direct: bool = False) -> Bench:
     """The bench `feedbench sim` serves (every simulated device), in this process on a
-    virtual bus and on one CPU as a simulated `Bench` runs, and a host `Bench` on it."""
+    virtual bus and on one CPU as a simulated `Bench` runs, and a host `Bench` on it;
+    `direct`: both on `DirectVirtualBus`, as a simulated lockstep `Bench` opens them (each
+    frame handled in its sender's thread), else on `LocalVirtualBus` with receive threads."""
     channel = f"bench-full-{uuid.uuid4().hex[:8]}"
     stack.enter_context(one_core())
     bench = _bench_table(channel=channel)
+    options = {"direct": True} if direct else {}
     stack.enter_context(SimulatedBench(bench, device_tables(bench, dict.fromkeys(
-        simulated_peers(), {}))))
+        simulated_peers(), {})), bus_options=options))
+    if direct:
+        stack.enter_context(host_bus_options(options))
     return stack.enter_context(Bench(_bench_table(simulated=False, channel=channel)))
 
 
-def lockstep_rates() -> tuple[list[float], list[float], list[float], list[float]]:
+@contextmanager
+def host_bus_options(options: dict) -> Iterator[None]:
+    """While inside, a host `Bench` opens its bus with `options` (a simulated one's
+    `DirectVirtualBus` for a host that is not simulated itself)."""
+    saved = feedbench.bench._bus_options
+    feedbench.bench._bus_options = lambda cfg: dict(options)
+    try:
+        yield
+    finally:
+        feedbench.bench._bus_options = saved
+
+
+def lockstep_rates() -> tuple[list[float], list[float], list[float], list[float], list[float]]:
     """Cycles/s in `LOCKSTEP_REPEATS` interleaved repeats: the bench process over socketcand
     (the host not pinned, as a host of hardware runs; it stays up over the repeats), then the
     same bench in process and the simulated drive alone (opened anew in each repeat: a
     simulated `Bench` pins the host thread for as long as it is open), and the same bench
     in process on python-can's own virtual bus (`python_can_virtual_bus`)."""
     plain: list[float] = []
+    direct: list[float] = []
     remote: list[float] = []
     local: list[float] = []
     drive_only: list[float] = []
@@ -127,7 +148,11 @@ def lockstep_rates() -> tuple[list[float], list[float], list[float], list[float]
                 full = every_device_in_process(here)
                 cycles_per_s(full, WARM_UP_CYCLES)
                 plain.append(cycles_per_s(full, N_CYCLES))
-    return remote, local, drive_only, plain
+            with ExitStack() as here:
+                full = every_device_in_process(here, direct=True)
+                cycles_per_s(full, WARM_UP_CYCLES)
+                direct.append(cycles_per_s(full, N_CYCLES))
+    return remote, local, drive_only, plain, direct
 
 
 @contextmanager
@@ -209,10 +234,11 @@ def milling_cycle_us() -> tuple[float, float, float]:
 
 def run() -> dict[str, float]:
     load = os.getloadavg()[0]
-    remotes, locals_, drives_only, plains = lockstep_rates()
+    remotes, locals_, drives_only, plains, directs = lockstep_rates()
     load = max(load, os.getloadavg()[0])
     ratios = [r / l for r, l in zip(remotes, locals_)]
     plain_ratios = [r / p for r, p in zip(remotes, plains)]
+    direct_ratios = [r / d for r, d in zip(remotes, directs)]
     remote, local, drive_only = (statistics.median(x) for x in (remotes, locals_, drives_only))
     relay = hub_frames_per_s()
     stepping, offline, world = milling_cycle_us()
@@ -228,6 +254,9 @@ def run() -> dict[str, float]:
     print(f"  the same bench in process on python-can's own VirtualBus (deep copy per frame "
           f"and receiver): {_spread(plains, 0)} cycles/s; `feedbench sim` over it "
           f"{_spread(plain_ratios)}")
+    print(f"  the same bench in process on `DirectVirtualBus` (each frame handled in its "
+          f"sender's thread, as a simulated lockstep `Bench` runs since 29 Nov): "
+          f"{_spread(directs, 0)} cycles/s; `feedbench sim` over it {_spread(direct_ratios)}")
     print(f"hub relay, one way between two socketcand clients: {relay:.0f} frames/s")
     print(f"milling process per bus cycle (10 samples at 10 kHz): {stepping:.1f} µs stepped "
           f"per cycle vs {offline:.1f} µs in one offline call = {stepping / offline:.2f}×; "
@@ -237,6 +266,9 @@ def run() -> dict[str, float]:
             "sim_process_ratio_min_of_5": min(ratios),
             "sim_process_ratio_max_of_5": max(ratios), "sim_process_load_average": load,
             "sim_process_over_python_can_virtual_min_of_5": min(plain_ratios),
+            "sim_inprocess_direct_cycles_per_s": statistics.median(directs),
+            "sim_process_over_direct_min_of_5": min(direct_ratios),
+            "sim_process_over_direct": statistics.median(direct_ratios),
             "sim_inprocess_drive_only_cycles_per_s": drive_only,
             "sim_process_over_drive_only": remote / drive_only, "hub_frames_per_s": relay,
             "smfe_step_us_per_cycle": stepping, "smfe_offline_us_per_cycle": offline,
