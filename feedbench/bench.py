@@ -85,6 +85,11 @@ BENCH_SCHEMA = {
                           positive),
     "one_core": Field(bool, True, "simulated lockstep bench: its threads on one CPU "
                       "(faster, same results; `feedbench.daq.clock.one_core`)"),
+    "one_thread": Field(bool, True, "simulated lockstep bench on the virtual bus: each CAN "
+                        "frame handled in its sender's thread, no receive threads (faster, "
+                        "same results; `protocols.canbus.DirectVirtualBus`); the live window "
+                        "turns it off: a run that never waits for its bus leaves the window "
+                        "few chances to draw"),
     "eds": Field(str, "", "EDS file of the drive (empty: the packaged simulated drive's)"),
     "name": Field(str, "", "the bench's name in the run catalog and the lab's store (empty: "
                   "$FEEDBENCH_BENCH, else the host's name; the environment's wins: "
@@ -289,10 +294,11 @@ def gains_si(table: Mapping[str, Any]) -> dict[str, float]:
 
 def _bus_options(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """python-can options beyond interface and channel: a socketcand server's host and port;
-    a simulated lockstep bench on the virtual bus delivers each frame in its sender's thread
-    (`protocols.canbus.DirectVirtualBus`)."""
+    ``direct`` for a simulated lockstep bench on the virtual bus (``one_thread``: each frame
+    handled in its sender's thread, `protocols.canbus.DirectVirtualBus`)."""
     if cfg["interface"] == "virtual":
-        return {"direct": True} if cfg["simulated"] and cfg["clock"] == "lockstep" else {}
+        return {"direct": True} if (cfg["one_thread"] and cfg["simulated"]
+                                    and cfg["clock"] == "lockstep") else {}
     if cfg["interface"] != "socketcand":
         return {}
     host, port = split_address(cfg["socketcand"], "bench.socketcand")

@@ -12,7 +12,6 @@ import h5py
 import numpy as np
 import pytest
 
-import feedbench.bench
 from feedbench.protocols.canbus import DirectVirtualBus, LocalVirtualBus, open_bus
 from feedbench.commands.demo import example_config
 from feedbench.testing import virtual_channel
@@ -84,6 +83,7 @@ def test_a_simulated_lockstep_bench_runs_its_cycle_in_the_ticking_thread(simulat
     host's set, all in the thread that ticks: no receive thread in between."""
     with simulated_bench.open(_short_chirp()) as bench:
         assert type(bench.network.bus) is DirectVirtualBus and bench.network.notifier is None
+        assert type(bench.simulated.drive.network.bus) is DirectVirtualBus
         host, drive = Heard(), Heard()
         bench.network.subscribe(0x180 + bench.drive.node.id,
                                 lambda *_: host.on_message_received(can.Message(
@@ -96,17 +96,18 @@ def test_a_simulated_lockstep_bench_runs_its_cycle_in_the_ticking_thread(simulat
     assert host.frames == [(me, 0x181)] * 20 and drive.frames == [(me, 0x80)] * 20
 
 
-def test_a_run_records_the_same_samples_with_or_without_direct_delivery(simulated_bench,
-                                                                        tmp_path, monkeypatch):
-    """A chirp run on the simulated bench, once as `Bench` opens it (direct) and once with
-    queues and receive threads on both sides: every numeric dataset of the two files equal,
-    bit for bit (lockstep is deterministic; only the threads differ)."""
+def test_a_run_records_the_same_samples_in_one_thread_or_with_receive_threads(
+        simulated_bench, tmp_path):
+    """A chirp run on the simulated bench, once as `Bench` opens it (``one_thread``, the
+    default) and once with ``one_thread = false`` (queues and receive threads on both sides,
+    as the live window runs it): every numeric dataset of the two files equal, bit for bit
+    (lockstep is deterministic; only the threads differ)."""
     direct = simulated_bench.run(_short_chirp())
-    queued_options = lambda cfg: {}  # noqa: E731 (the virtual bus without `direct`)
-    monkeypatch.setattr(feedbench.bench, "_bus_options", queued_options)
+    raw = _short_chirp()
+    raw["bench"]["one_thread"] = False
     simulated_bench.directory = tmp_path / "queued"
     simulated_bench.directory.mkdir()
-    queued = simulated_bench.run(_short_chirp())
+    queued = simulated_bench.run(raw)
     assert direct["status"] == queued["status"] == "complete"
     ours, theirs = _datasets(direct["file"]), _datasets(queued["file"])
     assert ours.keys() == theirs.keys() and len(ours) > 5

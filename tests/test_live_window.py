@@ -248,7 +248,7 @@ def test_stop_button_leaves_the_drive_switched_off(stopped_run):
 def test_closing_the_window_stops_the_run_safely(app, tmp_path):
     """Closing the window while the run goes on asks for the safe stop: the file is marked
     aborted with the reason, every sample kept, the drive switched off."""
-    session = bench_session(config("chirp", tmp_path, repetitions=1, duration_s=12.0, settle_s=0.3),
+    session = bench_session(config("chirp", tmp_path, repetitions=1, duration_s=1.0, settle_s=0.3),
                             progress=False)
     session.start()
     pump(app, session, until=lambda s: s.fraction > 0.2)

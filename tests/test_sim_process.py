@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+from contextlib import ExitStack
 
 import can
 import canopen
@@ -31,7 +32,8 @@ from feedbench.engine.plan import recorded_windows
 from feedbench.models.milling import SMFE_SENSOR_NOISE
 from feedbench.models.friction import LAB_BENCH_FRICTION
 from feedbench.protocols.canbus import (
-    SOCKETCAND_PENDING_BYTES, batched_sends, open_bus, send_frames, socketcand_messages,
+    SOCKETCAND_PENDING_BYTES, batched_sends, connect, cycle_reads, disconnect, open_bus,
+    send_frames, socketcand_messages,
 )
 from feedbench.sim_backends.socketcand_hub import SocketcandHub, parse_send
 from sim_peer import start_sim
@@ -117,11 +119,12 @@ def test_host_sync_advances_the_bench_process_world(bench_process):
 def test_a_lockstep_tick_reads_its_answers_itself_and_an_sdo_between_ticks_is_answered(
         bench_process):
     """Lockstep over socketcand (`protocols.canbus.cycle_reads`): once the receive thread has
-    let go of the socket (the first ticks), every TPDO reaches its handler in the ticking
-    thread, none in the receive thread; an SDO upload between ticks, which no tick reads, is
-    answered by the receive thread once the lease ends (`READS_LEASE_S`), within 0.3 s; the
-    ticks after it read their answers themselves again (but the first, which finds the
-    receive thread on the socket)."""
+    let go of the socket (the first ticks), the TPDOs reach their handler in the ticking
+    thread (at least 95 %: a tick longer than the lease, on a loaded machine, finds the
+    receive thread on the socket and is answered through it); an SDO upload between ticks,
+    which no tick reads, is answered by the receive thread once the lease ends
+    (`READS_LEASE_S`), within 0.3 s; the ticks after it read their answers themselves
+    again."""
     cfg = validate_table({"simulated": False, "interface": "socketcand",
                           "socketcand": bench_process["socketcand"],
                           "channel": bench_process["channel"]}, bench_schema(), "bench")
@@ -138,7 +141,7 @@ def test_a_lockstep_tick_reads_its_answers_itself_and_an_sdo_between_ticks_is_an
             bench.clock.tick()
     ticking = threading.get_ident()
     assert len(readers) == 400
-    assert readers[100:300] == [ticking] * 200 and readers[-90:] == [ticking] * 90
+    assert readers[100:300].count(ticking) >= 190 and readers[-90:].count(ticking) >= 85
     assert answered_s < 0.3 and statusword == bench.drive.statusword
 
 
@@ -185,19 +188,21 @@ def test_the_hub_refuses_a_malformed_send(tokens):
         parse_send(tokens.split())
 
 
-def _scripted_server(frames: bytes, heard: list[bytes]) -> tuple[int, threading.Thread]:
+def _scripted_server(frames: bytes, heard: list[bytes],
+                     after_ok: bytes = b"") -> tuple[int, threading.Thread]:
     """A socketcand server on a free loopback port, for one client (after `open_bus`'s
-    probe connection): the handshake, then what the client sends (kept in `heard`) until
-    it has sent twice, then `frames`, then it closes the connection. Its port and thread."""
+    probe connection): the handshake (`after_ok` sent with raw mode's ``< ok >``), then what
+    the client sends (kept in `heard`) until it has sent twice, then `frames`, then it
+    closes the connection. Its port and thread."""
     listener = socket.create_server(("127.0.0.1", 0))
 
     def serve() -> None:
         listener.accept()[0].close()  # `reach`: connects once and closes
         with listener, listener.accept()[0] as sock:
             sock.sendall(b"< hi >")
-            for _ in range(2):  # < open … >, < rawmode >
+            for answer in (b"< ok >", b"< ok >" + after_ok):  # < open … >, < rawmode >
                 sock.recv(256)
-                sock.sendall(b"< ok >")
+                sock.sendall(answer)
             while b"".join(heard).count(b">") < 2:
                 heard.append(sock.recv(256))
             sock.sendall(frames)
@@ -234,6 +239,51 @@ def test_the_hosts_socketcand_bus_speaks_python_cans_text_and_reads_frames_as_by
             for m in got] == [(0x181, False, bytes.fromhex("00010A0B0C0D0EFF"), 12.5, "b1"),
                               (0x1ABCDEF0, True, b"", 13.0, "b1"),
                               (0x80, False, b"\x07", 14.25, "b1")]
+
+
+def test_frames_that_come_with_raw_modes_ok_are_received_not_a_handshake_error():
+    """A busy bus's frames in the same receive as raw mode's ``< ok >`` (the hub relays to a
+    client `JOIN_S` after its ``< ok >``; a loaded host may read later): the bus opens and
+    receives them (python-can's own fails: "Expected '< ok >' got: …")."""
+    port, thread = _scripted_server(b"", [], after_ok=b"< frame 701 1.000000 05 >< frame 7")
+    bus = open_bus("socketcand", "b1", host="127.0.0.1", port=port)
+    try:
+        for msg in [can.Message(arbitration_id=0x80, is_extended_id=False)] * 2:
+            bus.send(msg)
+        heartbeat = bus.recv(1.0)
+        thread.join(2.0)
+    finally:
+        bus.shutdown()
+    assert (heartbeat.arbitration_id, bytes(heartbeat.data), heartbeat.timestamp) == \
+        (0x701, b"\x05", 1.0)
+
+
+def test_a_claimed_read_that_meets_a_closed_connection_gives_the_reads_back():
+    """`cycle_reads` on a socketcand bus whose server closes: the cycle's read returns False,
+    and so does every read after it without touching the socket; the receive thread's
+    receive meets the closed connection itself (`ReceiveErrors` keeps it)."""
+    port, thread = _scripted_server(b"< frame 181 2.000000 01 >", [])
+    network = canopen.Network(open_bus("socketcand", "b1", host="127.0.0.1", port=port))
+    got: list[int] = []
+    network.subscribe(0x181, lambda can_id, *_: got.append(can_id))
+    connect(network)
+    try:
+        with ExitStack() as claimed:
+            while (receive := claimed.enter_context(cycle_reads(network))) is None:
+                claimed.close()  # the receive thread was on the socket: it lets go
+            for msg in [can.Message(arbitration_id=0x80, is_extended_id=False)] * 2:
+                network.bus.send(msg)
+            while not got:
+                assert receive(1.0)
+            assert got == [0x181]
+            thread.join(2.0)
+            assert not receive(1.0)
+            t0 = time.perf_counter()
+            assert not receive(1.0) and time.perf_counter() - t0 < 0.01
+        with pytest.raises(can.CanOperationError, match="closed the connection"):
+            network.bus.recv(1.0)
+    finally:
+        disconnect(network)
 
 
 def test_the_hosts_socketcand_bus_writes_a_batch_in_one_piece():

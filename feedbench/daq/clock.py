@@ -319,8 +319,9 @@ class LockstepClock(_BenchClock):
         with cycle_reads(self.network) as receive:
             self._start_cycle()
             for drive in self.drives:
-                if not wait_awake(partial(drive.wait_cycle, receive=receive), timeout_s,
-                                  limit_s):
+                wait = drive.wait_cycle if receive is None else partial(drive.wait_cycle,
+                                                                        receive=receive)
+                if not wait_awake(wait, timeout_s, limit_s):
                     raise BusTimeout(f"node {drive.node.id}: no TPDOs {timeout_s} s after "
                                      f"SYNC (after device cycle {self.cycle})")
         self._check_heartbeats()

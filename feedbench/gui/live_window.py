@@ -17,7 +17,7 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -188,18 +188,8 @@ def state_text(state: LiveState) -> str:
             f"{html.escape(state.step_text)}<br>{left}")
 
 
-RUN_SWITCH_INTERVAL_S = 0.001
-"""Python's thread switch interval while a run's thread works (s; Python's own: 5 ms). A
-lockstep run on the simulated bench never waits for its bus (`protocols.canbus.
-DirectVirtualBus`: the simulated drive's cycle runs in the run's thread), so the window's
-thread gets the interpreter only when the run's thread is made to give it up. A 4 s chirp
-with the window refreshing: the window's longest pause 0.44 s at 5 ms, 0.17 s at 1 ms
-(0.16 s with the receive threads, when the run took 4.8 s instead of 1.6 s), 29 Nov 2026."""
-
-
 class Worker:
-    """Runs `target` in a thread and keeps what it returned or raised; while it runs, the
-    interpreter switches threads every `RUN_SWITCH_INTERVAL_S`."""
+    """Runs `target` in a thread and keeps what it returned or raised."""
 
     def __init__(self, target: Callable[[], Any]) -> None:
         self.result: Any = None
@@ -208,14 +198,10 @@ class Worker:
         self._thread = threading.Thread(target=self._run, name="feedbench-run", daemon=True)
 
     def _run(self) -> None:
-        interval = sys.getswitchinterval()
-        sys.setswitchinterval(RUN_SWITCH_INTERVAL_S)
         try:
             self.result = self._target()
         except BaseException as exc:  # handed to the GUI thread, re-raised by `wait`
             self.error = exc
-        finally:
-            sys.setswitchinterval(interval)
 
     def start(self) -> None:
         """Start the thread."""
@@ -682,6 +668,7 @@ def bench_session(config, span_s: float = 10.0, progress: bool = True,
     from feedbench.bench import run_config
 
     qt_app()
+    config = replace(config, bench={**config.bench, "one_thread": False})  # see `one_thread`
     stream, stop = LiveStream(), StopRequest()
     result = live_result_for(config.plan.experiment)
     observers = [stream, *([result] if result else [])]

@@ -18,7 +18,7 @@ import struct
 import threading
 import time
 from contextlib import AbstractContextManager, contextmanager, nullcontext
-from typing import Any, Callable, Iterable, Iterator, NamedTuple, Sequence
+from typing import Any, Callable, Iterable, Iterator, NamedTuple
 
 import can
 import canopen
@@ -62,9 +62,9 @@ SOCKETCAND_HEX = [b"%x" % value for value in range(256)]
 """A data byte as python-can writes it in ``< send … >``: lower-case hex, no leading zero."""
 READS_LEASE_S = 0.01
 """After a lockstep cycle read its socketcand connection itself (`cycle_reads`), the
-receive thread stays off the socket this long (s): a run's next cycle claims it again
-well within it, and a frame that comes while no cycle runs (an SDO answer to a stop between
-cycles) is read by the receive thread at most this late."""
+receive thread stays off the socket this long (s) after the cycle let go: a run's next cycle
+claims it again well within it, and a frame that comes while no cycle runs (an SDO answer
+to a stop between cycles) is read by the receive thread at most this late."""
 ANSWER_POLL_S = 300e-6
 """How long a lockstep cycle that reads its own answers (`cycle_reads`) polls the socket for
 them before it sleeps on it (s), giving the CPU to any other thread that wants it between
@@ -292,9 +292,9 @@ def cycle_reads(network: canopen.Network) -> Iterator[Receive | None]:
     if claim is None or network.notifier is None or not claim():
         yield None
         return
-    listeners = network.notifier.listeners
+    deliver = _Deliver(network.notifier.listeners).put
     try:
-        yield lambda timeout_s: bus.read_to(listeners, timeout_s)
+        yield lambda timeout_s: bus.read_to(deliver, timeout_s)
     finally:
         bus.release_reads()
 
@@ -358,7 +358,12 @@ class DirectVirtualBus(LocalVirtualBus):
     complete the host's set before the SYNC's send returns; two thread hand-overs a cycle
     fewer. The ten demo runs took 38.6 → 33.0 s of CPU with every recorded sample the same
     (SHA-1 of every dataset, 29 Nov 2026). Buses on the channel that do not listen (a
-    faulty bus, python-can's `VirtualBus`) queue their frames as before."""
+    faulty bus, python-can's `VirtualBus`) queue their frames as before; so do the buses
+    of a bench with ``one_thread = false`` (the live window's: a run that never waits for
+    its bus leaves the window's thread few chances to draw). A handler of a
+    listening network therefore runs while its sender holds its own network's send lock:
+    it must not send on the network it listens on, nor wait for a frame (none does: they
+    record what came, and the simulated nodes answer on their own network)."""
 
     def listen(self, listeners: list[can.Listener]) -> None:
         """From now on hand every frame to `listeners` as it is sent; frames queued before
@@ -457,63 +462,63 @@ class SocketcandBus(SocketCanDaemonBus):
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         """The next frame received, waiting up to `timeout` s for the server (None: no
-        limit) if none is waiting; while a cycle holds the reads (`claim_reads`), nothing,
-        after waiting up to `timeout` s for them to come free."""
-        if not self._frames:
-            if self._leased_until > time.monotonic() or not self._reading.acquire(blocking=False):
-                self._wait_for_reads(timeout)
-                return None, False
+        limit) if none is waiting; nothing while a cycle holds the reads, or while its lease
+        runs and no frame is waiting, after waiting up to `timeout` s (`_wait_for_reads`)."""
+        if self._reading.acquire(blocking=False):
             try:
-                self._receive(timeout)
+                if self._frames or self._leased_until <= time.monotonic():
+                    if not self._frames:
+                        self._receive(timeout)
+                    return (self._frames.popleft() if self._frames else None), False
             finally:
                 self._reading.release()
-        return (self._frames.popleft() if self._frames else None), False
+        self._wait_for_reads(timeout)
+        return None, False
 
     def _wait_for_reads(self, timeout: float | None) -> None:
-        """Sleep until the lease ends, or `READS_LEASE_S` / 10 while a cycle reads past it
-        (a slow cycle), at most `timeout` s."""
-        wait_s = max(self._leased_until - time.monotonic(), READS_LEASE_S / 10)
+        """Sleep until the lease ends, or one lease while a cycle holds the reads past its
+        lease (a slow cycle), at most `timeout` s."""
+        wait_s = max(self._leased_until - time.monotonic(), 0.0) or READS_LEASE_S
         time.sleep(wait_s if timeout is None else min(wait_s, timeout))
 
     def claim_reads(self) -> bool:
-        """Take the socket's reads for the calling thread (`read_to`) until
-        `release_reads`, and keep the receive thread off it for `READS_LEASE_S` more. False
-        if the receive thread is reading now (it lets go once this read is handed on: the
-        lease runs) or has frames not handed on yet (it hands them on and reads on, no
-        lease: frames reach the listeners in the order received)."""
+        """Take the socket's reads, and the frames received but not handed on yet, for the
+        calling thread (`read_to`) until `release_reads`; the receive thread stays off them
+        until `READS_LEASE_S` after the release. False if the receive thread is reading
+        now: it lets go after this read (the lease is set)."""
         self._leased_until = time.monotonic() + READS_LEASE_S
         if not self._reading.acquire(blocking=False):
-            return False
-        if self._frames:
-            self._leased_until = 0.0
-            self._reading.release()
             return False
         self._claimed = True
         return True
 
     def release_reads(self) -> None:
-        """End `claim_reads` (the lease runs on), unless a receive error ended it."""
+        """End `claim_reads`, unless a receive error ended it; the receive thread stays off
+        the socket `READS_LEASE_S` more (the next cycle claims it well within that)."""
         if self._claimed:
             self._claimed = False
+            self._leased_until = time.monotonic() + READS_LEASE_S
             self._reading.release()
 
-    def read_to(self, listeners: Sequence[can.Listener], timeout_s: float) -> bool:
-        """Under `claim_reads`: whatever the server sends within `timeout_s` (s), each frame
-        handed to `listeners` in this thread as python-can's `Notifier` hands it on. False
-        on a receive error: the claim and its lease end, and the receive thread meets the
-        error again and keeps it (`ReceiveErrors`), as without a claim."""
-        try:
-            self._poll(min(timeout_s, ANSWER_POLL_S))
-            self._receive(max(timeout_s, 0.0))
-        except can.CanOperationError:
-            self._leased_until = 0.0
-            self.release_reads()
+    def read_to(self, deliver: Callable[[can.Message], None], timeout_s: float) -> bool:
+        """Under `claim_reads`: the frames received but not handed on yet, else whatever
+        the server sends within `timeout_s` (s), each to `deliver` in this thread. False
+        without the claim: a receive error ends it (and its lease), and the receive thread
+        meets the error again and keeps it (`ReceiveErrors`), as without a claim."""
+        if not self._claimed:
             return False
         frames = self._frames
+        if not frames:
+            try:
+                self._poll(min(timeout_s, ANSWER_POLL_S))
+                self._receive(max(timeout_s, 0.0))
+            except can.CanOperationError:
+                self._claimed = False
+                self._leased_until = 0.0
+                self._reading.release()
+                return False
         while frames:
-            msg = frames.popleft()
-            for listener in listeners:
-                listener.on_message_received(msg)
+            deliver(frames.popleft())
         return True
 
     def _poll(self, poll_s: float) -> None:
@@ -533,10 +538,14 @@ class SocketcandBus(SocketCanDaemonBus):
             if not select.select([self._sock], [], [], timeout)[0]:
                 return
             data = self._sock.recv(SOCKETCAND_RECEIVE_BYTES)
-        except OSError as exc:
+        except (OSError, ValueError) as exc:  # closed meanwhile: a ValueError for its fd -1
             raise can.CanOperationError(f"Failed to receive: {exc}") from exc
         if not data:
             raise can.CanOperationError(f"{self.channel_info}: the server closed the connection")
+        self._take(data)
+
+    def _take(self, data: bytes) -> None:
+        """Received bytes: their complete messages parsed into frames, the rest kept."""
         messages, self._pending = socketcand_messages(self._pending, data)
         for message in messages:
             if (msg := self._parse(message)) is not None:
@@ -562,17 +571,24 @@ class SocketcandBus(SocketCanDaemonBus):
         return msg
 
     def _expect_msg(self, msg: str) -> None:
-        """python-can's check of the server's line `msg`, bounded in time: a silent server
-        raises `can.CanInitializationError` and the socket is closed."""
+        """python-can's check of the server's line `msg` (its error if another line came),
+        bounded in time: a silent server raises `can.CanInitializationError` and the socket
+        is closed. What came after the line in the same receive is kept for `_receive`:
+        frames a busy bus relayed right after raw mode's ``< ok >`` (python-can fails on
+        them; seen once in a suite with one CPU burnt: the hub's `JOIN_S` had passed)."""
         sock = self._SocketCanDaemonBus__socket  # python-can's own socket (name-mangled)
         sock.settimeout(HANDSHAKE_TIMEOUT_S)
         try:
-            super()._expect_msg(msg)
+            received = sock.recv(256)
         except TimeoutError:
             sock.close()
             raise can.CanInitializationError(
                 f"the server did not say {msg!r} within {HANDSHAKE_TIMEOUT_S:g} s") from None
         sock.settimeout(None)
+        line = msg.encode("ascii")
+        if not received.startswith(line):
+            raise can.CanError(f"Expected '{msg}' got: '{received.decode('ascii', 'replace')}'")
+        self._take(received[len(line):])
 
 
 def open_bus(interface: str, channel: str, bitrate: int = 1_000_000, **options: Any) -> can.BusABC:
