@@ -120,8 +120,8 @@ def test_a_lockstep_tick_reads_its_answers_itself_and_an_sdo_between_ticks_is_an
         bench_process):
     """Lockstep over socketcand (`protocols.canbus.cycle_reads`): once the receive thread has
     let go of the socket (the first ticks), the TPDOs reach their handler in the ticking
-    thread (at least 95 %: a tick longer than the lease, on a loaded machine, finds the
-    receive thread on the socket and is answered through it); an SDO upload between ticks,
+    thread (at least 95 %: a tick that comes more than the lease after the last, on a loaded
+    machine, finds the receive thread on the socket and is answered through it); an SDO upload between ticks,
     which no tick reads, is answered by the receive thread once the lease ends
     (`READS_LEASE_S`), within 0.3 s; the ticks after it read their answers themselves
     again."""

@@ -668,7 +668,8 @@ def bench_session(config, span_s: float = 10.0, progress: bool = True,
     from feedbench.bench import run_config
 
     qt_app()
-    config = replace(config, bench={**config.bench, "one_thread": False})  # see `one_thread`
+    config = replace(config, bench={**config.bench, "one_thread": False},  # see `one_thread`
+                     raw={**config.raw, "bench": {**config.raw["bench"], "one_thread": False}})
     stream, stop = LiveStream(), StopRequest()
     result = live_result_for(config.plan.experiment)
     observers = [stream, *([result] if result else [])]

@@ -462,13 +462,16 @@ class SocketcandBus(SocketCanDaemonBus):
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         """The next frame received, waiting up to `timeout` s for the server (None: no
-        limit) if none is waiting; nothing while a cycle holds the reads, or while its lease
-        runs and no frame is waiting, after waiting up to `timeout` s (`_wait_for_reads`)."""
+        limit) if none is waiting. While a cycle's lease runs, only what already came (the
+        rest of an answer the cycle left to this thread): nothing there, or a cycle holding
+        the reads, and it returns nothing after waiting up to `timeout` s
+        (`_wait_for_reads`)."""
         if self._reading.acquire(blocking=False):
             try:
-                if self._frames or self._leased_until <= time.monotonic():
-                    if not self._frames:
-                        self._receive(timeout)
+                leased = self._leased_until > time.monotonic()
+                if not self._frames:
+                    self._receive(0.0 if leased else timeout)
+                if self._frames or not leased:
                     return (self._frames.popleft() if self._frames else None), False
             finally:
                 self._reading.release()
