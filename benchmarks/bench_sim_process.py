@@ -108,7 +108,7 @@ def host_bus_options(options: dict) -> Iterator[None]:
     """While inside, a host `Bench` opens its bus with `options` (a simulated one's
     `DirectVirtualBus` for a host that is not simulated itself)."""
     saved = feedbench.bench._bus_options
-    feedbench.bench._bus_options = lambda cfg: dict(options)
+    feedbench.bench._bus_options = lambda cfg, devices=None: dict(options)
     try:
         yield
     finally:

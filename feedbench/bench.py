@@ -85,11 +85,12 @@ BENCH_SCHEMA = {
                           positive),
     "one_core": Field(bool, True, "simulated lockstep bench: its threads on one CPU "
                       "(faster, same results; `feedbench.daq.clock.one_core`)"),
-    "one_thread": Field(bool, True, "simulated lockstep bench on the virtual bus: each CAN "
-                        "frame handled in its sender's thread, no receive threads (faster, "
-                        "same results; `protocols.canbus.DirectVirtualBus`); the live window "
-                        "turns it off: a run that never waits for its bus leaves the window "
-                        "few chances to draw"),
+    "one_thread": Field(bool, True, "simulated lockstep bench on the virtual bus, a run "
+                        "needing no device besides the drives: each CAN frame handled in its "
+                        "sender's thread, no receive threads (faster, same results; "
+                        "`protocols.canbus.DirectVirtualBus`); the live window turns it off: "
+                        "a run that never waits for its bus leaves the window few chances "
+                        "to draw"),
     "eds": Field(str, "", "EDS file of the drive (empty: the packaged simulated drive's)"),
     "name": Field(str, "", "the bench's name in the run catalog and the lab's store (empty: "
                   "$FEEDBENCH_BENCH, else the host's name; the environment's wins: "
@@ -292,12 +293,16 @@ def gains_si(table: Mapping[str, Any]) -> dict[str, float]:
     return out
 
 
-def _bus_options(cfg: Mapping[str, Any]) -> dict[str, Any]:
+def _bus_options(cfg: Mapping[str, Any],
+                 devices: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """python-can options beyond interface and channel: a socketcand server's host and port;
-    ``direct`` for a simulated lockstep bench on the virtual bus (``one_thread``: each frame
-    handled in its sender's thread, `protocols.canbus.DirectVirtualBus`)."""
+    ``direct`` for a simulated lockstep bench on the virtual bus whose run needs no device
+    besides the drives (``one_thread``: each frame handled in its sender's thread,
+    `protocols.canbus.DirectVirtualBus`). A device's own threads (the DAQ's reader, the
+    Modbus server) would get the interpreter only when the cycle's thread is made to give
+    it up: an SMFE row of the fault matrix aborted early once in a whole suite."""
     if cfg["interface"] == "virtual":
-        return {"direct": True} if (cfg["one_thread"] and cfg["simulated"]
+        return {"direct": True} if (cfg["one_thread"] and cfg["simulated"] and not devices
                                     and cfg["clock"] == "lockstep") else {}
     if cfg["interface"] != "socketcand":
         return {}
@@ -355,7 +360,7 @@ class Bench:
         try:
             if cfg["one_core"] and cfg["simulated"] and cfg["clock"] == "lockstep":
                 self._stack.enter_context(one_core())  # first: every thread below inherits it
-            bus_options = _bus_options(cfg)
+            bus_options = _bus_options(cfg, tables)
             if cfg["simulated"]:
                 _say_hardware_gaps(tables)
                 self.simulated = axis.start_simulated(cycle_s, bus_options, tables)

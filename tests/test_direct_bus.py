@@ -113,3 +113,11 @@ def test_a_run_records_the_same_samples_in_one_thread_or_with_receive_threads(
     assert ours.keys() == theirs.keys() and len(ours) > 5
     for name in ours:
         np.testing.assert_array_equal(ours[name], theirs[name], err_msg=name)
+
+
+def test_a_run_with_a_device_of_its_own_keeps_the_receive_threads(simulated_bench):
+    """A run that needs a device besides the drive (the impact hammer's DAQ, on a serial
+    line with its own reader thread) opens queued buses with receive threads: that thread
+    would get the interpreter only when the cycle's thread is made to give it up."""
+    with simulated_bench.open(example_config("impact_hammer")) as bench:
+        assert type(bench.network.bus) is LocalVirtualBus and bench.network.notifier is not None

@@ -353,11 +353,12 @@ class DirectVirtualBus(LocalVirtualBus):
     """A `LocalVirtualBus` whose frames, once a canopen network listens on it (`listen`,
     called by `connect`), go to the network's listeners in the sending thread instead of a
     queue and a receive thread. A simulated lockstep `Bench` in one process opens both its
-    host and its simulated nodes on such buses (``direct`` in `open_bus`): a cycle's RPDOs
+    host and its simulated nodes on such buses when its run needs no device besides the
+    drives (``direct`` in `open_bus`, ``one_thread`` in `feedbench.bench`): a cycle's RPDOs
     and SYNC run the drive and its world in the host's thread, and the TPDOs they send
     complete the host's set before the SYNC's send returns; two thread hand-overs a cycle
-    fewer. The ten demo runs took 38.6 → 33.0 s of CPU with every recorded sample the same
-    (SHA-1 of every dataset, 29 Nov 2026). Buses on the channel that do not listen (a
+    fewer. The demo's runs took 10–25 % less CPU each with every recorded sample the same
+    (SHA-1 of every dataset, 29 Nov 2026; all ten direct then, 38.6 → 33.0 s). Buses on the channel that do not listen (a
     faulty bus, python-can's `VirtualBus`) queue their frames as before; so do the buses
     of a bench with ``one_thread = false`` (the live window's: a run that never waits for
     its bus leaves the window's thread few chances to draw). A handler of a
