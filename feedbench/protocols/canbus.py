@@ -56,8 +56,8 @@ SOCKETCAND_PENDING_BYTES = 200
 SOCKETCAND_LOGGER = logging.getLogger("can.interfaces.socketcand")
 """python-can's socketcand logger (silenced by `open_bus`: a warning per frame)."""
 DIRECT_LOGGER = logging.getLogger("can.interfaces.virtual")
-"""Where a `DirectVirtualBus` logs a listener's error (python-can's Notifier would raise it
-in its thread)."""
+"""Where a listener's error is logged when a frame is handed on in its sender's or the
+cycle's thread (`DirectVirtualBus`, `cycle_reads`), not by a receive thread."""
 SOCKETCAND_HEX = [b"%x" % value for value in range(256)]
 """A data byte as python-can writes it in ``< send … >``: lower-case hex, no leading zero."""
 READS_LEASE_S = 0.01
@@ -358,13 +358,14 @@ class DirectVirtualBus(LocalVirtualBus):
     and SYNC run the drive and its world in the host's thread, and the TPDOs they send
     complete the host's set before the SYNC's send returns; two thread hand-overs a cycle
     fewer. The demo's runs took 10–25 % less CPU each with every recorded sample the same
-    (SHA-1 of every dataset, 29 Nov 2026; all ten direct then, 38.6 → 33.0 s). Buses on the channel that do not listen (a
-    faulty bus, python-can's `VirtualBus`) queue their frames as before; so do the buses
-    of a bench with ``one_thread = false`` (the live window's: a run that never waits for
-    its bus leaves the window's thread few chances to draw). A handler of a
-    listening network therefore runs while its sender holds its own network's send lock:
-    it must not send on the network it listens on, nor wait for a frame (none does: they
-    record what came, and the simulated nodes answer on their own network)."""
+    (SHA-1 of every dataset, 29 Nov 2026; all ten direct then, 38.6 → 33.0 s).
+
+    Buses on the channel that do not listen (a faulty bus, python-can's `VirtualBus`) queue
+    their frames as before; so do the buses of a bench with ``one_thread = false`` (the live
+    window's: a run that never waits for its bus leaves the window's thread few chances to
+    draw). A handler of a listening network runs while its sender holds its own network's
+    send lock: it must not send on the network it listens on, nor wait for a frame (none
+    does: they record what came, and the simulated nodes answer on their own network)."""
 
     def listen(self, listeners: list[can.Listener]) -> None:
         """From now on hand every frame to `listeners` as it is sent; frames queued before
@@ -517,9 +518,8 @@ class SocketcandBus(SocketCanDaemonBus):
                 self._poll(min(timeout_s, ANSWER_POLL_S))
                 self._receive(max(timeout_s, 0.0))
             except can.CanOperationError:
-                self._claimed = False
+                self.release_reads()
                 self._leased_until = 0.0
-                self._reading.release()
                 return False
         while frames:
             deliver(frames.popleft())
