@@ -1,18 +1,22 @@
 """What both ends of a link share (`feedbench.protocols`): one address parser, one CiA 402
 object table."""
 
+import io
+import shutil
 import threading
 
 import can
+import canopen
 import pytest
+from canopen.objectdictionary.eds import export_eds
 from canopen.profiles.p402 import State402
 
 from feedbench.config import ConfigError
 from feedbench.drivers.cia402 import PdoConfig, controlword_towards, decode_state
 from feedbench.protocols import cia301, cia402
 from feedbench.protocols.address import split_address
-from feedbench.protocols.canbus import LocalVirtualBus, SendBatch, open_bus
-from feedbench.sim_backends import eds
+from feedbench.protocols.canbus import LocalVirtualBus, SendBatch, import_eds, open_bus
+from feedbench.sim_backends import eds, rack_pinion
 
 
 @pytest.mark.parametrize("address, expected", [
@@ -194,3 +198,40 @@ def test_a_batch_left_by_an_exception_flushes_what_was_sent_and_raises_it():
             raise KeyError("boom")
     assert flushed == [[1, 2]]
     assert not batches.hold(3)
+
+
+def _eds_text(od) -> str:
+    """An object dictionary written as EDS text (canopen's exporter, fixed file info)."""
+    stream = io.StringIO()
+    export_eds(od, stream, file_info={"CreationDate": "01-01-2025", "CreationTime": "12:00PM",
+                                      "ModificationDate": "01-01-2025",
+                                      "ModificationTime": "12:00PM"})
+    return stream.getvalue()
+
+
+@pytest.mark.parametrize("path", [eds.packaged_eds_path(), rack_pinion.packaged_eds_path()],
+                         ids=["lab", "rack_pinion"])
+def test_an_eds_read_again_is_canopens_parse_in_objects_of_its_own(path):
+    """`import_eds` gives what `canopen.import_od` gives (every entry, COB-IDs resolved for
+    the node), each call its own objects: a change to one drive's dictionary is nobody
+    else's."""
+    first, again = import_eds(path, 5), import_eds(path, 5)
+    assert _eds_text(first) == _eds_text(again) == _eds_text(canopen.import_od(str(path), 5))
+    assert first is not again and first[cia402.CONTROLWORD] is not again[cia402.CONTROLWORD]
+    first[cia402.CONTROLWORD].default = 0x1234
+    assert import_eds(path, 5)[cia402.CONTROLWORD].default != 0x1234
+    assert _eds_text(import_eds(path, 6)) == _eds_text(canopen.import_od(str(path), 6))
+
+
+def test_an_eds_file_changed_on_disk_is_read_anew(tmp_path):
+    """A new version of the file (another size or modification time) is parsed again; a
+    missing file is the error `canopen.import_od` raises."""
+    path = tmp_path / "drive.eds"
+    shutil.copy(eds.packaged_eds_path(), path)
+    assert import_eds(path, 1)["Statusword"].name == "Statusword"
+    path.write_text(path.read_text().replace("ParameterName=Statusword",
+                                             "ParameterName=Status word"))
+    assert "Status word" in import_eds(path, 1).names
+    path.unlink()
+    with pytest.raises(FileNotFoundError, match="drive.eds"):
+        import_eds(path, 1)

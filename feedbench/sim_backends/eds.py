@@ -16,11 +16,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, ObjectDictionary, datatypes
 from canopen.objectdictionary.eds import export_eds
 
 from feedbench.protocols import cia301
+from feedbench.protocols.canbus import import_eds
 from feedbench.protocols.cia402 import (
     ABORT_CONNECTION_OPTION_CODE, CONTROLWORD, FAULT_REACTION_OPTION_CODE, FAULT_REACTIONS,
     QUICK_STOP_OPTIONS, STOP_QUICK_RAMP, CSV, CYCLE_COUNTER, DEFAULT_RPDO_MAPS,
@@ -250,8 +250,9 @@ def export(path: Path | str, extra: Sequence[Entry] = (),
 
 
 def load(node_id: int, path: Path | str | None = None) -> ObjectDictionary:
-    """Import the EDS (packaged by default) with COB-IDs resolved for `node_id`."""
-    return canopen.import_od(str(path or packaged_eds_path()), node_id)
+    """Import the EDS (packaged by default) with COB-IDs resolved for `node_id`
+    (`protocols.canbus.import_eds`: parsed once per file version and process)."""
+    return import_eds(path or packaged_eds_path(), node_id)
 
 
 if __name__ == "__main__":
