@@ -405,6 +405,33 @@ def test_a_hub_port_is_a_python_can_bus_for_the_nodes_in_the_hub_process(caplog)
         "hub port b1: listener _Answer failed on frame 0x666: ValueError: a listener's bug"]
 
 
+def test_the_hub_polls_for_a_lockstep_hosts_next_cycle_and_sleeps_between_slower_ones():
+    """A host that sends its next frame as soon as the answer came (lockstep: ≈ 0.1 ms on
+    this machine) finds the hub polling for it (`NEXT_CYCLE_POLL_S`); after one cycle that
+    took longer than that (2 ms: a real-time host's pace) the hub sleeps until the next
+    frame. Every frame is answered either way."""
+    with SocketcandHub() as hub:
+        port = can.Bus(interface="feedbench_hub", channel="b1", hub=hub)
+        host = open_bus("socketcand", "b1", host=hub.host, port=hub.port)
+        port.listen([_Answer(port)])
+        try:
+            def cycle(pause_s: float) -> int:
+                time.sleep(pause_s)
+                host.send(can.Message(arbitration_id=0x180, data=b"\x01", is_extended_id=False))
+                return host.recv(1.0).arbitration_id
+
+            polled = []
+            for _ in range(200):
+                assert cycle(0.0) == 0x181
+                polled.append(hub.polls_for_next_cycle)
+            assert any(polled)  # a loaded machine may delay some cycles past the poll
+            assert [cycle(0.002) for _ in range(3)] == [0x181] * 3
+            assert not hub.polls_for_next_cycle
+        finally:
+            port.shutdown()
+            host.shutdown()
+
+
 class _Frames(can.Listener):
     """Keeps every frame a port gives it."""
 

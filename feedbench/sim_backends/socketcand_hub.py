@@ -55,6 +55,13 @@ CANOPEN_LOGGER = logging.getLogger("canopen.network")
 logs one there as it would)."""
 JOIN_S = 0.05
 RECEIVE_BYTES = 65536
+NEXT_CYCLE_POLL_S = 300e-6
+"""How long the hub polls for a client's next frames after relaying some, giving the CPU to
+any other thread between looks (`os.sched_yield`), before it sleeps in `select` (s); only
+while the frames have come back within this time of the last relay: a lockstep host's next
+cycle (≈ 0.1 ms after its answers), never a host of 1 ms cycles in real time. A thread
+asleep when its data arrives is woken through the other CPU on this 2-core VM; the host's
+side polls the same way (`protocols.canbus.ANSWER_POLL_S`)."""
 THREAD_TIMEOUT_S = 5.0
 
 
@@ -133,6 +140,10 @@ class SocketcandHub:
         self._listener: socket.socket | None = None
         self._wake_read, self._wake_write = os.pipe()
         self._closing = False
+        self._relayed_at = -float("inf")
+        """When the hub's thread last relayed a client's frames (`time.perf_counter`, s)."""
+        self._poll_after_relay = False
+        """The last frames came within `NEXT_CYCLE_POLL_S` of the relay before them."""
         self._thread = threading.Thread(target=self._serve, name="socketcand-hub", daemon=True)
 
     def start(self) -> tuple[str, int]:
@@ -177,13 +188,30 @@ class SocketcandHub:
     def _serve(self) -> None:
         try:
             while not self._closing:
-                for key, events in self._selector.select(timeout=JOIN_S):
+                for key, events in self._ready():
                     self._dispatch(key.fileobj, events)
         finally:
             for sock in list(self._clients):
                 self._drop(sock)
             self._selector.close()
             self._listener.close()
+
+    @property
+    def polls_for_next_cycle(self) -> bool:
+        """The hub polls for a client's next frames after each relay (`NEXT_CYCLE_POLL_S`):
+        the last ones came within that time of the relay before them."""
+        return self._poll_after_relay
+
+    def _ready(self) -> list[tuple[selectors.SelectorKey, int]]:
+        """The selector's next events: polled for first while a client's frames are expected
+        soon (`NEXT_CYCLE_POLL_S`), then waited for (at most `JOIN_S`)."""
+        if self._poll_after_relay:
+            end = self._relayed_at + NEXT_CYCLE_POLL_S
+            while time.perf_counter() < end:
+                if ready := self._selector.select(timeout=0):
+                    return ready
+                os.sched_yield()
+        return self._selector.select(timeout=JOIN_S)
 
     def _dispatch(self, source, events: int) -> None:
         if source is self._listener:
@@ -299,6 +327,7 @@ class SocketcandHub:
         ports (`HubPort.deliver_frame`); what the ports send meanwhile waits for the end
         (`_holding`)."""
         sender.joined_at = min(sender.joined_at, time.monotonic())
+        self._poll_after_relay = time.perf_counter() - self._relayed_at < NEXT_CYCLE_POLL_S
         stamp = time.time()
         ports = self._fan_out(sender, sender.bus, frames, stamp)
         self._holding = True
@@ -310,6 +339,7 @@ class SocketcandHub:
             self._holding = False
             if self._held:
                 self.flush()
+            self._relayed_at = time.perf_counter()
 
     def flush(self) -> None:
         """Write the frames the ports' answers left waiting (`_holding`) now."""
