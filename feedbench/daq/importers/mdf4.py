@@ -28,7 +28,7 @@ class Mdf4:
         from asammdf import MDF
 
         problem = ""
-        with library_quiet("asammdf"), warnings.catch_warnings():
+        with library_quiet("asammdf") as heard, warnings.catch_warnings():
             warnings.simplefilter("ignore")
             try:
                 mdf = MDF(path)
@@ -39,6 +39,7 @@ class Mdf4:
             except ConfigError:
                 raise
             except Exception as exc:  # asammdf raises many kinds for a foreign or damaged file
+                heard.failed = True
                 text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
                 problem = f"{type(exc).__name__}{': ' + text if text else ''}"
         raise ConfigError(f"{path}: not a readable MDF file ({problem})")
