@@ -10,11 +10,13 @@ PIP_VERSION := 26.3
 # an editable install ("invalid command 'bdist_wheel'"); 70.1 and later build wheels alone
 SETUPTOOLS_VERSION := 80.9.0
 PYTEST_ARGS = -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
-# Python may keep compiled bytecode (__pycache__, git-ignored) even where the environment
-# says not to (PYTHONDONTWRITEBYTECODE, set on this machine): without it every pytest
-# process rewrote and compiled all test modules anew (collection 17.6 → 5.5 s of CPU per
-# worker) and every `feedbench` subprocess of the tests compiled feedbench again
-unexport PYTHONDONTWRITEBYTECODE
+# The tests keep compiled bytecode (__pycache__, git-ignored) even where the environment
+# says not to (PYTHONDONTWRITEBYTECODE, set on this machine; empty counts as unset): without
+# it every pytest process rewrote and compiled all test modules anew (collection 17.6 →
+# 5.5 s of CPU per worker) and every `feedbench` subprocess of the tests compiled feedbench
+# again. (Python's own rule then holds: a file edited to the same size within the second
+# of its last compile runs stale until touched.)
+test test-fast test-lab test-latest: export PYTHONDONTWRITEBYTECODE :=
 
 .PHONY: demo test test-lab test-fast test-latest lock bench bench-suite docs clean
 
@@ -69,7 +71,8 @@ $(LAB_STAMP): $(STAMP) examples/lab_extension/pyproject.toml Makefile
 # directory can corrupt its index, tests/conftest.py)
 LAB_NUMBA = NUMBA_CACHE_DIR=$(abspath .pytest_cache/numba)/$@
 test-lab: $(LAB_STAMP)
-	$(MAKE) -j2 --output-sync=target lab-extension-tests lab-registered-tests
+	$(MAKE) -j2 $(if $(filter output-sync,$(.FEATURES)),--output-sync=target) \
+		lab-extension-tests lab-registered-tests
 
 .PHONY: lab-extension-tests lab-registered-tests
 lab-extension-tests: $(LAB_STAMP)

@@ -2,12 +2,14 @@
 object table."""
 
 import io
+import os
 import shutil
 import threading
 
 import can
 import canopen
 import pytest
+from canopen.objectdictionary import ODVariable
 from canopen.objectdictionary.eds import export_eds
 from canopen.profiles.p402 import State402
 
@@ -217,21 +219,36 @@ def test_an_eds_read_again_is_canopens_parse_in_objects_of_its_own(path):
     else's."""
     first, again = import_eds(path, 5), import_eds(path, 5)
     assert _eds_text(first) == _eds_text(again) == _eds_text(canopen.import_od(str(path), 5))
+    assert first.node_id == canopen.import_od(str(path), 5).node_id
+    assert all(sub.parent is entry for entry in first.values()
+               if not isinstance(entry, ODVariable) for sub in entry.values())
+    assert all(first.names[entry.name] is first.indices[entry.index] for entry in first.values())
     assert first is not again and first[cia402.CONTROLWORD] is not again[cia402.CONTROLWORD]
     first[cia402.CONTROLWORD].default = 0x1234
     assert import_eds(path, 5)[cia402.CONTROLWORD].default != 0x1234
     assert _eds_text(import_eds(path, 6)) == _eds_text(canopen.import_od(str(path), 6))
 
 
-def test_an_eds_file_changed_on_disk_is_read_anew(tmp_path):
-    """A new version of the file (another size or modification time) is parsed again; a
-    missing file is the error `canopen.import_od` raises."""
+def test_an_eds_file_changed_on_disk_is_read_anew(tmp_path, monkeypatch):
+    """A file edited in place is parsed again, even to the same size with its modification
+    time put back (a DCF value changed within the file system's time resolution); a
+    relative path is the file it names from where it was given; a missing file is the
+    error `canopen.import_od` raises."""
     path = tmp_path / "drive.eds"
     shutil.copy(eds.packaged_eds_path(), path)
-    assert import_eds(path, 1)["Statusword"].name == "Statusword"
+    monkeypatch.chdir(tmp_path)
+    assert import_eds("drive.eds", 1)["Statusword"].name == "Statusword"
+    stat = path.stat()
     path.write_text(path.read_text().replace("ParameterName=Statusword",
-                                             "ParameterName=Status word"))
-    assert "Status word" in import_eds(path, 1).names
+                                             "ParameterName=StatusWord"))
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert path.stat().st_size == stat.st_size
+    assert "StatusWord" in import_eds("drive.eds", 1).names
+    other = tmp_path / "elsewhere"
+    other.mkdir()
+    shutil.copy(eds.packaged_eds_path(), other / "drive.eds")
+    monkeypatch.chdir(other)
+    assert "Statusword" in import_eds("drive.eds", 1).names
     path.unlink()
     with pytest.raises(FileNotFoundError, match="drive.eds"):
         import_eds(path, 1)

@@ -47,7 +47,7 @@ import can
 from canopen.network import MessageListener
 
 from feedbench.protocols.address import LOOPBACK
-from feedbench.protocols.canbus import SendBatch, socketcand_messages
+from feedbench.protocols.canbus import SendBatch, polled, socketcand_messages
 
 LOGGER = logging.getLogger(__name__)
 CANOPEN_LOGGER = logging.getLogger("canopen.network")
@@ -56,12 +56,15 @@ logs one there as it would)."""
 JOIN_S = 0.05
 RECEIVE_BYTES = 65536
 NEXT_CYCLE_POLL_S = 300e-6
-"""How long the hub polls for a client's next frames after relaying some, giving the CPU to
-any other thread between looks (`os.sched_yield`), before it sleeps in `select` (s); only
-while the frames have come back within this time of the last relay: a lockstep host's next
-cycle (≈ 0.1 ms after its answers), never a host of 1 ms cycles in real time. A thread
-asleep when its data arrives is woken through the other CPU on this 2-core VM; the host's
-side polls the same way (`protocols.canbus.ANSWER_POLL_S`)."""
+"""How long the hub polls for a client's next frames after relaying some that its ports
+answered, giving the CPU to any other thread between looks (`protocols.canbus.polled`),
+before it sleeps in `select` (s); only while the frames came within this time of the relay
+before them: a lockstep host's next cycle (its RPDOs and SYNC ≈ 0.1 ms after the drive's
+answers), not a real-time host (its RPDOs come soon after the TPDOs but are not answered;
+its next SYNC comes ≈ 0.7 ms later). The host's side polls the same way
+(`protocols.canbus.ANSWER_POLL_S`). With every device served, quiet: 5201 / 5403 → 7329 /
+7091 cycles/s (median of 5, two A/B runs, 30 Nov); with another process burning one CPU
+3513 → 3239."""
 THREAD_TIMEOUT_S = 5.0
 
 
@@ -143,7 +146,8 @@ class SocketcandHub:
         self._relayed_at = -float("inf")
         """When the hub's thread last relayed a client's frames (`time.perf_counter`, s)."""
         self._poll_after_relay = False
-        """The last frames came within `NEXT_CYCLE_POLL_S` of the relay before them."""
+        """The last frames the ports answered came within `NEXT_CYCLE_POLL_S` of the relay
+        before them."""
         self._thread = threading.Thread(target=self._serve, name="socketcand-hub", daemon=True)
 
     def start(self) -> tuple[str, int]:
@@ -198,19 +202,16 @@ class SocketcandHub:
 
     @property
     def polls_for_next_cycle(self) -> bool:
-        """The hub polls for a client's next frames after each relay (`NEXT_CYCLE_POLL_S`):
-        the last ones came within that time of the relay before them."""
+        """The hub polls for a client's next frames now (`NEXT_CYCLE_POLL_S`): the last ones
+        were answered by its ports and came within that time of the relay before them."""
         return self._poll_after_relay
 
     def _ready(self) -> list[tuple[selectors.SelectorKey, int]]:
         """The selector's next events: polled for first while a client's frames are expected
         soon (`NEXT_CYCLE_POLL_S`), then waited for (at most `JOIN_S`)."""
-        if self._poll_after_relay:
-            end = self._relayed_at + NEXT_CYCLE_POLL_S
-            while time.perf_counter() < end:
-                if ready := self._selector.select(timeout=0):
-                    return ready
-                os.sched_yield()
+        if self._poll_after_relay and (ready := polled(
+                lambda: self._selector.select(timeout=0), self._relayed_at + NEXT_CYCLE_POLL_S)):
+            return ready
         return self._selector.select(timeout=JOIN_S)
 
     def _dispatch(self, source, events: int) -> None:
@@ -327,7 +328,7 @@ class SocketcandHub:
         ports (`HubPort.deliver_frame`); what the ports send meanwhile waits for the end
         (`_holding`)."""
         sender.joined_at = min(sender.joined_at, time.monotonic())
-        self._poll_after_relay = time.perf_counter() - self._relayed_at < NEXT_CYCLE_POLL_S
+        soon = time.perf_counter() - self._relayed_at < NEXT_CYCLE_POLL_S
         stamp = time.time()
         ports = self._fan_out(sender, sender.bus, frames, stamp)
         self._holding = True
@@ -337,6 +338,7 @@ class SocketcandHub:
                     port.deliver_frame(can_id, extended, data, stamp)
         finally:
             self._holding = False
+            self._poll_after_relay = soon and bool(self._held)
             if self._held:
                 self.flush()
             self._relayed_at = time.perf_counter()
