@@ -10,13 +10,13 @@ PIP_VERSION := 26.3
 # an editable install ("invalid command 'bdist_wheel'"); 70.1 and later build wheels alone
 SETUPTOOLS_VERSION := 80.9.0
 PYTEST_ARGS = -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
-# The tests keep compiled bytecode (__pycache__, git-ignored) even where the environment
-# says not to (PYTHONDONTWRITEBYTECODE, set on this machine; empty counts as unset): without
-# it every pytest process rewrote and compiled all test modules anew (collection 17.6 →
-# 5.5 s of CPU per worker) and every `feedbench` subprocess of the tests compiled feedbench
-# again. (Python's own rule then holds: a file edited to the same size within the second
-# of its last compile runs stale until touched.)
-test test-fast test-lab test-latest: export PYTHONDONTWRITEBYTECODE :=
+# The tests and the demo keep compiled bytecode (__pycache__, git-ignored) even where the
+# environment says not to (PYTHONDONTWRITEBYTECODE, set on this machine; empty counts as
+# unset): without it every pytest process rewrote and compiled all test modules anew
+# (collection 17.6 → 5.5 s of CPU per worker) and every `feedbench` subprocess of the tests
+# compiled feedbench again. (Python's own rule then holds: a file edited to the same size
+# within the second of its last compile runs stale until touched.)
+demo test test-fast test-lab test-latest: export PYTHONDONTWRITEBYTECODE :=
 
 .PHONY: demo test test-lab test-fast test-latest lock bench bench-suite docs clean
 
