@@ -406,15 +406,18 @@ def test_a_hub_port_is_a_python_can_bus_for_the_nodes_in_the_hub_process(caplog)
 
 
 class _AnswerSync(can.Listener):
-    """Answers a SYNC (0x080) at once, as a drive does with its TPDO (0x181); keeps quiet on
-    anything else (an RPDO)."""
+    """Answers a SYNC (0x080) at once, as a drive does with its TPDO (0x181), and has the
+    hub write it before the rest of the cycle (`SocketcandHub.flush`, as
+    `process.SimulatedBench` does before the instruments step); keeps quiet on anything
+    else (an RPDO)."""
 
-    def __init__(self, port: can.BusABC) -> None:
-        self.port = port
+    def __init__(self, port: can.BusABC, hub: SocketcandHub) -> None:
+        self.port, self.hub = port, hub
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.arbitration_id == 0x080:
             self.port.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))
+            self.hub.flush()
 
 
 def _frame(can_id: int) -> can.Message:
@@ -432,7 +435,7 @@ def test_the_hub_polls_for_a_lockstep_hosts_next_cycle_and_sleeps_between_real_t
     with SocketcandHub() as hub:
         port = can.Bus(interface="feedbench_hub", channel="b1", hub=hub)
         host = open_bus("socketcand", "b1", host=hub.host, port=hub.port)
-        port.listen([_AnswerSync(port)])
+        port.listen([_AnswerSync(port, hub)])
         looks = []
         select = hub._selector.select
         monkeypatch.setattr(hub._selector, "select",

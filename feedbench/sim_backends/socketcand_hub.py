@@ -140,6 +140,8 @@ class SocketcandHub:
         it waits in the outboxes for `flush()`."""
         self._held: list[_Client] = []
         """Clients with frames waiting for `flush()`."""
+        self._answered = False
+        """The ports answered the frames being delivered (held or already flushed)."""
         self._listener: socket.socket | None = None
         self._wake_read, self._wake_write = os.pipe()
         self._closing = False
@@ -331,14 +333,14 @@ class SocketcandHub:
         soon = time.perf_counter() - self._relayed_at < NEXT_CYCLE_POLL_S
         stamp = time.time()
         ports = self._fan_out(sender, sender.bus, frames, stamp)
-        self._holding = True
+        self._holding, self._answered = True, False
         try:
             for can_id, extended, data in frames:
                 for port in ports:
                     port.deliver_frame(can_id, extended, data, stamp)
         finally:
             self._holding = False
-            self._poll_after_relay = soon and bool(self._held)
+            self._poll_after_relay = soon and self._answered
             if self._held:
                 self.flush()
             self._relayed_at = time.perf_counter()
@@ -357,8 +359,10 @@ class SocketcandHub:
             client.outbox += text
             if not (self._holding and threading.get_ident() == self._thread.ident):
                 self._flush(client)
-            elif client not in self._held:
-                self._held.append(client)
+            else:
+                self._answered = True
+                if client not in self._held:
+                    self._held.append(client)
 
     def _flush(self, client: _Client) -> None:
         """Write what the socket takes of the outbox; watch for writability while some is
