@@ -38,9 +38,9 @@ demo: $(STAMP)
 	@s=$$(cat $(STAMP)); echo "Set-up of this clone (venv + pip install, once):" \
 		"$${s:-not timed}$${s:+ s}; the first demo also compiles the physics (numba, cached)"
 
-# two xdist workers, whole files each, slowest files first (tests/conftest.py): 1437 tests
-# in 5 min 55 s on this 2-core machine, quiet (29 Nov, late evening; all of `make test`
-# 6 min 31–36 s; `make bench-suite` times it)
+# two xdist workers, whole files each, slowest files first (tests/conftest.py): 1450 tests
+# in 5 min 38–53 s on this 2-core machine, quiet (30 Nov; all of `make test` 5 min 58 s
+# to 6 min 25 s, 7 min 50 s beside a process burning one CPU; `make bench-suite` times it)
 # then the real-time tests alone (marked realtime): a host loop starved by the other
 # worker's CPU is what they measure against, not what they may run beside; only the files
 # that mark a test realtime are collected for them (collecting the whole suite to deselect
