@@ -406,26 +406,28 @@ def test_a_hub_port_is_a_python_can_bus_for_the_nodes_in_the_hub_process(caplog)
 
 
 class _AnswerSync(can.Listener):
-    """Answers a SYNC (0x080) at once, as a drive does with its TPDO (0x181), and has the
-    hub write it before the rest of the cycle (`SocketcandHub.flush`, as
-    `process.SimulatedBench` does before the instruments step); keeps quiet on anything
-    else (an RPDO)."""
+    """Answers a SYNC (0x080) at once, as a drive does with its TPDO (0x181); `flush`: has
+    the hub write it before the rest of the cycle (`SocketcandHub.flush`, as
+    `process.SimulatedBench` does before the instruments step), else the hub writes it as
+    the relay ends; keeps quiet on anything else (an RPDO)."""
 
-    def __init__(self, port: can.BusABC, hub: SocketcandHub) -> None:
+    def __init__(self, port: can.BusABC, hub: SocketcandHub | None) -> None:
         self.port, self.hub = port, hub
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.arbitration_id == 0x080:
             self.port.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))
-            self.hub.flush()
+            if self.hub is not None:
+                self.hub.flush()
 
 
 def _frame(can_id: int) -> can.Message:
     return can.Message(arbitration_id=can_id, data=b"\x01", is_extended_id=False)
 
 
+@pytest.mark.parametrize("flush_early", [True, False], ids=["flushed_early", "flushed_at_end"])
 def test_the_hub_polls_for_a_lockstep_hosts_next_cycle_and_sleeps_between_real_time_ones(
-        monkeypatch):
+        monkeypatch, flush_early):
     """A lockstep host sends its next cycle (RPDO and SYNC at once) as soon as the drive's
     answer came (≈ 0.1 ms on this machine): the hub polls for it (`NEXT_CYCLE_POLL_S`,
     selects without a timeout). A real-time host answers the TPDO with its RPDO as quickly
@@ -435,7 +437,7 @@ def test_the_hub_polls_for_a_lockstep_hosts_next_cycle_and_sleeps_between_real_t
     with SocketcandHub() as hub:
         port = can.Bus(interface="feedbench_hub", channel="b1", hub=hub)
         host = open_bus("socketcand", "b1", host=hub.host, port=hub.port)
-        port.listen([_AnswerSync(port, hub)])
+        port.listen([_AnswerSync(port, hub if flush_early else None)])
         looks = []
         select = hub._selector.select
         monkeypatch.setattr(hub._selector, "select",

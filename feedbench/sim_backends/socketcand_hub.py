@@ -64,7 +64,9 @@ answers), not a real-time host (its RPDOs come soon after the TPDOs but are not 
 its next SYNC comes ≈ 0.7 ms later). The host's side polls the same way
 (`protocols.canbus.ANSWER_POLL_S`). With every device served, quiet: 5201 / 5403 → 7329 /
 7091 cycles/s (median of 5, two A/B runs, 30 Nov); with another process burning one CPU
-3513 → 3239."""
+3513 → 3239. Only for ports that answer in the hub's thread: a port wrapped for fault
+injection (`faults.FaultyBus`) is answered from canopen's receive thread, and the hub then
+sleeps between cycles as before."""
 THREAD_TIMEOUT_S = 5.0
 
 
@@ -141,15 +143,17 @@ class SocketcandHub:
         self._held: list[_Client] = []
         """Clients with frames waiting for `flush()`."""
         self._answered = False
-        """The ports answered the frames being delivered (held or already flushed)."""
+        """Set by `_send` when the hub's thread, while `_holding`, queues a port's answer for a
+        TCP client (an early `flush()` leaves it set); reset as each `_relay` delivers (after
+        the sender's frames went to the other clients)."""
         self._listener: socket.socket | None = None
         self._wake_read, self._wake_write = os.pipe()
         self._closing = False
         self._relayed_at = -float("inf")
         """When the hub's thread last relayed a client's frames (`time.perf_counter`, s)."""
         self._poll_after_relay = False
-        """The last frames the ports answered came within `NEXT_CYCLE_POLL_S` of the relay
-        before them."""
+        """The last relay's frames were answered by the ports (`_answered`) and came within
+        `NEXT_CYCLE_POLL_S` of the relay before them."""
         self._thread = threading.Thread(target=self._serve, name="socketcand-hub", daemon=True)
 
     def start(self) -> tuple[str, int]:
