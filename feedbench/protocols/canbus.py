@@ -403,6 +403,16 @@ class _Deliver:
                                     type(error).__name__, error)
 
 
+def polled(look: Callable[[], Any], until_s: float) -> Any:
+    """`look()` until it returns something true or `time.perf_counter()` passes `until_s`,
+    giving the CPU to any other thread between looks (`os.sched_yield`) instead of
+    sleeping; its last result. A thread asleep when its data arrives is woken through the
+    other CPU on this 2-core VM (`ANSWER_POLL_S`, `socketcand_hub.NEXT_CYCLE_POLL_S`)."""
+    while not (found := look()) and time.perf_counter() < until_s:
+        os.sched_yield()
+    return found
+
+
 class SocketcandBus(SocketCanDaemonBus):
     """python-can's socketcand bus (its connection and handshake, the same text on the
     wire), with two changes:
@@ -805,16 +815,6 @@ def _parsed_eds(path: str, node_id: int, digest: bytes) -> bytes:
     """The pickled object dictionary of one content (`digest`) of an EDS file
     (`import_eds`)."""
     return pickle.dumps(canopen.import_od(path, node_id))
-
-
-def polled(look: Callable[[], Any], until_s: float) -> Any:
-    """`look()` until it returns something true or `time.perf_counter()` passes `until_s`,
-    giving the CPU to any other thread between looks (`os.sched_yield`) instead of
-    sleeping; its last result. A thread asleep when its data arrives is woken through the
-    other CPU on this 2-core VM (`ANSWER_POLL_S`, `socketcand_hub.NEXT_CYCLE_POLL_S`)."""
-    while not (found := look()) and time.perf_counter() < until_s:
-        os.sched_yield()
-    return found
 
 
 def remote_node(network: canopen.Network, node_id: int,

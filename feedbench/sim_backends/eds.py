@@ -251,7 +251,7 @@ def export(path: Path | str, extra: Sequence[Entry] = (),
 
 def load(node_id: int, path: Path | str | None = None) -> ObjectDictionary:
     """Import the EDS (packaged by default) with COB-IDs resolved for `node_id`
-    (`protocols.canbus.import_eds`: parsed once per file version and process)."""
+    (`protocols.canbus.import_eds`: parsed once per file content and process)."""
     return import_eds(path or packaged_eds_path(), node_id)
 
 
